@@ -1,0 +1,1 @@
+"""The emulated star tracker: device shell and detection-to-attitude pipeline."""

@@ -1,0 +1,1 @@
+"""Ground side: catalogs, serial client and console, simulations and analyses."""

@@ -1,0 +1,1 @@
+"""Wire and file formats shared by device and ground. Pure code, no I/O."""
