@@ -1,0 +1,219 @@
+"""Pinhole camera with Brown-Conrady radial and tangential distortion.
+
+Conventions (docs/CONVENTIONS.md):
+
+* Sensor frame: +z boresight (toward the sky), +x along increasing column, +y along
+  increasing row. A sensor-frame direction ``v`` maps to ideal normalised coordinates
+  ``(u, w) = (v_x / v_z, v_y / v_z)``.
+* Pixel coordinates: ``x`` = column, ``y`` = row, zero-based, the centre of pixel
+  ``(row r, col c)`` is at ``(x, y) = (c, r)``; the array spans ``[-0.5, W - 0.5)``.
+* Distortion (Brown-Conrady, as in Heikkila & Silven 1997), applied to ideal normalised
+  coordinates with ``r^2 = u^2 + w^2``::
+
+      radial = 1 + k1 r^2 + k2 r^4 + k3 r^6
+      u_d = u radial + 2 p1 u w + p2 (r^2 + 2 u^2)
+      w_d = w radial + p1 (r^2 + 2 w^2) + 2 p2 u w
+      x = cx + f u_d,  y = cy + f w_d
+
+  ``f`` is the focal length in pixels (square pixels), ``(cx, cy)`` the principal point
+  in pixels. ``pixel_to_vector`` inverts the distortion by Newton iteration to better
+  than 1e-6 px over the array.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+
+#: Reference design of seed 000 section 2: MT9P031-class 2592 x 1944 array, 2.2 um pixels.
+REFERENCE_WIDTH = 2592
+REFERENCE_HEIGHT = 1944
+REFERENCE_PIXEL_UM = 2.2
+REFERENCE_HALF_FOV_MINOR_DEG = 7.5
+
+_NEWTON_MAX_ITER = 30
+_NEWTON_TOL = 1e-12  # normalised units; f ~ 7e3 px => ~1e-8 px
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Camera intrinsics: array size (px), focal length ``f`` (px), principal point
+    ``(cx, cy)`` (px), radial ``k1, k2, k3`` and tangential ``p1, p2`` coefficients
+    (dimensionless, on normalised coordinates)."""
+
+    width: int
+    height: int
+    f: float
+    cx: float
+    cy: float
+    k1: float = 0.0
+    k2: float = 0.0
+    k3: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+
+    def __post_init__(self):
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise ValueError(f"camera array size must be positive, got {self.width} x {self.height}")
+        if not np.isfinite(self.f) or self.f <= 0:
+            raise ValueError(f"focal length must be a positive number of pixels, got {self.f}")
+        for name in ("cx", "cy", "k1", "k2", "k3", "p1", "p2"):
+            if not np.isfinite(getattr(self, name)):
+                raise ValueError(f"camera parameter {name} must be finite")
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+
+    # ---------------------------------------------------------------- constructors
+    @classmethod
+    def from_fov(cls, width: int, height: int, half_fov_minor_deg: float, **distortion) -> "CameraModel":
+        """Distortion-free camera whose half field of view across the minor axis (from the
+        array centre to the outer edge of the edge pixels) is ``half_fov_minor_deg``."""
+        if not 0.0 < half_fov_minor_deg < 90.0:
+            raise ValueError(f"half field of view must be in (0, 90) deg, got {half_fov_minor_deg}")
+        half_extent = min(width, height) / 2.0
+        f = half_extent / np.tan(np.radians(half_fov_minor_deg))
+        return cls(width, height, float(f), (width - 1) / 2.0, (height - 1) / 2.0, **distortion)
+
+    @classmethod
+    def from_focal(cls, width: int, height: int, focal_mm: float, pixel_um: float, **distortion) -> "CameraModel":
+        """Camera from a focal length in mm and a pixel pitch in micrometres; principal
+        point at the array centre."""
+        if focal_mm <= 0 or pixel_um <= 0:
+            raise ValueError("focal length and pixel pitch must be positive")
+        f = focal_mm * 1000.0 / pixel_um
+        return cls(width, height, float(f), (width - 1) / 2.0, (height - 1) / 2.0, **distortion)
+
+    @classmethod
+    def reference_design(cls) -> "CameraModel":
+        """Seed 000 reference design: 2592 x 1944, 7.5 deg half FOV on the minor axis
+        (f = 972 / tan 7.5 deg = 7383.1 px, i.e. 16.24 mm at 2.2 um)."""
+        return cls.from_fov(REFERENCE_WIDTH, REFERENCE_HEIGHT, REFERENCE_HALF_FOV_MINOR_DEG)
+
+    def to_dict(self) -> dict:
+        """Plain JSON-serialisable dict of the parameters."""
+        return {k: (int(v) if k in ("width", "height") else float(v)) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "CameraModel":
+        """Inverse of ``to_dict``; unknown keys are an error, missing distortion terms default to 0."""
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown camera model keys: {sorted(unknown)}")
+        missing = {"width", "height", "f", "cx", "cy"} - set(d)
+        if missing:
+            raise ValueError(f"camera model dict lacks {sorted(missing)}")
+        return cls(**d)
+
+    # ---------------------------------------------------------------- geometry
+    @property
+    def has_distortion(self) -> bool:
+        return any(getattr(self, k) != 0.0 for k in ("k1", "k2", "k3", "p1", "p2"))
+
+    @property
+    def fov_half_angle_minor(self) -> float:
+        """Half field of view (rad) from the principal point to the minor-axis array edge."""
+        return self._edge_half_angle(minor=True)
+
+    @property
+    def fov_half_angle_major(self) -> float:
+        """Half field of view (rad) from the principal point to the major-axis array edge."""
+        return self._edge_half_angle(minor=False)
+
+    @property
+    def fov_half_angle_diagonal(self) -> float:
+        """Largest angle (rad) between the boresight (+z) and any array corner."""
+        xs = np.array([-0.5, self.width - 0.5, -0.5, self.width - 0.5])
+        ys = np.array([-0.5, -0.5, self.height - 0.5, self.height - 0.5])
+        v = self.pixel_to_vector(xs, ys)
+        return float(np.max(np.arccos(np.clip(v[:, 2], -1.0, 1.0))))
+
+    def _edge_half_angle(self, minor: bool) -> float:
+        along_x = (self.width <= self.height) == minor
+        if along_x:
+            xs, ys = np.array([-0.5, self.width - 0.5]), np.array([self.cy, self.cy])
+        else:
+            xs, ys = np.array([self.cx, self.cx]), np.array([-0.5, self.height - 0.5])
+        v = self.pixel_to_vector(xs, ys)
+        return float(np.mean(np.arccos(np.clip(v[:, 2], -1.0, 1.0))))
+
+    def in_frame(self, x, y, margin: float = 0.0) -> np.ndarray:
+        """True where pixel coordinates lie inside the array, ``margin`` px from its edges."""
+        x = np.asarray(x, dtype=float)
+        y = np.asarray(y, dtype=float)
+        return (
+            (x >= -0.5 + margin)
+            & (x < self.width - 0.5 - margin)
+            & (y >= -0.5 + margin)
+            & (y < self.height - 0.5 - margin)
+        )
+
+    # ---------------------------------------------------------------- distortion
+    def distort(self, u, w):
+        """Ideal normalised coordinates -> distorted normalised coordinates."""
+        u = np.asarray(u, dtype=float)
+        w = np.asarray(w, dtype=float)
+        r2 = u * u + w * w
+        radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
+        ud = u * radial + 2.0 * self.p1 * u * w + self.p2 * (r2 + 2.0 * u * u)
+        wd = w * radial + self.p1 * (r2 + 2.0 * w * w) + 2.0 * self.p2 * u * w
+        return ud, wd
+
+    def _distort_jacobian(self, u, w):
+        r2 = u * u + w * w
+        radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
+        drad_dr2 = self.k1 + r2 * (2.0 * self.k2 + 3.0 * self.k3 * r2)
+        drad_du = drad_dr2 * 2.0 * u
+        drad_dw = drad_dr2 * 2.0 * w
+        j11 = radial + u * drad_du + 2.0 * self.p1 * w + 6.0 * self.p2 * u
+        j12 = u * drad_dw + 2.0 * self.p1 * u + 2.0 * self.p2 * w
+        j21 = w * drad_du + 2.0 * self.p1 * u + 2.0 * self.p2 * w
+        j22 = radial + w * drad_dw + 6.0 * self.p1 * w + 2.0 * self.p2 * u
+        return j11, j12, j21, j22
+
+    def undistort(self, ud, wd):
+        """Distorted normalised coordinates -> ideal normalised coordinates (Newton)."""
+        ud = np.asarray(ud, dtype=float)
+        wd = np.asarray(wd, dtype=float)
+        if not self.has_distortion:
+            return ud.copy(), wd.copy()
+        u, w = ud.copy(), wd.copy()
+        for _ in range(_NEWTON_MAX_ITER):
+            fu, fw = self.distort(u, w)
+            eu, ew = fu - ud, fw - wd
+            j11, j12, j21, j22 = self._distort_jacobian(u, w)
+            det = j11 * j22 - j12 * j21
+            du = (j22 * eu - j12 * ew) / det
+            dw = (-j21 * eu + j11 * ew) / det
+            u = u - du
+            w = w - dw
+            if np.all(np.abs(du) + np.abs(dw) < _NEWTON_TOL):
+                break
+        return u, w
+
+    # ---------------------------------------------------------------- projection
+    def pixel_to_vector(self, x, y) -> np.ndarray:
+        """Sensor-frame unit vectors, shape (N, 3), for pixel coordinates (x = column, y = row)."""
+        x = np.atleast_1d(np.asarray(x, dtype=float)).ravel()
+        y = np.atleast_1d(np.asarray(y, dtype=float)).ravel()
+        if x.shape != y.shape:
+            raise ValueError(f"x and y must have the same length, got {x.shape} and {y.shape}")
+        u, w = self.undistort((x - self.cx) / self.f, (y - self.cy) / self.f)
+        v = np.stack([u, w, np.ones_like(u)], axis=-1)
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    def vector_to_pixel(self, v):
+        """Pixel coordinates ``(x, y)`` (arrays of length N) of sensor-frame directions
+        ``v`` (shape (3,) or (N, 3), need not be unit). Directions with ``v_z <= 0`` (behind
+        the camera) give NaN."""
+        v = np.atleast_2d(np.asarray(v, dtype=float))
+        if v.shape[-1] != 3:
+            raise ValueError(f"vectors must have shape (N, 3), got {v.shape}")
+        vz = v[:, 2]
+        front = vz > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.where(front, v[:, 0] / vz, np.nan)
+            w = np.where(front, v[:, 1] / vz, np.nan)
+        ud, wd = self.distort(u, w)
+        return self.cx + self.f * ud, self.cy + self.f * wd
