@@ -1,0 +1,88 @@
+"""``st16-device``: serve the emulated tracker on a pty, a serial port or TCP.
+
+The first stdout line is ``listening on <path>`` (flushed); the device then serves until SIGINT
+or SIGTERM and exits 0. Options are parsed in :func:`build_parser`, the device is assembled in
+:func:`build_device` and the transport in :func:`build_link`, so frame sources and solvers can be
+added as further options without touching the serving code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+
+from protocol import nsp
+
+from .device import Device
+from .link import PtyLink, SerialLink, TcpLink, parse_tcp, serve
+from .state import SlotStore
+
+DEFAULT_PACED_TURNAROUND_MS = 1.0  #: ours; the research documents no turnaround
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="st16-device", description=__doc__.splitlines()[0])
+    where = parser.add_mutually_exclusive_group(required=True)
+    where.add_argument("--pty", action="store_true", help="create a pseudo-terminal and print its path")
+    where.add_argument("--port", help="serve on this serial device (pyserial URL or path)")
+    where.add_argument("--tcp", metavar="HOST:PORT", help="serve on TCP (host defaults to 127.0.0.1)")
+    parser.add_argument("--address", type=lambda s: int(s, 0), default=nsp.DEVICE_ADDRESS,
+                        help="NSP address of the device (default 0x0E)")
+    parser.add_argument("--state", help="directory for persistent state (slots); in memory if absent")
+    parser.add_argument("--baud", type=int, default=115200, help="line rate for --port and for --pace")
+    parser.add_argument("--pace", action="store_true", help="model UART timing at --baud (10 bits per byte)")
+    parser.add_argument("--turnaround-ms", type=float, default=None,
+                        help=f"delay from a command's last byte to its reply (default 0, "
+                             f"{DEFAULT_PACED_TURNAROUND_MS} with --pace)")
+    return parser
+
+
+def build_device(args: argparse.Namespace) -> Device:
+    """The device the options describe (hook for solvers and frame sources)."""
+    if not 0 <= args.address <= 0xFF:
+        raise ValueError(f"address 0x{args.address:X} outside 0x00-0xFF")
+    store = SlotStore(args.state) if args.state else None
+    return Device(args.address, store=store)
+
+
+def build_link(args: argparse.Namespace):
+    if args.pty:
+        return PtyLink()
+    if args.port:
+        return SerialLink(args.port, args.baud)
+    host, port = parse_tcp(args.tcp)
+    return TcpLink(host, port)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.baud <= 0:
+        parser.error("--baud must be positive")
+    turnaround_ms = args.turnaround_ms
+    if turnaround_ms is None:
+        turnaround_ms = DEFAULT_PACED_TURNAROUND_MS if args.pace else 0.0
+    if turnaround_ms < 0:
+        parser.error("--turnaround-ms must be >= 0")
+    try:
+        device = build_device(args)
+        link = build_link(args)
+    except (ValueError, OSError) as exc:
+        print(f"st16-device: {exc}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    print(f"listening on {link.describe()}", flush=True)
+    try:
+        serve(device, link, stop, baud=args.baud if args.pace else None, turnaround=turnaround_ms / 1000.0)
+    finally:
+        device.wait_idle(timeout=5.0)
+        link.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

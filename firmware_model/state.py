@@ -1,0 +1,199 @@
+"""Persistent slot storage (the emulated flash) and resumable partial transfers.
+
+With a ``root`` directory, every slot lives in ``root/slot<N>/``: ``active.bin`` + ``active.json``
+(length, CRC-32) for the committed image, ``partial.bin`` + ``partial.json`` (length, CRC-32,
+received byte ranges) for a transfer in progress. Metadata files are replaced atomically
+(write to a temporary file, fsync, rename); ``partial.bin`` is written in place before its range
+list is updated, so after a crash or restart the range list never claims bytes that were not
+written. Committed images are fsynced. Without ``root`` everything is kept in memory.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from protocol.crc import crc32
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _merge(ranges: list[list[int]], start: int, end: int) -> list[list[int]]:
+    """Insert the half-open range [start, end) into sorted disjoint ``ranges``, merging neighbours."""
+    out: list[list[int]] = []
+    placed = False
+    for a, b in ranges:
+        if b < start:
+            out.append([a, b])
+        elif end < a:
+            if not placed:
+                out.append([start, end])
+                placed = True
+            out.append([a, b])
+        else:
+            start, end = min(a, start), max(b, end)
+    if not placed:
+        out.append([start, end])
+    return out
+
+
+@dataclass
+class Transfer:
+    """A transfer in progress: total ``length``, expected ``crc32``, received ``ranges`` [a, b)."""
+
+    slot: int
+    length: int
+    crc32: int
+    ranges: list[list[int]] = field(default_factory=list)
+
+    @property
+    def contiguous(self) -> int:
+        return self.ranges[0][1] if self.ranges and self.ranges[0][0] == 0 else 0
+
+    @property
+    def received(self) -> int:
+        return sum(b - a for a, b in self.ranges)
+
+    @property
+    def complete(self) -> bool:
+        return self.ranges == [[0, self.length]]
+
+    def missing(self) -> list[tuple[int, int]]:
+        """Missing ranges as (offset, length)."""
+        out, pos = [], 0
+        for a, b in self.ranges:
+            if a > pos:
+                out.append((pos, a - pos))
+            pos = b
+        if pos < self.length:
+            out.append((pos, self.length - pos))
+        return out
+
+
+class SlotStore:
+    """Committed slot images and partial transfers, on disk under ``root`` or in memory."""
+
+    def __init__(self, root: str | os.PathLike | None = None):
+        self.root = Path(root) if root is not None else None
+        self._active: dict[int, bytes] = {}
+        self._transfers: dict[int, Transfer] = {}
+        self._buffers: dict[int, bytearray] = {}
+        if self.root is not None:
+            self.root.mkdir(parents=True, exist_ok=True)
+            self._load()
+
+    def _dir(self, slot: int) -> Path:
+        assert self.root is not None
+        path = self.root / f"slot{slot}"
+        path.mkdir(exist_ok=True)
+        return path
+
+    def _load(self) -> None:
+        for sub in sorted(self.root.glob("slot*")):
+            try:
+                slot = int(sub.name[4:])
+            except ValueError:
+                continue
+            try:
+                self._load_slot(slot, sub)
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                print(f"state: ignoring unreadable {sub}: {exc}", file=sys.stderr)
+
+    def _load_slot(self, slot: int, sub: Path) -> None:
+        meta_path, bin_path = sub / "active.json", sub / "active.bin"
+        if meta_path.exists() and bin_path.exists():
+            meta = json.loads(meta_path.read_text())
+            data = bin_path.read_bytes()
+            if len(data) == meta["length"] and crc32(data) == meta["crc32"]:
+                self._active[slot] = data
+            else:
+                print(f"state: slot {slot} image fails its length/CRC-32 check; ignored", file=sys.stderr)
+        pmeta, pbin = sub / "partial.json", sub / "partial.bin"
+        if pmeta.exists() and pbin.exists():
+            meta = json.loads(pmeta.read_text())
+            length = int(meta["length"])
+            ranges = [[int(a), int(b)] for a, b in meta["ranges"]]
+            if pbin.stat().st_size == length and all(0 <= a < b <= length for a, b in ranges):
+                self._transfers[slot] = Transfer(slot, length, int(meta["crc32"]), ranges)
+
+    # ------------------------------------------------------------------ committed images
+
+    def active(self, slot: int) -> bytes | None:
+        return self._active.get(slot)
+
+    def active_slots(self) -> list[int]:
+        return sorted(self._active)
+
+    def set_active(self, slot: int, data: bytes) -> None:
+        """Persist ``data`` as the committed image of ``slot`` (atomic replace)."""
+        data = bytes(data)
+        if self.root is not None:
+            d = self._dir(slot)
+            _atomic_write(d / "active.bin", data)
+            _atomic_write(d / "active.json", json.dumps({"length": len(data), "crc32": crc32(data)}).encode())
+        self._active[slot] = data
+
+    # ------------------------------------------------------------------ transfers
+
+    def transfer(self, slot: int) -> Transfer | None:
+        return self._transfers.get(slot)
+
+    def begin(self, slot: int, length: int, crc: int) -> Transfer:
+        """Start a transfer, or keep the pending one if it has the same length and CRC-32."""
+        current = self._transfers.get(slot)
+        if current is not None and current.length == length and current.crc32 == crc:
+            return current
+        self.drop_transfer(slot)
+        tr = Transfer(slot, length, crc)
+        self._transfers[slot] = tr
+        if self.root is None:
+            self._buffers[slot] = bytearray(length)
+        else:
+            d = self._dir(slot)
+            with open(d / "partial.bin", "wb") as fh:
+                fh.truncate(length)
+            self._save_meta(tr)
+        return tr
+
+    def write(self, slot: int, offset: int, data: bytes) -> Transfer:
+        """Store ``data`` at ``offset`` of the pending transfer (caller checked the bounds)."""
+        tr = self._transfers[slot]
+        if self.root is None:
+            self._buffers[slot][offset:offset + len(data)] = data
+        else:
+            with open(self._dir(slot) / "partial.bin", "r+b") as fh:
+                fh.seek(offset)
+                fh.write(data)
+        tr.ranges = _merge(tr.ranges, offset, offset + len(data))
+        if self.root is not None:
+            self._save_meta(tr)
+        return tr
+
+    def transfer_bytes(self, slot: int) -> bytes:
+        if self.root is None:
+            return bytes(self._buffers[slot])
+        return (self._dir(slot) / "partial.bin").read_bytes()
+
+    def drop_transfer(self, slot: int) -> None:
+        self._transfers.pop(slot, None)
+        self._buffers.pop(slot, None)
+        if self.root is not None:
+            d = self.root / f"slot{slot}"
+            for name in ("partial.json", "partial.bin"):
+                (d / name).unlink(missing_ok=True)
+
+    def _save_meta(self, tr: Transfer) -> None:
+        meta = {"length": tr.length, "crc32": tr.crc32, "ranges": tr.ranges}
+        tmp = self._dir(tr.slot) / "partial.json.tmp"
+        tmp.write_text(json.dumps(meta))
+        os.replace(tmp, self._dir(tr.slot) / "partial.json")

@@ -1,0 +1,209 @@
+"""The result structure read with READ RESULT / COMBINATION (little-endian).
+
+Bytes 0x000-0x947 follow the COSMOS overlay of the ST-16 operational result (natural C
+alignment); 0x948-0xA37 are reserved (the research reports a 2616-byte result but no layout
+for these 240 bytes). EDAC 0x004C reports :data:`STANDARD_LENGTH` (2616) when a result is ready.
+Our extension region for colour stars and matching starts at :data:`EXT_OFFSET` (0x0A38); its
+length is reported at EDAC 0x0050 as the total :data:`TOTAL_LENGTH`.
+
+Our choices (docs/ICD.md): quaternions are scalar first ``[w, x, y, z]``, ICRS -> sensor
+(docs/CONVENTIONS.md); ``epoch`` is POSIX UTC seconds; ``return_code`` keeps the COSMOS bits in
+bits 0-7 and carries our status (:class:`Status`) in bits 8-15.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from enum import IntEnum
+from typing import Any
+
+import numpy as np
+
+
+def _struct(fields: list[tuple[str, str, int]], itemsize: int) -> np.dtype:
+    names, formats, offsets = zip(*fields)
+    return np.dtype({"names": list(names), "formats": list(formats), "offsets": list(offsets), "itemsize": itemsize})
+
+
+HARDWARE = _struct([
+    ("unused", "12u1", 0x00), ("detector_temp_raw", "<i2", 0x0C), ("processor_temp_raw", "<u2", 0x0E),
+    ("status", "<u4", 0x10), ("vdd_core_setpoint", "u1", 0x14), ("mpu_setpoint", "u1", 0x15),
+    ("reserved", "2u1", 0x16), ("dark_offsets", "<16u2", 0x18),
+], 56)
+
+STATISTICS = _struct([
+    ("good_rows", "<2u2", 0), ("mean_1", "<8f4", 4), ("mean_2", "<8f4", 36), ("variation_1", "<8f4", 68),
+    ("variation_2", "<8f4", 100), ("temporal_variation", "<8f4", 132), ("spare", "<2u4", 164),
+], 172)
+
+IMAGE = _struct([
+    ("initialized", "<u4", 0), ("return_code", "<i4", 4), ("lit_pixels", "<i4", 8), ("peak_count", "<u4", 12),
+    ("exposure_error", "<f8", 16), ("capture_time", "<f8", 24), ("peaks", "<(30,3)i4", 32),
+], 392)
+
+ERS = _struct([
+    ("initialized", "<u4", 0), ("return_code", "<i4", 4), ("star_mapping", "<10i4", 8),
+    ("fit_residual", "<f8", 48), ("omega_covariance", "<6f8", 56),
+], 104)
+
+CENTROID = _struct([
+    ("initialized", "<u4", 0), ("return_code", "<i4", 4), ("good_stars", "<i4", 8),
+    ("centroids", "<(10,2)f8", 16), ("unit_vectors", "<(10,3)f8", 176),
+], 416)
+
+MATCHING = _struct([
+    ("initialized", "<u4", 0), ("return_code", "<i4", 4), ("triangle_tests", "<i4", 8),
+    ("matching_error", "<f8", 16), ("confidence", "<f8", 24), ("star_tests", "<i4", 32),
+    ("set_tests", "<i4", 36), ("consensus_size", "<i4", 40), ("consensus_rms", "<f8", 48),
+    ("matched_stars", "<10i4", 56), ("quaternion", "<4f8", 96), ("omega_covariance", "<6f8", 128),
+], 176)
+
+EXT_MAX_STARS = 32
+
+#: One detected star in the extension region (ours): pixel centroid (x = column, y = row), flux in
+#: DN, colour ratios rg = S_r/S_g and bg = S_b/S_g with 1-sigma, matched catalog id (-1: none),
+#: residual to the matched catalog direction (rad), flags (bit 0 matched, bit 1 saturated).
+EXT_STAR = _struct([
+    ("x", "<f4", 0), ("y", "<f4", 4), ("flux", "<f4", 8), ("rg", "<f4", 12), ("bg", "<f4", 16),
+    ("rg_sigma", "<f4", 20), ("bg_sigma", "<f4", 24), ("catalog_id", "<i4", 28),
+    ("residual", "<f4", 32), ("flags", "<u4", 36),
+], 40)
+
+EXT_MAGIC = 0x31545343  # b"CST1"
+
+#: Extension header (ours), 128 bytes, then EXT_MAX_STARS stars. ``quaternion`` is the solved
+#: attitude (scalar first, ICRS -> sensor); ``sigma`` its 1-sigma errors about sensor x, y, z (rad);
+#: ``solve_time`` seconds spent in the solver; CRC-32s identify the catalog and frame used.
+EXTENSION = _struct([
+    ("magic", "<u4", 0), ("version", "<u2", 4), ("n_detected", "<u2", 6), ("n_matched", "<u2", 8),
+    ("n_reported", "<u2", 10), ("solve_time", "<f4", 12), ("quaternion", "<4f8", 16),
+    ("sigma", "<3f8", 48), ("catalog_crc32", "<u4", 72), ("frame_crc32", "<u4", 76),
+    ("colour_rms", "<f4", 80), ("residual_rms", "<f4", 84), ("spare", "40u1", 88),
+    ("stars", np.dtype((EXT_STAR, (EXT_MAX_STARS,))), 128),
+], 128 + 40 * EXT_MAX_STARS)
+
+STANDARD_LENGTH = 2616  #: 0x0A38, the length COSMOS waits for at EDAC 0x004C
+EXT_OFFSET = STANDARD_LENGTH
+TOTAL_LENGTH = EXT_OFFSET + EXTENSION.itemsize  #: 4024 bytes
+
+RESULT = _struct([
+    ("sequence", "<u4", 0x000), ("return_code", "<u4", 0x004), ("quaternion", "<4f8", 0x008),
+    ("omega", "<3f8", 0x028), ("epoch", "<f8", 0x040), ("hardware", HARDWARE, 0x048),
+    ("statistics", STATISTICS, 0x080), ("spare_12c", "<u4", 0x12C),
+    ("image", np.dtype((IMAGE, (2,))), 0x130), ("ers", ERS, 0x440),
+    ("centroid", np.dtype((CENTROID, (2,))), 0x4A8), ("matching", np.dtype((MATCHING, (2,))), 0x7E8),
+    ("reserved_948", "240u1", 0x948), ("ext", EXTENSION, EXT_OFFSET),
+], TOTAL_LENGTH)
+
+
+class ReturnBits(IntEnum):
+    """COSMOS return-code bits (bits 0-7)."""
+
+    IMAGE1_QUALITY = 0x01
+    IMAGE2_QUALITY = 0x02
+    IMAGE1_SUCCESS = 0x04
+    IMAGE2_SUCCESS = 0x08
+    FULL_PROCESSING = 0x10
+    DETECTOR_IMAGE = 0x20
+    CONSISTENT_SOLUTION = 0x40
+
+
+class Status(IntEnum):
+    """Our status in return-code bits 8-15: why a sequence produced (or did not produce) an attitude."""
+
+    OK = 0
+    NO_CATALOG = 1
+    NO_FRAME = 2
+    NO_SOLVER = 3
+    TOO_FEW_STARS = 4
+    NO_MATCH = 5
+    SOLVER_ERROR = 6
+
+
+def make_return_code(status: Status | int, bits: int = 0) -> int:
+    return (int(status) & 0xFF) << 8 | (bits & 0xFF)
+
+
+def status_of(return_code: int) -> Status | int:
+    value = (return_code >> 8) & 0xFF
+    try:
+        return Status(value)
+    except ValueError:
+        return value
+
+
+#: COMBINATION section mask -> (result address, length). 0x0800 (self-test) is not emulated;
+#: 0x1000 (ours) returns the extension region.
+SECTIONS: dict[int, tuple[int, int]] = {
+    0x0001: (0x000, 4), 0x0002: (0x004, 4), 0x0004: (0x008, 32), 0x0008: (0x028, 24),
+    0x0010: (0x040, 8), 0x0020: (0x048, 56), 0x0040: (0x080, 172), 0x0080: (0x130, 784),
+    0x0100: (0x440, 104), 0x0200: (0x4A8, 832), 0x0400: (0x7E8, 352), 0x1000: (EXT_OFFSET, EXTENSION.itemsize),
+}
+SELF_TEST_SECTION = 0x0800
+
+
+def empty() -> np.ndarray:
+    """A zeroed result record (0-d structured array)."""
+    return np.zeros((), dtype=RESULT)
+
+
+def _target(rec: np.ndarray, path: str):
+    parts = path.split(".")
+    obj = rec
+    for part in parts[:-1]:
+        obj = obj[int(part)] if part.isdigit() else obj[part]
+    return obj, parts[-1]
+
+
+def build(fields: Mapping[str, Any], sequence: int = 0) -> bytes:
+    """Result bytes (TOTAL_LENGTH) from ``fields``: keys are dotted paths into :data:`RESULT`
+    (``"return_code"``, ``"quaternion"``, ``"centroid.0.good_stars"``, ``"ext.stars"``), values
+    anything numpy can assign. Unknown paths raise KeyError/ValueError. The extension magic and
+    version are filled in; ``sequence`` is written unless ``fields`` sets it."""
+    rec = empty()
+    rec["sequence"] = sequence
+    rec["ext"]["magic"] = EXT_MAGIC
+    rec["ext"]["version"] = 1
+    for path, value in fields.items():
+        obj, last = _target(rec, path)
+        if last.isdigit():
+            obj[int(last)] = value
+        else:
+            if last not in (obj.dtype.names or ()):
+                raise KeyError(f"result has no field {path!r}")
+            obj[last] = value
+    return rec.tobytes()
+
+
+def parse(data: bytes) -> np.ndarray:
+    """Result record from bytes; ``data`` may be the standard 2616 bytes (extension zeroed) or
+    the full TOTAL_LENGTH."""
+    if len(data) not in (STANDARD_LENGTH, TOTAL_LENGTH):
+        raise ValueError(f"result of {len(data)} bytes; expected {STANDARD_LENGTH} or {TOTAL_LENGTH}")
+    buf = bytes(data) + bytes(TOTAL_LENGTH - len(data))
+    return np.frombuffer(buf, dtype=RESULT)[0].copy()
+
+
+def summary(rec: np.ndarray) -> dict:
+    """Plain-Python headline fields of a parsed result (for CLI / JSON output)."""
+    rc = int(rec["return_code"])
+    ext = rec["ext"]
+    st = status_of(rc)
+    out = {
+        "sequence": int(rec["sequence"]),
+        "return_code": rc,
+        "status": st.name if isinstance(st, Status) else st,
+        "bits": [b.name for b in ReturnBits if rc & b],
+        "quaternion": [float(v) for v in rec["quaternion"]],
+        "omega": [float(v) for v in rec["omega"]],
+        "epoch": float(rec["epoch"]),
+    }
+    if int(ext["magic"]) == EXT_MAGIC:
+        n = int(ext["n_reported"])
+        out["ext"] = {
+            "n_detected": int(ext["n_detected"]), "n_matched": int(ext["n_matched"]),
+            "solve_time": float(ext["solve_time"]), "sigma": [float(v) for v in ext["sigma"]],
+            "stars": [{k: (float(s[k]) if s.dtype[k].kind == "f" else int(s[k])) for k in EXT_STAR.names}
+                      for s in ext["stars"][:n]],
+        }
+    return out
