@@ -1,0 +1,374 @@
+"""Ground-side NSP client over any pyserial URL (pty path, /dev/tty*, socket://host:port, loop://).
+
+Every transaction toggles the B bit and only accepts a reply that carries the same B bit, the
+device as source, us as destination and the command's code, so a late reply to an earlier
+command is never taken for the current one (input left over from earlier exchanges is also
+flushed before each command). Idempotent reads are retried on timeouts and malformed replies.
+NACKs, timeouts and malformed replies raise :class:`Nack`, :class:`ReplyTimeout` and
+:class:`MalformedReply`, each with the raw bytes received attached.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import serial
+from tqdm import tqdm
+
+from protocol import nsp, result, slip
+from protocol.commands import (
+    APP_START_ADDRESS, GO_OPERATIONAL, UPLOAD_CHUNK, AddressedBytes, Code, Combination, CrcReply, CrcRequest,
+    DarkWindow, Diagnostics, Go, Init, NackInfo, PayloadError, Peek, Poke, ReadFile, ReadRange, SlotImage,
+    SlotRequest, WriteAck, WriteEdac, WriteFile, XferBegin, XferData, XferDataAck, XferState, XferStatus,
+)
+from protocol.crc import crc32
+
+from .exchange_log import ExchangeLog, code_name
+
+EDAC_RESULT_LENGTH = 0x004C
+READ_SLICE = 0.02  #: seconds one port read may block
+
+
+class LinkError(Exception):
+    """Base of the client's errors; ``raw`` is every byte received during the failed exchange."""
+
+    def __init__(self, message: str, raw: bytes = b""):
+        super().__init__(message)
+        self.raw = bytes(raw)
+
+
+class Nack(LinkError):
+    """The device answered with ACK clear; ``reason`` (u16) and ``text`` come from its data."""
+
+    def __init__(self, code: int, info: NackInfo, raw: bytes):
+        super().__init__(f"{code_name(code)} NACKed: {info.reason_name} (0x{info.reason:04X}) {info.text}", raw)
+        self.code = code
+        self.reason = info.reason
+        self.text = info.text
+
+
+class ReplyTimeout(LinkError):
+    """No complete reply in time."""
+
+
+class MalformedReply(LinkError):
+    """A reply that is garbled (bad CRC, runt, bad escape) or inconsistent with the command."""
+
+
+@dataclass(frozen=True)
+class UploadReport:
+    slot: int
+    length: int
+    crc32: int
+    resumed_from: int  #: bytes already on the device when the upload started
+    sent: int  #: payload bytes sent by this call
+    seconds: float
+
+
+class Client:
+    """NSP client; use as a context manager. ``log`` is a JSONL path or an :class:`ExchangeLog`."""
+
+    def __init__(self, url: str, device_address: int = nsp.DEVICE_ADDRESS, host_address: int = nsp.HOST_ADDRESS,
+                 timeout: float = 1.0, log: str | Path | ExchangeLog | None = None, retries: int = 2,
+                 baudrate: int = 115200):
+        self.url = url
+        self.device_address = device_address
+        self.host_address = host_address
+        self.timeout = timeout
+        self.retries = retries
+        # Reads wait at most READ_SLICE so the reply deadline is checked without reconfiguring the port.
+        self._ser = serial.serial_for_url(url, baudrate=baudrate, timeout=READ_SLICE, write_timeout=max(timeout, 5.0))
+        self._own_log = isinstance(log, (str, Path))
+        self.log = ExchangeLog(log) if self._own_log else log
+        self._b = False
+        self.stale_replies = 0  #: replies discarded because their B bit belonged to an earlier command
+
+    def close(self) -> None:
+        self._ser.close()
+        if self._own_log and self.log is not None:
+            self.log.close()
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ transactions
+
+    def transact(self, code: int, data: bytes = b"", *, poll: bool = True, timeout: float | None = None,
+                 idempotent: bool = False) -> list[nsp.Message]:
+        """Send a command; return its reply messages (all ACKed, last one Final); [] if not polled."""
+        attempts = 1 + (self.retries if idempotent else 0)
+        for attempt in range(attempts):
+            try:
+                return self._exchange(code, data, poll, self.timeout if timeout is None else timeout)
+            except (ReplyTimeout, MalformedReply):
+                if attempt == attempts - 1:
+                    raise
+        raise AssertionError("unreachable")
+
+    def send_silent(self, code: int, data: bytes = b"") -> None:
+        """Send with Poll = 0: the device executes without replying."""
+        self._exchange(code, data, False, 0.0)
+
+    def _exchange(self, code: int, data: bytes, poll: bool, timeout: float) -> list[nsp.Message]:
+        self._b = not self._b
+        msg = nsp.command(self.device_address, self.host_address, code, data, poll=poll, b=self._b)
+        self._ser.reset_input_buffer()
+        self._ser.write(msg.frame())
+        if self.log:
+            self.log.record("tx", msg.encode())
+        if not poll:
+            return []
+        decoder = slip.Decoder(nsp.MAX_MESSAGE)
+        received = bytearray()
+        parts: list[nsp.Message] = []
+        deadline = time.monotonic() + timeout
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                got = f"; {len(parts)} part(s) received before the Final one" if parts else ""
+                raise ReplyTimeout(f"{code_name(code)}: no reply within {timeout:.3f} s{got}", bytes(received))
+            chunk = self._ser.read(max(1, self._ser.in_waiting))
+            if not chunk:
+                continue
+            received += chunk
+            for event in decoder.feed(chunk):
+                reply = self._accept(event, code, received)
+                if reply is None:
+                    continue
+                if not reply.ack:
+                    raise Nack(code, NackInfo.unpack(reply.data), bytes(received))
+                parts.append(reply)
+                if reply.final:
+                    return parts
+
+    def _accept(self, event, code: int, received: bytearray) -> nsp.Message | None:
+        if isinstance(event, (slip.FramingError, slip.Oversize)):
+            what = event.reason if isinstance(event, slip.FramingError) else "oversize frame"
+            raise MalformedReply(f"{code_name(code)}: {what}", bytes(received))
+        try:
+            reply = nsp.decode(event.data)
+        except nsp.MessageError as exc:
+            if event.data[:1] == bytes([self.host_address]):
+                if self.log:
+                    self.log.record("rx", event.data)
+                raise MalformedReply(f"{code_name(code)}: {exc}", bytes(received)) from None
+            return None
+        if reply.dst != self.host_address or reply.src != self.device_address:
+            return None  # another node's traffic (or our own echo on loop://)
+        if self.log:
+            self.log.record("rx", event.data, None if reply.b == self._b else "stale: B bit of an earlier command")
+        if reply.b != self._b:
+            self.stale_replies += 1
+            return None
+        if reply.code != code:
+            raise MalformedReply(f"{code_name(code)}: reply carries code 0x{reply.code:02X}", bytes(received))
+        return reply
+
+    def _single(self, code: int, data: bytes = b"", **kw) -> bytes:
+        parts = self.transact(code, data, **kw)
+        if len(parts) != 1:
+            raise MalformedReply(f"{code_name(code)}: {len(parts)} reply messages, expected 1",
+                                 b"".join(p.encode() for p in parts))
+        return parts[0].data
+
+    def _parse(self, code: int, data: bytes, parser, *args):
+        try:
+            return parser(data, *args)
+        except PayloadError as exc:
+            raise MalformedReply(f"{code_name(code)}: {exc}", data) from None
+
+    # ------------------------------------------------------------------ ST-16 commands
+
+    def ping(self) -> str:
+        """Identification banner (differs between bootloader and application)."""
+        return self._single(Code.PING, idempotent=True).decode("ascii", "replace")
+
+    def init(self, address: int = APP_START_ADDRESS) -> None:
+        """Start the application at ``address``."""
+        self._single(Code.INIT, Init(address).pack(), timeout=max(self.timeout, 3.0))
+
+    def peek(self, address: int, count: int) -> bytes:
+        data = self._single(Code.PEEK, Peek(address, count).pack(), idempotent=True)
+        reply = self._parse(Code.PEEK, data, AddressedBytes.unpack, 4)
+        self._check_echo(Code.PEEK, reply.address, address, len(reply.data), count, data)
+        return reply.data
+
+    def poke(self, address: int, data: bytes) -> int:
+        raw = self._single(Code.POKE, Poke(address, data).pack())
+        ack = self._parse(Code.POKE, raw, WriteAck.unpack, 4)
+        self._check_echo(Code.POKE, ack.address, address, ack.count, len(data), raw)
+        return ack.count
+
+    def diagnostic(self, clear: bool = False) -> Diagnostics:
+        """Error counters and command counts; ``clear`` resets them after reading."""
+        data = self._single(Code.DIAGNOSTIC, b"\x01" if clear else b"", idempotent=not clear)
+        return self._parse(Code.DIAGNOSTIC, data, Diagnostics.unpack)
+
+    def crc(self, space: int, address: int, length: int) -> int:
+        """CRC-16/MCRF4XX of a device memory span (space: 0 EDAC, 1 memory map, 2 result)."""
+        data = self._single(Code.CRC, CrcRequest(space, address, length).pack(), idempotent=True)
+        return self._parse(Code.CRC, data, CrcReply.unpack).crc
+
+    def read_file(self, address: int, long: bool = False) -> bytes:
+        """Four EDAC bytes at ``address`` (short form sends the file index ``address // 4``)."""
+        req = ReadFile(address, long)
+        data = self._single(Code.READ_FILE, req.pack(), idempotent=True)
+        head = req.pack()
+        if len(data) != len(head) + 4 or data[:len(head)] != head:
+            raise MalformedReply(f"READ_FILE: reply {data.hex()} does not echo {head.hex()} + 4 bytes", data)
+        return data[len(head):]
+
+    def write_file(self, address: int, value: bytes, long: bool = False) -> None:
+        if len(value) != 4:
+            raise ValueError("WRITE FILE writes exactly 4 bytes")
+        req = WriteFile(address, value, long).pack()
+        data = self._single(Code.WRITE_FILE, req)
+        if data != req:
+            raise MalformedReply(f"WRITE_FILE: reply {data.hex()} does not echo the command", data)
+
+    def read_edac(self, address: int, count: int) -> bytes:
+        """EDAC bytes; the short form is used for up to 256 bytes, the long form beyond."""
+        req = ReadRange(address, count, long=count > 256)
+        data = self._single(Code.READ_EDAC, req.pack(), idempotent=True)
+        reply = self._parse(Code.READ_EDAC, data, AddressedBytes.unpack)
+        self._check_echo(Code.READ_EDAC, reply.address, address, len(reply.data), count, data)
+        return reply.data
+
+    def write_edac(self, address: int, data: bytes) -> int:
+        raw = self._single(Code.WRITE_EDAC, WriteEdac(address, data).pack())
+        ack = self._parse(Code.WRITE_EDAC, raw, WriteAck.unpack)
+        self._check_echo(Code.WRITE_EDAC, ack.address, address, ack.count, len(data), raw)
+        return ack.count
+
+    def go(self, code: int = GO_OPERATIONAL) -> int:
+        data = self._single(Code.GO, Go(code).pack())
+        if data[:1] != bytes([code]):
+            raise MalformedReply(f"GO: reply {data.hex()} does not echo the go code", data)
+        return data[0]
+
+    def result_length(self) -> int:
+        """EDAC 0x004C: 2616 when a result is ready, 0 while a sequence runs."""
+        return struct.unpack("<I", self.read_edac(EDAC_RESULT_LENGTH, 4))[0]
+
+    def read_result(self, address: int = 0, count: int = result.TOTAL_LENGTH) -> bytes:
+        """Result bytes [address, address+count), assembled from the Final-flagged parts."""
+        parts = self.transact(Code.READ_RESULT, ReadRange(address, count, long=True).pack(), idempotent=True)
+        return self._assemble(Code.READ_RESULT, parts, address, count)
+
+    def read_result_record(self) -> np.ndarray:
+        """The whole result structure, parsed (``protocol.result.RESULT`` record)."""
+        return result.parse(self.read_result(0, result.TOTAL_LENGTH))
+
+    def go_and_wait(self, code: int = GO_OPERATIONAL, timeout: float = 30.0, interval: float = 0.02) -> np.ndarray:
+        """GO, poll the result length until the sequence has finished, return the parsed result."""
+        self.go(code)
+        deadline = time.monotonic() + timeout
+        while self.result_length() == 0:
+            if time.monotonic() > deadline:
+                raise ReplyTimeout(f"result not ready within {timeout} s after GO 0x{code:02X}")
+            time.sleep(interval)
+        return self.read_result_record()
+
+    def combination(self, go_code: int, mask: int, timeout: float = 30.0, mask_bytes: int = 4) -> dict[int, bytes]:
+        """COMBINATION: returns {result address: bytes} of every part (placed by its address)."""
+        parts = self.transact(Code.COMBINATION, Combination(go_code, mask, mask_bytes).pack(), timeout=timeout)
+        out: dict[int, bytes] = {}
+        for part in parts:
+            if not part.data:
+                continue
+            piece = self._parse(Code.COMBINATION, part.data, AddressedBytes.unpack)
+            out[piece.address] = piece.data
+        return out
+
+    def dark_window(self, window: DarkWindow) -> None:
+        req = window.pack()
+        data = self._single(Code.IMAGE, req)
+        if data != req:
+            raise MalformedReply("IMAGE: reply does not echo the dark-window command", data)
+
+    # ------------------------------------------------------------------ transfers (extension)
+
+    def xfer_begin(self, slot: int, length: int, crc: int) -> XferStatus:
+        data = self._single(Code.XFER_BEGIN, XferBegin(slot, length, crc).pack(), idempotent=True)
+        return self._parse(Code.XFER_BEGIN, data, XferStatus.unpack)
+
+    def xfer_data(self, slot: int, offset: int, chunk: bytes, poll: bool = True) -> int | None:
+        """Send bytes at ``offset``; returns the contiguous byte count (None when not polled)."""
+        payload = XferData(slot, offset, chunk).pack()
+        if not poll:
+            self.send_silent(Code.XFER_DATA, payload)
+            return None
+        data = self._single(Code.XFER_DATA, payload, idempotent=True)
+        return self._parse(Code.XFER_DATA, data, XferDataAck.unpack).contiguous
+
+    def xfer_status(self, slot: int) -> XferStatus:
+        data = self._single(Code.XFER_STATUS, SlotRequest(slot).pack(), idempotent=True)
+        return self._parse(Code.XFER_STATUS, data, XferStatus.unpack)
+
+    def xfer_commit(self, slot: int, timeout: float = 30.0) -> SlotImage:
+        data = self._single(Code.XFER_COMMIT, SlotRequest(slot).pack(), timeout=timeout)
+        return self._parse(Code.XFER_COMMIT, data, SlotImage.unpack)
+
+    def xfer_abort(self, slot: int) -> XferStatus:
+        data = self._single(Code.XFER_ABORT, SlotRequest(slot).pack(), idempotent=True)
+        return self._parse(Code.XFER_ABORT, data, XferStatus.unpack)
+
+    def slot_info(self, slot: int) -> SlotImage:
+        data = self._single(Code.SLOT_INFO, SlotRequest(slot).pack(), idempotent=True)
+        return self._parse(Code.SLOT_INFO, data, SlotImage.unpack)
+
+    def upload(self, slot: int, data: bytes, progress: bool = True, chunk: int = UPLOAD_CHUNK,
+               commit: bool = True) -> UploadReport:
+        """Upload ``data`` into ``slot``, resuming whatever the device already holds of the same
+        image (same length and CRC-32), then COMMIT (raises :class:`Nack` if the device refuses)."""
+        t0 = time.monotonic()
+        data = bytes(data)
+        crc = crc32(data)
+        status = self.xfer_begin(slot, len(data), crc)
+        resumed, sent = status.received, 0
+        with tqdm(total=len(data), initial=resumed, unit="B", unit_scale=True, disable=not progress,
+                  desc=f"slot {slot}") as bar:
+            while status.state != XferState.COMPLETE:
+                if not status.missing:
+                    raise MalformedReply(f"slot {slot}: transfer incomplete but no missing range reported")
+                for offset, length in status.missing:
+                    for start in range(offset, offset + length, chunk):
+                        piece = data[start:min(start + chunk, offset + length)]
+                        self.xfer_data(slot, start, piece)
+                        sent += len(piece)
+                        bar.update(len(piece))
+                status = self.xfer_status(slot)
+                if status.length != len(data) or status.crc32 != crc:
+                    raise MalformedReply(f"slot {slot}: device now holds a different transfer")
+        if commit:
+            self.xfer_commit(slot)
+        return UploadReport(slot, len(data), crc, resumed, sent, time.monotonic() - t0)
+
+    # ------------------------------------------------------------------ helpers
+
+    def _check_echo(self, code, got_addr, want_addr, got_n, want_n, raw) -> None:
+        if got_addr != want_addr or got_n != want_n:
+            raise MalformedReply(f"{code_name(code)}: reply for 0x{got_addr:X}+{got_n}, asked 0x{want_addr:X}+{want_n}",
+                                 raw)
+
+    def _assemble(self, code: int, parts: list[nsp.Message], address: int, count: int) -> bytes:
+        buf = bytearray(count)
+        covered = 0
+        for part in parts:
+            piece = self._parse(code, part.data, AddressedBytes.unpack)
+            lo = piece.address - address
+            if lo < 0 or lo + len(piece.data) > count:
+                raise MalformedReply(f"{code_name(code)}: part at 0x{piece.address:X} outside the request", part.data)
+            buf[lo:lo + len(piece.data)] = piece.data
+            covered += len(piece.data)
+        if covered != count:
+            raise MalformedReply(f"{code_name(code)}: parts cover {covered} of {count} bytes",
+                                 b"".join(p.encode() for p in parts))
+        return bytes(buf)
