@@ -1,0 +1,1 @@
+"""Ground-side star catalog tools: sources, colour model, design, build and analysis."""

@@ -1,0 +1,427 @@
+"""Colour model: detector QE x stellar spectrum -> colour ratios (seed 000 eqs 10-11).
+
+``Lambda_rg = S_r / S_g`` and ``Lambda_bg = S_b / S_g`` with photon-counting integrals
+``S_c = int chi_c(lambda) F_lambda(lambda) lambda dlambda`` over the detector band (wavelengths in
+nm). Spectra, best first (``ColourSource``):
+
+1. ``PICKLES_MK``: the Pickles (1998) template nearest to the star's MK type (:func:`match_template`);
+2. ``BV_LOOKUP``: ln(ratio) as a quartic in B-V fitted over the solar-metallicity Pickles dwarfs and
+   giants, each template placed at the median catalog B-V of the BSC5 stars of its type
+   (``data/pickles_templates.csv``, made by ``fit_pickles_bv.py``);
+3. ``BLACKBODY``: a Planck spectrum at the Ballesteros (2012) temperature of B-V (flagged: 5-24 %
+   errors for K/M stars, see docs/catalog.md);
+4. ``NONE``: no type and no B-V: ratios are NaN.
+"""
+
+from __future__ import annotations
+
+import csv
+import re
+from dataclasses import dataclass, field
+from enum import IntEnum
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+BV_PHYSICAL_MIN = -0.5  # B-V below this is not a stellar colour (Ballesteros T diverges at -0.67)
+SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+DEFAULT_PICKLES_DIR = SHARED_DATA / "pickles"
+DEFAULT_QE_NAME = "mt9p031_like"
+
+H_PLANCK = 6.62607015e-34
+C_LIGHT = 299792458.0
+K_BOLTZMANN = 1.380649e-23
+
+
+class ColourDataError(ValueError):
+    """A QE table or spectrum is unusable; the message names the file, line and value."""
+
+
+class ColourSource(IntEnum):
+    """Where a star's colour ratios came from (stored per star in the catalog image flags)."""
+
+    NONE = 0
+    PICKLES_MK = 1
+    BV_LOOKUP = 2
+    BLACKBODY = 3
+
+
+# --- detector QE -----------------------------------------------------------------------------------
+
+
+@dataclass
+class QETable:
+    """Per-channel response chi_r, chi_g, chi_b (QE, fraction) at increasing wavelengths (nm)."""
+
+    wavelength_nm: np.ndarray
+    r: np.ndarray
+    g: np.ndarray
+    b: np.ndarray
+    name: str = "custom"
+    provenance: str = ""
+
+    def __post_init__(self):
+        w = np.asarray(self.wavelength_nm, dtype=float)
+        if w.ndim != 1 or len(w) < 2:
+            raise ColourDataError(f"QE table {self.name}: need at least two wavelengths")
+        for label, arr in (("wavelength", w), ("R", self.r), ("G", self.g), ("B", self.b)):
+            arr = np.asarray(arr, dtype=float)
+            if arr.shape != w.shape or not np.isfinite(arr).all():
+                raise ColourDataError(f"QE table {self.name}: column {label} is not a finite column of length {len(w)}")
+            if label != "wavelength" and (arr < 0).any():
+                k = int(np.flatnonzero(arr < 0)[0])
+                raise ColourDataError(f"QE table {self.name}: {label} is negative ({arr[k]}) at {w[k]} nm")
+        bad = np.flatnonzero(np.diff(w) <= 0)
+        if len(bad):
+            raise ColourDataError(f"QE table {self.name}: wavelengths not increasing at {w[bad[0]]} -> {w[bad[0] + 1]} nm")
+        self.wavelength_nm = w
+        self.r, self.g, self.b = (np.asarray(a, dtype=float) for a in (self.r, self.g, self.b))
+
+    @property
+    def band(self) -> tuple[float, float]:
+        return float(self.wavelength_nm[0]), float(self.wavelength_nm[-1])
+
+    def at(self, wavelength_nm: np.ndarray) -> np.ndarray:
+        """Responses at ``wavelength_nm`` (linear interpolation, 0 outside), shape (3, n)."""
+        w = self.wavelength_nm
+        return np.stack([np.interp(wavelength_nm, w, c, left=0.0, right=0.0) for c in (self.r, self.g, self.b)])
+
+
+def load_qe_csv(path: str | Path, name: str | None = None, percent: bool | None = None) -> QETable:
+    """Read ``wavelength_nm, R, G, B`` rows (``#`` comments and one header line allowed).
+
+    Values above 1.5 anywhere are taken as percent (``percent=None``) and divided by 100.
+    """
+    path = Path(path)
+    rows, header_seen, comments = [], False, []
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ColourDataError(f"{path}: cannot read QE table ({exc})") from exc
+    for lineno, line in enumerate(text.splitlines(), 1):
+        s = line.strip()
+        if not s:
+            continue
+        if s.startswith("#"):
+            comments.append(s.lstrip("# "))
+            continue
+        parts = [p.strip() for p in s.split(",")]
+        if len(parts) != 4:
+            raise ColourDataError(f"{path}: line {lineno}: expected 4 columns (wavelength_nm,R,G,B), got {len(parts)}: {s!r}")
+        try:
+            rows.append([float(p) for p in parts])
+        except ValueError:
+            if rows or header_seen:
+                raise ColourDataError(f"{path}: line {lineno}: not numeric: {s!r}") from None
+            header_seen = True
+    if not rows:
+        raise ColourDataError(f"{path}: no QE rows")
+    a = np.array(rows)
+    if percent is None:
+        percent = bool(a[:, 1:].max() > 1.5)
+    if percent:
+        a[:, 1:] /= 100.0
+    try:
+        return QETable(a[:, 0], a[:, 1], a[:, 2], a[:, 3], name=name or path.stem, provenance="; ".join(comments))
+    except ColourDataError as exc:
+        raise ColourDataError(f"{path}: {exc}") from None
+
+
+def default_qe() -> QETable:
+    """The shipped MT9P031-like colour CMOS model (see docs/catalog.md for what is assumed)."""
+    with resources.as_file(resources.files("ground.catalog").joinpath(f"data/qe_{DEFAULT_QE_NAME}.csv")) as p:
+        return load_qe_csv(p, name=DEFAULT_QE_NAME, percent=False)
+
+
+# --- spectra ---------------------------------------------------------------------------------------
+
+
+def read_sed(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """A Pickles ``.sed`` file: (wavelength in nm, F_lambda), wavelengths strictly increasing."""
+    path = Path(path)
+    if not path.is_file():
+        raise ColourDataError(f"{path}: spectrum file missing")
+    try:
+        a = np.loadtxt(path, comments="#", ndmin=2)
+    except ValueError as exc:
+        raise ColourDataError(f"{path}: malformed spectrum: {exc}") from None
+    if a.shape[1] != 2 or len(a) < 2:
+        raise ColourDataError(f"{path}: expected two columns (Angstrom, F_lambda), got shape {a.shape}")
+    w, f = a[:, 0] / 10.0, a[:, 1]
+    bad = np.flatnonzero(np.diff(w) <= 0)
+    if len(bad):
+        raise ColourDataError(f"{path}: line {bad[0] + 2}: wavelength not increasing ({a[bad[0], 0]} -> {a[bad[0] + 1, 0]} A)")
+    # the library holds noise-level negatives (-1e-6 of the 5556 A level): tolerated below 0.1 % of the peak
+    bad = np.flatnonzero(~np.isfinite(f) | (f < -1e-3 * np.nanmax(np.abs(f))))
+    if len(bad):
+        raise ColourDataError(f"{path}: line {bad[0] + 1}: flux {f[bad[0]]} is negative or not finite")
+    return w, f
+
+
+def planck_lambda(wavelength_nm: np.ndarray, temperature: float) -> np.ndarray:
+    """Blackbody spectral radiance B_lambda (W sr^-1 m^-3) at ``temperature`` kelvin."""
+    lam = np.asarray(wavelength_nm, dtype=float) * 1e-9
+    x = H_PLANCK * C_LIGHT / (lam * K_BOLTZMANN * temperature)
+    return 2 * H_PLANCK * C_LIGHT**2 / lam**5 / np.expm1(x)
+
+
+def ballesteros_temperature(bv) -> np.ndarray:
+    """Effective temperature (K) from B-V, Ballesteros (2012, EPL 97, 34008)."""
+    bv = np.asarray(bv, dtype=float)
+    return 4600.0 * (1.0 / (0.92 * bv + 1.7) + 1.0 / (0.92 * bv + 0.62))
+
+
+# --- MK types and the Pickles library -------------------------------------------------------------
+
+_CLASSES = "OBAFGKM"
+_LUM = {"Ia0": 1, "Ia": 1, "Iab": 1, "Ib": 1, "I": 1, "II": 2, "III": 3, "IV": 4, "V": 5, "VI": 5}
+_PREFIX_LUM = {"c": 1, "sg": 4, "g": 3, "sd": 5, "d": 5}
+
+
+@dataclass(frozen=True)
+class MKType:
+    """Parsed MK type: temperature index ``10 * class + subclass`` (O0 = 0 ... M10 = 70), luminosity 1-5."""
+
+    temp_index: float
+    lum: int | None  # 1 = I (supergiant) ... 5 = V (dwarf); None if not given
+
+
+def parse_mk(text: str) -> MKType | None:
+    """Primary component's class, subclass and luminosity from an MK string, or None.
+
+    Handles Mount Wilson prefixes (d, sd, sg, g, c), Am notation (the hydrogen ``h`` type is used),
+    ranges (``M1-M2Ia-Iab`` -> M1, I) and composites (first component). S stars are treated as M;
+    carbon (C, N, R), Wolf-Rayet (W) and white dwarfs (D) give None.
+    """
+    s = text.strip().split("+")[0].strip()
+    if not s:
+        return None
+    prefix_lum = None
+    m = re.match(r"^(sd|sg|d|g|c)(?=[OBAFGKMS])", s)
+    if m:
+        prefix_lum = _PREFIX_LUM[m.group(1)]
+        s = s[m.end():]
+    h = re.search(r"h([OBAFGKM])(\d+(?:\.\d+)?)", s)  # Am stars: kA2hA5mA7V
+    m = h or re.match(r"^([OBAFGKMS])(\d+(?:\.\d+)?)", s)
+    if not m:
+        return None
+    cls, sub = m.group(1), float(m.group(2))
+    cls_index = _CLASSES.index("M" if cls == "S" else cls)
+    rest = s[m.end():]
+    lum_m = re.search(r"(Ia0|Iab|Ia|Ib|VI|IV|V|III|II|I)", rest)
+    lum = _LUM[lum_m.group(1)] if lum_m else prefix_lum
+    return MKType(10.0 * cls_index + sub, lum)
+
+
+def parse_template_name(name: str) -> tuple[MKType, str] | None:
+    """(MKType, metallicity) of a Pickles template name such as ``a47iv``, ``m2p5v``, ``rk0iii``."""
+    m = re.match(r"^([rw]?)([obafgkm])(\d+|\dp\d)(i|ii|iii|iv|v)$", name)
+    if not m:
+        return None
+    metal, cls, digits, lum = m.groups()
+    if "p" in digits:
+        sub = float(digits.replace("p", "."))
+    elif len(digits) == 2 and digits != "10":
+        sub = (int(digits[0]) + int(digits[1])) / 2.0  # a range such as a47 = A4-A7
+    else:
+        sub = float(digits)
+    lum_index = {"i": 1, "ii": 2, "iii": 3, "iv": 4, "v": 5}[lum]
+    return MKType(10.0 * _CLASSES.index(cls.upper()) + sub, lum_index), {"": "solar", "r": "rich", "w": "weak"}[metal]
+
+
+def luminosity_weight(temp_index: float) -> float:
+    """Cost of one luminosity class, in subclasses: small for hot stars, large for cool ones."""
+    if temp_index < 30:  # O, B, A: class and subclass dominate
+        return 0.4
+    if temp_index < 40:  # F
+        return 1.5
+    return 4.0  # G, K, M: giants and dwarfs differ strongly
+
+
+def match_template(mk: MKType, templates: dict[str, MKType]) -> str | None:
+    """Nearest template: ``|d temp_index| + w * |d lum|``; ties go to the first name in sorted order.
+
+    A missing luminosity class is taken as V for O-F stars; for G-M stars it is too important to
+    guess, and the star falls back to the B-V lookup (None).
+    """
+    lum = mk.lum
+    if lum is None:
+        if mk.temp_index >= 40:
+            return None
+        lum = 5
+    w = luminosity_weight(mk.temp_index)
+    best, best_cost = None, np.inf
+    for name in sorted(templates):
+        t = templates[name]
+        cost = abs(t.temp_index - mk.temp_index) + w * abs(t.lum - lum)
+        if cost < best_cost - 1e-12:
+            best, best_cost = name, cost
+    return best
+
+
+def pickles_templates(pickles_dir: str | Path) -> dict[str, MKType]:
+    """Solar-metallicity templates present in ``pickles_dir`` (name -> MKType)."""
+    pickles_dir = Path(pickles_dir)
+    if not pickles_dir.is_dir():
+        raise ColourDataError(f"{pickles_dir}: Pickles spectra directory missing")
+    out = {}
+    for p in sorted(pickles_dir.glob("*.sed")):
+        parsed = parse_template_name(p.stem)
+        if parsed and parsed[1] == "solar":
+            out[p.stem] = parsed[0]
+    if not out:
+        raise ColourDataError(f"{pickles_dir}: no Pickles *.sed templates found")
+    return out
+
+
+# --- colour integrals -------------------------------------------------------------------------------
+
+
+def photon_signals(qe: QETable, wavelength_nm, flux, band: tuple[float, float] | None = None) -> np.ndarray:
+    """``S_c = int chi_c F_lambda lambda dlambda`` for c = r, g, b (trapezoid on the merged grid).
+
+    ``flux`` may be (n,) or (k, n) for k spectra on one grid; returns (3,) or (k, 3).
+    """
+    lo, hi = band or qe.band
+    w = np.asarray(wavelength_nm, dtype=float)
+    if w[0] > lo or w[-1] < hi:
+        raise ColourDataError(f"spectrum covers {w[0]:.1f}-{w[-1]:.1f} nm but the band is {lo:.1f}-{hi:.1f} nm")
+    if lo < qe.band[0] or hi > qe.band[1]:
+        raise ColourDataError(f"QE table {qe.name} covers {qe.band[0]:.1f}-{qe.band[1]:.1f} nm, not the band {lo:.1f}-{hi:.1f} nm")
+    grid = np.union1d(w[(w > lo) & (w < hi)], qe.wavelength_nm[(qe.wavelength_nm >= lo) & (qe.wavelength_nm <= hi)])
+    grid = np.union1d(grid, [lo, hi])
+    flux = np.asarray(flux, dtype=float)
+    f = np.interp(grid, w, flux) if flux.ndim == 1 else np.stack([np.interp(grid, w, fk) for fk in flux])
+    chi = qe.at(grid)  # (3, m)
+    integrand = f[..., None, :] * chi * grid  # (..., 3, m)
+    return np.trapezoid(integrand, grid, axis=-1)
+
+
+def ratios_from_signals(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Lambda_rg, Lambda_bg) from signals (..., 3)."""
+    s = np.asarray(s, dtype=float)
+    return s[..., 0] / s[..., 1], s[..., 2] / s[..., 1]
+
+
+def blackbody_ratios(qe: QETable, temperature, band=None) -> tuple[np.ndarray, np.ndarray]:
+    """Colour ratios of Planck spectra at ``temperature`` (K, scalar or array) on a 0.5 nm grid."""
+    lo, hi = band or qe.band
+    grid = np.arange(lo, hi + 0.25, 0.5)
+    grid[-1] = min(grid[-1], hi)
+    t = np.atleast_1d(np.asarray(temperature, dtype=float))
+    flux = np.stack([planck_lambda(grid, tk) for tk in t])
+    rg, bg = ratios_from_signals(photon_signals(qe, grid, flux, (lo, hi)))
+    return (rg, bg) if np.ndim(temperature) else (float(rg[0]), float(bg[0]))
+
+
+# --- the full model --------------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=256)
+def _sed_cached(path: str):
+    return read_sed(path)
+
+
+def shipped_template_table() -> list[dict]:
+    """Rows of ``data/pickles_templates.csv``: template, bv, n_stars, rg/bg for the default QE."""
+    text = resources.files("ground.catalog").joinpath("data/pickles_templates.csv").read_text()
+    rows = list(csv.DictReader(line for line in text.splitlines() if not line.startswith("#")))
+    for r in rows:
+        for k in ("bv", "rg_default", "bg_default"):
+            r[k] = float(r[k]) if r[k] else np.nan
+        r["n_stars"] = int(r["n_stars"])
+    return rows
+
+
+@dataclass
+class ColourModel:
+    """Colour ratios for one detector: Pickles templates by MK type, B-V lookup, blackbody.
+
+    Without ``pickles_dir`` on disk, only the default QE can be used (its template ratios are
+    shipped); any other QE needs the spectra.
+    """
+
+    qe: QETable = field(default_factory=default_qe)
+    pickles_dir: Path | None = DEFAULT_PICKLES_DIR
+    band: tuple[float, float] | None = None
+    bv_degree: int = 4
+
+    def __post_init__(self):
+        self.band = tuple(self.band or self.qe.band)
+        if not (self.qe.band[0] <= self.band[0] < self.band[1] <= self.qe.band[1]):
+            raise ColourDataError(f"QE table {self.qe.name} covers {self.qe.band[0]}-{self.qe.band[1]} nm, not the band {self.band}")
+        self._have_spectra = self.pickles_dir is not None and Path(self.pickles_dir).is_dir()
+        shipped_ok = self.qe.name == DEFAULT_QE_NAME and self.band == default_qe().band
+        if not self._have_spectra and not shipped_ok:
+            raise ColourDataError(f"QE table {self.qe.name} needs the Pickles spectra, but {self.pickles_dir} is missing")
+        self._templates = pickles_templates(self.pickles_dir) if self._have_spectra else {
+            r["template"]: parse_template_name(r["template"])[0] for r in shipped_template_table()
+        }
+        self._cache: dict[str, tuple[float, float]] = {}
+        if not self._have_spectra:
+            self._cache = {r["template"]: (r["rg_default"], r["bg_default"]) for r in shipped_template_table()}
+        self._fit_bv_lookup()
+
+    @property
+    def templates(self) -> dict[str, MKType]:
+        return self._templates
+
+    def template_ratios(self, name: str) -> tuple[float, float]:
+        """(Lambda_rg, Lambda_bg) of one Pickles template."""
+        if name not in self._cache:
+            w, f = _sed_cached(str(Path(self.pickles_dir) / f"{name}.sed"))
+            rg, bg = ratios_from_signals(photon_signals(self.qe, w, f, self.band))
+            self._cache[name] = (float(rg), float(bg))
+        return self._cache[name]
+
+    def _fit_bv_lookup(self) -> None:
+        """Quartic ln(ratio)(B-V) over solar dwarfs/giants (lum III-V), excluding M7-M10 III."""
+        bvs, rgs, bgs = [], [], []
+        for row in shipped_template_table():
+            name = row["template"]
+            mk = self._templates.get(name)
+            if mk is None or not np.isfinite(row["bv"]) or mk.lum < 3 or mk.temp_index >= 67:
+                continue
+            rg, bg = self.template_ratios(name)
+            bvs.append(row["bv"])
+            rgs.append(np.log(rg))
+            bgs.append(np.log(bg))
+        bvs = np.array(bvs)
+        self.bv_range = (float(bvs.min()), float(bvs.max()))
+        self.bv_coef_rg = np.polynomial.polynomial.polyfit(bvs, rgs, self.bv_degree)
+        self.bv_coef_bg = np.polynomial.polynomial.polyfit(bvs, bgs, self.bv_degree)
+        self.bv_fit_rms = (
+            float(np.std(np.polynomial.polynomial.polyval(bvs, self.bv_coef_rg) - rgs)),
+            float(np.std(np.polynomial.polynomial.polyval(bvs, self.bv_coef_bg) - bgs)),
+        )
+
+    def bv_lookup(self, bv) -> tuple[np.ndarray, np.ndarray]:
+        """Ratios from the Pickles-fitted B-V lookup (valid inside ``bv_range``)."""
+        bv = np.asarray(bv, dtype=float)
+        return (np.exp(np.polynomial.polynomial.polyval(bv, self.bv_coef_rg)),
+                np.exp(np.polynomial.polynomial.polyval(bv, self.bv_coef_bg)))
+
+    def star_ratios(self, sptype, bv) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per-star (rg, bg, ColourSource codes, template names) for MK strings and B-V values."""
+        n = len(bv)
+        rg, bg = np.full(n, np.nan), np.full(n, np.nan)
+        src = np.full(n, ColourSource.NONE, dtype=np.uint8)
+        tmpl = np.full(n, "", dtype=object)
+        bv = np.asarray(bv, dtype=float)
+        for k, sp in enumerate(sptype):
+            mk = parse_mk(sp) if sp else None
+            name = match_template(mk, self._templates) if mk else None
+            if name:
+                rg[k], bg[k] = self.template_ratios(name)
+                src[k], tmpl[k] = ColourSource.PICKLES_MK, name
+        todo = (src == ColourSource.NONE) & np.isfinite(bv)
+        inside = todo & (bv >= self.bv_range[0]) & (bv <= self.bv_range[1])
+        rg[inside], bg[inside] = self.bv_lookup(bv[inside])
+        src[inside] = ColourSource.BV_LOOKUP
+        outside = todo & ~inside & (bv > BV_PHYSICAL_MIN)  # bluer than any star: no temperature
+        if outside.any():
+            rg[outside], bg[outside] = blackbody_ratios(self.qe, ballesteros_temperature(bv[outside]), self.band)
+            src[outside] = ColourSource.BLACKBODY
+        return rg, bg, src, tmpl

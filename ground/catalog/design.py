@@ -1,0 +1,140 @@
+"""Catalog design parameters (seed 000 sections 4-5.1), from code, the command line or TOML.
+
+Angles are degrees at this interface (names end ``_deg``) and radians in the derived properties.
+``theta_fov_deg`` is the half-angle of the field of view along the sensor's minor axis; the focal
+length in pixels follows from it and the minor sensor dimension, and the pair-angle noise from
+seed 000 eq. 18: ``sigma_phi = 2 sigma_pix / f_px``.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+from scipy.special import erfinv
+
+SOURCES = ("hipparcos", "bsc5")
+
+
+class DesignError(ValueError):
+    """An impossible or unknown design parameter; the message names the parameter and value."""
+
+
+@dataclass
+class CatalogDesign:
+    """Optical and catalog design; defaults are the seed-000 baseline with M_thresh 5.0."""
+
+    theta_fov_deg: float = 7.5
+    sensor_width_px: int = 2592
+    sensor_height_px: int = 1944
+    m_thresh: float = 5.0
+    sigma_pix: float = 0.2
+    sigma_rg: float = 0.02
+    sigma_bg: float = 0.02
+    p_correct: float = 0.99
+    phi_min_deg: float | None = None  # default theta_fov / 500 (seed 000 sec. 4.3)
+    phi_max_deg: float | None = None  # default 2 theta_fov (seed 000 eq. 13)
+    n_h: int = 1024
+    epoch: float = 2025.0  # Julian year of the catalog positions
+    source: str = "hipparcos"
+    source_path: str | None = None  # None: bundled Hipparcos / ../shared BSC5
+    qe_path: str | None = None  # None: shipped MT9P031-like model
+    pickles_dir: str | None = None  # None: ../shared/data/pickles
+    resolve_deg: float | None = None  # double-star merge angle; default phi_min
+    drop_variable: bool = False
+
+    def __post_init__(self):
+        self.validate()
+
+    # --- derived quantities (radians) ---------------------------------------------------------
+    @property
+    def theta_fov(self) -> float:
+        return math.radians(self.theta_fov_deg)
+
+    @property
+    def phi_min(self) -> float:
+        return math.radians(self.phi_min_deg) if self.phi_min_deg is not None else self.theta_fov / 500.0
+
+    @property
+    def phi_max(self) -> float:
+        return math.radians(self.phi_max_deg) if self.phi_max_deg is not None else 2.0 * self.theta_fov
+
+    @property
+    def resolve_angle(self) -> float:
+        return math.radians(self.resolve_deg) if self.resolve_deg is not None else self.phi_min
+
+    @property
+    def focal_px(self) -> float:
+        """Focal length in pixels putting the minor half-axis at ``theta_fov``."""
+        return 0.5 * min(self.sensor_width_px, self.sensor_height_px) / math.tan(self.theta_fov)
+
+    @property
+    def sigma_phi(self) -> float:
+        """Pair-angle noise (rad), seed 000 eq. 18."""
+        return 2.0 * self.sigma_pix / self.focal_px
+
+    @property
+    def delta_star(self) -> float:
+        """Critical Mahalanobis distance, seed 000 eq. 7 (4.65 for P_correct = 0.99)."""
+        return float(-2.0 * math.sqrt(2.0) * erfinv(1.0 - 2.0 * self.p_correct))
+
+    @property
+    def dphi_star(self) -> float:
+        """Angle window of the pair search, seed 000 eq. 9: ``sigma_phi Delta* / 2``."""
+        return self.sigma_phi * self.delta_star / 2.0
+
+    # --- validation and I/O ------------------------------------------------------------------
+    def validate(self) -> None:
+        def need(ok: bool, name: str, why: str):
+            if not ok:
+                raise DesignError(f"{name} = {getattr(self, name)!r}: {why}")
+
+        need(isinstance(self.theta_fov_deg, (int, float)) and 0 < self.theta_fov_deg < 45, "theta_fov_deg", "must be in (0, 45) degrees (half-angle)")
+        for name in ("sensor_width_px", "sensor_height_px"):
+            need(isinstance(getattr(self, name), int) and getattr(self, name) >= 2, name, "must be an integer >= 2")
+        need(math.isfinite(self.m_thresh) and -2 < self.m_thresh < 15, "m_thresh", "must be a magnitude in (-2, 15)")
+        for name in ("sigma_pix", "sigma_rg", "sigma_bg"):
+            need(math.isfinite(getattr(self, name)) and getattr(self, name) > 0, name, "must be > 0")
+        need(0.5 < self.p_correct < 1, "p_correct", "must be in (0.5, 1)")
+        need(isinstance(self.n_h, int) and 1 <= self.n_h <= 1 << 24, "n_h", "must be an integer in [1, 2^24]")
+        need(1900 <= self.epoch <= 2200, "epoch", "must be a Julian year in [1900, 2200]")
+        need(self.source in SOURCES, "source", f"must be one of {SOURCES}")
+        if self.phi_min_deg is not None:
+            need(self.phi_min_deg >= 0, "phi_min_deg", "must be >= 0")
+        if self.phi_max_deg is not None:
+            need(0 < self.phi_max_deg <= 180, "phi_max_deg", "must be in (0, 180]")
+        if self.resolve_deg is not None:
+            need(self.resolve_deg >= 0, "resolve_deg", "must be >= 0")
+        if not self.phi_min < self.phi_max:
+            raise DesignError(
+                f"phi_min = {math.degrees(self.phi_min):.6g} deg must be below phi_max = {math.degrees(self.phi_max):.6g} deg "
+                f"(2 theta_FOV unless set)"
+            )
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict, origin: str = "design") -> "CatalogDesign":
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise DesignError(f"{origin}: unknown design parameter(s) {unknown}; known: {sorted(known)}")
+        try:
+            return cls(**data)
+        except DesignError as exc:
+            raise DesignError(f"{origin}: {exc}") from None
+        except TypeError as exc:
+            raise DesignError(f"{origin}: {exc}") from None
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> "CatalogDesign":
+        """Read a design file; parameters at top level or under a ``[design]`` table."""
+        path = Path(path)
+        try:
+            data = tomllib.loads(path.read_text())
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise DesignError(f"{path}: {exc}") from None
+        return cls.from_dict(data.get("design", data), origin=str(path))
