@@ -1,0 +1,126 @@
+"""Attitude from matched star pairs: Davenport q-method, SVD cross-check, covariance, residuals.
+
+Wahba's problem: find the attitude matrix ``A`` (``v_sensor = A @ v_icrs``, docs/CONVENTIONS.md)
+minimising ``sum_i w_i |b_i - A r_i|^2`` for sensor-frame unit vectors ``b_i`` and ICRS catalog
+unit vectors ``r_i``. Weights are ``w_i = 1 / sigma_i^2`` with ``sigma_i`` the per-axis direction
+noise of detection ``i`` in radians (QUEST measurement model, Shuster & Oh 1981).
+
+* ``davenport_q``: the largest eigenvector of Davenport's 4x4 ``K`` matrix (seed 000 ref. 21),
+  returned as the scalar-first quaternion ``q_icrs_to_sensor`` with ``w >= 0``.
+* ``svd_attitude``: Markley's SVD solution, an independent algorithm for cross-checks.
+* ``attitude_covariance``: ``P = [sum_i sigma_i^-2 (I - b_i b_i^T)]^-1`` (rad^2), the covariance
+  of the small rotation error angles about the sensor axes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+
+def attitude_profile(b: np.ndarray, r: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Attitude profile matrix ``B = sum_i w_i b_i r_i^T`` (3x3)."""
+    return (np.asarray(b, float) * np.asarray(w, float)[:, None]).T @ np.asarray(r, float)
+
+
+def davenport_q(b: np.ndarray, r: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Scalar-first quaternion ICRS -> sensor minimising Wahba's loss (Davenport q-method).
+
+    For ``A(q)`` with ``q = [w, v]`` (scipy / our convention, ``A = R(q)``), the gain
+    ``tr(A B^T) = q^T K q`` with ``K = [[sigma, z^T], [z, S - sigma I]]``, ``S = B + B^T``,
+    ``sigma = tr B`` and ``z = [B_zy - B_yz, B_xz - B_zx, B_yx - B_xy]`` (B^T's skew part).
+    """
+    b = np.asarray(b, float)
+    w = np.ones(len(b)) if w is None else np.asarray(w, float)
+    bm = attitude_profile(b, r, w)
+    s = bm + bm.T
+    sigma = np.trace(bm)
+    z = np.array([bm[2, 1] - bm[1, 2], bm[0, 2] - bm[2, 0], bm[1, 0] - bm[0, 1]])
+    k = np.empty((4, 4))
+    k[0, 0] = sigma
+    k[0, 1:] = z
+    k[1:, 0] = z
+    k[1:, 1:] = s - sigma * np.eye(3)
+    vals, vecs = np.linalg.eigh(k)
+    q = vecs[:, -1]
+    q = q / np.linalg.norm(q)
+    return -q if q[0] < 0 else q
+
+
+def svd_attitude(b: np.ndarray, r: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Attitude matrix by Markley's SVD method: ``A = U diag(1, 1, det U det V) V^T``, ``B = U S V^T``."""
+    b = np.asarray(b, float)
+    w = np.ones(len(b)) if w is None else np.asarray(w, float)
+    u, _, vt = np.linalg.svd(attitude_profile(b, r, w))
+    d = np.linalg.det(u) * np.linalg.det(vt)
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def attitude_covariance(b: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Covariance (rad^2, 3x3, sensor axes) of the attitude error angles; inf if unobservable."""
+    b = np.asarray(b, float)
+    inv_var = 1.0 / np.asarray(sigma, float) ** 2
+    info = np.einsum("i,ijk->jk", inv_var, np.eye(3)[None] - b[:, :, None] * b[:, None, :])
+    vals, vecs = np.linalg.eigh(info)
+    if vals[0] <= vals[-1] * 1e-12:
+        return np.full((3, 3), np.inf)
+    return (vecs / vals) @ vecs.T
+
+
+def residual_angles(b: np.ndarray, r: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Angle in radians between each measured ``b_i`` and its predicted ``A r_i``."""
+    d = np.linalg.norm(np.asarray(b, float) - np.asarray(r, float) @ np.asarray(a).T, axis=-1)
+    return 2.0 * np.arcsin(np.clip(d / 2.0, 0.0, 1.0))
+
+
+@dataclass(frozen=True)
+class AttitudeSolution:
+    """q-method solution: quaternion ICRS -> sensor (scalar first), its matrix, covariance (rad^2),
+    per-star residual angles (rad) and their RMS (rad)."""
+
+    q: np.ndarray
+    a: np.ndarray
+    covariance: np.ndarray
+    residuals: np.ndarray
+    rms: float
+
+
+def quat_matrix(q: np.ndarray) -> np.ndarray:
+    """Attitude matrix of a unit scalar-first quaternion (same as ``frames.quat_to_matrix``, no scipy
+    overhead): ``A = (w^2 - v.v) I + 2 v v^T + 2 w [v x]``."""
+    w, x, y, z = q
+    return np.array([
+        [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
+    ])
+
+
+def solve_attitude(b: np.ndarray, r: np.ndarray, sigma) -> AttitudeSolution:
+    """Weighted q-method attitude with covariance and residuals; needs >= 2 non-parallel stars.
+
+    ``sigma`` is the per-axis direction noise in radians, scalar or one per star.
+    """
+    b = np.asarray(b, float)
+    r = np.asarray(r, float)
+    if b.ndim != 2 or b.shape[1] != 3 or r.shape != b.shape or len(b) < 2:
+        raise ValueError(f"need matching (N,3) arrays with N >= 2, got {b.shape} and {r.shape}")
+    sig = np.broadcast_to(np.asarray(sigma, float), (len(b),))
+    q = davenport_q(b, r, 1.0 / sig**2)
+    a = quat_matrix(q)
+    res = residual_angles(b, r, a)
+    return AttitudeSolution(q, a, attitude_covariance(b, sig), res, float(np.sqrt(np.mean(res**2))))
+
+
+__all__ = [
+    "AttitudeSolution",
+    "attitude_covariance",
+    "attitude_profile",
+    "davenport_q",
+    "quat_matrix",
+    "residual_angles",
+    "solve_attitude",
+    "svd_attitude",
+]

@@ -1,0 +1,273 @@
+"""Consensus scene matching of seed 000 section 3.3, with bounded backtracking.
+
+Paper algorithm (greedy RANSAC-style):
+
+1. Take a seed pair of detections ``(k, l)``, find its best catalog pair match (``pair_match``);
+   the two stars start the consensus set ``S``.
+2. For every other detection ``i``, match the pair ``(i, s)`` with an anchor ``s`` in ``S`` under
+   the constraint that ``s`` keeps its catalog star; accept the best constrained match with
+   ``Delta < Delta*``.
+3. Accept ``i`` into ``S`` only if it is geometrically consistent with every member of ``S``:
+   ``|phi_is - phi_rk| < delta_phi* = sigma_phi Delta*/2`` (eqs 8-9).
+4. If ``N_S >= eta N_A`` stop (high confidence), otherwise try another seed pair, at most
+   ``3 N_A`` attempts; keep the largest set. Outcomes: high confidence, low confidence, no match.
+
+Beyond the paper (every knob in ``ConsensusParams``):
+
+* **Backtracking**: for each seed pair the ``k_best`` best catalog matches are grown, and both
+  assignments of a symmetric pair are separate candidates (a colour-swapped pair no longer
+  dooms the attempt).
+* Growth tries up to ``anchors`` members of ``S`` as the anchor and, among constrained matches
+  below ``Delta*``, takes the best one that passes eqs 8-9 (not just the best).
+* Every grown set goes through ``verify`` (``firmware_model.ident.verify``): attitude residuals,
+  refinement with all detections, coverage of predicted-visible catalog stars. Sets that fail
+  are discarded, not reported as low confidence.
+* **Confidence**: high only if the verified set has ``N >= eta N_A``, no verified rival with a
+  different attitude has at least ``rival_ratio`` of its support, and a two-star answer came
+  from a seed pair whose candidates were all explored.
+* Bounded work: the ``max_stars`` brightest detections are used, at most
+  ``min(ceil(attempts_per_star N_A), max_attempts)`` seed pairs, ``k_best`` growths per seed,
+  ``max_window`` scored rows per pair look-up, and an optional wall-clock deadline.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Callable
+
+import numpy as np
+
+from firmware_model.ident.pair_match import PairNoise, consistency_tolerance, critical_distance, match_pair
+from firmware_model.onboard_catalog import OnboardCatalog, angle_between
+
+
+class Outcome(str, Enum):
+    """The three result classes of seed 000 section 3.3."""
+
+    HIGH_CONFIDENCE = "HIGH_CONFIDENCE"
+    LOW_CONFIDENCE = "LOW_CONFIDENCE"
+    NO_MATCH = "NO_MATCH"
+
+
+@dataclass(frozen=True)
+class ConsensusParams:
+    """Consensus matching knobs (defaults: seed 000 values where it gives them).
+
+    p_correct: pair-match success probability defining ``Delta*`` (eq. 7; 0.99 -> 4.65).
+    eta: consensus fraction for a high-confidence match (paper: 0.6-0.7).
+    attempts_per_star, max_attempts: seed-pair attempts ``min(ceil(3 N_A), max_attempts)``.
+    k_best: catalog matches grown per seed pair (backtracking; 1 = paper).
+    anchors: members of ``S`` tried as anchor for a constrained match (1 = paper).
+    max_stars: brightest detections used for matching (the rest join in verification).
+    max_window: cap on pair-table rows scored per look-up.
+    rival_ratio: a distinct verified set with at least this fraction of the best's stars makes
+        the answer low confidence.
+    rival_angle: attitudes closer than this (rad) are the same hypothesis.
+    decisive_stars: a verified set this large (and >= eta N_A) ends the backtracking over the
+        remaining candidates of its seed pair.
+    """
+
+    p_correct: float = 0.99
+    eta: float = 0.65
+    attempts_per_star: float = 3.0
+    max_attempts: int = 60
+    k_best: int = 4
+    anchors: int = 2
+    max_stars: int = 24
+    max_window: int = 4096
+    rival_ratio: float = 0.5
+    rival_angle: float = 1e-3
+    decisive_stars: int = 4
+
+
+@dataclass
+class ConsensusResult:
+    """Outcome of a scene match: class, best verified match (or None), attempts used, reason."""
+
+    outcome: Outcome
+    best: object | None
+    reason: str
+    attempts: int = 0
+    hypotheses: int = 0
+    rivals: list = field(default_factory=list)
+
+
+def detection_angles(vectors: np.ndarray) -> np.ndarray:
+    """Matrix of pair angles (rad) between sensor unit vectors."""
+    return angle_between(vectors[:, None, :], vectors[None, :, :])
+
+
+def seed_pairs(n: int):
+    """Seed pairs brightest first: (0,1), (0,2), (1,2), (0,3), (1,3), (2,3), ..."""
+    for l in range(1, n):
+        for k in range(l):
+            yield k, l
+
+
+def neighbour_table(catalog: OnboardCatalog):
+    """Per-star neighbour lists from the pair table (CSR): ``(indptr, neighbour, phi)``.
+
+    Built once per catalog and kept on the instance (``_ident_neighbours``).
+    """
+    cached = catalog.__dict__.get("_ident_neighbours")
+    if cached is not None:
+        return cached
+    src = np.concatenate([catalog.pair_i, catalog.pair_j]).astype(np.int64)
+    dst = np.concatenate([catalog.pair_j, catalog.pair_i]).astype(np.int64)
+    phi = np.concatenate([catalog.pair_phi, catalog.pair_phi])
+    order = np.argsort(src, kind="stable")
+    indptr = np.searchsorted(src[order], np.arange(catalog.n_stars + 1))
+    table = (indptr, dst[order], phi[order], catalog.rg.astype(float), catalog.bg.astype(float))
+    catalog.__dict__["_ident_neighbours"] = table
+    return table
+
+
+def _sq(x):
+    return np.where(np.isfinite(x), x * x, 0.0)
+
+
+def grow(seed_det, seed_cat, vectors, rg, bg, ang, catalog: OnboardCatalog, noise: PairNoise,
+         delta_star: float, params: ConsensusParams):
+    """Grow a consensus set from a matched seed pair (steps 2-3); returns (det, cat) arrays.
+
+    The constrained pair match of detection ``i`` with anchor ``s`` scores the catalog
+    neighbours of ``s``'s catalog star (eq. 4 with the anchor's colour terms); the anchors are
+    the first ``params.anchors`` seed stars. Candidates below ``Delta*`` are tried best first and
+    the first one consistent with all of ``S`` (eqs 8-9) is accepted.
+    """
+    indptr, nbr, nphi, crg, cbg = neighbour_table(catalog)
+    n = len(vectors)
+    s_det = list(seed_det)
+    s_cat = list(seed_cat)
+    dphi_star = consistency_tolerance(noise.sigma_phi, delta_star)
+    cand_star, cand_d, cand_det = [], [], []
+    for s, cs in list(zip(seed_det, seed_cat))[: params.anchors]:
+        a, b = indptr[cs], indptr[cs + 1]
+        nb = nbr[a:b]
+        d2 = ((ang[:, s][:, None] - nphi[None, a:b]) / noise.sigma_phi) ** 2
+        d2 += _sq((rg[:, None] - crg[nb][None, :]) / noise.sigma_rg) + _sq((bg[:, None] - cbg[nb][None, :]) / noise.sigma_bg)
+        d2 += _sq((rg[s] - crg[cs]) / noise.sigma_rg) + _sq((bg[s] - cbg[cs]) / noise.sigma_bg)
+        ii, jj = np.nonzero(d2 < delta_star * delta_star)
+        cand_det.append(ii)
+        cand_star.append(nb[jj])
+        cand_d.append(d2[ii, jj])
+    cand_det = np.concatenate(cand_det)
+    if len(cand_det) == 0:
+        return np.array(s_det, np.int64), np.array(s_cat, np.int64)
+    cand_star = np.concatenate(cand_star)
+    cand_d = np.concatenate(cand_d)
+    order = np.lexsort((cand_d, cand_det))
+    cand_det, cand_star = cand_det[order], cand_star[order]
+    bounds = np.searchsorted(cand_det, np.arange(n + 1))
+    cvec = catalog.vec
+    for i in np.unique(cand_det):
+        if i in s_det:
+            continue
+        stars = [c for c in cand_star[bounds[i]:bounds[i + 1]].tolist() if c not in s_cat]
+        if not stars:
+            continue
+        stars = np.array(list(dict.fromkeys(stars)), np.int64)
+        cat_ang = angle_between(cvec[stars][:, None, :], cvec[np.array(s_cat)][None, :, :])
+        consistent = np.all(np.abs(ang[i, s_det][None, :] - cat_ang) < dphi_star, axis=1)
+        if consistent.any():
+            s_det.append(int(i))
+            s_cat.append(int(stars[np.argmax(consistent)]))
+    return np.array(s_det, np.int64), np.array(s_cat, np.int64)
+
+
+def match_scene(vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray, catalog: OnboardCatalog,
+                noise: PairNoise, params: ConsensusParams,
+                verify: Callable[[np.ndarray, np.ndarray], tuple[object | None, str]],
+                deadline: float | None = None) -> ConsensusResult:
+    """Consensus match of a scene (module docstring); detections ordered brightest first.
+
+    ``verify(det, cat)`` returns ``(match, "")`` with ``match.n``, ``match.attitude.a`` and
+    ``match.attitude.rms``, or ``(None, reason)``. ``deadline`` is a ``time.perf_counter`` value.
+    """
+    n_all = len(vectors)
+    n = min(n_all, params.max_stars)
+    vectors, rg, bg = vectors[:n], rg[:n], bg[:n]
+    if n < 2:
+        return ConsensusResult(Outcome.NO_MATCH, None, f"{n_all} detection(s): need at least two")
+    delta_star = critical_distance(params.p_correct)
+    ang = detection_angles(vectors)
+    max_attempts = min(int(np.ceil(params.attempts_per_star * n)), params.max_attempts)
+    tol = noise.sigma_phi * delta_star
+    verified: list = []
+    attempts = 0
+    seeded = False
+    last_reason = "no detection pair within the catalog's pair-angle range"
+    best = None
+    for k, l in seed_pairs(n):
+        if attempts >= max_attempts:
+            break
+        if deadline is not None and time.perf_counter() > deadline:
+            last_reason = "time budget exhausted"
+            break
+        phi = ang[k, l]
+        if not catalog.phi_min - tol < phi <= catalog.phi_max + tol:
+            continue
+        attempts += 1
+        cands = match_pair(np.array([rg[k], bg[k], phi, rg[l], bg[l]]), catalog, noise, delta_star,
+                           params.max_window)
+        if len(cands) == 0:
+            if not seeded:
+                last_reason = "no seed pair matched the catalog within Delta*"
+            continue
+        seeded = True
+        explored_all = len(cands) <= params.k_best and not cands.truncated
+        for m in range(min(params.k_best, len(cands))):
+            det, cat = grow((k, l), (int(cands.cat_k[m]), int(cands.cat_l[m])), vectors, rg, bg, ang,
+                            catalog, noise, delta_star, params)
+            match, why = verify(det, cat)
+            if match is None:
+                last_reason = f"hypotheses failed verification ({why})"
+                continue
+            match.explored_all = explored_all
+            _add_distinct(verified, match, params.rival_angle)
+            if match.n >= max(params.decisive_stars, params.eta * n):
+                break  # a decisive set: lesser candidates of this seed cannot rival it
+        if verified:
+            best = max(verified, key=lambda v: (v.n, -v.attitude.rms))
+            if best.n >= params.eta * n and not _rivals(best, verified, params) and (best.n >= 3 or best.explored_all):
+                return ConsensusResult(Outcome.HIGH_CONFIDENCE, best, "", attempts, len(verified))
+    if not verified:
+        return ConsensusResult(Outcome.NO_MATCH, None, last_reason, attempts, 0)
+    best = max(verified, key=lambda v: (v.n, -v.attitude.rms))
+    rivals = _rivals(best, verified, params)
+    if rivals:
+        reason = f"{len(rivals)} rival hypothesis(es) with comparable support"
+    elif best.n < params.eta * n:
+        reason = f"consensus {best.n} of {n} detections below eta = {params.eta}"
+    elif best.n < 3 and not best.explored_all:
+        reason = "two-star match from a seed pair with unexplored candidates"
+    else:
+        reason = last_reason
+    if not rivals and best.n >= params.eta * n and (best.n >= 3 or best.explored_all):
+        return ConsensusResult(Outcome.HIGH_CONFIDENCE, best, "", attempts, len(verified))
+    return ConsensusResult(Outcome.LOW_CONFIDENCE, best, reason, attempts, len(verified), rivals)
+
+
+def _add_distinct(verified: list, match, rival_angle: float) -> None:
+    """Add ``match`` unless a hypothesis with the same attitude is there (keep the larger)."""
+    for idx, v in enumerate(verified):
+        if _angle(v.attitude.a, match.attitude.a) < rival_angle:
+            if (match.n, -match.attitude.rms) > (v.n, -v.attitude.rms):
+                match.explored_all = match.explored_all or v.explored_all
+                verified[idx] = match
+            else:
+                v.explored_all = v.explored_all or match.explored_all
+            return
+    verified.append(match)
+
+
+def _rivals(best, verified: list, params: ConsensusParams) -> list:
+    return [v for v in verified if v is not best and v.n >= params.rival_ratio * best.n
+            and _angle(v.attitude.a, best.attitude.a) >= params.rival_angle]
+
+
+def _angle(a1: np.ndarray, a2: np.ndarray) -> float:
+    c = (np.trace(a1 @ a2.T) - 1.0) / 2.0
+    return float(np.arccos(min(1.0, max(-1.0, c))))

@@ -1,0 +1,112 @@
+"""Brightness-independent 4-star matching of seed 001 (Dong, Xing & You 2006, section 2).
+
+For a group of four detections ``S1..S4`` the six pair angles are ``p1 = (S1,S2), p2 = (S1,S3),
+p3 = (S1,S4), p4 = (S2,S3), p5 = (S2,S4), p6 = (S3,S4)``. Each angle's candidate catalog pairs
+``|theta' - theta| <= epsilon`` come from the K-vector (eqs 6-7, trimmed to the exact range).
+The ``N x 6`` vote matrix ``M`` counts, for every catalog star (row) and pair angle (column), how
+often the star appears in that angle's candidates. ``S1`` is identified iff exactly one row equals
+``[1 1 1 0 0 0]``; ``S2``: ``[1 0 0 1 1 0]``, ``S3``: ``[0 1 0 1 0 1]``, ``S4``: ``[0 0 1 0 1 1]``.
+
+Groups start at the frame centre (detections sorted by off-axis angle, as the paper asks);
+identified stars leave the pool and the group is refilled with the next stars; if a group
+identifies nothing, its most central star is discarded; when fewer than four unidentified stars
+remain, identified stars fill the group (paper step 6). The loop is bounded by ``max_groups``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from firmware_model.onboard_catalog import OnboardCatalog, angle_between
+
+#: Pair columns p1..p6 as detection positions within the group.
+GROUP_PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+#: Row signature of S1..S4 (seed 001 step 5).
+SIGNATURES = np.array([[1, 1, 1, 0, 0, 0], [1, 0, 0, 1, 1, 0], [0, 1, 0, 1, 0, 1], [0, 0, 1, 0, 1, 1]])
+
+
+@dataclass(frozen=True)
+class FourStarParams:
+    """epsilon: angular measurement accuracy (rad); None means ``epsilon_sigmas * sigma_phi``.
+    max_groups: bound on 4-star groups per frame. max_candidates: cap on candidate pairs per angle
+    (a larger range leaves that angle without votes, so nothing it touches can be identified)."""
+
+    epsilon: float | None = None
+    epsilon_sigmas: float = 3.0
+    max_groups: int = 24
+    max_candidates: int = 50000
+
+
+def vote_matrix(group_vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float, max_candidates: int):
+    """Vote matrix restricted to touched rows: ``(rows, M[rows])`` with ``M`` of shape (len(rows), 6)."""
+    cols, stars = [], []
+    for r, (a, b) in enumerate(GROUP_PAIRS):
+        theta = float(angle_between(group_vectors[a], group_vectors[b]))
+        lo, hi = catalog.kvector_range(theta, epsilon)
+        if hi - lo > max_candidates:
+            continue
+        s = np.concatenate([catalog.pair_i[lo:hi], catalog.pair_j[lo:hi]])
+        stars.append(s)
+        cols.append(np.full(len(s), r))
+    if not stars:
+        return np.empty(0, np.int64), np.zeros((0, 6), np.int64)
+    stars = np.concatenate(stars).astype(np.int64)
+    cols = np.concatenate(cols)
+    rows, inverse = np.unique(stars, return_inverse=True)
+    m = np.zeros((len(rows), 6), np.int64)
+    np.add.at(m, (inverse, cols), 1)
+    return rows, m
+
+
+def identify_group(group_vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float,
+                   max_candidates: int = 50000) -> np.ndarray:
+    """Catalog index of each of the four stars, or -1 where no or several rows match (step 5)."""
+    rows, m = vote_matrix(group_vectors, catalog, epsilon, max_candidates)
+    out = np.full(4, -1, np.int64)
+    if len(rows) == 0:
+        return out
+    for s in range(4):
+        hit = np.nonzero(np.all(m == SIGNATURES[s], axis=1))[0]
+        if len(hit) == 1:
+            out[s] = rows[hit[0]]
+    return out
+
+
+@dataclass(frozen=True)
+class FourStarResult:
+    """Identified detections and their catalog indices, groups tried, detections never identified."""
+
+    det: np.ndarray
+    cat: np.ndarray
+    groups: int
+    unidentified: np.ndarray
+
+
+def match_four_star(vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float,
+                    params: FourStarParams = FourStarParams()) -> FourStarResult:
+    """Iterate 4-star groups over the frame (module docstring); ``vectors`` are sensor unit vectors."""
+    n = len(vectors)
+    centre_order = list(np.argsort(-vectors[:, 2], kind="stable"))  # +z boresight first
+    ident: dict[int, int] = {}
+    pool = list(centre_order)  # unidentified, not discarded, centre first
+    groups = 0
+    while n >= 4 and pool and groups < params.max_groups:
+        group = pool[:4]
+        if len(group) < 4:
+            fill = [d for d in centre_order if d in ident][: 4 - len(group)]
+            if len(group) + len(fill) < 4:
+                break
+            group = group + fill
+        groups += 1
+        ids = identify_group(vectors[np.array(group)], catalog, epsilon, params.max_candidates)
+        newly = [(d, int(c)) for d, c in zip(group, ids) if c >= 0 and d not in ident and c not in ident.values()]
+        for d, c in newly:
+            ident[d] = c
+            pool.remove(d)
+        if not newly:
+            pool.remove(group[0] if group[0] in pool else pool[0])
+    det = np.array(sorted(ident), np.int64)
+    cat = np.array([ident[d] for d in det], np.int64)
+    return FourStarResult(det, cat, groups, np.setdiff1d(np.arange(n), det))

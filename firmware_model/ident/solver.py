@@ -1,0 +1,244 @@
+"""Solver front: sensor-frame star vectors (+ colours) and the on-board catalog -> attitude.
+
+``solve(vectors, rg, bg, catalog, params)`` picks the method per frame: colour consensus
+(seed 000 + backtracking + verification) when the frame and the catalog both carry colour,
+4-star K-vector matching (seed 001) otherwise, or the one forced by ``params.mode``. It never
+raises on bad input: malformed arrays, no usable detections or an impossible geometry give
+``status = NO_MATCH`` with a reason.
+
+Input cleaning: rows that are not finite or have zero norm are dropped; vectors are
+normalised; of detections closer than the catalog's ``phi_min`` (unresolvable duplicates) the
+later (fainter) one is dropped; beyond ``max_detections`` the faintest are dropped. Every drop is
+counted in ``SolveResult.notes``. Indices in the result refer to the caller's input rows.
+
+Time is bounded: consensus attempts, backtracking depth, look-up windows and 4-star groups are
+capped (see the parameter classes) and ``time_budget_s`` is checked between attempts.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from firmware_model.frames import matrix_to_quat
+from firmware_model.ident.consensus import ConsensusParams, Outcome, match_scene
+from firmware_model.ident.four_star import FourStarParams, match_four_star
+from firmware_model.ident.pair_match import PairNoise, sigma_phi_from_centroid
+from firmware_model.ident.verify import FieldOfView, VerifiedMatch, VerifyParams, verify
+from firmware_model.onboard_catalog import OnboardCatalog, angle_between
+
+#: Per-axis direction noise of the seed 000 reference design: 0.2 px at f = 7383 px (rad).
+REFERENCE_SIGMA_VEC = 0.2 / 7383.1
+
+
+@dataclass(frozen=True)
+class SolveParams:
+    """Solver configuration.
+
+    mode: "auto" (colour when available, else geometric), "colour" or "geometric".
+    sigma_vec: per-axis direction noise of a detection (rad), scalar or one per detection;
+        it weights the q-method and sets the verification gates.
+    sigma_phi: pair arc-length noise (rad); None means seed 000 eq. 18, ``2 sigma_vec``.
+    sigma_rg, sigma_bg: colour-ratio noise.
+    fov: the sensor's field of view for the coverage test; None means a cone through the
+        outermost detection.
+    time_budget_s: wall-clock budget checked between consensus attempts (hard stop).
+    max_detections: detections considered (brightest first); the matchers use fewer.
+    """
+
+    mode: str = "auto"
+    sigma_vec: float = REFERENCE_SIGMA_VEC
+    sigma_phi: float | None = None
+    sigma_rg: float = 0.05
+    sigma_bg: float = 0.05
+    consensus: ConsensusParams = ConsensusParams()
+    four_star: FourStarParams = FourStarParams()
+    verify: VerifyParams = VerifyParams()
+    fov: FieldOfView | None = None
+    time_budget_s: float = 0.05
+    max_detections: int = 200
+
+    @property
+    def pair_sigma_phi(self) -> float:
+        if self.sigma_phi is not None:
+            return float(self.sigma_phi)
+        return sigma_phi_from_centroid(float(np.median(np.atleast_1d(self.sigma_vec))), 1.0)
+
+
+@dataclass
+class SolveResult:
+    """Solution of one frame.
+
+    status: HIGH_CONFIDENCE, LOW_CONFIDENCE or NO_MATCH (seed 000's three classes);
+    reason: why it is not high confidence (empty otherwise);
+    q_icrs_to_sensor: scalar-first unit quaternion, ``v_sensor = A(q) @ v_icrs`` (None if no match);
+    covariance: 3x3 attitude-error covariance about the sensor axes (rad^2);
+    matched_det / matched_cat / matched_star_id: input row, catalog index and catalog star id
+    of each matched star; matched_rg / matched_bg: the catalog colours;
+    residuals: per matched star, angle (rad) between measured and predicted direction;
+    consensus_size: stars in the matcher's consensus set (before refinement);
+    consensus_rms: RMS residual (rad) of the final matched set;
+    confidence: coverage of predicted stars times matched fraction of used detections, in [0, 1];
+    method: "colour" or "geometric"; timings: seconds per stage; notes: input cleaning.
+    """
+
+    status: Outcome
+    reason: str = ""
+    q_icrs_to_sensor: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    matched_det: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    matched_cat: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    matched_star_id: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    matched_rg: np.ndarray = field(default_factory=lambda: np.empty(0))
+    matched_bg: np.ndarray = field(default_factory=lambda: np.empty(0))
+    residuals: np.ndarray = field(default_factory=lambda: np.empty(0))
+    consensus_size: int = 0
+    consensus_rms: float = float("nan")
+    confidence: float = 0.0
+    method: str = ""
+    n_used: int = 0
+    attempts: int = 0
+    timings: dict = field(default_factory=dict)
+    notes: list = field(default_factory=list)
+
+    @property
+    def matched(self) -> list[tuple[int, int, int]]:
+        """(detection index, catalog index, star id) per matched star."""
+        return list(zip(self.matched_det.tolist(), self.matched_cat.tolist(), self.matched_star_id.tolist()))
+
+    @property
+    def ok(self) -> bool:
+        return self.status is not Outcome.NO_MATCH
+
+
+def _clean(vectors, rg, bg, sigma, catalog: OnboardCatalog, params: SolveParams):
+    """Validated arrays (or a reason string). Returns (v, rg, bg, sigma, index_map, notes)."""
+    try:
+        v = np.asarray(vectors, dtype=float)
+    except (TypeError, ValueError):
+        return "detection vectors are not numeric"
+    if v.ndim != 2 or v.shape[1] != 3:
+        return f"detection vectors must have shape (N, 3), got {v.shape}"
+    n = len(v)
+    cols = []
+    for name, c in (("rg", rg), ("bg", bg)):
+        if c is None:
+            cols.append(np.full(n, np.nan))
+            continue
+        try:
+            c = np.asarray(c, dtype=float).ravel()
+        except (TypeError, ValueError):
+            return f"{name} is not numeric"
+        if len(c) != n:
+            return f"{name} has {len(c)} values for {n} detections"
+        cols.append(c)
+    try:
+        s = np.broadcast_to(np.asarray(sigma, dtype=float), (n,)).copy()
+    except ValueError:
+        return f"sigma_vec must be a scalar or have one value per detection ({n})"
+    notes = []
+    norm = np.linalg.norm(v, axis=1) if n else np.empty(0)
+    good = np.all(np.isfinite(v), axis=1) & (norm > 1e-12) & np.isfinite(s) & (s > 0)
+    if (~good).any():
+        notes.append(f"dropped {int((~good).sum())} non-finite or zero vector(s)")
+    idx = np.nonzero(good)[0]
+    v = v[idx] / norm[idx, None]
+    if len(v) > 1:
+        ang = angle_between(v[:, None, :], v[None, :, :])
+        close = np.triu(ang < max(catalog.phi_min, 1e-9), k=1)
+        dup = close.any(axis=0)
+        if dup.any():
+            notes.append(f"dropped {int(dup.sum())} duplicate detection(s) closer than phi_min")
+            idx, v = idx[~dup], v[~dup]
+    if len(idx) > params.max_detections:
+        notes.append(f"used the {params.max_detections} brightest of {len(idx)} detections")
+        idx, v = idx[: params.max_detections], v[: params.max_detections]
+    return v, cols[0][idx], cols[1][idx], s[idx], idx, notes
+
+
+def _result(match: VerifiedMatch, status: Outcome, reason: str, index_map, catalog, method, n_used):
+    att = match.attitude
+    return SolveResult(
+        status=status, reason=reason, q_icrs_to_sensor=matrix_to_quat(att.a), covariance=att.covariance,
+        matched_det=index_map[match.det], matched_cat=match.cat, matched_star_id=catalog.star_id[match.cat],
+        matched_rg=catalog.rg[match.cat].astype(float), matched_bg=catalog.bg[match.cat].astype(float),
+        residuals=att.residuals, consensus_size=match.n_consensus, consensus_rms=att.rms,
+        confidence=float(match.coverage if np.isfinite(match.coverage) else 1.0) * match.n / max(n_used, 1),
+        method=method, n_used=n_used)
+
+
+def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveParams()) -> SolveResult:
+    """Identify the stars of one frame and estimate the attitude (module docstring)."""
+    t0 = time.perf_counter()
+    timings = {}
+    cleaned = _clean(vectors, rg, bg, params.sigma_vec, catalog, params)
+    timings["validate"] = time.perf_counter() - t0
+    if isinstance(cleaned, str):
+        return SolveResult(Outcome.NO_MATCH, cleaned, timings=timings)
+    v, rg, bg, sigma, index_map, notes = cleaned
+    n = len(v)
+
+    def no_match(reason, method=""):
+        timings["total"] = time.perf_counter() - t0
+        return SolveResult(Outcome.NO_MATCH, reason, method=method, n_used=n, timings=timings, notes=notes)
+
+    if params.mode not in ("auto", "colour", "geometric"):
+        return no_match(f"unknown mode {params.mode!r}")
+    if catalog.n_pairs == 0:
+        return no_match("catalog has no star pairs")
+    frame_colour = bool(np.isfinite(rg).any() and np.isfinite(bg).any())
+    method = params.mode if params.mode != "auto" else ("colour" if frame_colour and catalog.has_colour else "geometric")
+    if method == "colour" and not catalog.has_colour:
+        return no_match("colour mode forced but the catalog has no colours", method)
+    if n < 2:
+        return no_match(f"{n} usable detection(s): need at least two", method)
+    ang = angle_between(v[:, None, :], v[None, :, :])
+    in_range = (ang > catalog.phi_min) & (ang <= catalog.phi_max)
+    if not in_range.any():
+        return no_match(f"no detection pair within the catalog's pair-angle range "
+                        f"({np.degrees(catalog.phi_min):.3g}-{np.degrees(catalog.phi_max):.3g} deg): "
+                        f"catalog built for another field of view?", method)
+    fov = params.fov or FieldOfView.cone(float(np.max(np.arccos(np.clip(v[:, 2], -1, 1)))) + 1e-9)
+    noise = PairNoise(params.pair_sigma_phi, params.sigma_rg, params.sigma_bg)
+    verify_time = [0.0]
+
+    def check(det, cat):
+        tv = time.perf_counter()
+        out = verify(det, cat, v, rg, bg, sigma, catalog, fov, noise.sigma_rg if method == "colour" else 0.0,
+                     noise.sigma_bg if method == "colour" else 0.0, params.verify)
+        verify_time[0] += time.perf_counter() - tv
+        return out
+
+    t1 = time.perf_counter()
+    if method == "colour":
+        res = match_scene(v, rg, bg, catalog, noise, params.consensus, check, deadline=t0 + params.time_budget_s)
+        timings["match"] = time.perf_counter() - t1 - verify_time[0]
+        timings["verify"] = verify_time[0]
+        timings["total"] = time.perf_counter() - t0
+        if res.best is None:
+            return no_match(res.reason, method)
+        out = _result(res.best, res.outcome, res.reason, index_map, catalog, method, min(n, params.consensus.max_stars))
+        out.attempts = res.attempts
+    else:
+        if n < 4:
+            return no_match(f"geometric mode needs at least four detections, got {n}", method)
+        eps = params.four_star.epsilon or params.four_star.epsilon_sigmas * noise.sigma_phi
+        fs = match_four_star(v, catalog, eps, params.four_star)
+        timings["match"] = time.perf_counter() - t1
+        if len(fs.det) < 2:
+            return no_match(f"4-star matching identified {len(fs.det)} star(s) in {fs.groups} group(s)", method)
+        match, why = check(fs.det, fs.cat)
+        timings["verify"] = verify_time[0]
+        timings["total"] = time.perf_counter() - t0
+        if match is None:
+            return no_match(f"4-star identification failed verification ({why})", method)
+        high = match.n >= 3 and match.n >= params.consensus.eta * n
+        reason = "" if high else f"{match.n} of {n} detections matched"
+        out = _result(match, Outcome.HIGH_CONFIDENCE if high else Outcome.LOW_CONFIDENCE, reason, index_map,
+                      catalog, method, n)
+        out.attempts = fs.groups
+    out.timings = timings
+    out.notes = notes
+    return out

@@ -1,0 +1,163 @@
+"""Verification of an identification hypothesis over all detections (beyond seed 000).
+
+A hypothesis (detections matched to catalog stars) is accepted only if the attitude it implies
+explains the whole frame:
+
+1. **Attitude and residuals**: weighted q-method over the matched stars; a matched star whose
+   residual exceeds ``residual_sigmas`` times its predicted scatter is dropped and the attitude
+   re-solved (the hypothesis fails if fewer than two stars remain).
+2. **Refinement**: every unmatched detection is rotated to ICRS and paired with its nearest
+   catalog star when the separation is within ``refine_sigmas`` of the predicted scatter
+   ``sqrt(sigma^2 + (tr P - b^T P b)/2)`` (``P`` the attitude covariance) and, when both colours
+   are known, the colour distance is below ``colour_gate``. Two passes.
+3. **Coverage (likelihood of non-detections)**: the catalog stars the attitude puts inside the
+   field of view (shrunk by ``edge_margin``) and at least ``mag_margin`` brighter than the
+   catalog limit should have been detected. If fewer than ``min_coverage`` of them are matched,
+   the hypothesis is rejected: a wrong match lands on a sky patch whose bright stars are missing
+   from the frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from firmware_model.camera import CameraModel
+from firmware_model.ident.attitude import AttitudeSolution, solve_attitude
+from firmware_model.onboard_catalog import OnboardCatalog, chord_of_angle
+
+
+@dataclass(frozen=True)
+class FieldOfView:
+    """Where the sensor sees: a camera array (with an edge margin in pixels) or a cone about +z.
+
+    ``radius`` (rad) bounds the field; it selects catalog stars before the exact test.
+    """
+
+    radius: float
+    camera: CameraModel | None = None
+    edge_margin_px: float = 3.0
+
+    @classmethod
+    def from_camera(cls, camera: CameraModel, edge_margin_px: float = 3.0) -> "FieldOfView":
+        xs = np.array([-0.5, camera.width - 0.5, -0.5, camera.width - 0.5])
+        ys = np.array([-0.5, -0.5, camera.height - 0.5, camera.height - 0.5])
+        v = camera.pixel_to_vector(xs, ys)
+        radius = float(np.max(np.arccos(np.clip(v[:, 2], -1.0, 1.0))))
+        return cls(radius * 1.02 + 1e-4, camera, float(edge_margin_px))
+
+    @classmethod
+    def cone(cls, half_angle: float) -> "FieldOfView":
+        return cls(float(half_angle))
+
+    def contains(self, v_sensor: np.ndarray) -> np.ndarray:
+        """Boolean mask of sensor-frame unit vectors inside the field (with the edge margin)."""
+        v = np.asarray(v_sensor, float)
+        if self.camera is None:
+            return v[:, 2] > np.cos(self.radius)
+        ok = v[:, 2] > 1e-6
+        out = np.zeros(len(v), bool)
+        if ok.any():
+            x, y = self.camera.vector_to_pixel(v[ok])
+            m = self.edge_margin_px
+            out[ok] = ((x >= -0.5 + m) & (x <= self.camera.width - 0.5 - m)
+                       & (y >= -0.5 + m) & (y <= self.camera.height - 0.5 - m))
+        return out
+
+
+@dataclass(frozen=True)
+class VerifyParams:
+    """Knobs of the verification (see module docstring)."""
+
+    residual_sigmas: float = 5.0
+    refine_sigmas: float = 5.0
+    refine_passes: int = 2
+    colour_gate: float = 4.65
+    min_coverage: float = 0.7
+    mag_margin: float = 0.0
+    enabled: bool = True
+
+
+@dataclass
+class VerifiedMatch:
+    """A hypothesis that passed verification: matched detection/catalog indices, attitude,
+    coverage = matched / predicted-visible catalog stars, the counts behind it, and whether all
+    candidate matches of its seed pair were explored (set by the matcher)."""
+
+    det: np.ndarray
+    cat: np.ndarray
+    attitude: AttitudeSolution
+    coverage: float
+    n_predicted: int
+    n_consensus: int
+    explored_all: bool = True
+
+    @property
+    def n(self) -> int:
+        return len(self.det)
+
+
+def _predicted_scatter(b: np.ndarray, sigma: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Per-star 1-sigma angular scatter (rad) of measured vs predicted direction."""
+    if not np.all(np.isfinite(cov)):
+        return np.full(len(b), np.inf)
+    extra = 0.5 * (np.trace(cov) - np.einsum("ij,jk,ik->i", b, cov, b))
+    return np.sqrt(sigma**2 + np.maximum(extra, 0.0))
+
+
+def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray,
+           sigma: np.ndarray, catalog: OnboardCatalog, fov: FieldOfView, noise_rg: float,
+           noise_bg: float, params: VerifyParams) -> tuple[VerifiedMatch | None, str]:
+    """Check one hypothesis; returns ``(VerifiedMatch, "")`` or ``(None, reason)``."""
+    det = np.asarray(det, np.int64)
+    cat = np.asarray(cat, np.int64)
+    n_consensus = len(det)
+    if len(det) < 2:
+        return None, "fewer than two matched stars"
+    sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
+    if not params.enabled:
+        return VerifiedMatch(det, cat, sol, float("nan"), 0, n_consensus), ""
+    # 1. residual test
+    scatter = _predicted_scatter(vectors[det], sigma[det], sol.covariance)
+    bad = sol.residuals > params.residual_sigmas * np.maximum(scatter, sigma[det])
+    if bad.any():
+        det, cat = det[~bad], cat[~bad]
+        if len(det) < 2:
+            return None, "residual test left fewer than two stars"
+        sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
+    # 2. refinement with all detections
+    for _ in range(params.refine_passes):
+        free = np.setdiff1d(np.arange(len(vectors)), det)
+        if len(free) == 0:
+            break
+        b = vectors[free]
+        r_est = b @ sol.a  # A^T b, rows
+        dist, idx = catalog._tree.query(r_est, k=1)
+        ang = 2.0 * np.arcsin(np.clip(dist / 2.0, 0.0, 1.0))
+        tol = params.refine_sigmas * _predicted_scatter(b, sigma[free], sol.covariance)
+        ok = (ang < tol) & ~np.isin(idx, cat)
+        if noise_rg > 0 and noise_bg > 0:
+            d2 = (((rg[free] - catalog.rg[idx]) / noise_rg) ** 2, ((bg[free] - catalog.bg[idx]) / noise_bg) ** 2)
+            d2 = np.where(np.isfinite(d2[0]), d2[0], 0.0) + np.where(np.isfinite(d2[1]), d2[1], 0.0)
+            ok &= np.sqrt(d2) < params.colour_gate
+        if not ok.any():
+            break
+        add_det, add_cat = free[ok], idx[ok]
+        _, first = np.unique(add_cat, return_index=True)  # one detection per catalog star
+        det = np.concatenate([det, add_det[first]])
+        cat = np.concatenate([cat, add_cat[first]])
+        sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
+    # 3. coverage of predicted-visible catalog stars
+    boresight = sol.a[2]
+    near = catalog._tree.query_ball_point(boresight, chord_of_angle(min(fov.radius, np.pi)))
+    near = np.asarray(near, np.int64)
+    mag_limit = float(np.max(catalog.mag)) - params.mag_margin
+    near = near[catalog.mag[near] <= mag_limit]
+    inside = near[fov.contains(catalog.vec[near] @ sol.a.T)] if len(near) else near
+    n_pred = len(inside)
+    matched_inside = int(np.isin(inside, cat).sum())
+    coverage = matched_inside / n_pred if n_pred else 1.0
+    if n_pred and coverage < params.min_coverage:
+        return None, f"coverage {matched_inside}/{n_pred} predicted stars below {params.min_coverage}"
+    return VerifiedMatch(det, cat, sol, float(coverage), n_pred, n_consensus), ""
