@@ -62,7 +62,7 @@ def test_cfa_channel_totals_equal_colour_ratios_of_a_spectrum():
     s = {c: np.trapezoid(phot * q, lam) for c, q in qe.items()}
     rg, bg = s["r"] / s["g"], s["b"] / s["g"]
     for pattern in ("RGGB", "GBRG"):
-        det = DetectorModel(pattern=pattern, **QUIET)
+        det = DetectorModel(pattern=pattern, psf_sigma_px=2.0, **QUIET)
         res = render_frame(_star_at(160.3, 120.7, 3.0, rg, bg), ATT, CAM, det, seed=0)
         e = res.electrons
         codes = res.frame.channel_map()
