@@ -112,6 +112,20 @@ class Client:
                     raise
         raise AssertionError("unreachable")
 
+    def write_raw(self, data: bytes) -> None:
+        """Put bytes on the line unchanged (fault injection, console ``raw``); logged as ``tx``."""
+        self._ser.write(bytes(data))
+        if self.log:
+            self.log.record("tx", bytes(data), "raw")
+
+    def read_raw(self, duration: float) -> bytes:
+        """Everything that arrives within ``duration`` seconds."""
+        out = bytearray()
+        deadline = time.monotonic() + duration
+        while time.monotonic() < deadline:
+            out += self._ser.read(max(1, self._ser.in_waiting))
+        return bytes(out)
+
     def send_silent(self, code: int, data: bytes = b"") -> None:
         """Send with Poll = 0: the device executes without replying."""
         self._exchange(code, data, False, 0.0)

@@ -1,0 +1,151 @@
+"""End to end over a real pty between two processes: ``st16-device --pty`` and the ground Client."""
+
+import os
+import shutil
+import signal
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ground.client import Client, Nack, ReplyTimeout
+from protocol import nsp, result, slip
+from protocol.commands import Code, NackReason, XferState
+from protocol.crc import crc32
+
+
+def _device_command() -> list[str]:
+    script = Path(sys.executable).parent / "st16-device"
+    if script.exists():
+        return [str(script)]
+    found = shutil.which("st16-device")
+    return [found] if found else [sys.executable, "-m", "firmware_model.cli"]
+
+
+class DeviceProcess:
+    def __init__(self, *args: str):
+        self.proc = subprocess.Popen(_device_command() + list(args), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                     text=True)
+        line = self.proc.stdout.readline().strip()
+        assert line.startswith("listening on "), (line, self.proc.stderr.read() if self.proc.poll() else "")
+        self.path = line[len("listening on "):]
+
+    def stop(self, sig=signal.SIGTERM) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+        rc = self.proc.wait(timeout=10)
+        self.proc.stdout.close()
+        self.proc.stderr.close()
+        return rc
+
+
+@pytest.fixture
+def device(tmp_path):
+    dev = DeviceProcess("--pty", "--state", str(tmp_path / "state"))
+    yield dev
+    assert dev.stop() == 0
+
+
+def test_ping_modes_init_edac_and_files(device):
+    with Client(device.path) as c:
+        boot = c.ping()
+        c.init(0x2000)
+        app = c.ping()
+        assert "BOOTLOADER" in boot and "APPLICATION" in app
+        assert c.write_edac(0x120, b"round trip") == 10
+        assert c.read_edac(0x120, 10) == b"round trip"
+        c.write_file(0x140, b"\x01\x02\x03\x04")
+        assert c.read_file(0x140) == c.read_file(0x140, long=True) == b"\x01\x02\x03\x04"
+        assert c.read_edac(0x000, 512)[0x140:0x144] == b"\x01\x02\x03\x04"
+        assert c.peek(0x20000000, 4) == bytes(4)
+        c.poke(0x20000000, b"\xaa\xbb")
+        assert c.peek(0x20000000, 2) == b"\xaa\xbb"
+
+
+def test_fault_counters_poll0_silence_and_nacks(device):
+    with Client(device.path, timeout=0.5) as c:
+        ping = nsp.command(0x0E, 0x11, Code.PING).encode()
+        c.write_raw(slip.encode(ping[:-1] + bytes([ping[-1] ^ 0xFF])))  # bad CRC
+        c.write_raw(b"\xc0\x0e\x11\xc0")  # runt
+        c.write_raw(b"\xc0\x0e\x11\x80\xdb\x01\xc0")  # bad escape
+        c.write_raw(b"\xc0" + b"\x0e" * 5000 + b"\xc0")  # oversize
+        c.write_raw(nsp.command(0x22, 0x11, Code.PING).frame())  # another address
+        assert c.read_raw(0.2) == b""  # none of those is answered
+        c.send_silent(Code.WRITE_EDAC, struct.pack("<H", 0x1F0) + b"silent")
+        assert c.read_raw(0.2) == b""
+        assert c.read_edac(0x1F0, 6) == b"silent"
+        d = c.diagnostic()
+        assert (d.bad_crc, d.runt, d.framing, d.oversize, d.other_address) == (1, 1, 1, 1, 1)
+        assert d.silent == 1
+        with pytest.raises(Nack) as exc:
+            c.write_edac(0x0010, b"x")
+        assert exc.value.reason == NackReason.READ_ONLY and exc.value.raw.startswith(b"\xc0\x11\x0e")
+        with pytest.raises(Nack) as exc:
+            c.transact(0x05)
+        assert exc.value.reason == NackReason.UNKNOWN_COMMAND
+        assert "BOOTLOADER" in c.ping()  # still serving
+
+
+def test_combination_and_go_over_the_link(device):
+    with Client(device.path) as c:
+        c.init()
+        parts = c.combination(0x0B, 0x0007)
+        assert sorted(parts) == [0x000, 0x004, 0x008]
+        rc = struct.unpack("<I", parts[0x004])[0]
+        assert result.status_of(rc) == result.Status.NO_CATALOG and parts[0x008] == bytes(32)
+        rec = c.go_and_wait()
+        assert result.status_of(int(rec["return_code"])) == result.Status.NO_CATALOG
+        assert int(rec["sequence"]) == 2
+
+
+def test_upload_interrupted_resumed_and_persisted(tmp_path):
+    state = tmp_path / "state"
+    image = os.urandom(30_000)
+    dev = DeviceProcess("--pty", "--state", str(state))
+    with Client(dev.path) as c:
+        c.xfer_begin(0, len(image), crc32(image))
+        for off in range(0, 12_288, 4096):
+            c.xfer_data(0, off, image[off:off + 4096])
+    assert dev.stop(signal.SIGINT) == 0  # interrupted mid-transfer
+    dev = DeviceProcess("--pty", "--state", str(state))
+    with Client(dev.path) as c:
+        st = c.xfer_status(0)
+        assert (st.state, st.contiguous, st.length) == (XferState.RECEIVING, 12_288, len(image))
+        report = c.upload(0, image, progress=False)
+        assert report.resumed_from == 12_288 and report.sent == len(image) - 12_288
+        info = c.slot_info(0)
+        assert info.active and info.crc32 == crc32(image)
+    assert dev.stop() == 0
+    dev = DeviceProcess("--pty", "--state", str(state))  # restart keeps the committed image
+    with Client(dev.path) as c:
+        info = c.slot_info(0)
+        assert info.active and (info.length, info.crc32) == (len(image), crc32(image))
+        c.init()
+        rec = c.go_and_wait()
+        assert result.status_of(int(rec["return_code"])) == result.Status.NO_FRAME
+    assert dev.stop() == 0
+
+
+def test_late_reply_is_never_taken_for_the_current_one():
+    dev = DeviceProcess("--pty", "--pace", "--baud", "115200", "--turnaround-ms", "150")
+    try:
+        with Client(dev.path, timeout=0.05, retries=0) as c:
+            with pytest.raises(ReplyTimeout):
+                c.ping()  # its reply arrives late, during the next transaction
+            c.timeout = 2.0
+            assert c.read_edac(0x0100, 4) == bytes(4)
+            assert c.stale_replies == 1
+    finally:
+        assert dev.stop() == 0
+
+
+def test_tcp_transport():
+    dev = DeviceProcess("--tcp", "127.0.0.1:0")
+    try:
+        assert dev.path.startswith("socket://127.0.0.1:")
+        with Client(dev.path) as c:
+            assert "BOOTLOADER" in c.ping()
+    finally:
+        assert dev.stop() == 0
