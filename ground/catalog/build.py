@@ -60,6 +60,7 @@ def build_catalog(design: CatalogDesign, source: StarTable | None = None, colour
         "colour_source_counts": {s.name: int((src == s).sum()) for s in ColourSource},
         "template": tmpl,
         "bv": sel.bv,
+        "variable": sel.variable,
         "delta_star": design.delta_star,
         "sigma_phi": design.sigma_phi,
     }
