@@ -86,6 +86,7 @@ class Client:
         self.log = ExchangeLog(log) if self._own_log else log
         self._b = False
         self.stale_replies = 0  #: replies discarded because their B bit belonged to an earlier command
+        self.last_exchange: tuple[bytes, bytes] = (b"", b"")  #: (sent frame, bytes received) of the last command
 
     def close(self) -> None:
         self._ser.close()
@@ -135,6 +136,7 @@ class Client:
         msg = nsp.command(self.device_address, self.host_address, code, data, poll=poll, b=self._b)
         self._ser.reset_input_buffer()
         self._ser.write(msg.frame())
+        self.last_exchange = (msg.frame(), b"")
         if self.log:
             self.log.record("tx", msg.encode())
         if not poll:
@@ -152,6 +154,7 @@ class Client:
             if not chunk:
                 continue
             received += chunk
+            self.last_exchange = (self.last_exchange[0], bytes(received))
             for event in decoder.feed(chunk):
                 reply = self._accept(event, code, received)
                 if reply is None:

@@ -1,0 +1,307 @@
+"""``st16-ground`` link subcommands (one per NSP command) and the interactive console.
+
+Each command is described once in :data:`COMMANDS` as ``(help, add_arguments, run)``, where
+``run(client, args)`` returns a JSON-able dict; the CLI prints it (``--json`` for one JSON line)
+and the console (``ground.console``) reuses the same table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from protocol import result
+from protocol.commands import GO_OPERATIONAL, DarkWindow
+
+from .client import Client, LinkError, Nack
+
+
+def _int(text: str) -> int:
+    return int(text, 0)
+
+
+def _hex(text: str) -> bytes:
+    try:
+        return bytes.fromhex(text.replace(":", "").replace(" ", ""))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not hex bytes: {text!r}") from None
+
+
+def _args_none(p: argparse.ArgumentParser) -> None:
+    pass
+
+
+def _args_addr_count(p):
+    p.add_argument("address", type=_int)
+    p.add_argument("count", type=_int)
+
+
+def _args_addr_data(p):
+    p.add_argument("address", type=_int)
+    p.add_argument("data", type=_hex, help="hex bytes, e.g. 01020304")
+
+
+def _args_slot(p):
+    p.add_argument("slot", type=_int, help="0 catalog, 1 frame, 2 parameters")
+
+
+def _bytes_out(address: int, data: bytes) -> dict:
+    return {"address": address, "count": len(data), "hex": data.hex()}
+
+
+def _run_ping(c: Client, a) -> dict:
+    return {"banner": c.ping()}
+
+
+def _run_init(c, a):
+    c.init(a.address)
+    return {"init": a.address, "banner": c.ping()}
+
+
+def _run_diag(c, a):
+    return c.diagnostic(clear=a.clear).as_dict()
+
+
+def _run_peek(c, a):
+    return _bytes_out(a.address, c.peek(a.address, a.count))
+
+
+def _run_poke(c, a):
+    return {"address": a.address, "written": c.poke(a.address, a.data)}
+
+
+def _run_read_edac(c, a):
+    return _bytes_out(a.address, c.read_edac(a.address, a.count))
+
+
+def _run_write_edac(c, a):
+    return {"address": a.address, "written": c.write_edac(a.address, a.data)}
+
+
+def _run_read_file(c, a):
+    return _bytes_out(a.address, c.read_file(a.address, long=a.long))
+
+
+def _run_write_file(c, a):
+    c.write_file(a.address, a.data, long=a.long)
+    return {"address": a.address, "written": 4}
+
+
+def _run_crc(c, a):
+    return {"space": a.space, "address": a.address, "length": a.length, "crc16": c.crc(a.space, a.address, a.length)}
+
+
+def _run_go(c, a):
+    if a.wait:
+        return result.summary(c.go_and_wait(a.code, timeout=a.wait_timeout))
+    return {"go": c.go(a.code)}
+
+
+def _run_result(c, a):
+    if a.count is not None:
+        return _bytes_out(a.address, c.read_result(a.address, a.count))
+    return result.summary(c.read_result_record())
+
+
+def _run_combination(c, a):
+    parts = c.combination(a.go_code, a.mask, timeout=a.wait_timeout)
+    return {"parts": {f"0x{addr:04X}": data.hex() for addr, data in sorted(parts.items())}}
+
+
+def _run_dark_window(c, a):
+    values = tuple(a.values) + (0,) * (8 - len(a.values))
+    c.dark_window(DarkWindow(a.buffer, a.row, a.col, a.rows, a.cols, values))
+    return {"dark_window": [a.buffer, a.row, a.col, a.rows, a.cols, list(values)]}
+
+
+def _run_upload(c, a):
+    data = Path(a.file).read_bytes()
+    report = c.upload(a.slot, data, progress=not a.no_progress, commit=not a.no_commit)
+    seconds = max(report.seconds, 1e-9)
+    return {**report.__dict__, "bytes_per_second": report.sent / seconds}
+
+
+def _status_dict(st) -> dict:
+    return {"slot": st.slot, "state": int(st.state), "length": st.length, "crc32": st.crc32,
+            "contiguous": st.contiguous, "received": st.received, "n_missing": st.n_missing,
+            "missing": [list(r) for r in st.missing]}
+
+
+def _run_slot_status(c, a):
+    return _status_dict(c.xfer_status(a.slot))
+
+
+def _run_slot_abort(c, a):
+    return _status_dict(c.xfer_abort(a.slot))
+
+
+def _run_slot_info(c, a):
+    info = c.slot_info(a.slot)
+    out = {"slot": info.slot, "active": info.active, "length": info.length, "crc32": info.crc32}
+    try:
+        out["info"] = json.loads(info.info.decode("utf-8")) if info.info else None
+    except (UnicodeDecodeError, ValueError):
+        out["info_hex"] = info.info.hex()
+    return out
+
+
+def _run_send(c, a):
+    parts = c.transact(a.code, a.data, poll=not a.silent)
+    return {"replies": [{"mcf": p.mcf, "final": p.final, "ack": p.ack, "data": p.data.hex()} for p in parts]}
+
+
+def _a_init(p):
+    p.add_argument("--address", type=_int, default=0x2000, help="application start address (0x2000)")
+
+
+def _a_diag(p):
+    p.add_argument("--clear", action="store_true", help="reset the counters after reading")
+
+
+def _a_file(p, data: bool):
+    p.add_argument("address", type=_int, help="EDAC address (multiple of 4)")
+    if data:
+        p.add_argument("data", type=_hex, help="4 hex bytes")
+    p.add_argument("--long", action="store_true", help="long form (u16 address) instead of the file index")
+
+
+def _a_crc(p):
+    p.add_argument("space", type=_int, help="0 EDAC, 1 memory map, 2 result")
+    p.add_argument("address", type=_int)
+    p.add_argument("length", type=_int)
+
+
+def _a_go(p):
+    p.add_argument("code", type=_int, nargs="?", default=GO_OPERATIONAL, help="go code (default 0x0B)")
+    p.add_argument("--wait", action="store_true", help="poll until the result is ready and print it")
+    p.add_argument("--wait-timeout", type=float, default=30.0)
+
+
+def _a_result(p):
+    p.add_argument("--address", type=_int, default=0)
+    p.add_argument("--count", type=_int, help="raw bytes instead of the decoded summary")
+
+
+def _a_combination(p):
+    p.add_argument("go_code", type=_int)
+    p.add_argument("mask", type=_int, help="section mask, e.g. 0x0007")
+    p.add_argument("--wait-timeout", type=float, default=30.0)
+
+
+def _a_dark(p):
+    for name in ("buffer", "row", "col", "rows", "cols"):
+        p.add_argument(name, type=_int)
+    p.add_argument("values", type=_int, nargs="*", help="up to 8 dark values")
+
+
+def _a_upload(p):
+    _args_slot(p)
+    p.add_argument("file", help="image to upload")
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-commit", action="store_true", help="leave the transfer pending")
+
+
+def _a_send(p):
+    p.add_argument("code", type=_int, help="command code 0x00-0x1F")
+    p.add_argument("data", type=_hex, nargs="?", default=b"", help="data field as hex")
+    p.add_argument("--silent", action="store_true", help="Poll = 0 (no reply expected)")
+
+
+Run = Callable[[Client, argparse.Namespace], dict]
+
+#: name -> (help, add_arguments, run)
+COMMANDS: dict[str, tuple[str, Callable, Run]] = {
+    "ping": ("PING: identification banner (bootloader or application)", _args_none, _run_ping),
+    "init": ("INIT: start the application", _a_init, _run_init),
+    "diag": ("DIAGNOSTIC: error counters and command counts", _a_diag, _run_diag),
+    "peek": ("PEEK ADDRESS COUNT from the memory map", _args_addr_count, _run_peek),
+    "poke": ("POKE ADDRESS HEX into the memory map", _args_addr_data, _run_poke),
+    "read-edac": ("READ EDAC ADDRESS COUNT", _args_addr_count, _run_read_edac),
+    "write-edac": ("WRITE EDAC ADDRESS HEX (scratch 0x0100-0x01FF)", _args_addr_data, _run_write_edac),
+    "read-file": ("READ FILE: 4 EDAC bytes", lambda p: _a_file(p, False), _run_read_file),
+    "write-file": ("WRITE FILE: 4 EDAC bytes", lambda p: _a_file(p, True), _run_write_file),
+    "crc": ("CRC: CRC-16 of a device memory span", _a_crc, _run_crc),
+    "go": ("GO [CODE]: start a sequence (--wait prints the result)", _a_go, _run_go),
+    "result": ("READ RESULT: decoded summary, or raw bytes with --count", _a_result, _run_result),
+    "combination": ("COMBINATION GO_CODE MASK: sequence + selected result sections", _a_combination,
+                    _run_combination),
+    "dark-window": ("IMAGE dark window BUFFER ROW COL ROWS COLS [VALUES]", _a_dark, _run_dark_window),
+    "upload": ("upload FILE into SLOT (resumable, then commit)", _a_upload, _run_upload),
+    "slot-status": ("transfer status of SLOT", _args_slot, _run_slot_status),
+    "slot-abort": ("discard the pending transfer of SLOT", _args_slot, _run_slot_abort),
+    "slot-info": ("active image of SLOT", _args_slot, _run_slot_info),
+    "send": ("send any command code with a hex data field", _a_send, _run_send),
+}
+
+
+def render(obj: dict) -> str:
+    """Human-readable rendering of a command's output dict."""
+    if set(obj) == {"banner"}:
+        return obj["banner"]
+    lines = []
+    for key, value in obj.items():
+        if isinstance(value, float):
+            value = f"{value:.6g}"
+        elif isinstance(value, int) and not isinstance(value, bool) and key in ("address", "crc32", "crc16"):
+            value = f"0x{value:X}"
+        elif isinstance(value, (dict, list)):
+            value = json.dumps(value)
+        lines.append(f"{key}: {value}")
+    return "\n".join(lines)
+
+
+def report_error(exc: LinkError, as_json: bool) -> None:
+    payload = {"error": type(exc).__name__, "message": str(exc), "raw": exc.raw.hex()}
+    if isinstance(exc, Nack):
+        payload["reason"] = exc.reason
+    if as_json:
+        print(json.dumps(payload))
+    else:
+        print(f"{payload['error']}: {payload['message']}\n  raw: {payload['raw']}", file=sys.stderr)
+
+
+def open_client(args) -> Client:
+    if not args.port:
+        raise SystemExit("st16-ground: --port URL is required for link commands")
+    return Client(args.port, device_address=args.device_address, host_address=args.host_address,
+                  timeout=args.timeout, log=args.log, baudrate=args.baud)
+
+
+def _handler(run: Run):
+    def handle(args) -> int:
+        with open_client(args) as client:
+            try:
+                out = run(client, args)
+            except LinkError as exc:
+                report_error(exc, args.json)
+                return 1
+        print(json.dumps(out) if args.json else render(out))
+        return 0
+
+    return handle
+
+
+def _console(args) -> int:
+    from .console import Console
+
+    with open_client(args) as client:
+        Console(client, as_json=args.json).run()
+    return 0
+
+
+def add_commands(sub, handler_factory) -> None:
+    """Add every command of :data:`COMMANDS` to ``sub`` with ``func=handler_factory(run)``."""
+    for name, (help_text, add_args, run) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        add_args(p)
+        p.set_defaults(func=handler_factory(run))
+
+
+def register(sub) -> None:
+    """Called by ``ground.cli``: the link subcommands and ``console``."""
+    add_commands(sub, _handler)
+    p = sub.add_parser("console", help="interactive console (history, help per command, raw hex on request)")
+    p.set_defaults(func=_console)

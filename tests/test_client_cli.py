@@ -1,0 +1,66 @@
+"""``st16-ground`` link subcommands and the console, against a device served on a pty."""
+
+import io
+import json
+import threading
+
+import pytest
+
+from firmware_model.device import Device
+from firmware_model.link import PtyLink, serve
+from ground.cli import main
+from ground.client import Client
+from ground.console import Console
+
+
+@pytest.fixture
+def port():
+    link, stop = PtyLink(), threading.Event()
+    thread = threading.Thread(target=serve, args=(Device(), link, stop), daemon=True)
+    thread.start()
+    yield link.path
+    stop.set()
+    thread.join(2)
+    link.close()
+
+
+def run_json(port, capsys, *argv):
+    rc = main(["--port", port, "--json", *argv])
+    return rc, json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
+def test_cli_commands_json(port, capsys, tmp_path):
+    assert run_json(port, capsys, "ping")[1]["banner"].startswith("ST16-EMU BOOTLOADER")
+    assert run_json(port, capsys, "init")[1]["banner"].startswith("ST16-EMU APPLICATION")
+    assert run_json(port, capsys, "write-edac", "0x100", "dead")[1]["written"] == 2
+    assert run_json(port, capsys, "read-edac", "0x100", "2")[1]["hex"] == "dead"
+    rc, out = run_json(port, capsys, "write-edac", "0x10", "00")
+    assert rc == 1 and out["error"] == "Nack" and out["reason"] == 4 and out["raw"].startswith("c0110e")
+    assert run_json(port, capsys, "go", "--wait")[1]["status"] == "NO_CATALOG"
+    image = tmp_path / "params.json"
+    image.write_text('{"fov_deg": 20}')
+    assert run_json(port, capsys, "upload", "2", str(image), "--no-progress")[1]["sent"] == image.stat().st_size
+    assert run_json(port, capsys, "slot-info", "2")[1]["info"] == {"keys": ["fov_deg"]}
+    assert run_json(port, capsys, "diag")[1]["nacked"] == 1
+    rc, out = run_json(port, capsys, "send", "0x1f")
+    assert rc == 1 and out["reason"] == 1
+
+
+def test_cli_log_file(port, capsys, tmp_path):
+    log = tmp_path / "log.jsonl"
+    assert main(["--port", port, "--log", str(log), "ping"]) == 0
+    assert [json.loads(x)["dir"] for x in log.read_text().splitlines()] == ["tx", "rx"]
+
+
+def test_console_session(port, capsys):
+    script = io.StringIO("help\nhelp peek\nraw on\nping\npeek 0x20000000 2\npeek 1\nbogus\nwrite-edac 0 00\nquit\n")
+    with Client(port) as client:
+        console = Console(client, stdin=script, stdout=io.StringIO())
+        console.use_rawinput = False
+        console.cmdloop()
+    out = capsys.readouterr()
+    text = out.out + console.stdout.getvalue()
+    assert "read-edac" in text and "PEEK ADDRESS COUNT" in text
+    assert "ST16-EMU BOOTLOADER" in text and "tx: c0 0e 11" in text and "hex: 0000" in text
+    assert "required: count" in text and "invalid choice: 'bogus'" in text
+    assert "READ_ONLY" in out.err
