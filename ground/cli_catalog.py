@@ -1,0 +1,201 @@
+"""``st16-ground catalog ...``: build, analyze, plot colours, upload and inspect on-board catalogs."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from ground.catalog.colour import ColourDataError
+from ground.catalog.design import CatalogDesign, DesignError
+from ground.catalog.sources import CatalogFormatError
+from protocol.catalog_image import CatalogImageError, crc32, parse_image
+
+CATALOG_SLOT = 0
+
+#: CLI flag -> CatalogDesign field
+_DESIGN_FLAGS = {
+    "theta_fov": "theta_fov_deg", "width": "sensor_width_px", "height": "sensor_height_px", "m_thresh": "m_thresh",
+    "sigma_pix": "sigma_pix", "sigma_rg": "sigma_rg", "sigma_bg": "sigma_bg", "p_correct": "p_correct",
+    "phi_min": "phi_min_deg", "phi_max": "phi_max_deg", "n_h": "n_h", "epoch": "epoch", "source": "source",
+    "source_path": "source_path", "qe": "qe_path", "pickles": "pickles_dir", "resolve": "resolve_deg",
+}
+
+
+def _design_args(p) -> None:
+    g = p.add_argument_group("design (flags override --design FILE.toml)")
+    g.add_argument("--design", help="TOML design file (keys as in CatalogDesign, top level or [design])")
+    g.add_argument("--source", choices=("hipparcos", "bsc5"))
+    g.add_argument("--source-path", help="catalog file (default: bundled hip2.dat / ../shared BSC5)")
+    g.add_argument("--theta-fov", type=float, help="half-angle FOV along the minor axis, deg")
+    g.add_argument("--width", type=int, help="sensor width, px")
+    g.add_argument("--height", type=int, help="sensor height, px")
+    g.add_argument("--m-thresh", type=float, help="limiting V magnitude")
+    g.add_argument("--sigma-pix", type=float, help="centroid noise, px")
+    g.add_argument("--sigma-rg", type=float)
+    g.add_argument("--sigma-bg", type=float)
+    g.add_argument("--p-correct", type=float)
+    g.add_argument("--phi-min", type=float, help="deg (default theta_FOV/500)")
+    g.add_argument("--phi-max", type=float, help="deg (default 2 theta_FOV)")
+    g.add_argument("--n-h", type=int, help="hash index size")
+    g.add_argument("--epoch", type=float, help="Julian year of the positions")
+    g.add_argument("--qe", help="QE CSV (wavelength_nm,R,G,B); default the shipped MT9P031-like model")
+    g.add_argument("--pickles", help="directory of Pickles .sed spectra")
+    g.add_argument("--resolve", type=float, help="double-star merge angle, deg (default phi_min)")
+    g.add_argument("--drop-variable", action="store_true", default=None, help="drop variable stars")
+
+
+def design_from_args(args) -> CatalogDesign:
+    """TOML file (if any) updated with the flags given on the command line."""
+    base = CatalogDesign.from_toml(args.design).to_dict() if args.design else {}
+    for flag, name in _DESIGN_FLAGS.items():
+        value = getattr(args, flag, None)
+        if value is not None:
+            base[name] = value
+    if args.drop_variable:
+        base["drop_variable"] = True
+    return CatalogDesign.from_dict(base, origin=args.design or "command line")
+
+
+def _fail(message: str) -> int:
+    print(f"st16-ground catalog: {message}", file=sys.stderr)
+    return 2
+
+
+def _print(out: dict, as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(out))
+    else:
+        for k, v in out.items():
+            print(f"{k:>22}: {v}")
+
+
+def _build(args) -> int:
+    from firmware_model.catalog_image_io import catalog_to_image
+    from ground.catalog.build import build_catalog, summary
+
+    try:
+        design = design_from_args(args)
+        cat = build_catalog(design)
+    except (DesignError, CatalogFormatError, ColourDataError) as exc:
+        return _fail(str(exc))
+    image = catalog_to_image(cat)
+    Path(args.output).write_bytes(image)
+    out = {**summary(cat), "image": args.output, "image_bytes": len(image), "image_crc32": f"0x{crc32(image):08X}"}
+    _print(out, args.json)
+    return 0
+
+
+def _analyze(args) -> int:
+    from ground.catalog.analyze import TABLE_HEADER, analyze, plot_views, table_row
+    from ground.catalog.build import build_catalog
+
+    try:
+        design = design_from_args(args)
+        cat = build_catalog(design)
+        res, views, vc, vm = analyze(cat, design, n_views=args.views, progress=not args.json, return_views=True)
+    except (DesignError, CatalogFormatError, ColourDataError, ValueError) as exc:
+        return _fail(str(exc))
+    if args.json_out:
+        Path(args.json_out).write_text(res.to_json() + "\n")
+    if args.plot:
+        plot_views(args.plot, views, vc, vm, title=f"{res.source} V<={design.m_thresh} thetaFOV={design.theta_fov_deg} deg: bad views")
+    if args.json:
+        print(res.to_json())
+    else:
+        print(TABLE_HEADER)
+        print(table_row(res))
+        print(f"{res.n_stars} stars, Delta* = {res.delta_star:.3f}, sigma_phi = {res.sigma_phi_rad:.3e} rad, {res.n_views} views")
+    return 0
+
+
+def _colours(args) -> int:
+    from ground.catalog.colour import ColourModel, default_qe, load_qe_csv
+    from ground.catalog.colour_plot import plot_colour_ratios
+
+    try:
+        qe = load_qe_csv(args.qe) if args.qe else default_qe()
+        kwargs = {"pickles_dir": Path(args.pickles)} if args.pickles else {}
+        model = ColourModel(qe=qe, **kwargs)
+        ratios = plot_colour_ratios(model, args.plot)
+    except ColourDataError as exc:
+        return _fail(str(exc))
+    out = {"plot": args.plot, "qe": qe.name, "templates": len(ratios), "bv_lookup_range": model.bv_range,
+           "bv_fit_rms_ln": model.bv_fit_rms}
+    _print(out, args.json)
+    return 0
+
+
+def _upload(args) -> int:
+    from ground.cli_link import open_client, report_error
+    from ground.client import LinkError
+
+    data = Path(args.file).read_bytes()
+    try:
+        parse_image(data)  # refuse locally what the device would refuse
+    except CatalogImageError as exc:
+        return _fail(f"{args.file}: {exc}")
+    with open_client(args) as client:
+        try:
+            report = client.upload(CATALOG_SLOT, data, progress=not args.json)
+            info = client.slot_info(CATALOG_SLOT)
+        except LinkError as exc:
+            report_error(exc, args.json)
+            return 1
+    if not info.active or info.crc32 != report.crc32 or info.length != len(data):
+        return _fail(f"device holds length {info.length} CRC-32 0x{info.crc32:08X}, sent {len(data)} 0x{report.crc32:08X}")
+    out = {"slot": CATALOG_SLOT, "bytes": len(data), "crc32": f"0x{report.crc32:08X}", "resumed_from": report.resumed_from,
+           "sent": report.sent, "seconds": round(report.seconds, 3), "verified": True}
+    _print(out, args.json)
+    return 0
+
+
+def _info(args) -> int:
+    from ground.cli_link import open_client, report_error
+    from ground.client import LinkError
+
+    with open_client(args) as client:
+        try:
+            info = client.slot_info(CATALOG_SLOT)
+        except LinkError as exc:
+            report_error(exc, args.json)
+            return 1
+    out = {"active": info.active, "bytes": info.length, "crc32": f"0x{info.crc32:08X}"}
+    if info.info:
+        try:
+            out.update(json.loads(info.info.decode("utf-8")))
+        except (UnicodeDecodeError, ValueError):
+            out["info_hex"] = info.info.hex()
+    _print(out, args.json)
+    return 0
+
+
+def register(sub) -> None:
+    cat = sub.add_parser("catalog", help="build, analyze, upload and inspect on-board star catalogs")
+    csub = cat.add_subparsers(dest="catalog_command", metavar="ACTION")
+    csub.required = True
+
+    p = csub.add_parser("build", help="build a catalog image from a design")
+    _design_args(p)
+    p.add_argument("-o", "--output", default="catalog.st16cat", help="image file to write")
+    p.set_defaults(func=_build)
+
+    p = csub.add_parser("analyze", help="seed-000 table 1: ambiguity and availability of a design")
+    _design_args(p)
+    p.add_argument("--views", type=int, default=100_000, help="boresights on the generalized spiral")
+    p.add_argument("--json-out", help="write the result as JSON")
+    p.add_argument("--plot", help="write a Mollweide PNG of bad/unresolvable views")
+    p.set_defaults(func=_analyze)
+
+    p = csub.add_parser("colours", help="plot colour ratios against spectral type (seed 000 fig. 7)")
+    p.add_argument("--qe", help="QE CSV; default the shipped MT9P031-like model")
+    p.add_argument("--pickles", help="directory of Pickles .sed spectra")
+    p.add_argument("--plot", default="colour_ratios.png")
+    p.set_defaults(func=_colours)
+
+    p = csub.add_parser("upload", help="upload an image to the device (resumable), verify CRC-32, commit")
+    p.add_argument("file")
+    p.set_defaults(func=_upload)
+
+    p = csub.add_parser("info", help="what catalog the device holds")
+    p.set_defaults(func=_info)
