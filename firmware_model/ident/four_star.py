@@ -11,6 +11,13 @@ Groups start at the frame centre (detections sorted by off-axis angle, as the pa
 identified stars leave the pool and the group is refilled with the next stars; if a group
 identifies nothing, its most central star is discarded; when fewer than four unidentified stars
 remain, identified stars fill the group (paper step 6). The loop is bounded by ``max_groups``.
+
+Beyond the paper (``check_consistency``, on by default): a unique signature row can be a
+coincidence of a wrong star when the true star's row is spoiled (wide groups have hundreds of
+candidates per angle). An identification is accepted only if its catalog star's angle to every
+other identified star (this group and earlier ones) matches the measured angle within
+``epsilon``, and it has at least one such consistent partner. ``check_consistency=False`` runs
+the paper's procedure unchanged.
 """
 
 from __future__ import annotations
@@ -37,6 +44,7 @@ class FourStarParams:
     epsilon_sigmas: float = 3.0
     max_groups: int = 24
     max_candidates: int = 50000
+    check_consistency: bool = True
 
 
 def vote_matrix(group_vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float, max_candidates: int):
@@ -102,6 +110,8 @@ def match_four_star(vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float
         groups += 1
         ids = identify_group(vectors[np.array(group)], catalog, epsilon, params.max_candidates)
         newly = [(d, int(c)) for d, c in zip(group, ids) if c >= 0 and d not in ident and c not in ident.values()]
+        if params.check_consistency:
+            newly = _consistent(newly, ident, vectors, catalog, epsilon)
         for d, c in newly:
             ident[d] = c
             pool.remove(d)
@@ -110,3 +120,22 @@ def match_four_star(vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float
     det = np.array(sorted(ident), np.int64)
     cat = np.array([ident[d] for d in det], np.int64)
     return FourStarResult(det, cat, groups, np.setdiff1d(np.arange(n), det))
+
+
+def _consistent(newly, ident, vectors, catalog: OnboardCatalog, epsilon: float):
+    """Keep the new identifications whose catalog angles to all other identifications (new and
+    earlier) match the measured angles within ``epsilon``, with at least one partner."""
+    everyone = list(ident.items()) + newly
+    if len(everyone) < 2:
+        return []
+    det = np.array([d for d, _ in everyone])
+    cat = np.array([c for _, c in everyone])
+    measured = angle_between(vectors[det][:, None, :], vectors[det][None, :, :])
+    expected = angle_between(catalog.vec[cat][:, None, :], catalog.vec[cat][None, :, :])
+    ok = np.abs(measured - expected) <= epsilon
+    np.fill_diagonal(ok, True)
+    keep = []
+    for k in range(len(ident), len(everyone)):
+        if ok[k].all():
+            keep.append(everyone[k])
+    return keep if len(ident) or len(keep) >= 2 else []

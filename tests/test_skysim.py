@@ -1,0 +1,119 @@
+"""Whole-sky simulation: geometry helpers, a small seeded run with fixed outcome counts,
+executor independence (local processes, Dask LocalCluster), plots."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from firmware_model.camera import CameraModel
+from firmware_model.frames import attitude_from_radec_roll, matrix_to_quat
+from firmware_model.ident.solver import SolveParams
+from firmware_model.ident.verify import FieldOfView
+from ground import skysim
+
+CAM = CameraModel.reference_design()
+
+
+@pytest.fixture(scope="module")
+def colour_catalog():
+    from ground.catalog.build import build_catalog
+    from ground.catalog.design import CatalogDesign
+
+    return build_catalog(CatalogDesign(sigma_rg=0.05, sigma_bg=0.05))
+
+
+@pytest.fixture(scope="module")
+def seed001_catalog():
+    from ground.catalog.build import build_catalog
+    from ground.catalog.design import CatalogDesign
+
+    return build_catalog(CatalogDesign(theta_fov_deg=12.25, sensor_width_px=1024, sensor_height_px=1024,
+                                       phi_min_deg=0.05, phi_max_deg=24.5))
+
+
+def small_config(**kw):
+    # a generous time budget keeps the outcome independent of machine load
+    params = SolveParams(sigma_vec=0.2 / CAM.f, fov=FieldOfView.from_camera(CAM, 0.0), mode="colour",
+                         time_budget_s=10.0)
+    return skysim.ColourSimConfig(n_boresights=150, n_roll=2, seed=7, model=skysim.ErrorModel(false_stars=0.5),
+                                  solve=params, **kw)
+
+
+def test_spiral_is_uniform_and_grid_has_2664_observations():
+    b = skysim.spiral_boresights(2000)
+    assert np.allclose(np.linalg.norm(b, axis=1), 1)
+    assert abs(b[:, 2].mean()) < 0.01 and np.all(np.abs(b.mean(axis=0)) < 0.02)
+    assert len(skysim.grid_boresights(5.0)) == 2664
+
+
+def test_attitude_error_eqs_22_23():
+    a = attitude_from_radec_roll(1.0, 0.3, 0.2)
+    b = attitude_from_radec_roll(1.0, 0.3, 0.2 + 1e-3)
+    assert skysim.attitude_error(matrix_to_quat(a), matrix_to_quat(b)) == pytest.approx(1e-3, rel=1e-6)
+    q = matrix_to_quat(a)
+    assert skysim.attitude_error(q, -q) == pytest.approx(0.0, abs=1e-7)
+
+
+def test_observe_follows_the_error_model(colour_catalog):
+    rng = np.random.default_rng(0)
+    a = attitude_from_radec_roll(1.2, 0.4, 0.5)
+    model = skysim.ErrorModel(sigma_pix=0.2, sigma_colour=0.05)
+    sc = skysim.observe(colour_catalog, a, CAM, model, rng)
+    assert len(sc.truth) == sc.n_visible > 0 and np.all(sc.truth >= 0)
+    true = colour_catalog.vec[sc.truth] @ a.T
+    x, y = CAM.vector_to_pixel(true)
+    assert np.all((x >= -0.5) & (x < CAM.width - 0.5) & (y >= -0.5) & (y < CAM.height - 0.5))
+    assert np.all(np.diff(colour_catalog.mag[sc.truth]) >= 0)  # brightest first
+    errs, dcol = [], []
+    for k in range(200):
+        s = skysim.observe(colour_catalog, a, CAM, model, np.random.default_rng(k))
+        errs.append(np.linalg.norm(s.vectors - colour_catalog.vec[s.truth] @ a.T, axis=1))
+        dcol.append(s.rg - colour_catalog.rg[s.truth])
+    rms_px = np.sqrt(np.mean(np.concatenate(errs) ** 2) / 2) * CAM.f  # per-axis
+    assert rms_px == pytest.approx(0.2, rel=0.05)
+    assert np.std(np.concatenate(dcol)) == pytest.approx(0.05, rel=0.05)
+
+
+def test_small_seeded_colour_run_has_fixed_outcomes(colour_catalog):
+    cfg = small_config()
+    rows, _ = skysim.execute("colour", colour_catalog, CAM, cfg, 300, workers=1, progress=False)
+    s = skysim.colour_summary(rows)
+    assert s["poses"] == 300
+    assert (s["high_confidence"], s["low_confidence"], s["no_solution"]) == (297, 3, 0)
+    assert s["incorrect"] == 0 and s["high_confidence_wrong"] == 0
+    assert int(rows["n_matched"].sum()) == 3428
+    assert s["fraction_within_1deg"] == 1.0 and s["fraction_within_0.01deg"] > 0.9
+
+
+def test_executors_agree(colour_catalog):
+    from dask.distributed import LocalCluster
+
+    cfg = replace(small_config(), n_boresights=40)
+    local, _ = skysim.execute("colour", colour_catalog, CAM, cfg, 80, workers=1, chunk=25, progress=False)
+    procs, _ = skysim.execute("colour", colour_catalog, CAM, cfg, 80, workers=2, chunk=25, progress=False)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        dask_rows, _ = skysim.execute("colour", colour_catalog, CAM, cfg, 80, chunk=25, progress=False,
+                                      scheduler=cluster.scheduler_address)
+    for other in (procs, dask_rows):
+        for name in ("boresight", "status", "n_matched", "n_wrong", "err_deg"):
+            np.testing.assert_array_equal(local[name], other[name])
+
+
+def test_fourstar_run_coarse_grid(seed001_catalog):
+    cfg = skysim.FourStarSimConfig(step_deg=30.0)
+    rows, _ = skysim.execute("fourstar", seed001_catalog, None, cfg, 84, workers=1, progress=False)
+    s = skysim.fourstar_summary(rows)
+    assert s["observations"] == 84 and s["misidentified"] == 0
+    assert (s["identified"], s["unidentified"]) == (1101, 313)
+    assert s["fovs_with_2plus_identified"] == 84
+
+
+def test_plots_are_written(colour_catalog, tmp_path):
+    cfg = replace(small_config(), n_boresights=30)
+    rows, _ = skysim.execute("colour", colour_catalog, CAM, cfg, 60, workers=1, progress=False)
+    skysim.plot_error_cdf(rows, tmp_path / "cdf.png")
+    skysim.plot_mollweide(rows, skysim.spiral_boresights(30), tmp_path / "map.png")
+    for name in ("cdf.png", "map.png"):
+        data = (tmp_path / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
