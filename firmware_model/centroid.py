@@ -12,7 +12,7 @@ integrated over each pixel (docs/CONVENTIONS.md pixel centres), per-channel ampl
 backgrounds ``b_k``. Weighted non-linear least squares (Levenberg-Marquardt, MINPACK via
 ``scipy.optimize.least_squares``, analytic Jacobian); weights from the background noise
 per CFA phase plus the shot noise of an initial linear fit (gain in e-/DN). Saturated
-pixels are excluded from the fit. ``rg = A_R / A_G`` and ``bg = A_B / A_G``; covariances by
+pixels and pixels cleaned by detection (hot pixels, cosmic-ray hits) are excluded. ``rg = A_R / A_G`` and ``bg = A_B / A_G``; covariances by
 linear propagation of the fit covariance (scaled by the reduced chi-square when it
 exceeds 1). The fallback when the fit fails is a colour-normalised centre of gravity.
 """
@@ -152,6 +152,9 @@ def _fit_one(frame, det, i, params, gain, out):
     valid = raw < frame.white_level
     if not np.all(valid):
         flags |= StarFlag.SATURATED
+    if len(det.bad_pixels):
+        lin = rows.astype(np.int64) * frame.width + cols.astype(np.int64)
+        valid &= ~np.isin(lin, det.bad_pixels, assume_unique=True)
     if frame.is_mono:
         chan_all, nchan, slots = np.zeros(len(raw), int), 1, [GREEN]
         flags |= StarFlag.NO_COLOUR

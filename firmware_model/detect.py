@@ -1,34 +1,35 @@
 """Star detection on the raw CFA (or mono) frame, without demosaicing.
 
-Steps (all vectorised; no Python loop over pixels):
+Steps (vectorised; Python loops only over candidates of multi-peak regions):
 
 1. The frame is split into its four 2x2 phases (for a Bayer frame each phase is one
-   colour channel). Per phase, background and noise (median and 1.4826 MAD) are estimated
-   on a coarse grid of ``block_px`` blocks from a 1-in-4 subsample, median-filtered over
-   3x3 blocks to shrug off bright stars, and expanded back piecewise constant.
-2. The four background-subtracted phases are summed into 2x2 super-pixels (each holds
-   R, G, G, B: colour-blind) and box-filtered over 3x3 super-pixels (a matched filter for
-   a PSF of ~1-2 px sigma). A super-pixel is significant above ``k_sigma`` times the
-   filtered noise.
-3. Connected significant regions are labelled; every local maximum (over
-   ``peak_separation`` super-pixels) inside a region is a candidate, flagged BLEND when
-   its region has more than one.
-4. Rejection: hot pixels and cosmic-ray hits are sharper than the PSF (a raw peak whose
-   same-colour neighbours hold far less than the PSF predicts); streaks (satellites,
-   cosmic-ray tracks) are elongated regions. Candidates are ranked by filtered flux and
-   capped at ``max_candidates``.
+   colour channel). Per phase, background and noise are the clipped mean and standard
+   deviation on a coarse grid of ``block_px`` blocks (1-in-4 subsample, +-4 sigma clip
+   about a sparse block median), expanded back piecewise constant.
+2. Cosmetic cleaning per phase: a pixel above ``k_sigma`` whose four same-colour
+   neighbours hold far less than the PSF predicts is a hot pixel or cosmic-ray hit; it is
+   replaced by their mean for detection and listed in ``bad_pixels`` for the fit.
+3. The four background-subtracted phases are summed into 2x2 super-pixels (each holds
+   R, G, G, B: colour-blind) and filtered with a [1 2 1] x [1 2 1] kernel (a matched
+   filter for a PSF of ~1 px sigma). A super-pixel is significant above ``k_sigma`` times
+   the filtered noise.
+4. Connected significant regions are labelled; every local maximum (over
+   ``peak_separation`` super-pixels) that is separated from brighter peaks of its region
+   by a 3-sigma dip is a candidate, flagged BLEND when its region keeps more than one.
+   Elongated regions (satellite streaks, cosmic-ray tracks) are rejected. Candidates are
+   ranked by filtered flux and capped at ``max_candidates``.
 
 Pixel coordinates follow docs/CONVENTIONS.md (pixel centres at integers, x = column).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
 
-from firmware_model.frame import Frame, GREEN, pattern_codes
+from firmware_model.frame import Frame
 from firmware_model.star_flags import StarFlag
 
 
@@ -36,10 +37,10 @@ from firmware_model.star_flags import StarFlag
 class DetectParams:
     """Detection settings (pixels are raw pixels unless named super-pixels)."""
 
-    k_sigma: float = 5.0  # threshold on the 3x3 super-pixel matched filter
+    k_sigma: float = 5.0  # threshold on the super-pixel matched filter (and for sharp pixels)
     block_px: int = 128  # background grid block (raw pixels, multiple of 8)
     psf_sigma_px: float = 1.0  # expected PSF Gaussian sigma, for the sharpness test
-    sharp_fraction: float = 0.3  # reject if neighbours < this x the PSF-predicted level
+    sharp_fraction: float = 0.5  # sharp if same-colour neighbours < this x the PSF-predicted level
     peak_separation: int = 3  # local-maximum footprint (super-pixels)
     max_elongation: float = 3.0  # reject regions whose axis ratio exceeds this (streaks)
     min_streak_area: int = 6  # super-pixels; smaller regions are not tested for elongation
@@ -52,7 +53,9 @@ class Detections:
     """Candidates, brightest first. ``x, y``: raw-pixel estimate of the peak;
     ``flux``: background-subtracted 3x3 super-pixel sum (DN); ``snr``: flux / its noise;
     ``flags``: StarFlag bits; ``noise``: per-phase noise (DN) at the candidate (N, 2, 2);
-    ``background``: per-phase background (DN above black) at the candidate (N, 2, 2).
+    ``background``: per-phase background (DN above black) at the candidate (N, 2, 2);
+    ``bad_pixels``: sorted linear indices (row * width + col) of pixels cleaned as hot
+    pixels or cosmic-ray hits (``n_rejected_sharp`` of them), for the fit to skip.
     ``reason`` says why the list is empty (or what was dropped)."""
 
     x: np.ndarray
@@ -65,6 +68,7 @@ class Detections:
     n_rejected_sharp: int = 0
     n_rejected_streak: int = 0
     n_dropped_cap: int = 0
+    bad_pixels: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     reason: str = ""
 
     def __len__(self) -> int:
@@ -77,13 +81,16 @@ def _empty(reason: str, **counts) -> Detections:
                       np.zeros((0, 2, 2)), reason=reason, **counts)
 
 
+_K121 = np.array([1.0, 2.0, 1.0], dtype=np.float32)
+
+
 def frame_problem(frame: Frame, params: DetectParams) -> str:
     """Reason the frame cannot hold usable stars, or ''."""
     px = frame.pixels
     lo, hi = px.min(), px.max()
     if lo == hi:
         return f"frame is uniform (every pixel = {lo})"
-    sat = float(np.count_nonzero(px >= frame.white_level)) / px.size
+    sat = float(np.count_nonzero(px >= frame.white_level)) / px.size if hi >= frame.white_level else 0.0
     if sat > params.max_saturated_fraction:
         return f"frame is saturated ({100 * sat:.0f}% of pixels at the white level)"
     return ""
@@ -110,11 +117,13 @@ def _phase_background(phase: np.ndarray, block: int):
 
 
 def _expand(grid: np.ndarray, block: int, shape) -> np.ndarray:
-    out = np.repeat(np.repeat(grid, block, axis=0), block, axis=1)
-    pad_y, pad_x = max(shape[0] - out.shape[0], 0), max(shape[1] - out.shape[1], 0)
-    if pad_y or pad_x:
-        out = np.pad(out, ((0, pad_y), (0, pad_x)), mode="edge")
-    return out[: shape[0], : shape[1]]
+    """Piecewise-constant expansion of a block grid to ``shape`` (last blocks stretched)."""
+    reps = []
+    for n_blocks, size in zip(grid.shape, shape):
+        r = np.full(n_blocks, block)
+        r[-1] = size - block * (n_blocks - 1)
+        reps.append(r)
+    return np.repeat(np.repeat(grid, reps[0], axis=0), reps[1], axis=1)
 
 
 def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detections:
@@ -125,26 +134,36 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     h2, w2 = frame.height // 2, frame.width // 2
     if h2 < 4 or w2 < 4:
         return _empty(f"frame too small for detection ({frame.width} x {frame.height})")
-    block = max(params.block_px // 2, 4)  # in phase pixels
+    block = max(min(params.block_px // 2, h2, w2) // 2 * 2, 4)  # in phase pixels
     black = np.asarray(frame.black_level, dtype=np.float32).reshape(2, 2)
     resid = np.zeros((h2, w2), np.float32)
-    var = np.zeros((h2, w2), np.float32)
-    bg_grids, noise_grids = {}, {}
+    var_grid = None
+    bg_grids, noise_grids, bad = {}, {}, []
+    # same-colour neighbours sit 2 raw px away: a PSF puts at least this fraction of the peak there
+    ratio = params.sharp_fraction * np.exp(-4.0 / (2.0 * params.psf_sigma_px ** 2))
     for py in (0, 1):
         for px_ in (0, 1):
             phase = frame.pixels[py : 2 * h2 : 2, px_ : 2 * w2 : 2].astype(np.float32) - black[py, px_]
             med, sig = _phase_background(phase, block)
             bg_grids[py, px_], noise_grids[py, px_] = med, sig
-            resid += phase - _expand(med.astype(np.float32), block, phase.shape)
-            var += _expand((sig ** 2).astype(np.float32), block, phase.shape)
-    filt = ndimage.uniform_filter(resid, size=3, mode="constant") * 9.0
-    noise_filt = 3.0 * np.sqrt(var)  # 9 independent super-pixels
-    snr_map = filt / noise_filt
+            sig_full = _expand(sig.astype(np.float32), block, phase.shape)
+            r_p = phase - _expand(med.astype(np.float32), block, phase.shape)
+            n_r, n_c = _clean_sharp(r_p, sig_full, params.k_sigma, ratio)
+            bad.append((2 * n_r + py) * frame.width + (2 * n_c + px_))
+            resid += r_p
+            var_grid = sig ** 2 if var_grid is None else var_grid + sig ** 2
+    bad_pixels = np.sort(np.concatenate(bad))
+    n_sharp = len(bad_pixels)
+    # [1 2 1] x [1 2 1] matched filter over super-pixels; noise: sqrt(sum k^2) = 6
+    filt = ndimage.correlate1d(resid, _K121, axis=0, mode="constant")
+    filt = ndimage.correlate1d(filt, _K121, axis=1, mode="constant")
+    snr_map = filt / (6.0 * np.sqrt(_expand(var_grid.astype(np.float32), block, filt.shape)))
     mask = snr_map > params.k_sigma
     labels, n_regions = ndimage.label(mask)
     if n_regions == 0:
-        return _empty("no pixel above the detection threshold")
+        return _empty("no pixel above the detection threshold", n_rejected_sharp=n_sharp, bad_pixels=bad_pixels)
     pr, pc = _local_maxima(filt, mask, params.peak_separation // 2)
+    pr, pc = _merge_without_dip(filt, snr_map, labels, pr, pc)
     plabel = labels[pr, pc]
     peaks_per_region = np.bincount(plabel, minlength=n_regions + 1)
 
@@ -168,15 +187,9 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     is_streak = elongated[plabel]
     n_streak = int(np.count_nonzero(is_streak))
     pr, pc, plabel = pr[~is_streak], pc[~is_streak], plabel[~is_streak]
-
-    # raw peak inside each 2x2 super-pixel's 3x3 neighbourhood and the sharpness test
-    sharp = _sharp_peaks(frame, pr, pc, noise_grids, bg_grids, block, params)
-    n_sharp = int(np.count_nonzero(sharp))
-    pr, pc, plabel = pr[~sharp], pc[~sharp], plabel[~sharp]
     if len(pr) == 0:
-        return _empty(
-            f"all {n_sharp + n_streak} candidates rejected ({n_sharp} sharp: hot pixels / cosmic rays; "
-            f"{n_streak} streaks)", n_rejected_sharp=n_sharp, n_rejected_streak=n_streak)
+        return _empty(f"no star-like candidate ({n_streak} streaks rejected, {n_sharp} sharp pixels cleaned)",
+                      n_rejected_sharp=n_sharp, n_rejected_streak=n_streak, bad_pixels=bad_pixels)
 
     flux = filt[pr, pc].astype(float)
     order = np.argsort(-flux)
@@ -197,7 +210,7 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     return Detections(
         x=2.0 * x_sp + 0.5, y=2.0 * y_sp + 0.5, flux=flux, snr=snr_map[pr, pc].astype(float), flags=flags,
         noise=noise, background=bgv, n_rejected_sharp=n_sharp, n_rejected_streak=n_streak,
-        n_dropped_cap=n_drop, reason=reason,
+        n_dropped_cap=n_drop, bad_pixels=bad_pixels, reason=reason,
     )
 
 
@@ -236,38 +249,63 @@ def _subpixel_peak(img: np.ndarray, r: np.ndarray, c: np.ndarray):
     return r + dy, c + dx
 
 
-def _sharp_peaks(frame, pr, pc, noise_grids, bg_grids, block, params) -> np.ndarray:
-    """True for candidates whose brightest raw pixel is much sharper than the PSF."""
-    if len(pr) == 0:
-        return np.zeros(0, bool)
-    h, w = frame.height, frame.width
-    # brightest raw pixel in the 6x6 raw area around the super-pixel
-    r0, c0 = 2 * pr - 2, 2 * pc - 2
-    rr = np.clip(r0[:, None, None] + np.arange(6)[None, :, None], 0, h - 1)
-    cc = np.clip(c0[:, None, None] + np.arange(6)[None, None, :], 0, w - 1)
-    black2 = np.asarray(frame.black_level, dtype=float).reshape(2, 2)
-    win = frame.pixels[rr, cc].astype(float) - black2[rr % 2, cc % 2]
-    k = np.argmax(win.reshape(len(pr), -1), axis=1)
-    r_pk = rr[np.arange(len(pr)), k // 6, 0]
-    c_pk = cc[np.arange(len(pr)), 0, k % 6]
-    gy, gx = (r_pk // 2) // block, (c_pk // 2) // block
+def _clean_sharp(r_p: np.ndarray, sig: np.ndarray, k_sigma: float, ratio: float):
+    """Replace, in place, phase pixels much sharper than the PSF (hot pixels, cosmic-ray
+    hits) by the mean of the middle two of their four same-colour neighbours; returns their
+    (rows, cols). Sharp: excess above ``k_sigma`` noise and the second largest neighbour
+    (+1 sigma margin) below ``ratio`` x the excess. For a Gaussian PSF of sigma s every
+    pixel, peak or wing, has a second-largest same-colour neighbour (2 px away) of at
+    least exp(-2 / s^2) of its own value, while an isolated or paired hot pixel has
+    background there."""
+    rows, cols = np.nonzero(r_p > k_sigma * sig)
+    h, w = r_p.shape
+    thr = sig[rows, cols]
+    done_r, done_c = [], []
+    for _ in range(3):  # chains of hot pixels clean from their ends inwards
+        a, b = r_p[np.maximum(rows - 1, 0), cols], r_p[np.minimum(rows + 1, h - 1), cols]
+        c, d = r_p[rows, np.maximum(cols - 1, 0)], r_p[rows, np.minimum(cols + 1, w - 1)]
+        l1, s1, l2, s2 = np.maximum(a, b), np.minimum(a, b), np.maximum(c, d), np.minimum(c, d)
+        second = np.maximum(np.minimum(l1, l2), np.maximum(s1, s2))
+        middle = 0.5 * (a + b + c + d - np.maximum(l1, l2) - np.minimum(s1, s2))
+        sharp = second + thr < ratio * r_p[rows, cols]
+        if not sharp.any():
+            break
+        r_p[rows[sharp], cols[sharp]] = middle[sharp]
+        done_r.append(rows[sharp])
+        done_c.append(cols[sharp])
+        rows, cols, thr = rows[~sharp], cols[~sharp], thr[~sharp]
+    if not done_r:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(done_r), np.concatenate(done_c)
 
-    def level(r, c):
-        rc, ccl = np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)
-        bgv = np.select([(rc % 2 == a) & (ccl % 2 == b) for a in (0, 1) for b in (0, 1)],
-                        [_grid_at(bg_grids[a, b], gy, gx) for a in (0, 1) for b in (0, 1)])
-        return frame.pixels[rc, ccl].astype(float) - black2[rc % 2, ccl % 2] - bgv
 
-    peak = level(r_pk, c_pk)
-    sig = np.select([(r_pk % 2 == a) & (c_pk % 2 == b) for a in (0, 1) for b in (0, 1)],
-                    [_grid_at(noise_grids[a, b], gy, gx) for a in (0, 1) for b in (0, 1)])
-    if frame.is_mono:
-        offsets, d2 = [(-1, 0), (1, 0), (0, -1), (0, 1)], np.full(len(pr), 1.0)
-    else:
-        is_green = pattern_codes(frame.pattern)[r_pk % 2, c_pk % 2] == GREEN
-        diag, axial = [(-1, -1), (-1, 1), (1, -1), (1, 1)], [(-2, 0), (2, 0), (0, -2), (0, 2)]
-        offsets = [(np.where(is_green, a[0], b[0]), np.where(is_green, a[1], b[1])) for a, b in zip(diag, axial)]
-        d2 = np.where(is_green, 2.0, 4.0)
-    neigh = np.mean([level(r_pk + dr, c_pk + dc) for dr, dc in offsets], axis=0)
-    expected_ratio = np.exp(-d2 / (2.0 * params.psf_sigma_px ** 2))
-    return neigh + sig < params.sharp_fraction * expected_ratio * peak
+def _merge_without_dip(filt, snr_map, labels, pr, pc):
+    """Drop a weaker peak when the filtered image does not dip by 3 sigma between it and a
+    brighter peak of the same region (noise bumps on one star are not blends)."""
+    plabel = labels[pr, pc]
+    counts = np.bincount(plabel)
+    multi = np.flatnonzero(counts > 1)
+    if len(multi) == 0:
+        return pr, pc
+    keep = np.ones(len(pr), bool)
+    for lab in multi:
+        idx = np.flatnonzero(plabel == lab)
+        idx = idx[np.argsort(-filt[pr[idx], pc[idx]])]
+        kept = [idx[0]]
+        for j in idx[1:]:
+            vj = filt[pr[j], pc[j]]
+            noise_j = vj / snr_map[pr[j], pc[j]]
+            separate = True
+            for q in kept:
+                n = int(max(abs(pr[q] - pr[j]), abs(pc[q] - pc[j]))) * 2 + 1
+                t = np.linspace(0.0, 1.0, n)
+                rr = np.round(pr[j] + t * (pr[q] - pr[j])).astype(int)
+                cc = np.round(pc[j] + t * (pc[q] - pc[j])).astype(int)
+                if vj - filt[rr, cc].min() < 3.0 * noise_j:
+                    separate = False
+                    break
+            if separate:
+                kept.append(j)
+            else:
+                keep[j] = False
+    return pr[keep], pc[keep]

@@ -1,0 +1,102 @@
+"""Detection on raw CFA and mono frames against rendered truth; artefacts and bad frames."""
+
+import numpy as np
+import pytest
+
+from firmware_model.camera import CameraModel
+from firmware_model.detect import DetectParams, detect_stars
+from firmware_model.extract import extract_stars
+from firmware_model.frame import Frame
+from firmware_model.frames import attitude_from_radec_roll
+from firmware_model.star_flags import StarFlag
+from ground.sensor_sim import DetectorModel, FalseObject, Stars, random_star_field, render_frame
+
+CAM = CameraModel.from_fov(640, 480, 2.5)
+ATT = attitude_from_radec_roll(2.0, 0.3, 0.0)
+
+
+def _match(det, truth, tol=2.0):
+    tx = np.array([s["x"] for s in truth["stars"]])
+    ty = np.array([s["y"] for s in truth["stars"]])
+    d = np.hypot(tx[:, None] - det.x[None, :], ty[:, None] - det.y[None, :])
+    found = d.min(axis=1) < tol
+    false = d.min(axis=0) >= tol
+    return found, false
+
+
+@pytest.mark.parametrize("pattern", ["RGGB", "BGGR", "MONO"])
+def test_bright_stars_all_found_no_false(pattern):
+    stars = random_star_field(CAM, ATT, 15, vmag_range=(2.0, 4.5), seed=5, min_separation_px=12)
+    res = render_frame(stars, ATT, CAM, DetectorModel(pattern=pattern), seed=2)
+    det = detect_stars(res.frame)
+    found, false = _match(det, res.truth)
+    assert found.all() and not false.any()
+    assert np.all(np.diff(det.flux) <= 0)  # brightest first
+
+
+def test_thousands_of_hot_pixels_cosmics_and_streaks_rejected():
+    stars = random_star_field(CAM, ATT, 8, vmag_range=(2.0, 4.0), seed=1, min_separation_px=20)
+    det_model = DetectorModel(hot_pixel_fraction=1e-2)  # ~3000 hot pixels
+    objs = [FalseObject("cosmic", 100.0 + 50 * k, 40.0, 4000.0) for k in range(5)]
+    objs += [FalseObject("cosmic", 60.0, 300.0, 8000.0, x2=75.0, y2=309.0)]
+    objs += [FalseObject("satellite", 400.0, 420.0, 3e4, x2=560.0, y2=460.0)]
+    res = render_frame(stars, ATT, CAM, det_model, seed=4, false_objects=objs)
+    assert len(res.truth["hot_pixels"]) > 2000
+    det = detect_stars(res.frame)
+    found, false = _match(det, res.truth)
+    assert found.all() and not false.any()
+    assert det.n_rejected_sharp > 1000 and det.n_rejected_streak >= 1
+
+
+def test_planet_is_detected_as_a_source():
+    res = render_frame(random_star_field(CAM, ATT, 3, seed=3, vmag_range=(3, 4)), ATT, CAM, seed=1,
+                       false_objects=[FalseObject("planet", 320.0, 240.0, 5e4, rg=1.4, bg=0.4)])
+    det = detect_stars(res.frame)
+    assert np.min(np.hypot(det.x - 320.0, det.y - 240.0)) < 1.5
+
+
+def test_blend_flagged():
+    v = CAM.pixel_to_vector([300.0, 306.0], [200.0, 201.0]) @ ATT
+    res = render_frame(Stars([1, 2], v, [3.0, 3.3], [1, 1], [1, 1]), ATT, CAM, seed=0)
+    det = detect_stars(res.frame)
+    assert len(det) == 2 and np.all(det.flags & StarFlag.BLEND)
+
+
+def test_candidate_cap_keeps_brightest():
+    stars = random_star_field(CAM, ATT, 30, vmag_range=(1.0, 4.0), seed=7, min_separation_px=12)
+    res = render_frame(stars, ATT, CAM, seed=3)
+    full = detect_stars(res.frame)
+    capped = detect_stars(res.frame, DetectParams(max_candidates=10))
+    assert len(capped) == 10 and capped.n_dropped_cap == len(full) - 10
+    assert np.allclose(capped.flux, full.flux[:10]) and "cap" in capped.reason
+
+
+@pytest.mark.parametrize(
+    "pixels, reason",
+    [
+        (np.zeros((64, 64), np.uint16), "uniform"),
+        (np.full((64, 64), 4095, np.uint16), "uniform"),
+        (np.where(np.indices((64, 64))[1] < 50, 4095, 100).astype(np.uint16), "saturated"),
+        (np.random.default_rng(0).normal(200, 5, (64, 64)).round().astype(np.uint16), "no pixel above"),
+    ],
+)
+def test_bad_frames_give_empty_list_with_reason(pixels, reason):
+    frame = Frame(pixels=pixels, pattern="RGGB", black_level=64, white_level=4095)
+    stars = extract_stars(frame)
+    assert len(stars) == 0 and reason in stars.reason
+
+
+def test_nan_frame_is_a_clear_error():
+    with pytest.raises(ValueError, match="non-finite"):
+        Frame(pixels=np.full((8, 8), np.nan), pattern="MONO")
+
+
+def test_real_mono_frames_detect_stars(shared_data):
+    from firmware_model.frame_io import read_frame
+
+    path = sorted((shared_data / "frames" / "tetra3-mono").glob("*.tiff"))[0]
+    stars = extract_stars(read_frame(path))
+    assert len(stars) >= 10
+    good = stars.trusted
+    assert good.sum() >= 5 and np.all(np.isnan(stars.rg)) and np.all(stars.flags & StarFlag.NO_COLOUR)
+    assert np.median(stars.sigma[good]) > 0.5  # star images, not hot pixels
