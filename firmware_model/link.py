@@ -71,11 +71,12 @@ class SerialLink:
     """A real serial port through pyserial (8N1 at ``baud``)."""
 
     def __init__(self, port: str, baud: int):
-        self._ser = serial.serial_for_url(port, baudrate=baud, timeout=0, write_timeout=WRITE_TIMEOUT)
+        self._ser = serial.serial_for_url(port, baudrate=baud, timeout=0.1, write_timeout=WRITE_TIMEOUT)
         self.path = port
 
     def read(self, timeout: float) -> bytes:
-        self._ser.timeout = timeout
+        if self._ser.timeout != timeout:  # reconfiguring a port costs a system call: only on change
+            self._ser.timeout = timeout
         first = self._ser.read(1)
         if not first:
             return b""

@@ -149,3 +149,33 @@ def test_tcp_transport():
             assert "BOOTLOADER" in c.ping()
     finally:
         assert dev.stop() == 0
+
+
+def test_short_soak_no_lost_or_misattributed_reply(device):
+    """A short version of the benchmark soak: every reply checked against a model of the device."""
+    import random
+
+    rng = random.Random(7)
+    scratch = bytearray(256)
+    with Client(device.path, retries=0) as c:
+        c.init()
+        for _ in range(1500):
+            a = rng.randrange(0x100, 0x1F0)
+            kind = rng.randrange(4)
+            if kind == 0:
+                v = rng.randbytes(rng.randrange(1, 0x200 - a))
+                assert c.write_edac(a, v) == len(v)
+                scratch[a - 0x100:a - 0x100 + len(v)] = v
+            elif kind == 1:
+                k = rng.randrange(1, 0x200 - a)
+                assert c.read_edac(a, k) == scratch[a - 0x100:a - 0x100 + k]
+            elif kind == 2:
+                v = rng.randbytes(4)
+                c.send_silent(Code.WRITE_EDAC, struct.pack("<H", a) + v)
+                scratch[a - 0x100:a - 0x100 + 4] = v
+            else:
+                with pytest.raises(Nack):
+                    c.transact(0x0E)
+        d = c.diagnostic()
+        assert c.stale_replies == 0
+    assert d.accepted == 1502 and d.framing == d.runt == d.bad_crc == d.oversize == 0
