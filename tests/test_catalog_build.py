@@ -1,0 +1,81 @@
+"""build_catalog on the real catalogs, the pair indices on them, and the CLI."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from firmware_model.catalog_image_io import catalog_from_image
+from ground.catalog.build import build_catalog
+from ground.catalog.colour import ColourSource
+from ground.catalog.design import CatalogDesign
+from ground.cli import main as cli_main
+
+
+@pytest.fixture(scope="module")
+def hip_cat():
+    return build_catalog(CatalogDesign(m_thresh=4.0, theta_fov_deg=10.0))
+
+
+def test_hipparcos_build_invariants(hip_cat):
+    c = hip_cat
+    assert 500 < c.n_stars < 600 and np.all(c.mag <= 4.0)
+    assert np.all(np.diff(np.arctan2(c.vec[:, 1], c.vec[:, 0]) % (2 * np.pi)) >= 0)  # ordered by RA
+    assert np.all(np.diff(c.pair_phi) >= 0) and c.pair_phi[0] > c.phi_min and c.pair_phi[-1] <= c.phi_max
+    assert np.all(np.isfinite(c.rg)) and np.all(np.isfinite(c.bg))
+    counts = c.meta["colour_source_counts"]
+    assert counts["BV_LOOKUP"] > 0.9 * c.n_stars and counts["NONE"] == 0
+    assert c.meta["design"]["theta_fov_deg"] == 10.0
+
+
+def test_pair_indices_match_brute_force_on_real_catalog(hip_cat):
+    c = hip_cat
+    rng = np.random.default_rng(0)
+    for phi in rng.uniform(c.phi_min, c.phi_max, 40):
+        tol = float(rng.choice([1e-5, 1e-4, 1e-3]))
+        want = np.flatnonzero(np.abs(c.pair_phi - phi) <= tol)
+        for a, b in (c.hash_range(phi, tol), c.kvector_range(phi, tol)):
+            np.testing.assert_array_equal(np.arange(a, b), want)
+        a, b = c.kvector_candidates(phi, tol)
+        assert a <= (want[0] if len(want) else a) and b >= (want[-1] + 1 if len(want) else b)
+
+
+def test_merging_uses_the_resolvability_angle():
+    wide = build_catalog(CatalogDesign(m_thresh=4.0, resolve_deg=0.5))
+    narrow = build_catalog(CatalogDesign(m_thresh=4.0, resolve_deg=0.0))
+    assert wide.meta["selection"]["merged_doubles"] > 0 == narrow.meta["selection"]["merged_doubles"]
+    assert wide.n_stars == narrow.n_stars - wide.meta["selection"]["merged_doubles"]
+
+
+def test_bsc5_build_uses_pickles_types(shared_data):
+    c = build_catalog(CatalogDesign(source="bsc5", m_thresh=4.5, pickles_dir=str(shared_data / "pickles")))
+    src = c.meta["colour_source"]
+    assert (src == ColourSource.PICKLES_MK).mean() > 0.9
+    assert 7000 < c.n_pairs < 9000  # seed 000 table 1: 7.8e3 pairs
+
+
+def test_cli_build_writes_a_valid_image(tmp_path, capsys):
+    out = tmp_path / "cat.img"
+    design = tmp_path / "d.toml"
+    design.write_text("m_thresh = 3.5\ntheta_fov_deg = 10.0\n")
+    assert cli_main(["--json", "catalog", "build", "--design", str(design), "--n-h", "256", "-o", str(out)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    cat = catalog_from_image(out.read_bytes())
+    assert summary["n_pairs"] == cat.n_pairs and cat.n_h == 256
+    assert cat.meta["m_thresh"] == 3.5 and math.degrees(cat.meta["theta_fov"]) == pytest.approx(10.0)
+
+
+def test_cli_refuses_impossible_design(tmp_path, capsys):
+    assert cli_main(["catalog", "build", "--theta-fov", "5", "--phi-min", "10", "-o", str(tmp_path / "x")]) == 2
+    assert "phi_min = 10 deg must be below phi_max = 10 deg" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
+def test_cli_analyze_outputs(tmp_path, capsys):
+    args = ["catalog", "analyze", "--m-thresh", "3.5", "--theta-fov", "10", "--views", "3000",
+            "--json-out", str(tmp_path / "r.json"), "--plot", str(tmp_path / "v.png")]
+    assert cli_main(["--json", *args]) == 0
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert res["n_views"] == 3000 and 0 <= res["ambiguous_pairs_pct"] <= 100
+    assert (tmp_path / "v.png").stat().st_size > 10_000

@@ -1,0 +1,149 @@
+"""Colour model: photon-counting integrals against an analytic blackbody, readers, MK rules."""
+
+import numpy as np
+import pytest
+
+from ground.catalog.colour import (
+    ColourDataError, ColourModel, ColourSource, MKType, QETable, blackbody_ratios, default_qe, load_qe_csv,
+    match_template, parse_mk, parse_template_name, photon_signals, planck_lambda, read_sed, shipped_template_table,
+)
+
+HC_OVER_K_NM = 1.438776877e7  # h c / k in nm K
+
+
+def _box_qe():
+    """R on 600-700 nm, G on 500-600, B on 400-500 (unit response, 1e-6 nm edges)."""
+    e = 1e-6
+    w = np.array([400, 500 - e, 500, 600 - e, 600, 700])
+    return QETable(w, r=[0, 0, 0, 0, 1, 1], g=[0, 0, 1, 1, 0, 0], b=[1, 1, 0, 0, 0, 0], name="box")
+
+
+def _photon_band(t, lo, hi):
+    """Analytic int_lo^hi lambda B_lambda dlambda up to a constant: int x^2/(e^x - 1) dx, x = hc/(lambda k T)."""
+    def antideriv(x):
+        n = np.arange(1, 4000)[:, None]
+        return -np.sum(np.exp(-n * x) * (x**2 / n + 2 * x / n**2 + 2 / n**3), axis=0)
+    x_lo, x_hi = HC_OVER_K_NM / (hi * t), HC_OVER_K_NM / (lo * t)
+    return antideriv(np.array([x_hi]))[0] - antideriv(np.array([x_lo]))[0]
+
+
+@pytest.mark.parametrize("temperature", [3000.0, 5772.0, 10000.0, 30000.0])
+def test_blackbody_ratios_match_the_analytic_photon_integral(temperature):
+    rg, bg = blackbody_ratios(_box_qe(), temperature)
+    s_r, s_g, s_b = (_photon_band(temperature, lo, lo + 100) for lo in (600, 500, 400))
+    assert rg == pytest.approx(s_r / s_g, rel=2e-5)
+    assert bg == pytest.approx(s_b / s_g, rel=2e-5)
+
+
+def test_photon_counting_weights_by_wavelength():
+    """A flat F_lambda through two equal boxes: photon counts scale with the mean wavelength."""
+    w = np.linspace(350, 750, 801)
+    rg, bg = (s := photon_signals(_box_qe(), w, np.ones_like(w)))[0] / s[1], s[2] / s[1]
+    assert rg == pytest.approx(650 / 550, rel=1e-6) and bg == pytest.approx(450 / 550, rel=1e-6)
+
+
+def test_band_coverage_errors():
+    w = np.linspace(450, 750, 10)
+    with pytest.raises(ColourDataError, match="spectrum covers 450.0-750.0 nm but the band is 400.0-700.0 nm"):
+        photon_signals(_box_qe(), w, np.ones_like(w))
+    with pytest.raises(ColourDataError, match="not the band"):
+        ColourModel(qe=_box_qe(), band=(350.0, 700.0))
+
+
+def test_qe_loader(tmp_path):
+    p = tmp_path / "qe.csv"
+    p.write_text("# test sensor\nwavelength_nm,red,green,blue\n400,10,20,30\n500,40,50,60\n")
+    qe = load_qe_csv(p)
+    assert qe.band == (400.0, 500.0) and qe.g[1] == pytest.approx(0.5) and qe.provenance == "test sensor"
+    for body, match in [
+        ("400,1,2\n", "line 1: expected 4 columns"),
+        ("400,0.1,0.2,0.3\n500,0.1,x,0.3\n", "line 2: not numeric"),
+        ("500,0.1,0.2,0.3\n400,0.1,0.2,0.3\n", "wavelengths not increasing at 500.0 -> 400.0 nm"),
+        ("400,0.1,-0.2,0.3\n500,0.1,0.2,0.3\n", "G is negative"),
+        ("", "no QE rows"),
+    ]:
+        p.write_text(body)
+        with pytest.raises(ColourDataError, match=match) as info:
+            load_qe_csv(p)
+        assert str(p) in str(info.value)
+
+
+def test_sed_reader_errors(tmp_path):
+    with pytest.raises(ColourDataError, match="spectrum file missing"):
+        read_sed(tmp_path / "nope.sed")
+    p = tmp_path / "x.sed"
+    p.write_text("4000 1.0\n4005 1.1\n4003 1.2\n")
+    with pytest.raises(ColourDataError, match=r"line 3: wavelength not increasing \(4005.0 -> 4003.0 A\)"):
+        read_sed(p)
+    p.write_text("4000 1.0\n4005 -0.5\n")
+    with pytest.raises(ColourDataError, match="line 2: flux -0.5"):
+        read_sed(p)
+    p.write_text("4000 1.0 3\n4005 1.0 3\n")
+    with pytest.raises(ColourDataError, match="expected two columns"):
+        read_sed(p)
+
+
+@pytest.mark.parametrize("text, temp, lum", [
+    ("K1.5IIIFe-0.5", 51.5, 3), ("M1-M2Ia-Iab", 61.0, 1), ("A0Va", 20.0, 5), ("B2III", 12.0, 3),
+    ("A1V+DA", 21.0, 5), ("kA2hA5mA7V", 25.0, 5), ("gG8", 48.0, 3), ("K0", 50.0, None), ("B7Vne", 17.0, 5),
+    ("S3.5/2", 63.5, None), ("G8III-IV", 48.0, 3), ("sgK0", 50.0, 4),
+])
+def test_parse_mk(text, temp, lum):
+    assert parse_mk(text) == MKType(temp, lum)
+
+
+@pytest.mark.parametrize("text", ["", "C6,2", "WC8+O9I", "DA2", "Am", "N3"])
+def test_parse_mk_unusable(text):
+    assert parse_mk(text) is None
+
+
+def test_template_names_and_rules():
+    assert parse_template_name("a47iv") == (MKType(25.5, 4), "solar")
+    assert parse_template_name("m2p5v") == (MKType(62.5, 5), "solar")
+    assert parse_template_name("m10iii") == (MKType(70.0, 3), "solar")
+    assert parse_template_name("rk0iii") == (MKType(50.0, 3), "rich")
+    templates = {r["template"]: parse_template_name(r["template"])[0] for r in shipped_template_table()}
+    # the paper's choices: B2II for gamma Ori (B2III), M2I for alpha Ori (M1-2 Ia-Iab)
+    assert match_template(parse_mk("B2III"), templates) == "b2ii"
+    assert match_template(parse_mk("M1-M2Ia-Iab"), templates) == "m2i"
+    assert match_template(parse_mk("K0III"), templates) == "k0iii"
+    assert match_template(parse_mk("K0V"), templates) == "k0v"
+    assert match_template(parse_mk("K0"), templates) is None  # cool star without luminosity: B-V lookup
+    assert match_template(parse_mk("F5"), templates) == "f5v"
+
+
+def test_shipped_model_works_without_spectra(tmp_path):
+    model = ColourModel(pickles_dir=tmp_path / "absent")
+    rg, bg, src, tmpl = model.star_ratios(["A0V", "K0", "", "", ""], np.array([0.0, 1.0, 0.6, 2.5, np.nan]))
+    assert list(src) == [ColourSource.PICKLES_MK, ColourSource.BV_LOOKUP, ColourSource.BV_LOOKUP,
+                         ColourSource.BLACKBODY, ColourSource.NONE]
+    assert tmpl[0] == "a0v" and np.isnan(rg[4]) and np.isnan(bg[4])
+    assert rg[1] > rg[2] > rg[0] and bg[0] > bg[2] > bg[1]  # redder star: more red, less blue
+    with pytest.raises(ColourDataError, match="needs the Pickles spectra"):
+        ColourModel(qe=_box_qe(), pickles_dir=tmp_path / "absent")
+
+
+def test_default_qe_is_the_documented_model():
+    qe = default_qe()
+    assert qe.band == (380.0, 1050.0) and qe.g.max() == pytest.approx(0.45, abs=1e-4)
+    i850 = np.searchsorted(qe.wavelength_nm, 850)
+    assert qe.g[i850] / qe.r[i850] > 0.9  # no IR cut: dyes transparent in the NIR
+
+
+def test_pickles_model_reproduces_shipped_ratios_and_bv_fit(shared_data):
+    model = ColourModel(pickles_dir=shared_data / "pickles")
+    for row in shipped_template_table()[::10]:
+        assert model.template_ratios(row["template"]) == pytest.approx((row["rg_default"], row["bg_default"]), rel=1e-5)
+    assert max(model.bv_fit_rms) < 0.06  # ln ratio rms of the quartic B-V lookup
+    # alpha Ori (M2I): a 3540 K blackbody misses the template by more than the colour noise 0.02 (seed 000 fig. 6)
+    rg_t, bg_t = model.template_ratios("m2i")
+    rg_bb, bg_bb = blackbody_ratios(model.qe, 3540.0)
+    assert max(abs(rg_bb - rg_t), abs(bg_bb - bg_t)) > 0.02
+
+
+def test_imx219_table_loads(shared_data):
+    qe = load_qe_csv(shared_data / "qe" / "IMX219.csv")
+    model = ColourModel(qe=qe, pickles_dir=shared_data / "pickles")
+    rg, bg = model.template_ratios("g2v")
+    assert 0.2 < rg < 5 and 0.2 < bg < 5
+    assert planck_lambda(np.array([500.0]), 5772.0)[0] > 0
