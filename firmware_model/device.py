@@ -141,7 +141,8 @@ class Counters:
 
 class Device:
     """The emulated tracker at NSP ``address``. ``store`` persists slots (``SlotStore``);
-    ``slots`` maps slot numbers to :class:`SlotHandler`; ``solver`` runs GO sequences;
+    ``slots`` maps slot numbers to :class:`SlotHandler`, replacing the :func:`default_slots`
+    handler of each slot it names; ``solver`` runs GO sequences;
     ``frame_source(ctx)``, if given, supplies the frame for each sequence instead of slot 1."""
 
     def __init__(self, address: int = nsp.DEVICE_ADDRESS, *, store: SlotStore | None = None,
@@ -152,7 +153,7 @@ class Device:
             raise ValueError("address must be 0..255")
         self.address = address
         self.store = store if store is not None else SlotStore(None)
-        self.slots = dict(slots) if slots is not None else default_slots()
+        self.slots = {**default_slots(), **(slots or {})}
         self.solver = solver
         self.frame_source = frame_source
         self.sensor_shape = sensor_shape

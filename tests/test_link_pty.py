@@ -179,3 +179,26 @@ def test_short_soak_no_lost_or_misattributed_reply(device):
         d = c.diagnostic()
         assert c.stale_replies == 0
     assert d.accepted == 1502 and d.framing == d.runt == d.bad_crc == d.oversize == 0
+
+
+def test_serial_port_transport():
+    """``--port``: the device opens a serial device (here the slave side of a pty we own)."""
+    import select
+    import tty
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    dev = DeviceProcess("--port", os.ttyname(slave), "--baud", "57600")
+    try:
+        os.write(master, bytes.fromhex("C00E11806921C0"))
+        reply = b""
+        while not reply.endswith(b"\xc0") or len(reply) < 8:
+            assert select.select([master], [], [], 2.0)[0], reply
+            reply += os.read(master, 4096)
+        (frame,) = slip.Decoder().feed(reply)
+        msg = nsp.decode(frame.data)
+        assert (msg.dst, msg.src, msg.mcf) == (0x11, 0x0E, 0xA0) and b"BOOTLOADER" in msg.data
+    finally:
+        assert dev.stop() == 0
+        os.close(master)
+        os.close(slave)
