@@ -215,13 +215,15 @@ class FourStarSimConfig:
     noise_fraction: float = 1.0 / (3.0 * np.sqrt(2.0))  # per-axis sigma = fraction * epsilon
     seed: int = 0
     max_groups: int = 24
+    check_consistency: bool = True  # False: the paper's procedure unchanged (no consistency, no resolution)
 
 
 def run_fourstar(catalog: OnboardCatalog, cfg: FourStarSimConfig, pose_ids: np.ndarray) -> np.ndarray:
     """Evaluate boresights ``pose_ids`` of the seed 001 grid; returns FOURSTAR_DTYPE rows."""
     boresights = grid_boresights(cfg.step_deg)
     eps = np.radians(cfg.epsilon_deg)
-    params = FourStarParams(epsilon=eps, max_groups=cfg.max_groups)
+    params = FourStarParams(epsilon=eps, max_groups=cfg.max_groups, check_consistency=cfg.check_consistency,
+                            resolve_ambiguous=cfg.check_consistency)
     out = np.zeros(len(pose_ids), FOURSTAR_DTYPE)
     for row, pid in enumerate(np.asarray(pose_ids, np.int64)):
         rng = np.random.default_rng([cfg.seed, int(pid)])

@@ -45,10 +45,46 @@ def test_vote_matrix_and_signatures_equal_brute_force(cat):
         ref_rows = np.nonzero(dense.any(axis=1))[0]
         assert rows.tolist() == ref_rows.tolist()
         np.testing.assert_array_equal(m, dense[ref_rows])
-        ids = identify_group(group, cat, EPS)
+        ids = identify_group(group, cat, EPS, resolve_ambiguous=False)
         for k in range(4):
             hits = np.nonzero(np.all(dense == SIGNATURES[k], axis=1))[0]
             assert ids[k] == (hits[0] if len(hits) == 1 else -1)
+
+
+def brute_consistent(group, cat, eps, cands):
+    out = []
+    for c in np.array(np.meshgrid(*cands, indexing="ij")).reshape(4, -1).T:
+        if len(set(c.tolist())) == 4 and all(
+                abs(float(angle_between(cat.vec[c[a]], cat.vec[c[b]]) - angle_between(group[a], group[b]))) <= eps
+                for a, b in GROUP_PAIRS):
+            out.append(c.tolist())
+    return out
+
+
+def test_ambiguity_resolution_equals_brute_force(cat):
+    rng = np.random.default_rng(6)
+    resolved = 0
+    for _ in range(40):
+        idx, s = field(cat, rng)
+        if len(idx) < 4:
+            continue
+        group = s[-4:]  # outer stars: wide angles, many candidates
+        paper = identify_group(group, cat, EPS, resolve_ambiguous=False)
+        ours = identify_group(group, cat, EPS)
+        if (paper >= 0).all():
+            assert ours.tolist() == paper.tolist()
+            continue
+        dense = brute_votes(group, cat, EPS)
+        cands = [np.nonzero(np.all(dense[:, SIGNATURES[k] == 1] >= 1, axis=1))[0] for k in range(4)]
+        if np.prod([len(c) for c in cands], dtype=float) > 4096:
+            continue
+        ref = brute_consistent(group, cat, EPS, cands)
+        if len(ref) == 1:
+            assert ours.tolist() == ref[0]
+            resolved += 1
+        else:
+            assert ours.tolist() == paper.tolist()
+    assert resolved >= 3
 
 
 def test_identifications_are_correct_and_plenty(cat):

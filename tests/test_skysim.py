@@ -105,7 +105,7 @@ def test_fourstar_run_coarse_grid(seed001_catalog):
     rows, _ = skysim.execute("fourstar", seed001_catalog, None, cfg, 84, workers=1, progress=False)
     s = skysim.fourstar_summary(rows)
     assert s["observations"] == 84 and s["misidentified"] == 0
-    assert (s["identified"], s["unidentified"]) == (1101, 313)
+    assert (s["identified"], s["unidentified"]) == (1374, 40)
     assert s["fovs_with_2plus_identified"] == 84
 
 

@@ -17,7 +17,8 @@ coincidence of a wrong star when the true star's row is spoiled (wide groups hav
 candidates per angle). An identification is accepted only if its catalog star's angle to every
 other identified star (this group and earlier ones) matches the measured angle within
 ``epsilon``, and it has at least one such consistent partner. ``check_consistency=False`` runs
-the paper's procedure unchanged.
+the paper's procedure unchanged (together with ``resolve_ambiguous=False``, see
+``identify_group``).
 """
 
 from __future__ import annotations
@@ -38,13 +39,16 @@ SIGNATURES = np.array([[1, 1, 1, 0, 0, 0], [1, 0, 0, 1, 1, 0], [0, 1, 0, 1, 0, 1
 class FourStarParams:
     """epsilon: angular measurement accuracy (rad); None means ``epsilon_sigmas * sigma_phi``.
     max_groups: bound on 4-star groups per frame. max_candidates: cap on candidate pairs per angle
-    (a larger range leaves that angle without votes, so nothing it touches can be identified)."""
+    (a larger range leaves that angle without votes, so nothing it touches can be identified).
+    check_consistency / resolve_ambiguous: the two additions to the paper (module docstring);
+    both False is the paper's procedure."""
 
     epsilon: float | None = None
     epsilon_sigmas: float = 3.0
     max_groups: int = 24
     max_candidates: int = 50000
     check_consistency: bool = True
+    resolve_ambiguous: bool = True
 
 
 def vote_matrix(group_vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float, max_candidates: int):
@@ -69,8 +73,16 @@ def vote_matrix(group_vectors: np.ndarray, catalog: OnboardCatalog, epsilon: flo
 
 
 def identify_group(group_vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float,
-                   max_candidates: int = 50000) -> np.ndarray:
-    """Catalog index of each of the four stars, or -1 where no or several rows match (step 5)."""
+                   max_candidates: int = 50000, resolve_ambiguous: bool = True,
+                   max_combinations: int = 4096) -> np.ndarray:
+    """Catalog index of each of the four stars, or -1 where no or several rows match (step 5).
+
+    With ``resolve_ambiguous`` (beyond the paper), a group the signatures leave incomplete is
+    retried with relaxed rows (at least one vote in each of the star's three columns, which
+    admits the true star when a second pair within ``epsilon`` spoils its exact row): among at
+    most ``max_combinations`` assignments, one whose six catalog angles all match the measured
+    angles within ``epsilon`` is taken if it is the only one.
+    """
     rows, m = vote_matrix(group_vectors, catalog, epsilon, max_candidates)
     out = np.full(4, -1, np.int64)
     if len(rows) == 0:
@@ -79,7 +91,27 @@ def identify_group(group_vectors: np.ndarray, catalog: OnboardCatalog, epsilon: 
         hit = np.nonzero(np.all(m == SIGNATURES[s], axis=1))[0]
         if len(hit) == 1:
             out[s] = rows[hit[0]]
+    if resolve_ambiguous and (out < 0).any():
+        unique = _unique_consistent(group_vectors, rows, m, catalog, epsilon, max_combinations)
+        if unique is not None:
+            out = unique
     return out
+
+
+def _unique_consistent(group_vectors, rows, m, catalog: OnboardCatalog, epsilon: float, max_combinations: int):
+    """The only assignment of relaxed candidate rows consistent in all six angles, or None."""
+    cands = [rows[np.all(m[:, SIGNATURES[s] == 1] >= 1, axis=1)] for s in range(4)]
+    sizes = [len(c) for c in cands]
+    if min(sizes) == 0 or np.prod(sizes, dtype=float) > max_combinations:
+        return None
+    combo = np.stack([g.ravel() for g in np.meshgrid(*cands, indexing="ij")], axis=1)
+    ok = np.ones(len(combo), bool)
+    for a, b in GROUP_PAIRS:
+        theta = float(angle_between(group_vectors[a], group_vectors[b]))
+        ok &= combo[:, a] != combo[:, b]
+        ok &= np.abs(angle_between(catalog.vec[combo[:, a]], catalog.vec[combo[:, b]]) - theta) <= epsilon
+    good = np.nonzero(ok)[0]
+    return combo[good[0]].astype(np.int64) if len(good) == 1 else None
 
 
 @dataclass(frozen=True)
@@ -108,7 +140,8 @@ def match_four_star(vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float
                 break
             group = group + fill
         groups += 1
-        ids = identify_group(vectors[np.array(group)], catalog, epsilon, params.max_candidates)
+        ids = identify_group(vectors[np.array(group)], catalog, epsilon, params.max_candidates,
+                             params.resolve_ambiguous)
         newly = [(d, int(c)) for d, c in zip(group, ids) if c >= 0 and d not in ident and c not in ident.values()]
         if params.check_consistency:
             newly = _consistent(newly, ident, vectors, catalog, epsilon)
@@ -123,19 +156,24 @@ def match_four_star(vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float
 
 
 def _consistent(newly, ident, vectors, catalog: OnboardCatalog, epsilon: float):
-    """Keep the new identifications whose catalog angles to all other identifications (new and
-    earlier) match the measured angles within ``epsilon``, with at least one partner."""
-    everyone = list(ident.items()) + newly
-    if len(everyone) < 2:
+    """The largest subset of the new identifications that is consistent (catalog angle = measured
+    angle within ``epsilon``) with every earlier identification and within itself; a subset
+    needs two members when nothing was identified before."""
+    if not newly:
         return []
+    everyone = list(ident.items()) + newly
     det = np.array([d for d, _ in everyone])
     cat = np.array([c for _, c in everyone])
     measured = angle_between(vectors[det][:, None, :], vectors[det][None, :, :])
     expected = angle_between(catalog.vec[cat][:, None, :], catalog.vec[cat][None, :, :])
     ok = np.abs(measured - expected) <= epsilon
-    np.fill_diagonal(ok, True)
-    keep = []
-    for k in range(len(ident), len(everyone)):
-        if ok[k].all():
-            keep.append(everyone[k])
-    return keep if len(ident) or len(keep) >= 2 else []
+    n_old = len(ident)
+    fits_old = [k for k in range(n_old, len(everyone)) if ok[k, :n_old].all()]
+    best: list[int] = []
+    for mask in range(1, 1 << len(fits_old)):
+        subset = [fits_old[b] for b in range(len(fits_old)) if mask >> b & 1]
+        if len(subset) > len(best) and ok[np.ix_(subset, subset)].all():
+            best = subset
+    if n_old == 0 and len(best) < 2:
+        return []
+    return [everyone[k] for k in best]
