@@ -19,6 +19,7 @@ _DESIGN_FLAGS = {
     "sigma_pix": "sigma_pix", "sigma_rg": "sigma_rg", "sigma_bg": "sigma_bg", "p_correct": "p_correct",
     "phi_min": "phi_min_deg", "phi_max": "phi_max_deg", "n_h": "n_h", "epoch": "epoch", "source": "source",
     "source_path": "source_path", "qe": "qe_path", "pickles": "pickles_dir", "resolve": "resolve_deg",
+    "mk_types": "mk_types_path",
 }
 
 
@@ -41,6 +42,7 @@ def _design_args(p) -> None:
     g.add_argument("--epoch", type=float, help="Julian year of the positions")
     g.add_argument("--qe", help="QE CSV (wavelength_nm,R,G,B); default the shipped MT9P031-like model")
     g.add_argument("--pickles", help="directory of Pickles .sed spectra")
+    g.add_argument("--mk-types", help="BSC5 catalog.dat lending MK types to Hipparcos stars (positional cross-match)")
     g.add_argument("--resolve", type=float, help="double-star merge angle, deg (default phi_min)")
     g.add_argument("--drop-variable", action="store_true", default=None, help="drop variable stars")
 

@@ -79,3 +79,9 @@ def test_cli_analyze_outputs(tmp_path, capsys):
     res = json.loads((tmp_path / "r.json").read_text())
     assert res["n_views"] == 3000 and 0 <= res["ambiguous_pairs_pct"] <= 100
     assert (tmp_path / "v.png").stat().st_size > 10_000
+
+
+def test_hipparcos_borrows_bsc5_types(shared_data):
+    c = build_catalog(CatalogDesign(m_thresh=4.0, mk_types_path=str(shared_data / "bsc5" / "catalog.dat")))
+    assert c.meta["selection"]["mk_types_borrowed"] > 0.95 * c.n_stars
+    assert c.meta["colour_source_counts"]["PICKLES_MK"] > 0.9 * c.n_stars

@@ -7,9 +7,11 @@ Pickles template) and the selection counts go into ``OnboardCatalog.meta``.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from firmware_model.onboard_catalog import OnboardCatalog
 from ground.catalog.colour import SHARED_DATA, ColourModel, ColourSource, default_qe, load_qe_csv
@@ -27,6 +29,22 @@ def load_source(design: CatalogDesign) -> StarTable:
     if not path.is_file():
         raise DesignError(f"source_path = {str(path)!r}: BSC5 catalog.dat not found")
     return read_bsc5(path, epoch=design.epoch)
+
+
+MK_MATCH_RADIUS = np.radians(10.0 / 3600.0)
+MK_MATCH_DMAG = 0.5
+
+
+def borrow_mk_types(sel: StarTable, bsc5_path: str | Path, epoch: float) -> tuple[StarTable, int]:
+    """Give stars without an MK type the type of the BSC5 star within 10 arcsec and 0.5 mag."""
+    bsc = read_bsc5(bsc5_path, epoch=epoch)
+    dist, idx = cKDTree(bsc.vec).query(sel.vec, distance_upper_bound=MK_MATCH_RADIUS)
+    ok = np.isfinite(dist)
+    ok[ok] &= np.abs(bsc.vmag[idx[ok]] - sel.vmag[ok]) < MK_MATCH_DMAG
+    ok &= sel.sptype == ""
+    sptype = sel.sptype.copy()
+    sptype[ok] = bsc.sptype[idx[ok]]
+    return replace(sel, sptype=sptype), int(ok.sum())
 
 
 def colour_model(design: CatalogDesign) -> ColourModel:
@@ -48,6 +66,8 @@ def build_catalog(design: CatalogDesign, source: StarTable | None = None, colour
     sel, stats = select_stars(table, design.m_thresh, design.resolve_angle, design.drop_variable)
     if len(sel) < 2:
         raise DesignError(f"m_thresh = {design.m_thresh}: only {len(sel)} star(s) selected")
+    if design.mk_types_path:
+        sel, stats["mk_types_borrowed"] = borrow_mk_types(sel, design.mk_types_path, design.epoch)
     colours = colours or colour_model(design)
     rg, bg, src, tmpl = colours.star_ratios(sel.sptype, sel.bv)
     meta = {

@@ -42,6 +42,7 @@ class CatalogDesign:
     source_path: str | None = None  # None: bundled Hipparcos / ../shared BSC5
     qe_path: str | None = None  # None: shipped MT9P031-like model
     pickles_dir: str | None = None  # None: ../shared/data/pickles
+    mk_types_path: str | None = None  # BSC5 catalog.dat lending MK types to Hipparcos stars (cross-match)
     resolve_deg: float | None = None  # double-star merge angle; default phi_min
     drop_variable: bool = False
 
