@@ -266,7 +266,7 @@ def render_frame(
     frame = Frame(
         pixels=dn, pattern=det.pattern, black_level=det.black_level_dn, white_level=det.white_level_dn,
         exposure_s=det.exposure_s, timestamp=timestamp, camera=camera.to_dict(),
-        metadata={"simulated": True, "seed": int(seed)},
+        metadata={"simulated": True, "seed": int(seed), "gain_e_per_dn": det.gain_e_per_dn},
     )
     truth = {
         "format": "st16-render-truth",
