@@ -44,6 +44,8 @@ class FitParams:
     max_shift_px: float = 2.5  # fitted centre must stay this close to the start
     sigma_range_px: tuple = (0.3, 6.0)  # fitted sigma outside: FIT_FAILED
     max_nfev: int = 60
+    method: str = "lm"  # "lm": PSF fit; "cog": centre of gravity + linear amplitudes only (fast)
+    analytic_jacobian: bool = True  # False: finite differences (benchmark baseline)
 
 
 @dataclass
@@ -127,6 +129,8 @@ def fit_stars(frame: Frame, det: Detections, params: FitParams = FitParams()) ->
         bg=np.full(n, np.nan), cov_colour=np.full((n, 2, 2), np.nan), reduced_chi2=np.full(n, np.nan),
         n_pixels=np.zeros(n, int), flags=np.asarray(det.flags, dtype=np.int32).copy(),
     )
+    if params.method not in ("lm", "cog"):
+        raise ValueError(f"unknown fit method {params.method!r}; expected 'lm' or 'cog'")
     gain = float(frame.metadata.get("gain_e_per_dn", params.gain_e_per_dn)) if frame.metadata else params.gain_e_per_dn
     for i in range(n):
         _fit_one(frame, det, i, params, gain, out)
@@ -177,9 +181,16 @@ def _fit_one(frame, det, i, params, gain, out):
     star = np.maximum(wm.model(p0) - lin[nchan:][chan], 0.0)
     wm.w = 1.0 / np.sqrt(noise ** 2 + star / gain)
     p0[3:] = wm.linear_solve(x_start, y_start, s0, data)
+    out.n_pixels[i] = len(data)
+    if params.method == "cog" and np.isfinite(x_cog):
+        out.x[i], out.y[i] = x_cog, y_cog
+        _store_amplitudes(out, i, p0[3:], slots, nchan)
+        out.flags[i] = int(flags)
+        return
     ok = False
     try:
-        res = least_squares(wm.residuals, p0, jac=wm.jacobian, args=(data,), method="lm",
+        jac = wm.jacobian if params.analytic_jacobian else "2-point"
+        res = least_squares(wm.residuals, p0, jac=jac, args=(data,), method="lm",
                             x_scale="jac", max_nfev=params.max_nfev)
         p = res.x
         ok = (res.success and np.hypot(p[0] - x_start, p[1] - y_start) <= params.max_shift_px
@@ -187,14 +198,12 @@ def _fit_one(frame, det, i, params, gain, out):
               and p[3 + slots.index(GREEN) if nchan == 3 else 3] > 0)
     except (ValueError, np.linalg.LinAlgError):
         pass
-    out.n_pixels[i] = len(data)
     if not ok:
         if np.isfinite(x_cog):
             out.x[i], out.y[i] = x_cog, y_cog
         else:
             out.x[i], out.y[i] = det.x[i], det.y[i]
-        for k, slot in enumerate(slots):
-            out.amp[i, slot], out.background[i, slot] = lin[k], lin[nchan + k]
+        _store_amplitudes(out, i, lin, slots, nchan)
         out.flags[i] = int(flags | StarFlag.FIT_FAILED)
         return
     p[2] = abs(p[2])
@@ -208,8 +217,7 @@ def _fit_one(frame, det, i, params, gain, out):
     out.x[i], out.y[i], out.sigma[i] = p[0], p[1], p[2]
     out.cov_xy[i] = cov[:2, :2]
     out.reduced_chi2[i] = chi2r
-    for k, slot in enumerate(slots):
-        out.amp[i, slot], out.background[i, slot] = p[3 + k], p[3 + nchan + k]
+    _store_amplitudes(out, i, p[3:], slots, nchan)
     if nchan == 3:
         a_r, a_g, a_b = p[3], p[4], p[5]
         g = np.array([[1.0 / a_g, -a_r / a_g ** 2, 0.0], [0.0, -a_b / a_g ** 2, 1.0 / a_g]])
@@ -218,6 +226,14 @@ def _fit_one(frame, det, i, params, gain, out):
     if chi2r > params.max_reduced_chi2:
         flags |= StarFlag.POOR_FIT
     out.flags[i] = int(flags)
+
+
+def _store_amplitudes(out, i, lin, slots, nchan):
+    """Amplitudes/backgrounds into their R, G, B slots; linear colour ratios (no covariance)."""
+    for k, slot in enumerate(slots):
+        out.amp[i, slot], out.background[i, slot] = lin[k], lin[nchan + k]
+    if nchan == 3 and lin[1] > 0:
+        out.rg[i], out.bg[i] = lin[0] / lin[1], lin[2] / lin[1]
 
 
 def _centre_of_gravity(rows, cols, chan, data, lin, nchan):

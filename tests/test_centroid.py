@@ -108,3 +108,21 @@ def test_unconverged_fit_falls_back_and_flags():
     out = fit_stars(res.frame, det, FitParams(max_nfev=1))
     assert out.flags[0] & StarFlag.FIT_FAILED
     assert np.hypot(out.x[0] - 200.0, out.y[0] - 150.0) < 0.5  # centre-of-gravity fallback
+
+
+def test_cog_method_is_coarser_than_the_fit_and_bad_method_rejected():
+    stars = random_star_field(CAM, ATT, 12, vmag_range=(2.0, 3.0), seed=9, min_separation_px=25)
+    res = render_frame(stars, ATT, CAM, seed=9)
+    det = detect_stars(res.frame)
+    lm, cog = fit_stars(res.frame, det), fit_stars(res.frame, det, FitParams(method="cog"))
+    tx = np.array([t["x"] for t in res.truth["stars"]])
+    ty = np.array([t["y"] for t in res.truth["stars"]])
+
+    def rms(fit):
+        d = np.hypot(fit.x[:, None] - tx[None], fit.y[:, None] - ty[None]).min(axis=1)
+        return np.sqrt(np.mean(d ** 2))
+
+    assert rms(lm) < 0.06 and rms(lm) < rms(cog) < 0.5
+    assert np.all(np.isfinite(cog.rg)) and np.all(cog.flags & StarFlag.FIT_FAILED == 0)
+    with pytest.raises(ValueError, match="unknown fit method"):
+        fit_stars(res.frame, det, FitParams(method="gauss"))
