@@ -29,7 +29,13 @@ from protocol.crc import crc32
 
 from .exchange_log import ExchangeLog, code_name
 
+try:
+    from termios import error as _TermiosError
+except ImportError:  # pragma: no cover - not POSIX
+    _TermiosError = OSError
+
 EDAC_RESULT_LENGTH = 0x004C
+_PORT_ERRORS = (serial.SerialException, OSError, _TermiosError)
 READ_SLICE = 0.02  #: seconds one port read may block
 
 
@@ -57,6 +63,10 @@ class ReplyTimeout(LinkError):
 
 class MalformedReply(LinkError):
     """A reply that is garbled (bad CRC, runt, bad escape) or inconsistent with the command."""
+
+
+class LinkDown(LinkError):
+    """The port itself failed (device process gone, cable unplugged): pyserial's error text."""
 
 
 @dataclass(frozen=True)
@@ -132,6 +142,12 @@ class Client:
         self._exchange(code, data, False, 0.0)
 
     def _exchange(self, code: int, data: bytes, poll: bool, timeout: float) -> list[nsp.Message]:
+        try:
+            return self._exchange_once(code, data, poll, timeout)
+        except _PORT_ERRORS as exc:
+            raise LinkDown(f"{code_name(code)}: port {self.url} failed: {exc}", self.last_exchange[1]) from exc
+
+    def _exchange_once(self, code: int, data: bytes, poll: bool, timeout: float) -> list[nsp.Message]:
         self._b = not self._b
         msg = nsp.command(self.device_address, self.host_address, code, data, poll=poll, b=self._b)
         self._ser.reset_input_buffer()

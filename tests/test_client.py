@@ -164,3 +164,15 @@ def test_upload_progress_resumes_from_device_status(served_device):
         report = c.upload(1, data, progress=False)
         assert (report.resumed_from, report.sent) == (0, len(data))
         assert c.slot_info(1).active
+
+
+def test_dead_port_raises_link_down():
+    from ground.client import LinkDown
+
+    link = PtyLink()
+    c = Client(link.path, timeout=0.3, retries=0)
+    link.close()  # the device side disappears
+    with pytest.raises(LinkDown):
+        for _ in range(3):
+            c.ping()
+    c.close()
