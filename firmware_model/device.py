@@ -166,7 +166,7 @@ class Device:
         self._ram = bytearray(RAM_SIZE)
         self._rom = bytearray(ROM_SIZE)
         self._rom[:len(self.boot_banner)] = self.boot_banner.encode()
-        self._result = result.build({}, 0)
+        self._result = result.build({"return_code": result.make_return_code(result.Status.NO_RESULT)}, 0)
         self._result_ready = False
         self._sequence = 0
         self._busy: threading.Thread | None = None

@@ -118,6 +118,7 @@ class Status(IntEnum):
     TOO_FEW_STARS = 4
     NO_MATCH = 5
     SOLVER_ERROR = 6
+    NO_RESULT = 7  #: no sequence has completed since the device started
 
 
 def make_return_code(status: Status | int, bits: int = 0) -> int:

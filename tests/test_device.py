@@ -162,6 +162,8 @@ def _read_result(dev, address=0, count=result.TOTAL_LENGTH):
 
 def test_read_result_long_form_splits_into_parts():
     dev = app_device()
+    rec = result.parse(_read_result(dev))
+    assert result.status_of(int(rec["return_code"])) == result.Status.NO_RESULT  # nothing run yet
     parts = send(dev, Code.READ_RESULT, ReadRange(0, result.TOTAL_LENGTH).pack())
     addrs = [struct.unpack_from("<H", p.data)[0] for p in parts]
     assert addrs == list(range(0, result.TOTAL_LENGTH, 1024)) and len(parts) == 4
