@@ -223,9 +223,9 @@ class Client:
         """Identification banner (differs between bootloader and application)."""
         return self._single(Code.PING, idempotent=True).decode("ascii", "replace")
 
-    def init(self, address: int = APP_START_ADDRESS) -> None:
-        """Start the application at ``address``."""
-        self._single(Code.INIT, Init(address).pack(), timeout=max(self.timeout, 3.0))
+    def init(self, addr: int = APP_START_ADDRESS) -> None:
+        """Start the application at ``addr`` (0x00002000)."""
+        self._single(Code.INIT, Init(addr).pack(), timeout=max(self.timeout, 3.0))
 
     def peek(self, address: int, count: int) -> bytes:
         data = self._single(Code.PEEK, Peek(address, count).pack(), idempotent=True)
