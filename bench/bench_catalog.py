@@ -28,7 +28,7 @@ from firmware_model.catalog_image_io import catalog_slot_handler, catalog_to_ima
 from firmware_model.device import Device
 from firmware_model.link import PtyLink, serve
 from firmware_model.onboard_catalog import angle_between
-from ground.catalog.analyze import TABLE_HEADER, analyze, plot_views, table_row
+from ground.catalog.analyze import TABLE_HEADER, ambiguous_pairs, analyze, plot_views, table_row
 from ground.catalog.build import DEFAULT_BSC5, build_catalog, load_source
 from ground.catalog.design import CatalogDesign
 from ground.catalog.sources import read_hipparcos
@@ -91,7 +91,6 @@ def table1(n_views: int, out: Path) -> None:
         print("colour noise needed for the paper's row-1 ambiguity (0.26 %), same catalog and sigma_pix 0.2:")
         design = CatalogDesign(source=source, m_thresh=4.5, epoch=2000.0)
         cat = build_catalog(design, source=table)
-        from ground.catalog.analyze import ambiguous_pairs
         for sc in (0.02, 0.01, 0.005, 0.002, 0.001):
             amb = ambiguous_pairs(cat, design.sigma_phi, design.delta_star, sc, sc)
             print(f"   sigma_rg = sigma_bg = {sc:<6}: ambiguous pairs {100 * amb.mean():6.2f} %")

@@ -82,7 +82,10 @@ def _build(args) -> int:
     except (DesignError, CatalogFormatError, ColourDataError) as exc:
         return _fail(str(exc))
     image = catalog_to_image(cat)
-    Path(args.output).write_bytes(image)
+    try:
+        Path(args.output).write_bytes(image)
+    except OSError as exc:
+        return _fail(f"{args.output}: {exc.strerror}")
     out = {**summary(cat), "image": args.output, "image_bytes": len(image), "image_crc32": f"0x{crc32(image):08X}"}
     _print(out, args.json)
     return 0
@@ -132,7 +135,10 @@ def _upload(args) -> int:
     from ground.cli_link import open_client, report_error
     from ground.client import LinkError
 
-    data = Path(args.file).read_bytes()
+    try:
+        data = Path(args.file).read_bytes()
+    except OSError as exc:
+        return _fail(f"{args.file}: {exc.strerror}")
     try:
         parse_image(data)  # refuse locally what the device would refuse
     except CatalogImageError as exc:

@@ -5,7 +5,6 @@ import itertools
 import numpy as np
 import pytest
 
-from firmware_model.frames import radec_to_vec
 from firmware_model.onboard_catalog import OnboardCatalog, angle_between
 from ground.catalog.analyze import ambiguous_pairs, spiral_points, view_availability
 

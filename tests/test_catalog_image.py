@@ -9,7 +9,7 @@ from firmware_model.catalog_image_io import catalog_from_image, catalog_slot_han
 from firmware_model.frames import radec_to_vec
 from firmware_model.onboard_catalog import OnboardCatalog
 from protocol.catalog_image import (
-    HEADER_SIZE, PAIR_DTYPE, STAR_DTYPE, CatalogImageError, Reason, crc32, pack_image, parse_image,
+    HEADER_SIZE, STAR_DTYPE, CatalogImageError, Reason, crc32, pack_image, parse_image,
 )
 from protocol.commands import SlotRejected
 
