@@ -59,6 +59,8 @@ class ConsensusParams:
     eta: consensus fraction for a high-confidence match (paper: 0.6-0.7).
     attempts_per_star, max_attempts: seed-pair attempts ``min(ceil(3 N_A), max_attempts)``.
     k_best: catalog matches grown per seed pair (backtracking; 1 = paper).
+    k_best_sparse: the same for scenes of at most three detections, where the seed pair is
+        nearly all the evidence there is.
     anchors: members of ``S`` tried as anchor for a constrained match (1 = paper).
     max_stars: brightest detections used for matching (the rest join in verification).
     max_window: cap on pair-table rows scored per look-up.
@@ -67,6 +69,10 @@ class ConsensusParams:
     rival_angle: attitudes closer than this (rad) are the same hypothesis.
     decisive_stars: a verified set this large (and >= eta N_A) ends the backtracking over the
         remaining candidates of its seed pair.
+    min_consensus_rich: in scenes of at least ``rich_scene`` detections, grown sets smaller than
+        this are dropped without verification (they could never be high confidence).
+    confirmations: the search stops once the best set has been found from this many seed pairs
+        (bounds the time of scenes that cannot reach ``eta``, e.g. many false stars).
     """
 
     p_correct: float = 0.99
@@ -74,12 +80,16 @@ class ConsensusParams:
     attempts_per_star: float = 3.0
     max_attempts: int = 60
     k_best: int = 4
+    k_best_sparse: int = 16
     anchors: int = 2
     max_stars: int = 24
     max_window: int = 4096
     rival_ratio: float = 0.5
     rival_angle: float = 1e-3
     decisive_stars: int = 4
+    min_consensus_rich: int = 3
+    rich_scene: int = 5
+    confirmations: int = 3
 
 
 @dataclass
@@ -195,6 +205,7 @@ def match_scene(vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray, catalog: On
     ang = detection_angles(vectors)
     max_attempts = min(int(np.ceil(params.attempts_per_star * n)), params.max_attempts)
     tol = noise.sigma_phi * delta_star
+    k_best = params.k_best_sparse if n <= 3 else params.k_best
     verified: list = []
     attempts = 0
     seeded = False
@@ -217,25 +228,35 @@ def match_scene(vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray, catalog: On
                 last_reason = "no seed pair matched the catalog within Delta*"
             continue
         seeded = True
-        explored_all = len(cands) <= params.k_best and not cands.truncated
-        for m in range(min(params.k_best, len(cands))):
+        explored_all = len(cands) <= k_best and not cands.truncated
+        for m in range(min(k_best, len(cands))):
             det, cat = grow((k, l), (int(cands.cat_k[m]), int(cands.cat_l[m])), vectors, rg, bg, ang,
                             catalog, noise, delta_star, params)
+            if n >= params.rich_scene and len(det) < params.min_consensus_rich:
+                continue
+            if best is not None and len(det) < params.rival_ratio * best.n:
+                continue  # can be neither the best nor a rival
+            if best is not None and _same_set(best, det, cat):
+                best.confirmed += 1
+                continue
             match, why = verify(det, cat)
             if match is None:
                 last_reason = f"hypotheses failed verification ({why})"
                 continue
             match.explored_all = explored_all
+            match.seed_delta = float(cands.delta[m])
             _add_distinct(verified, match, params.rival_angle)
             if match.n >= max(params.decisive_stars, params.eta * n):
                 break  # a decisive set: lesser candidates of this seed cannot rival it
         if verified:
-            best = max(verified, key=lambda v: (v.n, -v.attitude.rms))
+            best = max(verified, key=_rank)
             if best.n >= params.eta * n and not _rivals(best, verified, params) and (best.n >= 3 or best.explored_all):
                 return ConsensusResult(Outcome.HIGH_CONFIDENCE, best, "", attempts, len(verified))
+            if best.confirmed >= params.confirmations:
+                break
     if not verified:
         return ConsensusResult(Outcome.NO_MATCH, None, last_reason, attempts, 0)
-    best = max(verified, key=lambda v: (v.n, -v.attitude.rms))
+    best = max(verified, key=_rank)
     rivals = _rivals(best, verified, params)
     if rivals:
         reason = f"{len(rivals)} rival hypothesis(es) with comparable support"
@@ -250,11 +271,22 @@ def match_scene(vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray, catalog: On
     return ConsensusResult(Outcome.LOW_CONFIDENCE, best, reason, attempts, len(verified), rivals)
 
 
+def _same_set(match, det, cat) -> bool:
+    """Whether the grown set (det, cat) is contained in an already verified match."""
+    pairs = set(zip(match.det.tolist(), match.cat.tolist()))
+    return all((d, c) in pairs for d, c in zip(det.tolist(), cat.tolist()))
+
+
+def _rank(v):
+    """Preference among verified hypotheses: more stars, better coverage, smaller seed Delta."""
+    return v.n, (v.coverage if np.isfinite(v.coverage) else 1.0), -v.seed_delta
+
+
 def _add_distinct(verified: list, match, rival_angle: float) -> None:
     """Add ``match`` unless a hypothesis with the same attitude is there (keep the larger)."""
     for idx, v in enumerate(verified):
         if _angle(v.attitude.a, match.attitude.a) < rival_angle:
-            if (match.n, -match.attitude.rms) > (v.n, -v.attitude.rms):
+            if _rank(match) > _rank(v):
                 match.explored_all = match.explored_all or v.explored_all
                 verified[idx] = match
             else:

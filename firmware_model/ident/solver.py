@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from firmware_model.frames import matrix_to_quat
 from firmware_model.ident.consensus import ConsensusParams, Outcome, match_scene
 from firmware_model.ident.four_star import FourStarParams, match_four_star
 from firmware_model.ident.pair_match import PairNoise, sigma_phi_from_centroid
@@ -161,7 +160,7 @@ def _clean(vectors, rg, bg, sigma, catalog: OnboardCatalog, params: SolveParams)
 def _result(match: VerifiedMatch, status: Outcome, reason: str, index_map, catalog, method, n_used):
     att = match.attitude
     return SolveResult(
-        status=status, reason=reason, q_icrs_to_sensor=matrix_to_quat(att.a), covariance=att.covariance,
+        status=status, reason=reason, q_icrs_to_sensor=att.q.copy(), covariance=att.covariance,
         matched_det=index_map[match.det], matched_cat=match.cat, matched_star_id=catalog.star_id[match.cat],
         matched_rg=catalog.rg[match.cat].astype(float), matched_bg=catalog.bg[match.cat].astype(float),
         residuals=att.residuals, consensus_size=match.n_consensus, consensus_rms=att.rms,

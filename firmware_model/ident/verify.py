@@ -83,7 +83,7 @@ class VerifyParams:
 class VerifiedMatch:
     """A hypothesis that passed verification: matched detection/catalog indices, attitude,
     coverage = matched / predicted-visible catalog stars, the counts behind it, and whether all
-    candidate matches of its seed pair were explored (set by the matcher)."""
+    candidate matches of its seed pair were explored and its seed-pair Delta (set by the matcher)."""
 
     det: np.ndarray
     cat: np.ndarray
@@ -92,6 +92,8 @@ class VerifiedMatch:
     n_predicted: int
     n_consensus: int
     explored_all: bool = True
+    seed_delta: float = 0.0
+    confirmed: int = 1
 
     @property
     def n(self) -> int:
@@ -104,6 +106,10 @@ def _predicted_scatter(b: np.ndarray, sigma: np.ndarray, cov: np.ndarray) -> np.
         return np.full(len(b), np.inf)
     extra = 0.5 * (np.trace(cov) - np.einsum("ij,jk,ik->i", b, cov, b))
     return np.sqrt(sigma**2 + np.maximum(extra, 0.0))
+
+
+def _sq(x):
+    return np.where(np.isfinite(x), x * x, 0.0)
 
 
 def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray,
@@ -126,20 +132,26 @@ def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray
         if len(det) < 2:
             return None, "residual test left fewer than two stars"
         sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
-    # 2. refinement with all detections
+    # 2. refinement with all detections, against the catalog stars near the boresight
+    near = np.asarray(catalog._tree.query_ball_point(sol.a[2], chord_of_angle(min(fov.radius, np.pi))), np.int64)
+    if len(near) == 0:
+        return None, "no catalog star in the field of view"
+    near_vec = catalog.vec[near]
     for _ in range(params.refine_passes):
-        free = np.setdiff1d(np.arange(len(vectors)), det)
+        free = np.ones(len(vectors), bool)
+        free[det] = False
+        free = np.nonzero(free)[0]
         if len(free) == 0:
             break
         b = vectors[free]
-        r_est = b @ sol.a  # A^T b, rows
-        dist, idx = catalog._tree.query(r_est, k=1)
-        ang = 2.0 * np.arcsin(np.clip(dist / 2.0, 0.0, 1.0))
+        pred = near_vec @ sol.a.T
+        nearest = np.argmax(b @ pred.T, axis=1)
+        idx = near[nearest]
+        ang = 2.0 * np.arcsin(np.clip(np.linalg.norm(b - pred[nearest], axis=1) / 2.0, 0.0, 1.0))
         tol = params.refine_sigmas * _predicted_scatter(b, sigma[free], sol.covariance)
         ok = (ang < tol) & ~np.isin(idx, cat)
-        if noise_rg > 0 and noise_bg > 0:
-            d2 = (((rg[free] - catalog.rg[idx]) / noise_rg) ** 2, ((bg[free] - catalog.bg[idx]) / noise_bg) ** 2)
-            d2 = np.where(np.isfinite(d2[0]), d2[0], 0.0) + np.where(np.isfinite(d2[1]), d2[1], 0.0)
+        if ok.any() and noise_rg > 0 and noise_bg > 0:
+            d2 = (_sq((rg[free] - catalog.rg[idx]) / noise_rg) + _sq((bg[free] - catalog.bg[idx]) / noise_bg))
             ok &= np.sqrt(d2) < params.colour_gate
         if not ok.any():
             break
@@ -149,12 +161,9 @@ def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray
         cat = np.concatenate([cat, add_cat[first]])
         sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
     # 3. coverage of predicted-visible catalog stars
-    boresight = sol.a[2]
-    near = catalog._tree.query_ball_point(boresight, chord_of_angle(min(fov.radius, np.pi)))
-    near = np.asarray(near, np.int64)
-    mag_limit = float(np.max(catalog.mag)) - params.mag_margin
-    near = near[catalog.mag[near] <= mag_limit]
-    inside = near[fov.contains(catalog.vec[near] @ sol.a.T)] if len(near) else near
+    mag_limit = float(catalog.__dict__.setdefault("_ident_mag_limit", float(np.max(catalog.mag)))) - params.mag_margin
+    bright = catalog.mag[near] <= mag_limit
+    inside = near[bright][fov.contains(near_vec[bright] @ sol.a.T)]
     n_pred = len(inside)
     matched_inside = int(np.isin(inside, cat).sum())
     coverage = matched_inside / n_pred if n_pred else 1.0
