@@ -41,7 +41,9 @@ class FourStarParams:
     max_groups: bound on 4-star groups per frame. max_candidates: cap on candidate pairs per angle
     (a larger range leaves that angle without votes, so nothing it touches can be identified).
     check_consistency / resolve_ambiguous: the two additions to the paper (module docstring);
-    both False is the paper's procedure."""
+    both False is the paper's procedure.
+    stop_after: stop once this many stars are identified (the solver needs three, the attitude
+    then identifies the rest); None iterates over the whole frame as the paper does."""
 
     epsilon: float | None = None
     epsilon_sigmas: float = 3.0
@@ -49,13 +51,19 @@ class FourStarParams:
     max_candidates: int = 50000
     check_consistency: bool = True
     resolve_ambiguous: bool = True
+    stop_after: int | None = None
+
+
+def group_angles(group_vectors: np.ndarray) -> np.ndarray:
+    """The six pair angles p1..p6 (rad) of a 4-star group."""
+    g = np.asarray(group_vectors, float)
+    return angle_between(g[[a for a, _ in GROUP_PAIRS]], g[[b for _, b in GROUP_PAIRS]])
 
 
 def vote_matrix(group_vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float, max_candidates: int):
     """Vote matrix restricted to touched rows: ``(rows, M[rows])`` with ``M`` of shape (len(rows), 6)."""
     cols, stars = [], []
-    for r, (a, b) in enumerate(GROUP_PAIRS):
-        theta = float(angle_between(group_vectors[a], group_vectors[b]))
+    for r, theta in enumerate(group_angles(group_vectors).tolist()):
         lo, hi = catalog.kvector_range(theta, epsilon)
         if hi - lo > max_candidates:
             continue
@@ -106,8 +114,7 @@ def _unique_consistent(group_vectors, rows, m, catalog: OnboardCatalog, epsilon:
         return None
     combo = np.stack([g.ravel() for g in np.meshgrid(*cands, indexing="ij")], axis=1)
     ok = np.ones(len(combo), bool)
-    for a, b in GROUP_PAIRS:
-        theta = float(angle_between(group_vectors[a], group_vectors[b]))
+    for (a, b), theta in zip(GROUP_PAIRS, group_angles(group_vectors).tolist()):
         ok &= combo[:, a] != combo[:, b]
         ok &= np.abs(angle_between(catalog.vec[combo[:, a]], catalog.vec[combo[:, b]]) - theta) <= epsilon
     good = np.nonzero(ok)[0]
@@ -133,6 +140,8 @@ def match_four_star(vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float
     pool = list(centre_order)  # unidentified, not discarded, centre first
     groups = 0
     while n >= 4 and pool and groups < params.max_groups:
+        if params.stop_after is not None and len(ident) >= params.stop_after:
+            break
         group = pool[:4]
         if len(group) < 4:
             fill = [d for d in centre_order if d in ident][: 4 - len(group)]

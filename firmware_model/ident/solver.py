@@ -53,7 +53,7 @@ class SolveParams:
     sigma_rg: float = 0.05
     sigma_bg: float = 0.05
     consensus: ConsensusParams = ConsensusParams()
-    four_star: FourStarParams = FourStarParams()
+    four_star: FourStarParams = FourStarParams(stop_after=3)
     verify: VerifyParams = VerifyParams()
     fov: FieldOfView | None = None
     time_budget_s: float = 0.05
