@@ -5,10 +5,12 @@ Steps (vectorised; Python loops only over candidates of multi-peak regions):
 1. The frame is split into its four 2x2 phases (for a Bayer frame each phase is one
    colour channel). Per phase, background and noise are the clipped mean and standard
    deviation on a coarse grid of ``block_px`` blocks (1-in-4 subsample, +-4 sigma clip
-   about a sparse block median), expanded back piecewise constant.
+   about a sparse block median); the background is interpolated bilinearly between block
+   centres (no steps on a vignetted sky), the noise expanded piecewise constant.
 2. Cosmetic cleaning per phase: a pixel above ``k_sigma`` whose four same-colour
-   neighbours hold far less than the PSF predicts is a hot pixel or cosmic-ray hit; it is
-   replaced by their mean for detection and listed in ``bad_pixels`` for the fit.
+   neighbours (adjacent pixels on a mono frame) hold far less than the PSF predicts is a
+   hot pixel or cosmic-ray hit; it is replaced for detection and listed in
+   ``bad_pixels`` for the fit.
 3. The four background-subtracted phases are summed into 2x2 super-pixels (each holds
    R, G, G, B: colour-blind) and filtered with a [1 2 1] x [1 2 1] kernel (a matched
    filter for a PSF of ~1 px sigma). A super-pixel is significant above ``k_sigma`` times
@@ -126,6 +128,33 @@ def _expand(grid: np.ndarray, block: int, shape) -> np.ndarray:
     return np.repeat(np.repeat(grid, reps[0], axis=0), reps[1], axis=1)
 
 
+def _interpolate(grid: np.ndarray, block: int, shape) -> np.ndarray:
+    """Bilinear interpolation of a block grid (values at block centres, the last block
+    stretched to the edge) to ``shape``, constant beyond the outermost centres. Smooth, so
+    a vignetted or glowing background leaves no steps at block boundaries."""
+    axes = []
+    for n_blocks, size in zip(grid.shape, shape):
+        reps = np.full(n_blocks, block)
+        reps[-1] = size - block * (n_blocks - 1)
+        centres = np.cumsum(reps) - reps / 2.0 - 0.5
+        pos = np.arange(size, dtype=float)
+        if n_blocks == 1:
+            axes.append((np.zeros(size, int), np.zeros(size, np.float32)))
+            continue
+        i0 = np.clip(np.searchsorted(centres, pos) - 1, 0, n_blocks - 2)
+        t = np.clip((pos - centres[i0]) / (centres[i0 + 1] - centres[i0]), 0.0, 1.0).astype(np.float32)
+        axes.append((i0, t))
+    (iy, ty), (ix, tx) = axes
+    g = grid.astype(np.float32)
+    if grid.shape[1] > 1:
+        g = g[:, ix] * (1 - tx) + g[:, np.minimum(ix + 1, grid.shape[1] - 1)] * tx
+    else:
+        g = np.repeat(g, shape[1], axis=1)
+    if grid.shape[0] > 1:
+        return g[iy] * (1 - ty)[:, None] + g[np.minimum(iy + 1, grid.shape[0] - 1)] * ty[:, None]
+    return np.repeat(g, shape[0], axis=0)
+
+
 def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detections:
     """Detect star candidates in a raw frame (module docstring)."""
     problem = frame_problem(frame, params)
@@ -136,39 +165,40 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
         return _empty(f"frame too small for detection ({frame.width} x {frame.height})")
     block = max(min(params.block_px // 2, h2, w2) // 2 * 2, 4)  # in phase pixels
     black = np.asarray(frame.black_level, dtype=np.float32).reshape(2, 2)
-    resid = np.zeros((h2, w2), np.float32)
-    var_grid = None
+    total = np.zeros((h2, w2), np.float32)
+    bg_sum = var_sum = 0.0
     bg_grids, noise_grids, bad = {}, {}, []
-    # same-colour neighbours sit 2 raw px away: a PSF puts at least this fraction of the peak there
-    ratio = params.sharp_fraction * np.exp(-4.0 / (2.0 * params.psf_sigma_px ** 2))
+    d2 = 1.0 if frame.is_mono else 4.0  # squared distance to the neighbours used (px^2)
+    ratio = params.sharp_fraction * np.exp(-d2 / (2.0 * params.psf_sigma_px ** 2))
     for py in (0, 1):
         for px_ in (0, 1):
             phase = frame.pixels[py : 2 * h2 : 2, px_ : 2 * w2 : 2].astype(np.float32) - black[py, px_]
             med, sig = _phase_background(phase, block)
             bg_grids[py, px_], noise_grids[py, px_] = med, sig
-            sig_full = _expand(sig.astype(np.float32), block, phase.shape)
-            r_p = phase - _expand(med.astype(np.float32), block, phase.shape)
-            n_r, n_c = _clean_sharp(r_p, sig_full, params.k_sigma, ratio)
+            mono = (frame.pixels, black[py, px_], py, px_) if frame.is_mono else None
+            n_r, n_c = _clean_sharp(phase, med, sig, block, params.k_sigma, ratio, mono)
             bad.append((2 * n_r + py) * frame.width + (2 * n_c + px_))
-            resid += r_p
-            var_grid = sig ** 2 if var_grid is None else var_grid + sig ** 2
+            total += phase
+            bg_sum = bg_sum + med
+            var_sum = var_sum + sig ** 2
+    resid = total - _interpolate(bg_sum, block, total.shape)
     bad_pixels = np.sort(np.concatenate(bad))
     n_sharp = len(bad_pixels)
     # [1 2 1] x [1 2 1] matched filter over super-pixels; noise: sqrt(sum k^2) = 6
     filt = ndimage.correlate1d(resid, _K121, axis=0, mode="constant")
     filt = ndimage.correlate1d(filt, _K121, axis=1, mode="constant")
-    snr_map = filt / (6.0 * np.sqrt(_expand(var_grid.astype(np.float32), block, filt.shape)))
+    snr_map = filt / (6.0 * np.sqrt(_expand(var_sum.astype(np.float32), block, filt.shape)))
     mask = snr_map > params.k_sigma
     labels, n_regions = ndimage.label(mask)
     if n_regions == 0:
         return _empty("no pixel above the detection threshold", n_rejected_sharp=n_sharp, bad_pixels=bad_pixels)
-    pr, pc = _local_maxima(filt, mask, params.peak_separation // 2)
+    mr_, mc_ = np.nonzero(mask)
+    pr, pc = _local_maxima(filt, mr_, mc_, params.peak_separation // 2)
     pr, pc = _merge_without_dip(filt, snr_map, labels, pr, pc)
     plabel = labels[pr, pc]
     peaks_per_region = np.bincount(plabel, minlength=n_regions + 1)
 
     # streaks: second moments of each region's filtered signal (super-pixel units)
-    mr_, mc_ = np.nonzero(mask)
     lab = labels[mr_, mc_]
     wgt = np.maximum(filt[mr_, mc_], 0).astype(float)
     nb = n_regions + 1
@@ -214,9 +244,8 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     )
 
 
-def _local_maxima(img: np.ndarray, mask: np.ndarray, half: int):
-    """(rows, cols) of masked pixels that are the maximum of their (2 half + 1)^2 box."""
-    r, c = np.nonzero(mask)
+def _local_maxima(img: np.ndarray, r: np.ndarray, c: np.ndarray, half: int):
+    """Those of the pixels (r, c) that are the maximum of their (2 half + 1)^2 box."""
     h, w = img.shape
     v = img[r, c]
     is_max = np.ones(len(r), bool)
@@ -249,34 +278,50 @@ def _subpixel_peak(img: np.ndarray, r: np.ndarray, c: np.ndarray):
     return r + dy, c + dx
 
 
-def _clean_sharp(r_p: np.ndarray, sig: np.ndarray, k_sigma: float, ratio: float):
+def _clean_sharp(phase: np.ndarray, med: np.ndarray, sig: np.ndarray, block: int, k_sigma: float,
+                 ratio: float, mono=None):
     """Replace, in place, phase pixels much sharper than the PSF (hot pixels, cosmic-ray
-    hits) by the mean of the middle two of their four same-colour neighbours; returns their
-    (rows, cols). Sharp: excess above ``k_sigma`` noise and the second largest neighbour
-    (+1 sigma margin) below ``ratio`` x the excess. For a Gaussian PSF of sigma s every
-    pixel, peak or wing, has a second-largest same-colour neighbour (2 px away) of at
-    least exp(-2 / s^2) of its own value, while an isolated or paired hot pixel has
-    background there."""
-    rows, cols = np.nonzero(r_p > k_sigma * sig)
-    h, w = r_p.shape
-    thr = sig[rows, cols]
+    hits) by the mean of the middle two of their four neighbours; returns their (rows,
+    cols). Neighbours are the same-colour pixels 2 px away (the phase's own neighbours) or,
+    for mono frames (``mono = (pixels, black, py, px)``), the adjacent raw pixels. Values are
+    taken above the local block background ``med``. Sharp: excess above ``k_sigma`` x
+    ``sig`` and the second largest neighbour (+1 sigma margin) below ``ratio`` x the
+    excess. For a Gaussian PSF of sigma s every pixel, peak or wing, has a second-largest
+    neighbour at distance d of at least exp(-d^2 / (2 s^2)) of its own value, while an
+    isolated or paired hot pixel has background there."""
+    rows, cols = np.nonzero(phase > _expand((med + k_sigma * sig).astype(np.float32), block, phase.shape))
+    h, w = phase.shape
+    bg = _grid_at(med, rows // block, cols // block).astype(np.float32)
+    thr = _grid_at(sig, rows // block, cols // block).astype(np.float32)
     done_r, done_c = [], []
-    for _ in range(3):  # chains of hot pixels clean from their ends inwards
-        a, b = r_p[np.maximum(rows - 1, 0), cols], r_p[np.minimum(rows + 1, h - 1), cols]
-        c, d = r_p[rows, np.maximum(cols - 1, 0)], r_p[rows, np.minimum(cols + 1, w - 1)]
+    for _ in range(1 if mono is not None else 3):  # chains of hot pixels clean from their ends inwards
+        if mono is None:
+            a, b = phase[np.maximum(rows - 1, 0), cols], phase[np.minimum(rows + 1, h - 1), cols]
+            c, d = phase[rows, np.maximum(cols - 1, 0)], phase[rows, np.minimum(cols + 1, w - 1)]
+        else:
+            a, b, c, d = _raw_neighbours(rows, cols, *mono)
         l1, s1, l2, s2 = np.maximum(a, b), np.minimum(a, b), np.maximum(c, d), np.minimum(c, d)
-        second = np.maximum(np.minimum(l1, l2), np.maximum(s1, s2))
+        second = np.maximum(np.minimum(l1, l2), np.maximum(s1, s2)) - bg
         middle = 0.5 * (a + b + c + d - np.maximum(l1, l2) - np.minimum(s1, s2))
-        sharp = second + thr < ratio * r_p[rows, cols]
+        sharp = second + thr < ratio * (phase[rows, cols] - bg)
         if not sharp.any():
             break
-        r_p[rows[sharp], cols[sharp]] = middle[sharp]
+        phase[rows[sharp], cols[sharp]] = middle[sharp]
         done_r.append(rows[sharp])
         done_c.append(cols[sharp])
-        rows, cols, thr = rows[~sharp], cols[~sharp], thr[~sharp]
+        keep = ~sharp
+        rows, cols, thr, bg = rows[keep], cols[keep], thr[keep], bg[keep]
     if not done_r:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     return np.concatenate(done_r), np.concatenate(done_c)
+
+
+def _raw_neighbours(rows, cols, pixels, black, py, px):
+    """Black-subtracted values of the 4 adjacent raw pixels of phase pixels (rows, cols)."""
+    hr, wr = pixels.shape
+    r, c = 2 * rows + py, 2 * cols + px
+    return tuple(pixels[np.clip(r + dr, 0, hr - 1), np.clip(c + dc, 0, wr - 1)].astype(np.float32) - black
+                 for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)))
 
 
 def _merge_without_dip(filt, snr_map, labels, pr, pc):
