@@ -6,9 +6,10 @@ Prints figures only (no asserts):
    paper's 1631 stars and 65 890 pairs (SKY2000).
 2. Seed 000 table 1, every row, built from the Yale BSC5 (as in the paper) and from Hipparcos,
    next to the paper's numbers; N views on the generalized spiral (1e5 as in the paper).
-3. Build time of the default catalog (Hipparcos, M 5.0, theta_FOV 7.5 deg) and of table 1's
+3. Colour fallbacks (B-V / V-I lookups, blackbody) against the Pickles-by-MK-type ratios.
+4. Build time of the default catalog (Hipparcos, M 5.0, theta_FOV 7.5 deg) and of table 1's
    largest row, against a baseline measured in the same run: reading the source catalog alone.
-4. Upload time of the default catalog image to an in-process device paced at 115 200 baud over a
+5. Upload time of the default catalog image to an in-process device paced at 115 200 baud over a
    pty, against the line-rate minimum (10 bits per payload byte).
 
 Usage: .venv/bin/python bench/bench_catalog.py [--views 100000] [--skip-upload] [--out DIR]
@@ -29,9 +30,10 @@ from firmware_model.device import Device
 from firmware_model.link import PtyLink, serve
 from firmware_model.onboard_catalog import angle_between
 from ground.catalog.analyze import TABLE_HEADER, ambiguous_pairs, analyze, plot_views, table_row
-from ground.catalog.build import DEFAULT_BSC5, build_catalog, load_source
+from ground.catalog.build import DEFAULT_BSC5, borrow_mk_types, build_catalog, load_source
+from ground.catalog.colour import ColourModel, ColourSource, ballesteros_temperature, blackbody_ratios
 from ground.catalog.design import CatalogDesign
-from ground.catalog.sources import read_hipparcos
+from ground.catalog.sources import read_hipparcos, select_stars
 from ground.client import Client
 
 #: seed 000 table 1: (M_thresh, theta_FOV, sigma_pix, sigma_colour, pairs e3, bad %, amb %, unres, mono amb %, mono unres)
@@ -64,8 +66,9 @@ def seed001(epoch: float = 2000.0) -> None:
         theta = np.degrees(angle_between(v[iu[0]], v[iu[1]]))
         n_closed = int(((theta >= 0.05) & (theta <= 24.5)).sum())
         sel = cat.meta["selection"]
-        print(f"{source:>9}: {cat.n_stars} stars ({cat.n_stars - 1631:+d} vs 1631; {sel['merged_doubles']} doubles "
-              f"< 0.05 deg merged), {cat.n_pairs} pairs in the table, {n_closed} by brute force "
+        before = cat.n_stars + sel["merged_doubles"]
+        print(f"{source:>9}: {before} stars with V <= 5.0 ({before - 1631:+d} vs 1631), {cat.n_stars} after merging "
+              f"{sel['merged_doubles']} doubles < 0.05 deg, {cat.n_pairs} pairs in the table, {n_closed} by brute force "
               f"({n_closed - 65890:+d}, {100 * (n_closed / 65890 - 1):+.1f} % vs 65 890)")
 
 
@@ -94,6 +97,28 @@ def table1(n_views: int, out: Path) -> None:
         for sc in (0.02, 0.01, 0.005, 0.002, 0.001):
             amb = ambiguous_pairs(cat, design.sigma_phi, design.delta_star, sc, sc)
             print(f"   sigma_rg = sigma_bg = {sc:<6}: ambiguous pairs {100 * amb.mean():6.2f} %")
+
+
+def colour_fallbacks() -> None:
+    """Colour-index lookups and blackbody against the MK-template ratios (types borrowed from BSC5)."""
+    print("\n== Colour fallbacks vs Pickles-by-MK-type ratios (Hipparcos V <= 6.0 with a BSC5 type) ==")
+    if not DEFAULT_BSC5.is_file():
+        print("../shared/data/bsc5 absent, skipped")
+        return
+    table = read_hipparcos(epoch=2000.0)
+    sel, _ = select_stars(table, 6.0, np.radians(0.015))
+    sel, _ = borrow_mk_types(sel, DEFAULT_BSC5, 2000.0)
+    model = ColourModel()
+    rg, bg, src, _ = model.star_ratios(sel.sptype, np.full(len(sel), np.nan))
+    typed = src == ColourSource.PICKLES_MK
+    frg, fbg, fsrc, _ = model.star_ratios(np.full(len(sel), "", dtype=object), sel.bv, sel.vi)
+    trg, tbg = blackbody_ratios(model.qe, ballesteros_temperature(np.clip(sel.bv, -0.4, 3.0)))
+    print(f"{typed.sum()} stars; rms relative difference to the template ratios, rg / bg:")
+    for label, mask in (("B-V < 1.0", typed & (sel.bv < 1.0)), ("B-V >= 1.0", typed & (sel.bv >= 1.0)), ("all", typed)):
+        e = lambda a, b: 100 * np.sqrt(np.mean((a[mask] / b[mask] - 1) ** 2))
+        print(f"  {label:>10} (n={mask.sum():4d}): chosen lookup {e(frg, rg):5.2f} / {e(fbg, bg):5.2f} %   "
+              f"Ballesteros blackbody {e(trg, rg):5.2f} / {e(tbg, bg):5.2f} %")
+    print("  sources chosen: " + ", ".join(f"{s.name} {int((fsrc[typed] == s).sum())}" for s in ColourSource))
 
 
 def build_times() -> None:
@@ -146,6 +171,7 @@ def main() -> int:
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     build_times()
+    colour_fallbacks()
     seed001()
     table1(args.views, args.out)
     if not args.skip_upload:

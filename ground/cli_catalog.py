@@ -125,8 +125,10 @@ def _colours(args) -> int:
         ratios = plot_colour_ratios(model, args.plot)
     except ColourDataError as exc:
         return _fail(str(exc))
-    out = {"plot": args.plot, "qe": qe.name, "templates": len(ratios), "bv_lookup_range": model.bv_range,
-           "bv_fit_rms_ln": model.bv_fit_rms}
+    out = {"plot": args.plot, "qe": qe.name, "templates": len(ratios)}
+    for lk in (model.bv_lookup, model.vi_lookup):
+        out[f"{lk.index}_lookup_range"] = (round(lk.lo, 3), round(lk.hi, 3))
+        out[f"{lk.index}_lookup_rms_ln"] = (round(lk.rms_ln[0], 4), round(lk.rms_ln[1], 4))
     _print(out, args.json)
     return 0
 

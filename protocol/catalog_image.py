@@ -33,8 +33,9 @@ STAR_DTYPE = np.dtype(
 PAIR_DTYPE = np.dtype([("i", "<u4"), ("j", "<u4"), ("phi", "<f8")])
 INDEX_DTYPE = np.dtype("<u4")
 SECTIONS = ("stars", "pairs", "hash", "kvector")
-#: per-star flags, low byte: colour source (0 none, 1 Pickles MK, 2 B-V lookup, 3 blackbody)
+#: per-star flags, low byte: colour source (0 none, 1 Pickles MK, 2 B-V lookup, 3 blackbody, 4 V-I lookup)
 STAR_COLOUR_SOURCE_MASK = 0xFF
+MAX_COLOUR_SOURCE = 4
 STAR_FLAG_VARIABLE = 0x100
 
 # magic, version, header_size, flags, total_size, n_stars, n_pairs, n_h, source_id,
@@ -259,7 +260,7 @@ def _check_stars(img: CatalogImage) -> None:
         bad = np.flatnonzero(~np.isnan(x) & ~((x > 0) & np.isfinite(x)))
         if len(bad):
             raise CatalogImageError(Reason.STAR_VALUES, f"star row {bad[0]}: {name} = {x[bad[0]]}")
-    bad = np.flatnonzero((s["flags"] & STAR_COLOUR_SOURCE_MASK) > 3)
+    bad = np.flatnonzero((s["flags"] & STAR_COLOUR_SOURCE_MASK) > MAX_COLOUR_SOURCE)
     if len(bad):
         raise CatalogImageError(Reason.STAR_VALUES, f"star row {bad[0]}: unknown colour source {s['flags'][bad[0]] & 0xFF}")
 

@@ -25,7 +25,8 @@ def test_hipparcos_build_invariants(hip_cat):
     assert np.all(np.diff(c.pair_phi) >= 0) and c.pair_phi[0] > c.phi_min and c.pair_phi[-1] <= c.phi_max
     assert np.all(np.isfinite(c.rg)) and np.all(np.isfinite(c.bg))
     counts = c.meta["colour_source_counts"]
-    assert counts["BV_LOOKUP"] > 0.9 * c.n_stars and counts["NONE"] == 0
+    assert counts["BV_LOOKUP"] + counts["VI_LOOKUP"] > 0.99 * c.n_stars and counts["NONE"] == 0
+    assert counts["VI_LOOKUP"] > 0.2 * c.n_stars  # the red stars (B-V >= 1.0)
     assert c.meta["design"]["theta_fov_deg"] == 10.0
 
 

@@ -114,11 +114,16 @@ def test_template_names_and_rules():
 
 def test_shipped_model_works_without_spectra(tmp_path):
     model = ColourModel(pickles_dir=tmp_path / "absent")
-    rg, bg, src, tmpl = model.star_ratios(["A0V", "K0", "", "", ""], np.array([0.0, 1.0, 0.6, 2.5, np.nan]))
-    assert list(src) == [ColourSource.PICKLES_MK, ColourSource.BV_LOOKUP, ColourSource.BV_LOOKUP,
-                         ColourSource.BLACKBODY, ColourSource.NONE]
-    assert tmpl[0] == "a0v" and np.isnan(rg[4]) and np.isnan(bg[4])
+    bv = np.array([0.0, 1.0, 0.6, 2.5, np.nan, 1.6, 0.6, -0.3, -0.6])
+    vi = np.array([np.nan, np.nan, 0.7, np.nan, np.nan, 2.5, 0.7, np.nan, np.nan])
+    rg, bg, src, tmpl = model.star_ratios(["A0V", "K0", "", "", "", "", "", "", ""], bv, vi)
+    s = ColourSource
+    assert list(src) == [s.PICKLES_MK, s.BV_LOOKUP, s.BV_LOOKUP, s.BLACKBODY, s.NONE, s.VI_LOOKUP, s.BV_LOOKUP,
+                         s.BV_LOOKUP, s.NONE]
+    assert tmpl[0] == "a0v" and np.isnan(rg[4]) and np.isnan(bg[4]) and np.isnan(rg[8])
     assert rg[1] > rg[2] > rg[0] and bg[0] > bg[2] > bg[1]  # redder star: more red, less blue
+    assert (rg[7], bg[7]) == model.bv_lookup(model.bv_lookup.lo)  # hot star held at the blue end
+    assert rg[5] == model.vi_lookup(2.5)[0]  # an M star: V-I keeps growing where B-V saturates
     with pytest.raises(ColourDataError, match="needs the Pickles spectra"):
         ColourModel(qe=_box_qe(), pickles_dir=tmp_path / "absent")
 
@@ -134,7 +139,7 @@ def test_pickles_model_reproduces_shipped_ratios_and_bv_fit(shared_data):
     model = ColourModel(pickles_dir=shared_data / "pickles")
     for row in shipped_template_table()[::10]:
         assert model.template_ratios(row["template"]) == pytest.approx((row["rg_default"], row["bg_default"]), rel=1e-5)
-    assert max(model.bv_fit_rms) < 0.06  # ln ratio rms of the quartic B-V lookup
+    assert max(model.bv_lookup.rms_ln) < 0.06 and max(model.vi_lookup.rms_ln) < 0.06  # ln-ratio rms of the quartics
     # alpha Ori (M2I): a 3540 K blackbody misses the template by more than the colour noise 0.02 (seed 000 fig. 6)
     rg_t, bg_t = model.template_ratios("m2i")
     rg_bb, bg_bb = blackbody_ratios(model.qe, 3540.0)

@@ -69,7 +69,7 @@ def build_catalog(design: CatalogDesign, source: StarTable | None = None, colour
     if design.mk_types_path:
         sel, stats["mk_types_borrowed"] = borrow_mk_types(sel, design.mk_types_path, design.epoch)
     colours = colours or colour_model(design)
-    rg, bg, src, tmpl = colours.star_ratios(sel.sptype, sel.bv)
+    rg, bg, src, tmpl = colours.star_ratios(sel.sptype, sel.bv, sel.vi)
     meta = {
         "design": design.to_dict(),
         "source": sel.source,

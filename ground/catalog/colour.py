@@ -5,12 +5,13 @@
 nm). Spectra, best first (``ColourSource``):
 
 1. ``PICKLES_MK``: the Pickles (1998) template nearest to the star's MK type (:func:`match_template`);
-2. ``BV_LOOKUP``: ln(ratio) as a quartic in B-V fitted over the solar-metallicity Pickles dwarfs and
-   giants, each template placed at the median catalog B-V of the BSC5 stars of its type
+2. ``BV_LOOKUP`` / ``VI_LOOKUP``: ln(ratio) as a quartic in B-V (or V-I, which keeps growing for M
+   stars where B-V saturates) fitted over the solar-metallicity Pickles dwarfs and giants, each
+   template placed at the median catalog colour of the stars of its type
    (``data/pickles_templates.csv``, made by ``fit_pickles_bv.py``);
 3. ``BLACKBODY``: a Planck spectrum at the Ballesteros (2012) temperature of B-V (flagged: 5-24 %
    errors for K/M stars, see docs/catalog.md);
-4. ``NONE``: no type and no B-V: ratios are NaN.
+4. ``NONE``: no type and no colour index: ratios are NaN.
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+VI_FROM_BV = 1.0  # B-V from which the V-I lookup is preferred (B-V saturates for M stars)
+BV_BLUE_HOLD = 0.2  # mag below the B-V lookup range where the blue-end ratios are still used
 BV_PHYSICAL_MIN = -0.5  # B-V below this is not a stellar colour (Ballesteros T diverges at -0.67)
 SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 DEFAULT_PICKLES_DIR = SHARED_DATA / "pickles"
@@ -46,6 +49,7 @@ class ColourSource(IntEnum):
     PICKLES_MK = 1
     BV_LOOKUP = 2
     BLACKBODY = 3
+    VI_LOOKUP = 4
 
 
 # --- detector QE -----------------------------------------------------------------------------------
@@ -325,19 +329,48 @@ def _sed_cached(path: str):
 
 
 def shipped_template_table() -> list[dict]:
-    """Rows of ``data/pickles_templates.csv``: template, bv, n_stars, rg/bg for the default QE."""
+    """Rows of ``data/pickles_templates.csv``: template, bv, vi, star counts, rg/bg for the default QE."""
     text = resources.files("ground.catalog").joinpath("data/pickles_templates.csv").read_text()
     rows = list(csv.DictReader(line for line in text.splitlines() if not line.startswith("#")))
     for r in rows:
-        for k in ("bv", "rg_default", "bg_default"):
+        for k in ("bv", "vi", "rg_default", "bg_default"):
             r[k] = float(r[k]) if r[k] else np.nan
-        r["n_stars"] = int(r["n_stars"])
     return rows
 
 
 @dataclass
+class IndexLookup:
+    """ln(Lambda_rg), ln(Lambda_bg) as polynomials of one colour index (B-V or V-I), with its range."""
+
+    index: str
+    coef_rg: np.ndarray
+    coef_bg: np.ndarray
+    lo: float
+    hi: float
+    rms_ln: tuple[float, float]
+
+    @classmethod
+    def fit(cls, index: str, x, rg, bg, degree: int) -> "IndexLookup":
+        x, lrg, lbg = np.asarray(x, float), np.log(rg), np.log(bg)
+        crg = np.polynomial.polynomial.polyfit(x, lrg, degree)
+        cbg = np.polynomial.polynomial.polyfit(x, lbg, degree)
+        rms = (float(np.std(np.polynomial.polynomial.polyval(x, crg) - lrg)),
+               float(np.std(np.polynomial.polynomial.polyval(x, cbg) - lbg)))
+        return cls(index, crg, cbg, float(x.min()), float(x.max()), rms)
+
+    def __call__(self, x) -> tuple[np.ndarray, np.ndarray]:
+        x = np.asarray(x, dtype=float)
+        return (np.exp(np.polynomial.polynomial.polyval(x, self.coef_rg)),
+                np.exp(np.polynomial.polynomial.polyval(x, self.coef_bg)))
+
+    def covers(self, x) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        return np.isfinite(x) & (x >= self.lo) & (x <= self.hi)
+
+
+@dataclass
 class ColourModel:
-    """Colour ratios for one detector: Pickles templates by MK type, B-V lookup, blackbody.
+    """Colour ratios for one detector: Pickles templates by MK type, colour-index lookups, blackbody.
 
     Without ``pickles_dir`` on disk, only the default QE can be used (its template ratios are
     shipped); any other QE needs the spectra.
@@ -346,7 +379,7 @@ class ColourModel:
     qe: QETable = field(default_factory=default_qe)
     pickles_dir: Path | None = DEFAULT_PICKLES_DIR
     band: tuple[float, float] | None = None
-    bv_degree: int = 4
+    lookup_degree: int = 4
 
     def __post_init__(self):
         self.band = tuple(self.band or self.qe.band)
@@ -356,13 +389,15 @@ class ColourModel:
         shipped_ok = self.qe.name == DEFAULT_QE_NAME and self.band == default_qe().band
         if not self._have_spectra and not shipped_ok:
             raise ColourDataError(f"QE table {self.qe.name} needs the Pickles spectra, but {self.pickles_dir} is missing")
+        rows = shipped_template_table()
         self._templates = pickles_templates(self.pickles_dir) if self._have_spectra else {
-            r["template"]: parse_template_name(r["template"])[0] for r in shipped_template_table()
+            r["template"]: parse_template_name(r["template"])[0] for r in rows
         }
         self._cache: dict[str, tuple[float, float]] = {}
         if not self._have_spectra:
-            self._cache = {r["template"]: (r["rg_default"], r["bg_default"]) for r in shipped_template_table()}
-        self._fit_bv_lookup()
+            self._cache = {r["template"]: (r["rg_default"], r["bg_default"]) for r in rows}
+        self.bv_lookup = self._fit_lookup(rows, "bv")
+        self.vi_lookup = self._fit_lookup(rows, "vi")
 
     @property
     def templates(self) -> dict[str, MKType]:
@@ -376,52 +411,61 @@ class ColourModel:
             self._cache[name] = (float(rg), float(bg))
         return self._cache[name]
 
-    def _fit_bv_lookup(self) -> None:
-        """Quartic ln(ratio)(B-V) over solar dwarfs/giants (lum III-V), excluding M7-M10 III."""
-        bvs, rgs, bgs = [], [], []
-        for row in shipped_template_table():
-            name = row["template"]
-            mk = self._templates.get(name)
-            if mk is None or not np.isfinite(row["bv"]) or mk.lum < 3 or mk.temp_index >= 67:
+    def _fit_lookup(self, rows: list[dict], index: str) -> IndexLookup:
+        """Quartic ln(ratio)(index) over solar dwarfs/giants (lum III-V), excluding M7-M10 III."""
+        x, rg, bg = [], [], []
+        for row in rows:
+            mk = self._templates.get(row["template"])
+            if mk is None or not np.isfinite(row[index]) or mk.lum < 3 or mk.temp_index >= 67:
                 continue
-            rg, bg = self.template_ratios(name)
-            bvs.append(row["bv"])
-            rgs.append(np.log(rg))
-            bgs.append(np.log(bg))
-        bvs = np.array(bvs)
-        self.bv_range = (float(bvs.min()), float(bvs.max()))
-        self.bv_coef_rg = np.polynomial.polynomial.polyfit(bvs, rgs, self.bv_degree)
-        self.bv_coef_bg = np.polynomial.polynomial.polyfit(bvs, bgs, self.bv_degree)
-        self.bv_fit_rms = (
-            float(np.std(np.polynomial.polynomial.polyval(bvs, self.bv_coef_rg) - rgs)),
-            float(np.std(np.polynomial.polynomial.polyval(bvs, self.bv_coef_bg) - bgs)),
-        )
+            r, b = self.template_ratios(row["template"])
+            x.append(row[index])
+            rg.append(r)
+            bg.append(b)
+        return IndexLookup.fit(index, x, rg, bg, self.lookup_degree)
 
-    def bv_lookup(self, bv) -> tuple[np.ndarray, np.ndarray]:
-        """Ratios from the Pickles-fitted B-V lookup (valid inside ``bv_range``)."""
-        bv = np.asarray(bv, dtype=float)
-        return (np.exp(np.polynomial.polynomial.polyval(bv, self.bv_coef_rg)),
-                np.exp(np.polynomial.polynomial.polyval(bv, self.bv_coef_bg)))
+    def star_ratios(self, sptype, bv, vi=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per-star (rg, bg, ColourSource codes, template names) from MK strings, B-V and V-I.
 
-    def star_ratios(self, sptype, bv) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Per-star (rg, bg, ColourSource codes, template names) for MK strings and B-V values."""
+        Order: Pickles template by MK type; for red stars (B-V >= ``VI_FROM_BV``, or no B-V) the
+        V-I lookup, else the B-V lookup (measured against the MK-template ratios of 4 824 Hipparcos
+        stars, V <= 6: B-V lookup 4.2 / 4.8 % rms in rg / bg below B-V 1.0, where V-I gives
+        4.6 / 5.2 %; V-I 2.7 / 2.5 % at B-V 1.0-1.4 and 1.9 / 3.0 % above, where B-V gives
+        3.1 / 3.9 % and 2.1 / 8.1 %); the other lookup if the first does not cover the star; the
+        B-V lookup held at its blue end down to ``BV_BLUE_HOLD`` below its range (hot-star colours
+        saturate: 1.7 / 3.2 % rms on 63 stars, where a blackbody is off by 10 / 13 %); a blackbody
+        at the Ballesteros temperature; none.
+        """
         n = len(bv)
+        bv = np.asarray(bv, dtype=float)
+        vi = np.full(n, np.nan) if vi is None else np.asarray(vi, dtype=float)
         rg, bg = np.full(n, np.nan), np.full(n, np.nan)
         src = np.full(n, ColourSource.NONE, dtype=np.uint8)
         tmpl = np.full(n, "", dtype=object)
-        bv = np.asarray(bv, dtype=float)
         for k, sp in enumerate(sptype):
             mk = parse_mk(sp) if sp else None
             name = match_template(mk, self._templates) if mk else None
             if name:
                 rg[k], bg[k] = self.template_ratios(name)
                 src[k], tmpl[k] = ColourSource.PICKLES_MK, name
-        todo = (src == ColourSource.NONE) & np.isfinite(bv)
-        inside = todo & (bv >= self.bv_range[0]) & (bv <= self.bv_range[1])
-        rg[inside], bg[inside] = self.bv_lookup(bv[inside])
-        src[inside] = ColourSource.BV_LOOKUP
-        outside = todo & ~inside & (bv > BV_PHYSICAL_MIN)  # bluer than any star: no temperature
-        if outside.any():
-            rg[outside], bg[outside] = blackbody_ratios(self.qe, ballesteros_temperature(bv[outside]), self.band)
-            src[outside] = ColourSource.BLACKBODY
+
+        def take(mask, code, values):
+            rg[mask], bg[mask] = values
+            src[mask] = code
+
+        todo = src == ColourSource.NONE
+        red = ~(bv < VI_FROM_BV)  # also True for a missing B-V
+        for lookup, code, x, first in ((self.vi_lookup, ColourSource.VI_LOOKUP, vi, red),
+                                       (self.bv_lookup, ColourSource.BV_LOOKUP, bv, ~red),
+                                       (self.vi_lookup, ColourSource.VI_LOOKUP, vi, ~red),
+                                       (self.bv_lookup, ColourSource.BV_LOOKUP, bv, red)):
+            m = todo & first & lookup.covers(x)
+            take(m, code, lookup(x[m]))
+            todo &= ~m
+        m = todo & (bv < self.bv_lookup.lo) & (bv >= self.bv_lookup.lo - BV_BLUE_HOLD)
+        take(m, ColourSource.BV_LOOKUP, self.bv_lookup(np.full(m.sum(), self.bv_lookup.lo)))
+        todo &= ~m
+        m = todo & np.isfinite(bv) & (bv > BV_PHYSICAL_MIN)  # bluer than any star: no temperature
+        if m.any():
+            take(m, ColourSource.BLACKBODY, blackbody_ratios(self.qe, ballesteros_temperature(bv[m]), self.band))
         return rg, bg, src, tmpl

@@ -1,10 +1,15 @@
-"""Build the shipped ``data/pickles_templates.csv``: B-V of each Pickles template, default-QE ratios.
+"""Build the shipped ``data/pickles_templates.csv``: colour indices of each Pickles template.
 
-Each solar-metallicity Pickles template gets the median catalog B-V of the Yale BSC5 stars whose
-MK type maps to it (:func:`ground.catalog.colour.match_template`; at least ``MIN_STARS`` stars,
-B-V without uncertainty flag), so the B-V lookup of :class:`ColourModel` is calibrated on the
-same B-V scale it is applied to. The default-QE colour ratios let the lookup work on machines
-without the spectra. Run:
+Each solar-metallicity Pickles template gets the median catalog colour of the stars whose MK type
+maps to it (:func:`ground.catalog.colour.match_template`, at least ``MIN_STARS`` stars):
+
+* ``bv``: Yale BSC5 B-V of the BSC5 stars of that type;
+* ``vi``: Hipparcos V-I of the Hipparcos stars (V <= 7) that borrow that type from the BSC5 star
+  within 10 arcsec and 0.5 mag (:func:`ground.catalog.build.borrow_mk_types`).
+
+So the lookups of :class:`ColourModel` are calibrated on the same colour scales they are applied
+to. The default-QE colour ratios of every template let the lookups work on machines without the
+spectra. Run:
 
     python -m ground.catalog.fit_pickles_bv /work/shared/data/bsc5/catalog.dat /work/shared/data/pickles
 """
@@ -16,24 +21,24 @@ from pathlib import Path
 
 import numpy as np
 
+from ground.catalog.build import borrow_mk_types
 from ground.catalog.colour import ColourModel, default_qe, match_template, parse_mk, pickles_templates, photon_signals, \
     ratios_from_signals, read_sed
-from ground.catalog.sources import read_bsc5
+from ground.catalog.sources import read_bsc5, read_hipparcos
 
 OUT = Path(__file__).with_name("data") / "pickles_templates.csv"
 MIN_STARS = 3
+HIP_V_LIMIT = 7.0
 
 
-def template_bv(bsc5: Path, pickles_dir: Path) -> dict[str, tuple[float, int]]:
-    """Template -> (median B-V, number of stars) over BSC5 stars of that type."""
-    templates = pickles_templates(pickles_dir)
-    table = read_bsc5(bsc5)
+def median_by_template(sptypes, values, templates) -> dict[str, tuple[float, int]]:
+    """Template -> (median value, number of stars) over stars with a finite value and a usable type."""
     groups: dict[str, list[float]] = {}
-    for sp, bv in zip(table.sptype, table.bv):
-        mk = parse_mk(sp)
-        name = match_template(mk, templates) if mk and np.isfinite(bv) else None
+    for sp, x in zip(sptypes, values):
+        mk = parse_mk(sp) if sp and np.isfinite(x) else None
+        name = match_template(mk, templates) if mk else None
         if name:
-            groups.setdefault(name, []).append(bv)
+            groups.setdefault(name, []).append(x)
     return {n: (float(np.median(v)), len(v)) for n, v in groups.items()}
 
 
@@ -43,23 +48,31 @@ def main(argv=None) -> int:
     parser.add_argument("pickles_dir", type=Path)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
-    bvs = template_bv(args.bsc5, args.pickles_dir)
+    templates = pickles_templates(args.pickles_dir)
+    bsc = read_bsc5(args.bsc5)
+    bvs = median_by_template(bsc.sptype, bsc.bv, templates)
+    hip = read_hipparcos(epoch=2000.0)
+    hip, _ = borrow_mk_types(hip.subset(hip.vmag <= HIP_V_LIMIT), args.bsc5, 2000.0)
+    vis = median_by_template(hip.sptype, hip.vi, templates)
     qe = default_qe()
     lines = [
-        "# Pickles (1998) solar-metallicity templates: median Yale BSC5 B-V of the stars mapped to each",
-        f"# (blank if fewer than {MIN_STARS}), and Lambda_rg/Lambda_bg for the default MT9P031-like QE.",
+        "# Pickles (1998) solar-metallicity templates: median Yale BSC5 B-V and median Hipparcos V-I of the stars",
+        f"# whose MK type maps to each (blank if fewer than {MIN_STARS}); Lambda_rg/Lambda_bg for the default QE.",
         "# Made by ground/catalog/fit_pickles_bv.py.",
-        "template,bv,n_stars,rg_default,bg_default",
+        "template,bv,n_bv,vi,n_vi,rg_default,bg_default",
     ]
-    for name in sorted(pickles_templates(args.pickles_dir)):
-        bv, n = bvs.get(name, (np.nan, 0))
+    for name in sorted(templates):
+        bv, nb = bvs.get(name, (np.nan, 0))
+        vi, nv = vis.get(name, (np.nan, 0))
         rg, bg = ratios_from_signals(photon_signals(qe, *read_sed(args.pickles_dir / f"{name}.sed")))
-        bv_text = f"{bv:.3f}" if n >= MIN_STARS else ""
-        lines.append(f"{name},{bv_text},{n},{rg:.6f},{bg:.6f}")
+        bv_text = f"{bv:.3f}" if nb >= MIN_STARS else ""
+        vi_text = f"{vi:.3f}" if nv >= MIN_STARS else ""
+        lines.append(f"{name},{bv_text},{nb},{vi_text},{nv},{rg:.6f},{bg:.6f}")
     args.out.write_text("\n".join(lines) + "\n")
     model = ColourModel(qe=qe, pickles_dir=args.pickles_dir)
-    print(f"wrote {args.out}; B-V lookup range {model.bv_range}, rms ln(rg) {model.bv_fit_rms[0]:.4f}, "
-          f"ln(bg) {model.bv_fit_rms[1]:.4f}")
+    for lk in (model.bv_lookup, model.vi_lookup):
+        print(f"{lk.index} lookup: range {lk.lo:.3f} .. {lk.hi:.3f}, rms ln(rg) {lk.rms_ln[0]:.4f}, ln(bg) {lk.rms_ln[1]:.4f}")
+    print(f"wrote {args.out}")
     return 0
 
 
