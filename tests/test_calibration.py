@@ -64,3 +64,29 @@ def test_bad_input():
         calibrate(_observations(1, 10)[0], TRUE, fit=("f", "zoom"))
     with pytest.raises(ValueError, match="no frames"):
         calibrate([], TRUE)
+
+
+def test_end_to_end_from_rendered_frames():
+    """Render frames through a distorted camera, extract stars, match truth ids, calibrate."""
+    from firmware_model.extract import extract_stars
+    from ground.sensor_sim import random_star_field, render_frame
+
+    true = CameraModel.from_fov(640, 480, 10.0, k1=0.25, p2=5e-4)
+    rng = np.random.default_rng(4)
+    frames = []
+    for k in range(4):
+        a = attitude_from_radec_roll(rng.uniform(0, 6.28), rng.uniform(-1, 1), rng.uniform(0, 6.28))
+        stars = random_star_field(true, a, 40, vmag_range=(1.5, 3.5), seed=k, margin_px=8, min_separation_px=15)
+        res = render_frame(stars, a, true, seed=k)
+        out = extract_stars(res.frame)
+        ids, xs, ys = [], [], []
+        for t in res.truth["stars"]:
+            d = np.hypot(out.x - t["x"], out.y - t["y"])
+            j = int(np.argmin(d))
+            if d[j] < 1.0 and out.trusted[j]:
+                ids.append(t["id"] - 1); xs.append(out.x[j]); ys.append(out.y[j])
+        frames.append(StarObservations(xs, ys, stars.vectors[ids]))
+    res = calibrate(frames, CameraModel.from_fov(640, 480, 10.0), fit=("f", "k1", "p1", "p2"))
+    assert res.residual_rms_px < 0.06
+    assert res.camera.k1 == pytest.approx(0.25, abs=0.02)
+    assert res.camera.f == pytest.approx(true.f, rel=1e-3)
