@@ -9,14 +9,19 @@ added as further options without touching the serving code.
 from __future__ import annotations
 
 import argparse
+import json
 import signal
 import sys
 import threading
+from pathlib import Path
 
 from protocol import nsp
 
+from .camera import CameraModel
+from .catalog_image_io import catalog_slot_handler
 from .device import Device
 from .link import PtyLink, SerialLink, TcpLink, parse_tcp, serve
+from .sensor_input import FileFrames, PipelineSolver, frame_slot_handler, load_frame_source, params_slot_handler
 from .state import SlotStore
 
 DEFAULT_PACED_TURNAROUND_MS = 1.0  #: ours; the research documents no turnaround
@@ -36,15 +41,40 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--turnaround-ms", type=float, default=None,
                         help=f"delay from a command's last byte to its reply (default 0, "
                              f"{DEFAULT_PACED_TURNAROUND_MS} with --pace)")
+    parser.add_argument("--camera", help="camera model JSON (CameraModel.to_dict); default: the seed 000 "
+                                         "reference design, 2592 x 1944 at f = 7383 px")
+    capture = parser.add_mutually_exclusive_group()
+    capture.add_argument("--frames", metavar="DIR|GLOB", help="capture source: replay these frame files in order")
+    capture.add_argument("--sky", metavar="SCHEDULE", help="capture source: render each exposure with the sensor "
+                                                          "simulator at the attitudes of this schedule file")
+    parser.add_argument("--loop", action="store_true", help="with --frames, start again after the last file")
     return parser
 
 
+def load_camera(path: str | None) -> CameraModel:
+    if path is None:
+        return CameraModel.reference_design()
+    try:
+        return CameraModel.from_dict(json.loads(Path(path).read_text()))
+    except (OSError, ValueError, TypeError, KeyError) as exc:
+        raise ValueError(f"camera model {path}: {exc}") from None
+
+
 def build_device(args: argparse.Namespace) -> Device:
-    """The device the options describe (hook for solvers and frame sources)."""
+    """The device the options describe: slots for catalog (0), frame (1) and parameters (2), the
+    pipeline solver on the camera model, and the capture source if one is given."""
     if not 0 <= args.address <= 0xFF:
         raise ValueError(f"address 0x{args.address:X} outside 0x00-0xFF")
+    camera = load_camera(args.camera)
+    source = None
+    if args.frames:
+        source = FileFrames(args.frames, camera, loop=args.loop)
+    elif args.sky:
+        source = load_frame_source("sky", args.sky, camera)
     store = SlotStore(args.state) if args.state else None
-    return Device(args.address, store=store)
+    slots = {0: catalog_slot_handler(), 1: frame_slot_handler(camera), 2: params_slot_handler()}
+    return Device(args.address, store=store, slots=slots, solver=PipelineSolver(camera), frame_source=source,
+                  sensor_shape=(camera.height, camera.width))
 
 
 def build_link(args: argparse.Namespace):

@@ -40,6 +40,11 @@ MAX_PEEK = 1024
 MAX_CRC_SPAN = 1 << 20
 MAX_DARK_WINDOWS = 32  #: per image buffer
 COMBINATION_TIMEOUT = 60.0  #: seconds COMBINATION waits for its sequence
+FRAME_SLOT = 1  #: a frame committed here is consumed by the next GO before the capture source
+
+
+class FrameUnavailable(Exception):
+    """Raised by a frame source for a frame it cannot deliver (unreadable file, wrong size)."""
 
 #: Emulated "asynchronous analog frame" at EDAC 0x0004 (8 x f32): nominal constants, the emulator
 #: models no electronics. Current (A), bus, Vdd core, Vdd MPU, Vdd IO (V), supervisor temperature
@@ -143,7 +148,9 @@ class Device:
     """The emulated tracker at NSP ``address``. ``store`` persists slots (``SlotStore``);
     ``slots`` maps slot numbers to :class:`SlotHandler`, replacing the :func:`default_slots`
     handler of each slot it names; ``solver`` runs GO sequences;
-    ``frame_source(ctx)``, if given, supplies the frame for each sequence instead of slot 1."""
+    ``frame_source(ctx)``, if given, captures the frame for each sequence (returning None when it
+    has none, raising :class:`FrameUnavailable` for one it cannot read); a frame committed to slot 1
+    since the last GO takes precedence, and without a source the last committed frame is reused."""
 
     def __init__(self, address: int = nsp.DEVICE_ADDRESS, *, store: SlotStore | None = None,
                  slots: Mapping[int, SlotHandler] | None = None, solver: Solver | None = None,
@@ -173,6 +180,7 @@ class Device:
         self._done = threading.Condition(self._lock)
         self._dark: dict[int, list[DarkWindow]] = {0: [], 1: []}
         self._objects: dict[int, Any] = {}
+        self._frame_pending = False
         for slot in self.store.active_slots():
             data = self.store.active(slot)
             try:
@@ -466,35 +474,50 @@ class Device:
             catalog_crc32=crc32(self.store.active(0) or b""), frame_crc32=crc32(self.store.active(1) or b""),
             dark_windows=tuple(self._dark[0] + self._dark[1]), sensor_shape=self.sensor_shape,
         )
-        self._busy = threading.Thread(target=self._run_sequence, args=(ctx,), name=f"sequence-{ctx.sequence}",
-                                      daemon=True)
+        uploaded, self._frame_pending = self._frame_pending, False
+        self._busy = threading.Thread(target=self._run_sequence, args=(ctx, uploaded),
+                                      name=f"sequence-{ctx.sequence}", daemon=True)
         self._busy.start()
 
-    def _sequence_fields(self, ctx: SolveContext) -> Mapping[str, Any]:
+    def _sequence_fields(self, ctx: SolveContext, uploaded: bool) -> Mapping[str, Any]:
         base = {"epoch": ctx.started, "ext.catalog_crc32": ctx.catalog_crc32}
+
+        def status(st: result.Status, reason: str) -> dict:
+            return {**base, "return_code": result.make_return_code(st), "ext.reason": reason.encode()[:result.EXT_REASON_BYTES]}
+
         if ctx.catalog is None:
-            return {**base, "return_code": result.make_return_code(result.Status.NO_CATALOG)}
-        if self.frame_source is not None:
-            ctx = SolveContext(**{**ctx.__dict__, "frame": self.frame_source(ctx)})
+            return status(result.Status.NO_CATALOG, "no catalog: upload one to slot 0")
+        if self.frame_source is not None and not uploaded:
+            try:
+                frame = self.frame_source(ctx)
+            except FrameUnavailable as exc:
+                return status(result.Status.BAD_FRAME, str(exc))
+            if frame is None:
+                return status(result.Status.NO_FRAME, "the capture source has no more frames")
+            ctx = SolveContext(**{**ctx.__dict__, "frame": frame, "frame_crc32": 0})
         if ctx.frame is None:
-            return {**base, "return_code": result.make_return_code(result.Status.NO_FRAME)}
+            return status(result.Status.NO_FRAME, "no frame: no capture source and none uploaded to slot 1")
         base["ext.frame_crc32"] = ctx.frame_crc32
         if self.solver is None:
             return {**base, "return_code": result.make_return_code(result.Status.NO_SOLVER)}
         t0 = time.perf_counter()
         fields = dict(self.solver(ctx))
+        if "ext.reason" in fields and isinstance(fields["ext.reason"], str):
+            fields["ext.reason"] = fields["ext.reason"].encode()[:result.EXT_REASON_BYTES]
         if "return_code" not in fields:
             raise ValueError("solver returned no return_code")
         fields.setdefault("ext.solve_time", time.perf_counter() - t0)
         return {**base, **fields}
 
-    def _run_sequence(self, ctx: SolveContext) -> None:
+    def _run_sequence(self, ctx: SolveContext, uploaded: bool) -> None:
         try:
-            data = result.build(self._sequence_fields(ctx), ctx.sequence)
-        except Exception:
+            data = result.build(self._sequence_fields(ctx, uploaded), ctx.sequence)
+        except Exception as exc:
             traceback.print_exc(file=sys.stderr)
             data = result.build({"epoch": ctx.started,
-                                 "return_code": result.make_return_code(result.Status.SOLVER_ERROR)}, ctx.sequence)
+                                 "return_code": result.make_return_code(result.Status.SOLVER_ERROR),
+                                 "ext.reason": f"{type(exc).__name__}: {exc}".encode()[:result.EXT_REASON_BYTES]},
+                                ctx.sequence)
         with self._lock:
             self._result = data
             self._result_ready = True
@@ -590,6 +613,8 @@ class Device:
         except OSError as exc:
             raise _Nack(NackReason.STORAGE_ERROR, str(exc)) from None
         self._objects[req.slot] = obj
+        if req.slot == FRAME_SLOT:
+            self._frame_pending = True
         self.store.drop_transfer(req.slot)
         return SlotImage(req.slot, True, len(image), crc32(image)).pack()
 

@@ -70,21 +70,27 @@ EXT_STAR = _struct([
 ], 40)
 
 EXT_MAGIC = 0x31545343  # b"CST1"
+EXT_REASON_BYTES = 96  #: UTF-8 reason text (NUL padded) when the status is not OK
 
 #: Extension header (ours), 128 bytes, then EXT_MAX_STARS stars. ``quaternion`` is the solved
 #: attitude (scalar first, ICRS -> sensor); ``sigma`` its 1-sigma errors about sensor x, y, z (rad);
-#: ``solve_time`` seconds spent in the solver; CRC-32s identify the catalog and frame used.
+#: ``solve_time`` seconds spent in the solver; CRC-32s identify the catalog and frame used;
+#: ``stage_times`` seconds for detect, fit, vectors, identify, attitude, total
+#: (``firmware_model.pipeline.STAGES``); ``method`` 0 none, 1 colour, 2 geometric; ``reason``
+#: why the status is what it is (UTF-8, truncated to EXT_REASON_BYTES).
 EXTENSION = _struct([
     ("magic", "<u4", 0), ("version", "<u2", 4), ("n_detected", "<u2", 6), ("n_matched", "<u2", 8),
     ("n_reported", "<u2", 10), ("solve_time", "<f4", 12), ("quaternion", "<4f8", 16),
     ("sigma", "<3f8", 48), ("catalog_crc32", "<u4", 72), ("frame_crc32", "<u4", 76),
-    ("colour_rms", "<f4", 80), ("residual_rms", "<f4", 84), ("spare", "40u1", 88),
+    ("colour_rms", "<f4", 80), ("residual_rms", "<f4", 84), ("stage_times", "<6f4", 88),
+    ("method", "u1", 112), ("spare", "15u1", 113),
     ("stars", np.dtype((EXT_STAR, (EXT_MAX_STARS,))), 128),
-], 128 + 40 * EXT_MAX_STARS)
+    ("reason", f"S{EXT_REASON_BYTES}", 128 + 40 * EXT_MAX_STARS),
+], 128 + 40 * EXT_MAX_STARS + EXT_REASON_BYTES)
 
 STANDARD_LENGTH = 2616  #: 0x0A38, the length COSMOS waits for at EDAC 0x004C
 EXT_OFFSET = STANDARD_LENGTH
-TOTAL_LENGTH = EXT_OFFSET + EXTENSION.itemsize  #: 4024 bytes
+TOTAL_LENGTH = EXT_OFFSET + EXTENSION.itemsize  #: 4120 bytes
 
 RESULT = _struct([
     ("sequence", "<u4", 0x000), ("return_code", "<u4", 0x004), ("quaternion", "<4f8", 0x008),
@@ -119,6 +125,8 @@ class Status(IntEnum):
     NO_MATCH = 5
     SOLVER_ERROR = 6
     NO_RESULT = 7  #: no sequence has completed since the device started
+    BAD_FRAME = 8  #: the frame is unreadable or does not fit the device's camera
+    LOW_CONFIDENCE = 9  #: an attitude, but from a consensus below the eta threshold
 
 
 def make_return_code(status: Status | int, bits: int = 0) -> int:

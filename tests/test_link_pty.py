@@ -100,9 +100,26 @@ def test_combination_and_go_over_the_link(device):
         assert int(rec["sequence"]) == 2
 
 
+def _small_catalog_image() -> bytes:
+    """A valid catalog image of a random 300-star sky (the device validates slot 0)."""
+    import numpy as np
+
+    from firmware_model.catalog_image_io import catalog_to_image
+    from firmware_model.onboard_catalog import OnboardCatalog
+
+    rng = np.random.default_rng(7)
+    v = rng.normal(size=(300, 3))
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    cat = OnboardCatalog.build(np.arange(1, 301), v, rng.uniform(1, 5, 300), rng.uniform(0.3, 1.5, 300),
+                               rng.uniform(0.2, 1.4, 300), phi_min=0.002, phi_max=np.radians(15.0),
+                               meta={"epoch": 2025.0})
+    return catalog_to_image(cat, created_unix=0)
+
+
 def test_upload_interrupted_resumed_and_persisted(tmp_path):
     state = tmp_path / "state"
-    image = os.urandom(30_000)
+    image = _small_catalog_image()
+    assert len(image) > 20_000
     dev = DeviceProcess("--pty", "--state", str(state))
     with Client(dev.path) as c:
         c.xfer_begin(0, len(image), crc32(image))
