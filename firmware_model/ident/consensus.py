@@ -64,8 +64,8 @@ class ConsensusParams:
     anchors: members of ``S`` tried as anchor for a constrained match (1 = paper).
     max_stars: brightest detections used for matching (the rest join in verification).
     max_window: cap on pair-table rows scored per look-up.
-    rival_ratio: a distinct verified set with at least this fraction of the best's stars makes
-        the answer low confidence.
+    rival_ratio: a distinct verified set with at least this fraction of the best's stars (and at
+        least three stars when the best has three or more) makes the answer low confidence.
     rival_angle: attitudes closer than this (rad) are the same hypothesis.
     decisive_stars: a verified set this large (and >= eta N_A) ends the backtracking over the
         remaining candidates of its seed pair.
@@ -296,7 +296,8 @@ def _add_distinct(verified: list, match, rival_angle: float) -> None:
 
 
 def _rivals(best, verified: list, params: ConsensusParams) -> list:
-    return [v for v in verified if v is not best and v.n >= params.rival_ratio * best.n
+    need = max(params.rival_ratio * best.n, min(best.n, 3))  # two-star sets cannot rival a verified triple
+    return [v for v in verified if v is not best and v.n >= need
             and _angle(v.attitude.a, best.attitude.a) >= params.rival_angle]
 
 
