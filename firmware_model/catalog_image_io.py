@@ -7,6 +7,7 @@ numpy views into the uploaded bytes: nothing but the validation temporaries is c
 from __future__ import annotations
 
 import json
+import os
 import time
 
 import numpy as np
@@ -22,7 +23,10 @@ SOURCE_NAMES = {v: k for k, v in SOURCE_IDS.items()}
 
 
 def catalog_to_image(cat: OnboardCatalog, created_unix: int | None = None) -> bytes:
-    """Serialise ``cat``; build parameters are taken from ``cat.meta`` where present."""
+    """Serialise ``cat``; build parameters are taken from ``cat.meta`` where present.
+
+    ``created_unix`` defaults to ``$SOURCE_DATE_EPOCH`` if set (reproducible images), else now.
+    """
     design = cat.meta.get("design", {})
     stars = np.zeros(cat.n_stars, STAR_DTYPE)
     stars["star_id"] = cat.star_id
@@ -50,7 +54,7 @@ def catalog_to_image(cat: OnboardCatalog, created_unix: int | None = None) -> by
         sigma_bg=float(design.get("sigma_bg", nan)),
         source_id=SOURCE_IDS.get(cat.meta.get("source"), 0),
         flags=FLAG_COLOUR if cat.has_colour else 0,
-        created_unix=int(time.time()) if created_unix is None else int(created_unix),
+        created_unix=int(os.environ.get("SOURCE_DATE_EPOCH", time.time())) if created_unix is None else int(created_unix),
     )
     kvector = cat.kvector if cat.kvector is not None else np.empty(0, np.uint32)
     return pack_image(params, stars, pairs, cat.hash_index, kvector)

@@ -2,9 +2,10 @@
 
 * Ambiguous pairs: catalog pairs p, q with Mahalanobis distance (eq. 4, the smaller of the two
   star orderings) below Delta* of eq. 7. The search walks the angle-sorted pair table by offset:
-  for offset k every pair is compared with the pair k rows later in one numpy operation, until no
-  pair has a neighbour k rows away within ``Delta* sigma_phi`` (so the work is O(P x window), not
-  O(P^2), and the Python loop runs over offsets only). Unknown colour ratios (NaN) count as equal
+  for offset k every pair still in play is compared with the pair k rows later in one numpy
+  operation; a pair leaves play once that neighbour is farther than ``Delta* sigma_phi``. The work
+  is the number of neighbour couples within the window (not O(P^2)), and the Python loop runs over
+  offsets only. Unknown colour ratios (NaN) count as equal
   to anything (conservative).
 * Views: N boresights on the Saff & Kuijlaars (1997) generalized spiral; a view sees the stars
   closer than theta_FOV (circular field of the minor half-axis, as in the paper). Bad view: fewer
@@ -40,26 +41,28 @@ def ambiguous_pairs(cat: OnboardCatalog, sigma_phi: float, delta_star: float, si
     n = len(phi)
     amb = np.zeros(n, dtype=bool)
     window = delta_star * sigma_phi
-    colour = sigma_rg is not None and sigma_bg is not None
-    if colour:
-        rg = np.asarray(cat.rg, dtype=float) / sigma_rg
-        bg = np.asarray(cat.bg, dtype=float) / sigma_bg
-        pi, pj = np.asarray(cat.pair_i, dtype=np.int64), np.asarray(cat.pair_j, dtype=np.int64)
+    if sigma_rg is None or sigma_bg is None:
+        # angle only: d < Delta* iff |d phi| < window, so the nearest neighbours decide
+        close = np.diff(phi) < window
+        amb[:-1] |= close
+        amb[1:] |= close
+        return amb
+    rg = np.asarray(cat.rg, dtype=float) / sigma_rg
+    bg = np.asarray(cat.bg, dtype=float) / sigma_bg
+    pi, pj = np.asarray(cat.pair_i, dtype=np.int64), np.asarray(cat.pair_j, dtype=np.int64)
     limit2 = delta_star**2
+    alive = np.arange(n - 1)  # pairs that may still have a neighbour k rows later within the window
     k = 0
     with tqdm(desc="ambiguity search", unit=" offsets", disable=not progress) as bar:
-        while True:
+        while len(alive):
             k += 1
-            if k >= n:
-                break
-            active = np.flatnonzero(phi[k:] - phi[:-k] < window)
+            alive = alive[alive + k < n]
+            alive = alive[phi[alive + k] - phi[alive] < window]  # phi sorted: once out, out for larger k
             bar.update(1)
-            if len(active) == 0:
-                break  # phi is sorted: larger offsets are farther still
-            p, q = active, active + k
+            p = alive[~(amb[alive] & amb[alive + k])]  # couples already both ambiguous decide nothing
+            q = p + k
             d2 = ((phi[q] - phi[p]) / sigma_phi) ** 2
-            if colour:
-                d2 = d2 + np.minimum(_colour_d2(rg, bg, pi[p], pj[p], pi[q], pj[q]), _colour_d2(rg, bg, pi[p], pj[p], pj[q], pi[q]))
+            d2 += np.minimum(_colour_d2(rg, bg, pi[p], pj[p], pi[q], pj[q]), _colour_d2(rg, bg, pi[p], pj[p], pj[q], pi[q]))
             hit = d2 < limit2
             amb[p[hit]] = True
             amb[q[hit]] = True
