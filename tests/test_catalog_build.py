@@ -86,3 +86,14 @@ def test_hipparcos_borrows_bsc5_types(shared_data):
     c = build_catalog(CatalogDesign(m_thresh=4.0, mk_types_path=str(shared_data / "bsc5" / "catalog.dat")))
     assert c.meta["selection"]["mk_types_borrowed"] > 0.95 * c.n_stars
     assert c.meta["colour_source_counts"]["PICKLES_MK"] > 0.9 * c.n_stars
+
+
+def test_bsc5_reproduces_seed000_catalog_and_bad_views(shared_data):
+    """Seed 000 table 1, row 1 (M 4.5, theta_FOV 7.5 deg): 7.8e3 pairs, 15.92 % bad views, 99.77 % mono ambiguous."""
+    from ground.catalog.analyze import analyze
+
+    design = CatalogDesign(source="bsc5", m_thresh=4.5, epoch=2000.0, pickles_dir=str(shared_data / "pickles"))
+    res = analyze(build_catalog(design), design, n_views=20_000)
+    assert abs(res.n_pairs / 7800 - 1) < 0.05
+    assert abs(res.bad_views_pct - 15.92) < 1.0
+    assert abs(res.mono_ambiguous_pairs_pct - 99.77) < 0.2
