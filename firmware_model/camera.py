@@ -34,6 +34,7 @@ REFERENCE_HALF_FOV_MINOR_DEG = 7.5
 
 _NEWTON_MAX_ITER = 30
 _NEWTON_TOL = 1e-12  # normalised units; f ~ 7e3 px => ~1e-8 px
+_CONVERGED = 1e-10  # residual accepted as an inverse (normalised units, ~1e-6 px at f ~ 7e3)
 
 
 @dataclass(frozen=True)
@@ -173,28 +174,41 @@ class CameraModel:
         return j11, j12, j21, j22
 
     def undistort(self, ud, wd):
-        """Distorted normalised coordinates -> ideal normalised coordinates (Newton)."""
+        """Distorted normalised coordinates -> ideal normalised coordinates (Newton). Points
+        without a physical inverse (beyond the fold of a strongly distorting model: no
+        convergence, or a solution with a negative radial factor or reversed orientation)
+        come back as NaN rather than a wrong direction."""
         ud = np.asarray(ud, dtype=float)
         wd = np.asarray(wd, dtype=float)
         if not self.has_distortion:
             return ud.copy(), wd.copy()
-        u, w = ud.copy(), wd.copy()
-        for _ in range(_NEWTON_MAX_ITER):
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            u, w = ud.copy(), wd.copy()
+            for _ in range(_NEWTON_MAX_ITER):
+                fu, fw = self.distort(u, w)
+                eu, ew = fu - ud, fw - wd
+                j11, j12, j21, j22 = self._distort_jacobian(u, w)
+                det = j11 * j22 - j12 * j21
+                du = (j22 * eu - j12 * ew) / det
+                dw = (-j21 * eu + j11 * ew) / det
+                u = u - du
+                w = w - dw
+                if np.all(np.abs(du) + np.abs(dw) < _NEWTON_TOL):
+                    break
             fu, fw = self.distort(u, w)
-            eu, ew = fu - ud, fw - wd
             j11, j12, j21, j22 = self._distort_jacobian(u, w)
-            det = j11 * j22 - j12 * j21
-            du = (j22 * eu - j12 * ew) / det
-            dw = (-j21 * eu + j11 * ew) / det
-            u = u - du
-            w = w - dw
-            if np.all(np.abs(du) + np.abs(dw) < _NEWTON_TOL):
-                break
+            r2 = u * u + w * w
+            radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
+            # a physical inverse converged, keeps the radial factor positive and the map orientation
+            bad = ~((np.abs(fu - ud) + np.abs(fw - wd) < _CONVERGED) & (radial > 0) & (j11 * j22 - j12 * j21 > 0))
+            if np.any(bad):
+                u, w = np.where(bad, np.nan, u), np.where(bad, np.nan, w)
         return u, w
 
     # ---------------------------------------------------------------- projection
     def pixel_to_vector(self, x, y) -> np.ndarray:
-        """Sensor-frame unit vectors, shape (N, 3), for pixel coordinates (x = column, y = row)."""
+        """Sensor-frame unit vectors, shape (N, 3), for pixel coordinates (x = column, y = row);
+        NaN rows where the distortion cannot be inverted."""
         x = np.atleast_1d(np.asarray(x, dtype=float)).ravel()
         y = np.atleast_1d(np.asarray(y, dtype=float)).ravel()
         if x.shape != y.shape:

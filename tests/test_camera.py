@@ -67,3 +67,23 @@ def test_dict_round_trip_and_errors():
         CameraModel.from_fov(10, 10, 95.0)
     with pytest.raises(ValueError, match="same length"):
         cam.pixel_to_vector([1.0, 2.0], [1.0])
+
+
+def test_no_inverse_beyond_a_fold_gives_nan():
+    cam = CameraModel.from_fov(2592, 1944, 7.5, k1=-8.0)  # r (1 - 8 r^2) peaks at r_d = 0.136
+    v = cam.pixel_to_vector([cam.cx, 0.0], [cam.cy, 0.0])
+    assert np.allclose(v[0], [0, 0, 1]) and np.all(np.isnan(v[1]))
+
+
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    k1=st.floats(-0.5, 0.5), k2=st.floats(-1.0, 1.0), p1=st.floats(-2e-3, 2e-3), p2=st.floats(-2e-3, 2e-3),
+    x=st.floats(-0.5, 2591.5), y=st.floats(-0.5, 1943.5),
+)
+def test_inverse_property(k1, k2, p1, p2, x, y):
+    cam = CameraModel.from_fov(2592, 1944, 7.5, k1=k1, k2=k2, p1=p1, p2=p2)
+    x2, y2 = cam.vector_to_pixel(cam.pixel_to_vector([x], [y]))
+    assert np.hypot(x2[0] - x, y2[0] - y) < 1e-6
