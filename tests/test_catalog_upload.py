@@ -1,6 +1,7 @@
 """``st16-ground catalog upload/info`` over a pty: interruption, device restart, corrupt images."""
 
 import json
+import struct
 import threading
 from contextlib import contextmanager
 
@@ -15,7 +16,7 @@ from firmware_model.onboard_catalog import OnboardCatalog
 from firmware_model.state import SlotStore
 from ground.cli import main as cli_main
 from ground.client import Client, Nack
-from protocol.catalog_image import Reason
+from protocol.catalog_image import HEADER_SIZE, Reason
 from protocol.crc import crc32
 
 
@@ -70,7 +71,11 @@ def test_upload_survives_interruption_restart_and_corrupt_images(tmp_path, capsy
 
         bad = bytearray(first)
         bad[len(bad) // 2] ^= 0x04  # bit flip inside the pair table
-        for corrupt, reason in ((bytes(bad), Reason.SECTION_CRC), (first[:-16], Reason.TRUNCATED)):
+        v2 = bytearray(first)
+        v2[8:10] = struct.pack("<H", 2)  # a future version, header re-signed
+        v2[HEADER_SIZE - 4:HEADER_SIZE] = struct.pack("<I", crc32(bytes(v2[:HEADER_SIZE - 4])))
+        for corrupt, reason in ((bytes(bad), Reason.SECTION_CRC), (first[:-16], Reason.TRUNCATED),
+                                (bytes(v2), Reason.BAD_VERSION)):
             with Client(port) as c:
                 with pytest.raises(Nack) as exc:
                     c.upload(0, corrupt, progress=False)
