@@ -9,8 +9,8 @@ nm). Spectra, best first (``ColourSource``):
    stars where B-V saturates) fitted over the solar-metallicity Pickles dwarfs and giants, each
    template placed at the median catalog colour of the stars of its type
    (``data/pickles_templates.csv``, made by ``fit_pickles_bv.py``);
-3. ``BLACKBODY``: a Planck spectrum at the Ballesteros (2012) temperature of B-V (flagged: 5-24 %
-   errors for K/M stars, see docs/catalog.md);
+3. ``BLACKBODY``: a Planck spectrum at the Ballesteros (2012) temperature of B-V, last resort
+   (7-8 % rms from the MK-template ratios of bright stars, more for M stars; docs/catalog.md);
 4. ``NONE``: no type and no colour index: ratios are NaN.
 """
 
@@ -25,6 +25,9 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
+from scipy.constants import Boltzmann as K_BOLTZMANN
+from scipy.constants import Planck as H_PLANCK
+from scipy.constants import speed_of_light as C_LIGHT
 
 VI_FROM_BV = 1.0  # B-V from which the V-I lookup is preferred (B-V saturates for M stars)
 BV_BLUE_HOLD = 0.2  # mag below the B-V lookup range where the blue-end ratios are still used
@@ -32,10 +35,6 @@ BV_PHYSICAL_MIN = -0.5  # B-V below this is not a stellar colour (Ballesteros T 
 SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 DEFAULT_PICKLES_DIR = SHARED_DATA / "pickles"
 DEFAULT_QE_NAME = "mt9p031_like"
-
-H_PLANCK = 6.62607015e-34
-C_LIGHT = 299792458.0
-K_BOLTZMANN = 1.380649e-23
 
 
 class ColourDataError(ValueError):
