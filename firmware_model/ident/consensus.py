@@ -168,23 +168,38 @@ def grow(seed_det, seed_cat, vectors, rg, bg, ang, catalog: OnboardCatalog, nois
         return np.array(s_det, np.int64), np.array(s_cat, np.int64)
     cand_star = np.concatenate(cand_star)
     cand_d = np.concatenate(cand_d)
-    order = np.lexsort((cand_d, cand_det))
-    cand_det, cand_star = cand_det[order], cand_star[order]
-    bounds = np.searchsorted(cand_det, np.arange(n + 1))
     cvec = catalog.vec
-    for i in np.unique(cand_det):
-        if i in s_det:
-            continue
-        stars = [c for c in cand_star[bounds[i]:bounds[i + 1]].tolist() if c not in s_cat]
-        if not stars:
-            continue
-        stars = np.array(list(dict.fromkeys(stars)), np.int64)
-        cat_ang = angle_between(cvec[stars][:, None, :], cvec[np.array(s_cat)][None, :, :])
-        consistent = np.all(np.abs(ang[i, s_det][None, :] - cat_ang) < dphi_star, axis=1)
-        if consistent.any():
-            s_det.append(int(i))
-            s_cat.append(int(stars[np.argmax(consistent)]))
-    return np.array(s_det, np.int64), np.array(s_cat, np.int64)
+    # eqs 8-9 against the two seed stars, for every candidate at once
+    cv = cvec[cand_star]
+    keep = (cand_star != s_cat[0]) & (cand_star != s_cat[1]) & (cand_det != s_det[0]) & (cand_det != s_det[1])
+    for s, cs in zip(s_det, s_cat):
+        keep &= np.abs(ang[cand_det, s] - angle_between(cv, cvec[cs])) < dphi_star
+    if not keep.any():
+        return np.array(s_det, np.int64), np.array(s_cat, np.int64)
+    cand_det, cand_star, cand_d = cand_det[keep], cand_star[keep], cand_d[keep]
+    order = np.lexsort((cand_d, cand_det))
+    cand_det, cand_star = cand_det[order].tolist(), cand_star[order].tolist()
+    # greedy growth in brightness order; candidates of one detection best first
+    extra_det: list[int] = []
+    extra_cat: list[int] = []
+    k = 0
+    while k < len(cand_det):
+        i = cand_det[k]
+        stars = []
+        while k < len(cand_det) and cand_det[k] == i:
+            stars.append(cand_star[k])
+            k += 1
+        for c in stars:
+            if c in extra_cat:
+                continue
+            if extra_det:
+                cat_ang = angle_between(cvec[c], cvec[extra_cat])
+                if not np.all(np.abs(ang[i, extra_det] - cat_ang) < dphi_star):
+                    continue
+            extra_det.append(i)
+            extra_cat.append(c)
+            break
+    return np.array(s_det + extra_det, np.int64), np.array(s_cat + extra_cat, np.int64)
 
 
 def match_scene(vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray, catalog: OnboardCatalog,
