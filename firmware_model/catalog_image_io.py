@@ -110,13 +110,13 @@ def image_info(img: CatalogImage) -> dict:
         "n_h": p.n_h,
         "epoch": p.epoch,
         "source": SOURCE_NAMES.get(p.source_id, "unknown"),
-        "phi_min_deg": float(np.degrees(p.phi_min)),
-        "phi_max_deg": float(np.degrees(p.phi_max)),
-        "theta_fov_deg": float(np.degrees(p.theta_fov)),
+        "phi_min_deg": round(float(np.degrees(p.phi_min)), 9),
+        "phi_max_deg": round(float(np.degrees(p.phi_max)), 9),
+        "theta_fov_deg": round(float(np.degrees(p.theta_fov)), 9),
         "m_thresh": p.m_thresh,
         "colour": bool(p.flags & FLAG_COLOUR),
         "created_unix": p.created_unix,
-        "data_crc32": img.data_crc32,
+        "data_crc32": f"0x{img.data_crc32:08X}",
     }
 
 
