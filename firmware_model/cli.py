@@ -19,7 +19,7 @@ from protocol import nsp
 
 from .camera import CameraModel
 from .catalog_image_io import catalog_slot_handler
-from .device import Device
+from .device import FRAME_SLOT, Device
 from .link import PtyLink, SerialLink, TcpLink, parse_tcp, serve
 from .sensor_input import FileFrames, PipelineSolver, frame_slot_handler, load_frame_source, params_slot_handler
 from .state import SlotStore
@@ -71,7 +71,7 @@ def build_device(args: argparse.Namespace) -> Device:
         source = FileFrames(args.frames, camera, loop=args.loop)
     elif args.sky:
         source = load_frame_source("sky", args.sky, camera)
-    store = SlotStore(args.state) if args.state else None
+    store = SlotStore(args.state, volatile={FRAME_SLOT}) if args.state else None
     slots = {0: catalog_slot_handler(), 1: frame_slot_handler(camera), 2: params_slot_handler()}
     return Device(args.address, store=store, slots=slots, solver=PipelineSolver(camera), frame_source=source,
                   sensor_shape=(camera.height, camera.width))

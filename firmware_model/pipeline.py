@@ -38,6 +38,9 @@ UNKNOWN_CENTROID_SIGMA_PX = 1.0
 #: their colour (the identification then uses their geometry alone).
 UNTRUSTED_CENTROID_FLOOR_PX = 0.5
 
+#: Fewest detections given to the geometric matcher.
+MIN_GEOMETRIC_DETECTIONS = 8
+
 #: Stage names reported in the result extension, in order.
 STAGES = ("detect", "fit", "vectors", "identify", "attitude", "total")
 
@@ -53,13 +56,18 @@ class PipelineParams:
     detections fainter than the catalog holds, which the eta test of seed 000 counts against the
     match. The pipeline then estimates every detection's magnitude from the zero point of the
     matched stars, drops those fainter than the catalog limit plus this margin, and solves
-    again; the second answer is taken only if it is high-confidence and agrees with the first."""
+    again; the second answer is taken only if it is high-confidence and agrees with the first.
+
+    ``geometric_density_factor``: the geometric (4-star) method sees only the brightest
+    detections, this factor times the catalog stars expected in the field
+    (:func:`geometric_detection_cap`)."""
 
     extract: ExtractParams = ExtractParams()
     solve: SolveParams = SolveParams()
     colour_beta: tuple | None = None
     fixed_sigma_px: float | None = None
     photometric_gate: float | None = 0.1
+    geometric_density_factor: float = 1.5
 
 
 @dataclass
@@ -93,13 +101,25 @@ def run_pipeline(frame: Frame, camera: CameraModel, catalog: OnboardCatalog,
         stars = extract_stars(frame, camera, params.extract)
     except ValueError as exc:
         return PipelineOutput(Status.BAD_FRAME, f"frame rejected: {exc}")
-    timings = {"detect": stars.timings["detect_s"], "fit": stars.timings["fit_s"],
-               "vectors": stars.timings["vectors_s"]}
+    out = identify_stars(stars, camera, catalog, params)
+    out.timings["total"] = time.perf_counter() - t0
+    return out
+
+
+def identify_stars(stars: StarList, camera: CameraModel, catalog: OnboardCatalog,
+                   params: PipelineParams = PipelineParams()) -> PipelineOutput:
+    """Identification and attitude from extracted stars (``stars.vectors`` from ``camera``)."""
+    t0 = time.perf_counter()
+    timings = {"detect": stars.timings.get("detect_s", 0.0), "fit": stars.timings.get("fit_s", 0.0),
+               "vectors": stars.timings.get("vectors_s", 0.0)}
     used = np.flatnonzero(np.isfinite(stars.vectors).all(axis=1)) if len(stars) else np.empty(0, np.int64)
     if len(used) < 2:
         why = stars.reason or f"{len(stars)} detection(s)"
-        timings["total"] = time.perf_counter() - t0
         return PipelineOutput(Status.TOO_FEW_STARS, f"too few stars: {why}", stars, used, timings=timings)
+    geometric = params.solve.mode == "geometric" or (params.solve.mode == "auto" and (
+        not catalog.has_colour or not np.isfinite(stars.rg[used]).any()))
+    if geometric:
+        used = used[:geometric_detection_cap(camera, catalog, params.geometric_density_factor)]
     flags = stars.flags[used]
     colour_ok = (flags & int(StarFlag.SATURATED | StarFlag.BLEND)) == 0
     rg = np.where(colour_ok, stars.rg[used], np.nan)
@@ -129,11 +149,23 @@ def run_pipeline(frame: Frame, camera: CameraModel, catalog: OnboardCatalog,
             timings["attitude"] += sol2.timings.get("verify", 0.0)
             if sol2.status is Outcome.HIGH_CONFIDENCE and _same_attitude(sol, sol2, 5 * float(np.max(sigma_px)) / camera.f):
                 used, sol = used[gated], sol2
-    timings["total"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
     if sol.status is Outcome.NO_MATCH:
         return PipelineOutput(Status.NO_MATCH, sol.reason, stars, used, sol, timings)
     status = Status.OK if sol.status is Outcome.HIGH_CONFIDENCE else Status.LOW_CONFIDENCE
     return PipelineOutput(status, sol.reason, stars, used, sol, timings)
+
+
+def geometric_detection_cap(camera: CameraModel, catalog: OnboardCatalog, factor: float) -> int:
+    """Brightest detections given to the brightness-independent 4-star matcher: ``factor``
+    times the catalog stars expected in the field (catalog density x field solid angle), at
+    least :data:`MIN_GEOMETRIC_DETECTIONS`. Fainter detections are mostly stars below the
+    catalog limit, which would fill the 4-star groups with stars it cannot identify."""
+    half_x = np.arctan(camera.width / 2.0 / camera.f)
+    half_y = np.arctan(camera.height / 2.0 / camera.f)
+    solid_angle = 4.0 * np.arcsin(np.sin(half_x) * np.sin(half_y))
+    expected = catalog.n_stars * solid_angle / (4.0 * np.pi)
+    return max(MIN_GEOMETRIC_DETECTIONS, int(np.ceil(factor * expected)))
 
 
 def _photometric_gate(flux, sol: SolveResult, catalog: OnboardCatalog, margin_mag: float):

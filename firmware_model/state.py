@@ -2,7 +2,8 @@
 
 With a ``root`` directory, every slot lives in ``root/slot<N>/``: ``active.bin`` + ``active.json``
 (length, CRC-32) for the committed image, ``partial.bin`` + ``partial.json`` (length, CRC-32,
-received byte ranges) for a transfer in progress. Metadata files are replaced atomically
+received byte ranges) for a transfer in progress. Slots named ``volatile`` (the frame slot: image
+buffers are RAM on the real device) are kept in memory even with a ``root``. Metadata files are replaced atomically
 (write to a temporary file, fsync, rename); ``partial.bin`` is written in place before its range
 list is updated, so after a crash or restart the range list never claims bytes that were not
 written. Committed images are fsynced. Without ``root`` everything is kept in memory.
@@ -83,14 +84,18 @@ class Transfer:
 class SlotStore:
     """Committed slot images and partial transfers, on disk under ``root`` or in memory."""
 
-    def __init__(self, root: str | os.PathLike | None = None):
+    def __init__(self, root: str | os.PathLike | None = None, volatile=()):
         self.root = Path(root) if root is not None else None
+        self.volatile = frozenset(volatile)
         self._active: dict[int, bytes] = {}
         self._transfers: dict[int, Transfer] = {}
         self._buffers: dict[int, bytearray] = {}
         if self.root is not None:
             self.root.mkdir(parents=True, exist_ok=True)
             self._load()
+
+    def _persistent(self, slot: int) -> bool:
+        return self.root is not None and slot not in self.volatile
 
     def _dir(self, slot: int) -> Path:
         assert self.root is not None
@@ -103,6 +108,8 @@ class SlotStore:
             try:
                 slot = int(sub.name[4:])
             except ValueError:
+                continue
+            if slot in self.volatile:
                 continue
             try:
                 self._load_slot(slot, sub)
@@ -137,7 +144,7 @@ class SlotStore:
     def set_active(self, slot: int, data: bytes) -> None:
         """Persist ``data`` as the committed image of ``slot`` (atomic replace)."""
         data = bytes(data)
-        if self.root is not None:
+        if self._persistent(slot):
             d = self._dir(slot)
             _atomic_write(d / "active.bin", data)
             _atomic_write(d / "active.json", json.dumps({"length": len(data), "crc32": crc32(data)}).encode())
@@ -156,7 +163,7 @@ class SlotStore:
         self.drop_transfer(slot)
         tr = Transfer(slot, length, crc)
         self._transfers[slot] = tr
-        if self.root is None:
+        if not self._persistent(slot):
             self._buffers[slot] = bytearray(length)
         else:
             d = self._dir(slot)
@@ -168,26 +175,26 @@ class SlotStore:
     def write(self, slot: int, offset: int, data: bytes) -> Transfer:
         """Store ``data`` at ``offset`` of the pending transfer (caller checked the bounds)."""
         tr = self._transfers[slot]
-        if self.root is None:
+        if not self._persistent(slot):
             self._buffers[slot][offset:offset + len(data)] = data
         else:
             with open(self._dir(slot) / "partial.bin", "r+b") as fh:
                 fh.seek(offset)
                 fh.write(data)
         tr.ranges = _merge(tr.ranges, offset, offset + len(data))
-        if self.root is not None:
+        if self._persistent(slot):
             self._save_meta(tr)
         return tr
 
     def transfer_bytes(self, slot: int) -> bytes:
-        if self.root is None:
+        if not self._persistent(slot):
             return bytes(self._buffers[slot])
         return (self._dir(slot) / "partial.bin").read_bytes()
 
     def drop_transfer(self, slot: int) -> None:
         self._transfers.pop(slot, None)
         self._buffers.pop(slot, None)
-        if self.root is not None:
+        if self._persistent(slot):
             d = self.root / f"slot{slot}"
             for name in ("partial.json", "partial.bin"):
                 (d / name).unlink(missing_ok=True)

@@ -10,28 +10,25 @@ CRC-32 is zlib's (CRC-32/ISO-HDLC), used for slot images and transfers.
 
 from __future__ import annotations
 
+import binascii
 import zlib
 
-
-def _make_table() -> tuple[int, ...]:
-    table = []
-    for byte in range(256):
-        crc = byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0x8408 if crc & 1 else crc >> 1
-        table.append(crc)
-    return tuple(table)
+#: Bit-reversal of every byte value.
+_REVERSE8 = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
 
 
-_TABLE = _make_table()
+def _reverse16(x: int) -> int:
+    return int(f"{x:016b}"[::-1], 2)
 
 
 def crc16_mcrf4xx(data: bytes, crc: int = 0xFFFF) -> int:
-    """CRC-16/MCRF4XX of ``data``; pass a previous value as ``crc`` to continue a running CRC."""
-    table = _TABLE
-    for byte in data:
-        crc = (crc >> 8) ^ table[(crc ^ byte) & 0xFF]
-    return crc
+    """CRC-16/MCRF4XX of ``data``; pass a previous value as ``crc`` to continue a running CRC.
+
+    A reflected CRC equals the bit-reversed non-reflected CRC of the bit-reversed input, so the
+    work is done by ``binascii.crc_hqx`` (CRC-CCITT, polynomial 0x1021, MSB first, in C) on the
+    byte-reversed data, with the register reversed on the way in and out.
+    """
+    return _reverse16(binascii.crc_hqx(bytes(data).translate(_REVERSE8), _reverse16(crc)))
 
 
 def crc32(data: bytes, crc: int = 0) -> int:

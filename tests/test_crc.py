@@ -22,7 +22,7 @@ def _bitwise(data: bytes) -> int:
 
 
 @given(st.binary(max_size=300))
-def test_table_matches_bitwise_reference(data):
+def test_matches_bitwise_reference(data):
     assert crc16_mcrf4xx(data) == _bitwise(data)
 
 

@@ -1,0 +1,237 @@
+"""``st16-ground`` lost-in-space commanding: solve, replay, table5, colour fit, params, demo.
+
+* ``solve [--frame FILE]``: upload the frame (or let the device capture), GO, print the decoded
+  result (``--json`` for the full record) and append it to the results log.
+* ``replay DIR``: every frame of a directory over the link (or ``--offline`` in-process),
+  scored against ``NAME.truth.json`` when present; log, summary and plots in ``--out``.
+* ``table5 DIR``: seed 000 table 5 (basic / ideal colour / chromatic / both) on frames with truth.
+* ``colour fit RESULTS.jsonl``: the eq. 24 colour correction from matched stars of a run.
+* ``params upload FILE``: send a device parameter set (JSON, slot 2), e.g. a colour correction.
+* ``demo``: the end-to-end demonstration (README's first command).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+DEFAULT_RESULTS = "st16-results"
+
+
+def _load_catalog(path):
+    from firmware_model.catalog_image_io import catalog_from_image
+
+    return catalog_from_image(Path(path).read_bytes())
+
+
+def _load_camera(path):
+    from firmware_model.cli import load_camera
+
+    return load_camera(path)
+
+
+def _client_kw(args) -> dict:
+    return {"device_address": args.device_address, "host_address": args.host_address,
+            "timeout": args.timeout, "baudrate": args.baud}
+
+
+def _print_record(rec: dict, as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(rec))
+        return
+    print(f"status {rec['status']}" + (f" ({rec['reason']})" if rec.get("reason") else "")
+          + (f", method {rec['method']}" if rec.get("method") else ""))
+    if rec.get("q_icrs_to_sensor") is not None:
+        q = rec["q_icrs_to_sensor"]
+        print(f"q_icrs_to_sensor [w x y z] = [{q[0]:+.9f} {q[1]:+.9f} {q[2]:+.9f} {q[3]:+.9f}]")
+        print(f"boresight RA {rec['ra_deg']:.5f} deg, Dec {rec['dec_deg']:+.5f} deg, roll {rec['roll_deg']:.4f} deg; "
+              f"1-sigma x/y/z {', '.join(f'{s:.2f}' for s in rec['sigma_arcsec'])} arcsec")
+    print(f"detected {rec['n_detected']}, matched {rec['n_matched']}")
+    for s in rec["stars"]:
+        if s["catalog_id"] is not None:
+            colour = f" rg {s['rg']:.3f} bg {s['bg']:.3f}" if s["rg"] is not None else ""
+            print(f"  id {s['catalog_id']:>7}  x {s['x']:8.2f}  y {s['y']:8.2f}{colour}  residual {s['residual_arcsec']:.2f}\"")
+    print("time per stage (ms): " + ", ".join(f"{k} {v * 1e3:.1f}" for k, v in rec["timings_s"].items()))
+    if "attitude_error_deg" in rec:
+        print(f"attitude error vs truth: {rec['attitude_error_deg'] * 3600:.2f} arcsec ({rec['outcome']})")
+
+
+def _solve(args) -> int:
+    from firmware_model.frame_io import read_frame
+    from ground.replay import LinkSolver, Truth, score
+    from ground.results_log import ResultsLog
+
+    if not args.port:
+        raise SystemExit("st16-ground: --port URL is required for solve")
+    frame = None
+    if args.frame:
+        try:
+            frame = read_frame(args.frame)
+        except Exception as exc:
+            print(f"st16-ground: {args.frame}: {exc}", file=sys.stderr)
+            return 2
+    solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, log=args.log, **_client_kw(args))
+    t0 = time.perf_counter()
+    try:
+        rec = solver.solve(frame, say=lambda m: print(m, file=sys.stderr))
+    except TimeoutError as exc:
+        print(f"st16-ground: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        solver.close()
+    rec["exchange_s"] = time.perf_counter() - t0
+    rec["solve_s"] = rec["timings_s"].get("total")
+    rec["time_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    rec["frame"] = Path(args.frame).name if args.frame else "(capture)"
+    if args.frame:
+        rec.update(score(rec, Truth.for_frame(args.frame)))
+    ResultsLog(args.out).append(rec)
+    _print_record(rec, args.json)
+    return 0 if rec["q_icrs_to_sensor"] is not None else 3
+
+
+def _replay(args) -> int:
+    from firmware_model.pipeline import PipelineParams
+    from ground.replay import LinkSolver, OfflineSolver, replay
+
+    if args.offline:
+        if not args.catalog:
+            raise SystemExit("st16-ground: replay --offline needs --catalog IMAGE")
+        solver = OfflineSolver(_load_camera(args.camera), _load_catalog(args.catalog), PipelineParams())
+    else:
+        if not args.port:
+            raise SystemExit("st16-ground: --port URL is required (or use --offline)")
+        solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, log=args.log, **_client_kw(args))
+    try:
+        summary = replay(args.directory, solver, args.out, progress=not args.json)
+    except (ValueError, TimeoutError) as exc:
+        print(f"st16-ground: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        if isinstance(solver, LinkSolver):
+            solver.close()
+    summary["log"] = str(Path(args.out) / "results.jsonl")
+    print(json.dumps(summary, indent=None if args.json else 2))
+    return 0
+
+
+def _table5(args) -> int:
+    from ground.replay import TABLE5_MODES, frame_files, table5
+
+    out = table5(frame_files(args.directory), _load_camera(args.camera), _load_catalog(args.catalog),
+                 progress=not args.json)
+    if args.json:
+        print(json.dumps(out))
+    else:
+        print(f"{'corrections':<28}{'correct':>9}{'incorrect':>11}{'no match':>10}   ({out['frames']} frames)")
+        for mode in TABLE5_MODES:
+            c = out["table"][mode]
+            print(f"{mode:<28}{c['correct']:>9}{c['incorrect']:>11}{c['no_match']:>10}")
+    return 0
+
+
+def _colour_fit(args) -> int:
+    from ground.corrections import ColourCorrection
+
+    cat = _load_catalog(args.catalog)
+    index = {int(s): k for k, s in enumerate(cat.star_id)}
+    obs, ref = [], []
+    for line in Path(args.results).read_text().splitlines():
+        if not line.strip():
+            continue
+        rec = json.loads(line)
+        for s in rec.get("stars", []):
+            k = index.get(s.get("catalog_id"))
+            if k is not None and s.get("rg") is not None and s.get("bg") is not None:
+                obs.append((s["rg"], s["bg"]))
+                ref.append((float(cat.rg[k]), float(cat.bg[k])))
+    try:
+        fit = ColourCorrection.fit(np.array(obs).reshape(-1, 2), np.array(ref).reshape(-1, 2))
+    except ValueError as exc:
+        print(f"st16-ground: {exc}", file=sys.stderr)
+        return 1
+    fit.save(args.output)
+    Path(args.output).with_suffix(".params.json").write_text(
+        json.dumps({"colour_correction": {"beta": [float(b) for b in fit.beta]}}, indent=2))
+    print(fit.to_json() if args.json else
+          f"eq. 24 fit on {fit.n_used} stars ({fit.n_rejected} rejected): colour RMS {fit.rms_before:.3f} -> "
+          f"{fit.rms_after:.3f}; wrote {args.output} and {Path(args.output).with_suffix('.params.json')}")
+    return 0
+
+
+def _params_upload(args) -> int:
+    from firmware_model.sensor_input import DeviceParams
+    from ground.cli_link import open_client, report_error
+    from ground.client import LinkError
+    from protocol.commands import SlotRejected
+
+    data = Path(args.file).read_bytes()
+    try:
+        DeviceParams.from_json(data)  # refuse locally what the device would refuse
+    except SlotRejected as exc:
+        print(f"st16-ground: {args.file}: {exc.message}", file=sys.stderr)
+        return 2
+    with open_client(args) as client:
+        try:
+            client.upload(2, data, progress=not args.json)
+            info = client.slot_info(2)
+        except LinkError as exc:
+            report_error(exc, args.json)
+            return 1
+    print(json.dumps({"slot": 2, "active": info.active, "length": info.length, "crc32": f"0x{info.crc32:08X}"}))
+    return 0
+
+
+def _demo(args) -> int:
+    from ground.demo import run_demo
+
+    return run_demo(args.out, n_frames=args.frames, seed=args.seed)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("solve", help="command one lost-in-space solve (upload --frame, or capture)")
+    p.add_argument("--frame", help="frame file to upload and solve (DNG/raw, FITS, TIFF, .npy)")
+    p.add_argument("--out", default=DEFAULT_RESULTS, help="results log directory (JSONL + CSV)")
+    p.add_argument("--reconnect-timeout", type=float, default=30.0, help="wait this long for a silent device, s")
+    p.set_defaults(func=_solve)
+
+    p = sub.add_parser("replay", help="solve every frame of a directory and score against truth")
+    p.add_argument("directory")
+    p.add_argument("--offline", action="store_true", help="run the pipeline in-process instead of over the link")
+    p.add_argument("--catalog", help="catalog image for --offline")
+    p.add_argument("--camera", help="camera model JSON for --offline (default: reference design)")
+    p.add_argument("--out", default=DEFAULT_RESULTS, help="output directory (log, summary, plots)")
+    p.add_argument("--reconnect-timeout", type=float, default=120.0, help="wait this long for a silent device, s")
+    p.set_defaults(func=_replay)
+
+    p = sub.add_parser("table5", help="seed 000 table 5 on frames with truth (offline)")
+    p.add_argument("directory")
+    p.add_argument("--catalog", required=True, help="catalog image")
+    p.add_argument("--camera", help="camera model JSON (default: reference design)")
+    p.set_defaults(func=_table5)
+
+    colour = sub.add_parser("colour", help="field colour calibration (seed 000 eq. 24)")
+    csub = colour.add_subparsers(dest="colour_command", metavar="ACTION")
+    csub.required = True
+    p = csub.add_parser("fit", help="fit eq. 24 from the matched stars of a results log")
+    p.add_argument("results", help="results.jsonl of a solve or replay run")
+    p.add_argument("--catalog", required=True, help="catalog image the run used")
+    p.add_argument("-o", "--output", default="colour_correction.json")
+    p.set_defaults(func=_colour_fit)
+
+    params = sub.add_parser("params", help="device parameter sets (slot 2)")
+    psub = params.add_subparsers(dest="params_command", metavar="ACTION")
+    psub.required = True
+    p = psub.add_parser("upload", help="validate and upload a JSON parameter set")
+    p.add_argument("file")
+    p.set_defaults(func=_params_upload)
+
+    p = sub.add_parser("demo", help="end-to-end demo: device on a pty, catalog upload, solves over the link")
+    p.add_argument("--out", default="st16-demo", help="output folder for logs, frames and plots")
+    p.add_argument("--frames", type=int, default=6, help="frames to render and solve")
+    p.add_argument("--seed", type=int, default=2026)
+    p.set_defaults(func=_demo)

@@ -1,0 +1,253 @@
+"""Field-test replay: solve every frame of a directory over the link or in-process, score
+against truth, log every result as it comes, and summarise.
+
+* Frames are the files of a directory that the frame readers accept, in name order; truth is
+  ``NAME.truth.json`` beside a frame (the renderer's format: ``attitude_quaternion``
+  scalar-first ICRS->sensor, and ``stars`` with ``id``, ``x``, ``y``).
+* :class:`LinkSolver` uploads each frame to slot 1 and commands GO over the serial link. A
+  device that stops answering is reported, waited for (PING every half second) and the frame
+  is solved again once it is back; a result is logged only once it is complete, so nothing
+  logged is lost and nothing is logged twice.
+* :class:`OfflineSolver` runs the same pipeline in-process.
+* Scoring: ``correct`` when the attitude error is at most :data:`CORRECT_DEG` and no matched
+  star carries a wrong id; ``wrong`` for any other returned attitude; ``no_match`` when no
+  attitude came back; ``unscored`` without truth; ``unreadable`` when the file could not be
+  read (the run goes on).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from firmware_model.camera import CameraModel
+from firmware_model.extract import StarList, extract_stars
+from firmware_model.frame import Frame, frame_to_bytes
+from firmware_model.frame_io import read_frame
+from firmware_model.frames import quat_to_matrix, rotation_angle
+from firmware_model.onboard_catalog import OnboardCatalog
+from firmware_model.pipeline import PipelineParams, identify_stars, run_pipeline
+from ground.results_log import ResultsLog, plot_summary, summarize
+from ground.solve_report import matched_stars, record_from_output, solve_record
+
+CORRECT_DEG = 0.1  #: attitude error bound of a correct solve (peer_solvers.md section 5)
+MATCH_RADIUS_PX = 2.0  #: detection <-> truth association radius
+FRAME_SLOT = 1
+SUFFIXES = {".dng", ".nef", ".cr2", ".arw", ".raw", ".fits", ".fit", ".fts", ".tif", ".tiff", ".npy"}
+
+
+def frame_files(directory) -> list[Path]:
+    """Frame files of a directory (by suffix), in name order; truth and sidecars excluded."""
+    d = Path(directory)
+    if not d.is_dir():
+        raise ValueError(f"{d} is not a directory")
+    return sorted(p for p in d.iterdir() if p.is_file() and p.suffix.lower() in SUFFIXES)
+
+
+@dataclass(frozen=True)
+class Truth:
+    q_icrs_to_sensor: np.ndarray
+    star_id: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+
+    @classmethod
+    def for_frame(cls, frame_path) -> "Truth | None":
+        p = Path(frame_path)
+        path = p.with_name(p.stem + ".truth.json")
+        if not path.is_file():
+            return None
+        data = json.loads(path.read_text())
+        stars = data.get("stars", [])
+        return cls(np.asarray(data["attitude_quaternion"], dtype=float),
+                   np.array([s["id"] for s in stars], dtype=np.int64),
+                   np.array([s["x"] for s in stars], dtype=float), np.array([s["y"] for s in stars], dtype=float))
+
+    def star_at(self, x: float, y: float) -> int | None:
+        if not len(self.x):
+            return None
+        d = np.hypot(self.x - x, self.y - y)
+        k = int(np.argmin(d))
+        return int(self.star_id[k]) if d[k] <= MATCH_RADIUS_PX else None
+
+
+def score(record: dict, truth: Truth | None) -> dict:
+    """Outcome, attitude error (deg) and wrong-id count of a solve record."""
+    if record.get("q_icrs_to_sensor") is None:
+        return {"outcome": "no_match"}
+    if truth is None:
+        return {"outcome": "unscored"}
+    err = np.degrees(rotation_angle(quat_to_matrix(record["q_icrs_to_sensor"]), quat_to_matrix(truth.q_icrs_to_sensor)))
+    wrong = 0
+    for s in matched_stars(record):
+        true_id = truth.star_at(s["x"], s["y"])
+        wrong += int(true_id is not None and true_id != s["catalog_id"])
+    outcome = "correct" if err <= CORRECT_DEG and wrong == 0 else "wrong"
+    return {"outcome": outcome, "attitude_error_deg": float(err), "wrong_ids": wrong}
+
+
+class OfflineSolver:
+    """The device pipeline in-process (``replay --offline``)."""
+
+    def __init__(self, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams = PipelineParams()):
+        self.camera, self.catalog, self.params = camera, catalog, params
+
+    def solve(self, frame: Frame) -> dict:
+        return record_from_output(run_pipeline(frame, self.camera, self.catalog, self.params))
+
+
+class LinkSolver:
+    """Solves on a device over the serial link (``replay`` / ``solve``), surviving link loss."""
+
+    def __init__(self, url: str, reconnect_timeout: float = 120.0, go_timeout: float = 60.0, log=None, **client_kw):
+        self.url = url
+        self.reconnect_timeout = reconnect_timeout
+        self.go_timeout = go_timeout
+        self.log = log
+        self.client_kw = client_kw
+        self.client = None
+        self.reconnects = 0
+
+    def _connect(self):
+        from ground.client import Client
+
+        client = Client(self.url, log=self.log, **self.client_kw)
+        try:
+            if "BOOTLOADER" in client.ping():
+                client.init()
+        except Exception:
+            client.close()
+            raise
+        self.client = client
+
+    def close(self):
+        if self.client is not None:
+            self.client.close()
+            self.client = None
+
+    def _wait_for_device(self, why: Exception, say) -> None:
+        say(f"device not answering ({type(why).__name__}: {why}); waiting up to {self.reconnect_timeout:.0f} s")
+        self.close()
+        deadline = time.monotonic() + self.reconnect_timeout
+        while time.monotonic() < deadline:
+            try:
+                self._connect()
+                self.reconnects += 1
+                say("device is back; solving the frame again")
+                return
+            except Exception:
+                time.sleep(0.5)
+        raise TimeoutError(f"device at {self.url} did not come back within {self.reconnect_timeout:.0f} s")
+
+    def solve(self, frame: Frame | None, say=print) -> dict:
+        """Upload ``frame`` (or capture, when None), GO, and return the decoded result."""
+        from ground.client import LinkError
+
+        data = frame_to_bytes(frame) if frame is not None else None
+        while True:
+            try:
+                if self.client is None:
+                    self._connect()
+                if data is not None:
+                    self.client.upload(FRAME_SLOT, data, progress=False)
+                return solve_record(self.client.go_and_wait(timeout=self.go_timeout))
+            except (LinkError, OSError) as exc:
+                self._wait_for_device(exc, say)
+
+
+def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool = True) -> dict:
+    """Solve every frame of ``directory`` with ``solver`` (Link/OfflineSolver); log and summarise."""
+    paths = frame_files(directory)
+    log = ResultsLog(out_dir)
+    say = tqdm.write if progress else (lambda msg: print(msg, file=sys.stderr))
+    bar = tqdm(paths, desc="replay", unit="frame", disable=not progress)
+    for path in bar:
+        base = {"time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "frame": path.name}
+        try:
+            frame = read_frame(path)
+        except Exception as exc:  # unreadable frames are logged and skipped; the run goes on
+            log.append({**base, "outcome": "unreadable", "reason": f"{type(exc).__name__}: {exc}"})
+            continue
+        t0 = time.perf_counter()
+        record = solver.solve(frame, say) if isinstance(solver, LinkSolver) else solver.solve(frame)
+        record["exchange_s"] = time.perf_counter() - t0
+        record["solve_s"] = record["timings_s"].get("total")
+        truth = Truth.for_frame(path)
+        record.update(base)
+        record.update(score(record, truth))
+        record["residuals_arcsec"] = [s["residual_arcsec"] for s in matched_stars(record)
+                                      if s["residual_arcsec"] is not None]
+        log.append(record)
+        bar.set_postfix_str(record["outcome"])
+    records = log.records()
+    summary = summarize(records)
+    summary["plots"] = [str(p) for p in plot_summary(records, out_dir)] if make_plots else []
+    (Path(out_dir) / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+# --------------------------------------------------------------------------- table 5 (seed 000)
+
+TABLE5_MODES = ("basic", "ideal colour", "chromatic correction", "ideal colour + chromatic")
+
+
+def _associate(stars: StarList, truth: Truth):
+    """(detection row, truth row) pairs within MATCH_RADIUS_PX."""
+    pairs = []
+    for i in range(len(stars)):
+        d = np.hypot(truth.x - stars.x[i], truth.y - stars.y[i])
+        if len(d) and d.min() <= MATCH_RADIUS_PX:
+            pairs.append((i, int(np.argmin(d))))
+    return pairs
+
+
+def table5(paths, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams = PipelineParams(),
+           progress: bool = True) -> dict:
+    """Seed 000 table 5 on frames with truth: correct/incorrect matches for the basic pipeline,
+    with idealised colour (each star's mean colour error over the run removed), with
+    idealised geometry (each star's mean centroid error removed: the paper's chromatic
+    correction) and with both."""
+    ids = {int(s): k for k, s in enumerate(catalog.star_id)}
+    runs = []
+    for path in tqdm(list(paths), desc="extract", unit="frame", disable=not progress):
+        truth = Truth.for_frame(path)
+        if truth is None:
+            continue
+        stars = extract_stars(read_frame(path), camera, params.extract)
+        runs.append((stars, truth, _associate(stars, truth)))
+    colour_err: dict[int, list] = {}
+    pos_err: dict[int, list] = {}
+    for stars, truth, pairs in runs:
+        for i, t in pairs:
+            sid = int(truth.star_id[t])
+            pos_err.setdefault(sid, []).append((stars.x[i] - truth.x[t], stars.y[i] - truth.y[t]))
+            if sid in ids:
+                c = ids[sid]
+                colour_err.setdefault(sid, []).append((stars.rg[i] - catalog.rg[c], stars.bg[i] - catalog.bg[c]))
+    mean_colour = {s: np.nanmean(np.array(v), axis=0) for s, v in colour_err.items()}
+    mean_pos = {s: np.mean(np.array(v), axis=0) for s, v in pos_err.items()}
+    table = {}
+    for mode in TABLE5_MODES:
+        counts = {"correct": 0, "incorrect": 0, "no_match": 0}
+        for stars, truth, pairs in runs:
+            s2 = replace(stars, x=stars.x.copy(), y=stars.y.copy(), rg=stars.rg.copy(), bg=stars.bg.copy())
+            for i, t in pairs:
+                sid = int(truth.star_id[t])
+                if "colour" in mode and sid in mean_colour:
+                    s2.rg[i] -= mean_colour[sid][0]
+                    s2.bg[i] -= mean_colour[sid][1]
+                if "chromatic" in mode:
+                    s2.x[i] -= mean_pos[sid][0]
+                    s2.y[i] -= mean_pos[sid][1]
+            s2 = replace(s2, vectors=camera.pixel_to_vector(s2.x, s2.y))
+            sc = score(record_from_output(identify_stars(s2, camera, catalog, params)), truth)
+            key = {"correct": "correct", "wrong": "incorrect"}.get(sc["outcome"], "no_match")
+            counts[key] += 1
+        table[mode] = counts
+    return {"frames": len(runs), "table": table}
