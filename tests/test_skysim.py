@@ -117,3 +117,20 @@ def test_plots_are_written(colour_catalog, tmp_path):
     for name in ("cdf.png", "map.png"):
         data = (tmp_path / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+
+
+def test_cli_runs_both_simulations(tmp_path, capsys):
+    from ground.cli import main
+
+    assert main(["sim", "colour", "--boresights", "20", "--rolls", "1", "--workers", "1", "--no-progress",
+                 "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "problem_orientations" in out and "seed 000" in out
+    assert (tmp_path / "error_cdf.png").exists() and (tmp_path / "problem_map.png").exists()
+    assert main(["--json", "sim", "fourstar", "--step", "45", "--epsilon", "0.01", "--workers", "1",
+                 "--no-progress"]) == 0
+    import json
+
+    s = json.loads(capsys.readouterr().out)["0.01"]
+    assert s["observations"] == 40 and s["misidentified"] == 0
+    assert main(["sim", "colour", "--boresights", "1", "--workers", "1"]) == 2

@@ -12,10 +12,12 @@ explains the whole frame:
    are known, the colour distance is below ``colour_gate``. Two passes.
 3. **Coverage (likelihood of non-detections)**: the catalog stars the attitude puts inside the
    field of view (shrunk by ``edge_margin``) and at least ``mag_margin`` brighter than the
-   catalog limit should have been detected. With ``coverage_limit = "matched"`` (default) only
-   stars no fainter than the faintest matched star count, so a frame cut to its N brightest
-   detections is not penalised for the stars below the cut; ``"catalog"`` counts every catalog
-   star in the field (for frames known to be complete to the catalog limit). If fewer than
+   catalog limit should have been detected. With ``coverage_limit = "matched"`` only stars no
+   fainter than the faintest matched star count, so a frame cut to its N brightest detections is
+   not penalised for the stars below the cut; ``"catalog"`` counts every catalog star in the
+   field (frames complete to the catalog limit; much stronger against wrong two-star matches);
+   ``"auto"`` (default) uses "matched" for frames of at least ``full_frame`` detections (which
+   may have been cut) and "catalog" below (which cannot have been cut there). If fewer than
    ``min_coverage`` of them are matched, the hypothesis is rejected: a wrong match lands on a
    sky patch whose bright stars are missing from the frame.
 """
@@ -79,7 +81,8 @@ class VerifyParams:
     colour_gate: float = 4.65
     min_coverage: float = 0.7
     mag_margin: float = 0.0
-    coverage_limit: str = "matched"
+    coverage_limit: str = "auto"
+    full_frame: int = 20
     enabled: bool = True
 
 
@@ -166,7 +169,10 @@ def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray
         sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
     # 3. coverage of predicted-visible catalog stars
     mag_limit = float(catalog.__dict__.setdefault("_ident_mag_limit", float(np.max(catalog.mag)))) - params.mag_margin
-    if params.coverage_limit == "matched":
+    limit = params.coverage_limit
+    if limit == "auto":
+        limit = "matched" if len(vectors) >= params.full_frame else "catalog"
+    if limit == "matched":
         mag_limit = min(mag_limit, float(np.max(catalog.mag[cat])))
     bright = catalog.mag[near] <= mag_limit
     inside = near[bright][fov.contains(near_vec[bright] @ sol.a.T)]
