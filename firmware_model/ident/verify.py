@@ -10,6 +10,8 @@ explains the whole frame:
    catalog star when the separation is within ``refine_sigmas`` of the predicted scatter
    ``sqrt(sigma^2 + (tr P - b^T P b)/2)`` (``P`` the attitude covariance) and, when both colours
    are known, the colour distance is below ``colour_gate``. Two passes.
+   Matched stars with a second catalog star inside the same gate (unresolved doubles at this
+   noise) are dropped from the answer when ``drop_ambiguous``: their identity cannot be told.
 3. **Coverage (likelihood of non-detections)**: the catalog stars the attitude puts inside the
    field of view (shrunk by ``edge_margin``) and at least ``mag_margin`` brighter than the
    catalog limit should have been detected. With ``coverage_limit = "matched"`` only stars no
@@ -82,6 +84,7 @@ class VerifyParams:
     min_coverage: float = 0.7
     mag_margin: float = 0.0
     coverage_limit: str = "auto"
+    drop_ambiguous: bool = True
     full_frame: int = 20
     enabled: bool = True
 
@@ -167,6 +170,18 @@ def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray
         det = np.concatenate([det, add_det[first]])
         cat = np.concatenate([cat, add_cat[first]])
         sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
+    # 2b. identities that cannot be told apart: another catalog star inside the gate
+    seen = cat  # they were seen all the same: coverage counts them
+    if params.drop_ambiguous and len(det) > 2:
+        b = vectors[det]
+        pred = near_vec @ sol.a.T
+        d = np.linalg.norm(b[:, None, :] - pred[None, :, :], axis=2)
+        d[near[None, :] == cat[:, None]] = np.inf
+        gate = chord_of_angle(params.refine_sigmas * _predicted_scatter(b, sigma[det], sol.covariance))
+        clear = d.min(axis=1) >= gate
+        if not clear.all() and clear.sum() >= 2:
+            det, cat = det[clear], cat[clear]
+            sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
     # 3. coverage of predicted-visible catalog stars
     mag_limit = float(catalog.__dict__.setdefault("_ident_mag_limit", float(np.max(catalog.mag)))) - params.mag_margin
     limit = params.coverage_limit
@@ -177,7 +192,7 @@ def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray
     bright = catalog.mag[near] <= mag_limit
     inside = near[bright][fov.contains(near_vec[bright] @ sol.a.T)]
     n_pred = len(inside)
-    matched_inside = int(np.isin(inside, cat).sum())
+    matched_inside = int(np.isin(inside, seen).sum())
     coverage = matched_inside / n_pred if n_pred else 1.0
     if n_pred and coverage < params.min_coverage:
         return None, f"coverage {matched_inside}/{n_pred} predicted stars below {params.min_coverage}"
