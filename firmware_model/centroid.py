@@ -15,6 +15,9 @@ per CFA phase plus the shot noise of an initial linear fit (gain in e-/DN). Satu
 pixels and pixels cleaned by detection (hot pixels, cosmic-ray hits) are excluded. ``rg = A_R / A_G`` and ``bg = A_B / A_G``; covariances by
 linear propagation of the fit covariance (scaled by the reduced chi-square when it
 exceeds 1). The fallback when the fit fails is a colour-normalised centre of gravity.
+A fit whose sigma is significantly (3 sd) below ``sharp_sigma_fraction`` x the expected
+sigma, or a failed fit that ended there, marks the candidate ``sharp``: a hot pixel or
+cosmic-ray hit that the detector's neighbour test let through.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ class FitParams:
     max_reduced_chi2: float = 3.0  # above: POOR_FIT
     max_shift_px: float = 2.5  # fitted centre must stay this close to the start
     sigma_range_px: tuple = (0.3, 6.0)  # fitted sigma outside: FIT_FAILED
+    sharp_sigma_fraction: float = 0.5  # fitted sigma (+3 sd) below this x psf_sigma_px: sharp artefact
     max_nfev: int = 60
     method: str = "lm"  # "lm": PSF fit; "cog": centre of gravity + linear amplitudes only (fast)
     analytic_jacobian: bool = True  # False: finite differences (benchmark baseline)
@@ -65,6 +69,7 @@ class FitResults:
     reduced_chi2: np.ndarray
     n_pixels: np.ndarray
     flags: np.ndarray
+    sharp: np.ndarray  # the fit says: much sharper than the PSF (hot pixel, cosmic-ray hit), not a star
 
 
 def pixel_gaussian_1d(coords: np.ndarray, centre: float, sigma: float):
@@ -127,7 +132,7 @@ def fit_stars(frame: Frame, det: Detections, params: FitParams = FitParams()) ->
         x=np.full(n, np.nan), y=np.full(n, np.nan), sigma=np.full(n, np.nan), amp=np.full((n, 3), np.nan),
         background=np.full((n, 3), np.nan), cov_xy=np.full((n, 2, 2), np.nan), rg=np.full(n, np.nan),
         bg=np.full(n, np.nan), cov_colour=np.full((n, 2, 2), np.nan), reduced_chi2=np.full(n, np.nan),
-        n_pixels=np.zeros(n, int), flags=np.asarray(det.flags, dtype=np.int32).copy(),
+        n_pixels=np.zeros(n, int), flags=np.asarray(det.flags, dtype=np.int32).copy(), sharp=np.zeros(n, bool),
     )
     if params.method not in ("lm", "cog"):
         raise ValueError(f"unknown fit method {params.method!r}; expected 'lm' or 'cog'")
@@ -193,6 +198,8 @@ def _fit_one(frame, det, i, params, gain, out):
         res = least_squares(wm.residuals, p0, jac=jac, args=(data,), method="lm",
                             x_scale="jac", max_nfev=params.max_nfev)
         p = res.x
+        # a failed fit that shrank the PSF far below the optics' is not a star either
+        out.sharp[i] = abs(p[2]) < max(params.sigma_range_px[0], params.sharp_sigma_fraction * params.psf_sigma_px)
         ok = (res.success and np.hypot(p[0] - x_start, p[1] - y_start) <= params.max_shift_px
               and params.sigma_range_px[0] <= abs(p[2]) <= params.sigma_range_px[1]
               and p[3 + slots.index(GREEN) if nchan == 3 else 3] > 0)
@@ -215,6 +222,7 @@ def _fit_one(frame, det, i, params, gain, out):
     except np.linalg.LinAlgError:
         cov = np.full((len(p), len(p)), np.nan)
     out.x[i], out.y[i], out.sigma[i] = p[0], p[1], p[2]
+    out.sharp[i] = p[2] + 3.0 * np.sqrt(max(cov[2, 2], 0.0)) < params.sharp_sigma_fraction * params.psf_sigma_px
     out.cov_xy[i] = cov[:2, :2]
     out.reduced_chi2[i] = chi2r
     _store_amplitudes(out, i, p[3:], slots, nchan)

@@ -18,8 +18,10 @@ Steps (vectorised; Python loops only over candidates of multi-peak regions):
 4. Connected significant regions are labelled; every local maximum (over
    ``peak_separation`` super-pixels) that is separated from brighter peaks of its region
    by a 3-sigma dip is a candidate, flagged BLEND when its region keeps more than one.
-   Elongated regions (satellite streaks, cosmic-ray tracks) are rejected. Candidates are
-   ranked by filtered flux and capped at ``max_candidates``.
+   Elongated regions (satellite streaks, cosmic-ray tracks) are rejected, and so are
+   candidates whose brightest raw pixel holds more of the 6x6 window's signal than a PSF
+   can (hot pixels the per-pixel cleaning missed). Candidates are ranked by filtered flux
+   and capped at ``max_candidates``.
 
 Pixel coordinates follow docs/CONVENTIONS.md (pixel centres at integers, x = column).
 """
@@ -30,6 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
+from scipy.special import erf
 
 from firmware_model.frame import Frame
 from firmware_model.star_flags import StarFlag
@@ -167,7 +170,7 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     black = np.asarray(frame.black_level, dtype=np.float32).reshape(2, 2)
     total = np.zeros((h2, w2), np.float32)
     bg_sum = var_sum = 0.0
-    bg_grids, noise_grids, bad = {}, {}, []
+    bg_grids, noise_grids, bad, phases = {}, {}, [], {}
     d2 = 1.0 if frame.is_mono else 4.0  # squared distance to the neighbours used (px^2)
     ratio = params.sharp_fraction * np.exp(-d2 / (2.0 * params.psf_sigma_px ** 2))
     for py in (0, 1):
@@ -179,6 +182,7 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
             n_r, n_c = _clean_sharp(phase, med, sig, block, params.k_sigma, ratio, mono)
             bad.append((2 * n_r + py) * frame.width + (2 * n_c + px_))
             total += phase
+            phases[py, px_] = phase
             bg_sum = bg_sum + med
             var_sum = var_sum + sig ** 2
     resid = total - _interpolate(bg_sum, block, total.shape)
@@ -217,6 +221,9 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     is_streak = elongated[plabel]
     n_streak = int(np.count_nonzero(is_streak))
     pr, pc, plabel = pr[~is_streak], pc[~is_streak], plabel[~is_streak]
+    sharp = _peaked_candidates(phases, bg_grids, noise_grids, block, pr, pc, params, frame.is_mono)
+    n_sharp += int(np.count_nonzero(sharp))
+    pr, pc, plabel = pr[~sharp], pc[~sharp], plabel[~sharp]
     if len(pr) == 0:
         return _empty(f"no star-like candidate ({n_streak} streaks rejected, {n_sharp} sharp pixels cleaned)",
                       n_rejected_sharp=n_sharp, n_rejected_streak=n_streak, bad_pixels=bad_pixels)
@@ -314,6 +321,38 @@ def _clean_sharp(phase: np.ndarray, med: np.ndarray, sig: np.ndarray, block: int
     if not done_r:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     return np.concatenate(done_r), np.concatenate(done_c)
+
+
+def _peaked_candidates(phases, bg_grids, noise_grids, block, pr, pc, params, mono) -> np.ndarray:
+    """True for candidates whose brightest raw pixel holds far more of the 6x6 raw window's
+    signal than a PSF allows: hot pixels and cosmic-ray hits the per-pixel cleaning missed
+    (it needs ~45 sigma; this pools 36 pixels). A centred Gaussian puts p0 = erf(1 /
+    (2 sqrt 2 s))^2 of the flux in one pixel; colour can at most double that on a CFA
+    (rg or bg up to ~2.5 against a channel mean ~1.2); 1.5x margin. Sharp if the peak
+    exceeds that share of the window sum by 3 standard deviations."""
+    n = len(pr)
+    if n == 0:
+        return np.zeros(0, bool)
+    h2, w2 = phases[0, 0].shape
+    rr = np.clip(2 * pr[:, None, None] - 2 + np.arange(6)[None, :, None], 0, 2 * h2 - 1)
+    cc = np.clip(2 * pc[:, None, None] - 2 + np.arange(6)[None, None, :], 0, 2 * w2 - 1)
+    rr, cc = np.broadcast_arrays(rr, cc)
+    win = np.empty(rr.shape, np.float32)
+    gy, gx = pr // block, pc // block
+    sig2 = np.zeros(n)
+    for a in (0, 1):
+        for b in (0, 1):
+            m = (rr % 2 == a) & (cc % 2 == b)
+            bg = np.broadcast_to(_grid_at(bg_grids[a, b], gy, gx)[:, None, None], rr.shape)
+            win[m] = phases[a, b][rr[m] // 2, cc[m] // 2] - bg[m]
+            sig2 += _grid_at(noise_grids[a, b], gy, gx) ** 2 / 4.0
+    p0 = erf(1.0 / (2.0 * np.sqrt(2.0) * params.psf_sigma_px)) ** 2
+    share = min(0.9, 1.5 * p0 * (1.0 if mono else 2.0))
+    flat = win.reshape(n, -1)
+    peak = flat.max(axis=1)
+    total = flat.sum(axis=1)
+    sd = np.sqrt(sig2 * (1.0 + share ** 2 * flat.shape[1]))
+    return peak - share * total > 3.0 * sd
 
 
 def _raw_neighbours(rows, cols, pixels, black, py, px):

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from firmware_model.camera import CameraModel
-from firmware_model.centroid import FitParams, fit_stars
+from firmware_model.centroid import FitParams, FitResults, fit_stars
 from firmware_model.detect import DetectParams, detect_stars
 from firmware_model.frame import Frame
 from firmware_model.star_flags import StarFlag, UNTRUSTED
@@ -90,6 +90,16 @@ def extract_stars(frame: Frame, camera: CameraModel | None = None, params: Extra
     det = detect_stars(frame, params.detect)
     t1 = time.perf_counter()
     fit = fit_stars(frame, det, params.fit)
+    keep = ~fit.sharp
+    reason = det.reason
+    if not keep.all():
+        n_sharp = int(np.count_nonzero(~keep))
+        note = f"{n_sharp} candidate(s) sharper than the PSF rejected by the fit (hot pixels / cosmic rays)"
+        reason = f"{reason}; {note}" if reason else note
+        fit = FitResults(**{k: v[keep] for k, v in vars(fit).items()})
+        snr = det.snr[keep]
+    else:
+        snr = det.snr
     t2 = time.perf_counter()
     if camera is None and frame.camera:
         camera = CameraModel.from_dict(frame.camera)
@@ -105,8 +115,8 @@ def extract_stars(frame: Frame, camera: CameraModel | None = None, params: Extra
     t3 = time.perf_counter()
     return StarList(
         x=fit.x, y=fit.y, flux=flux, amp=fit.amp, rg=fit.rg, bg=fit.bg, cov_xy=fit.cov_xy,
-        cov_colour=fit.cov_colour, snr=det.snr, sigma=fit.sigma, reduced_chi2=fit.reduced_chi2,
+        cov_colour=fit.cov_colour, snr=snr, sigma=fit.sigma, reduced_chi2=fit.reduced_chi2,
         flags=fit.flags, vectors=vectors,
         timings={"detect_s": t1 - t0, "fit_s": t2 - t1, "vectors_s": t3 - t2, "total_s": t3 - t0},
-        reason=det.reason,
+        reason=reason,
     )

@@ -100,3 +100,12 @@ def test_real_mono_frames_detect_stars(shared_data):
     good = stars.trusted
     assert good.sum() >= 5 and np.all(np.isnan(stars.rg)) and np.all(stars.flags & StarFlag.NO_COLOUR)
     assert np.median(stars.sigma[good]) > 0.5  # star images, not hot pixels
+
+
+def test_hot_pixels_over_a_bright_sky_are_not_stars():
+    """Hot pixels at ~35 sigma over a 200 e- sky escape the per-pixel test; the window
+    peak-share test and the fit reject them (600 hot pixels per frame, no stars)."""
+    empty = Stars(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0))
+    det_model = DetectorModel(sky_e_per_s=2000.0, hot_pixel_fraction=2e-3)
+    found = [len(extract_stars(render_frame(empty, ATT, CAM, det_model, seed=k).frame)) for k in range(4)]
+    assert sum(found) <= 6  # noise peaks only (was ~30 per frame before the peak-share test)
