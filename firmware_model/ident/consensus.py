@@ -22,9 +22,10 @@ Beyond the paper (every knob in ``ConsensusParams``):
 * Every grown set goes through ``verify`` (``firmware_model.ident.verify``): attitude residuals,
   refinement with all detections, coverage of predicted-visible catalog stars. Sets that fail
   are discarded, not reported as low confidence.
-* **Confidence**: high only if the verified set has ``N >= eta N_A``, no verified rival with a
-  different attitude has at least ``rival_ratio`` of its support, and a two-star answer came
-  from a seed pair whose candidates were all explored.
+* **Confidence**: high only if no verified rival with a different attitude has comparable
+  support (``rival_ratio``), and either the verified set has ``N >= eta N_A`` (a two-star answer
+  only from a seed pair whose candidates were all explored) or it has at least
+  ``confident_stars`` stars covering ``confident_coverage`` of the predicted stars.
 * Bounded work: the ``max_stars`` brightest detections are used, at most
   ``min(ceil(attempts_per_star N_A), max_attempts)`` seed pairs, ``k_best`` growths per seed,
   ``max_window`` scored rows per pair look-up, and an optional wall-clock deadline.
@@ -73,6 +74,9 @@ class ConsensusParams:
         this are dropped without verification (they could never be high confidence).
     confirmations: the search stops once the best set has been found from this many seed pairs
         (bounds the time of scenes that cannot reach ``eta``, e.g. many false stars).
+    confident_stars, confident_coverage: a verified set of at least this many stars that matches
+        at least this fraction of the predicted stars is high confidence even below ``eta``
+        (false detections do not make an answer that explains the sky less certain).
     """
 
     p_correct: float = 0.99
@@ -90,6 +94,8 @@ class ConsensusParams:
     min_consensus_rich: int = 3
     rich_scene: int = 5
     confirmations: int = 3
+    confident_stars: int = 6
+    confident_coverage: float = 0.8
 
 
 @dataclass
@@ -265,7 +271,7 @@ def match_scene(vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray, catalog: On
                 break  # a decisive set: lesser candidates of this seed cannot rival it
         if verified:
             best = max(verified, key=_rank)
-            if best.n >= params.eta * n and not _rivals(best, verified, params) and (best.n >= 3 or best.explored_all):
+            if _is_high(best, verified, n, params):
                 return ConsensusResult(Outcome.HIGH_CONFIDENCE, best, "", attempts, len(verified))
             if best.confirmed >= params.confirmations:
                 break
@@ -281,9 +287,20 @@ def match_scene(vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray, catalog: On
         reason = "two-star match from a seed pair with unexplored candidates"
     else:
         reason = last_reason
-    if not rivals and best.n >= params.eta * n and (best.n >= 3 or best.explored_all):
+    if _is_high(best, verified, n, params):
         return ConsensusResult(Outcome.HIGH_CONFIDENCE, best, "", attempts, len(verified))
     return ConsensusResult(Outcome.LOW_CONFIDENCE, best, reason, attempts, len(verified), rivals)
+
+
+def _is_high(best, verified: list, n: int, params: ConsensusParams) -> bool:
+    """High confidence: no rival, and either the paper's eta test (a two-star set only when its
+    seed pair's candidates were all explored) or a large, well-covering verified set."""
+    if _rivals(best, verified, params):
+        return False
+    if best.n >= params.eta * n and (best.n >= 3 or best.explored_all):
+        return True
+    cov = best.coverage if np.isfinite(best.coverage) else 0.0
+    return best.n >= params.confident_stars and cov >= params.confident_coverage
 
 
 def _same_set(match, det, cat) -> bool:
@@ -303,9 +320,11 @@ def _add_distinct(verified: list, match, rival_angle: float) -> None:
         if _angle(v.attitude.a, match.attitude.a) < rival_angle:
             if _rank(match) > _rank(v):
                 match.explored_all = match.explored_all or v.explored_all
+                match.confirmed = v.confirmed + 1
                 verified[idx] = match
             else:
                 v.explored_all = v.explored_all or match.explored_all
+                v.confirmed += 1
             return
     verified.append(match)
 
