@@ -8,6 +8,13 @@ added as further options without touching the serving code.
 
 from __future__ import annotations
 
+import os
+
+# One BLAS thread: the pipeline's small fits lose to thread contention on a busy machine
+# (docs/pipeline.md); set before numpy is imported, unless the user chose otherwise.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
 import argparse
 import json
 import signal
