@@ -430,10 +430,11 @@ def plot_mollweide(rows: np.ndarray, boresights: np.ndarray, path) -> None:
         if m.any():
             ax.scatter(lon[m], dec[m], s=2 if k == 0 else 7, c=colours[k], label=f"{name} ({int(m.sum())})",
                        linewidths=0)
-    ax.set_xticklabels([f"{int(h)}h" for h in (14, 16, 18, 20, 22, 0, 2, 4, 6, 8, 10)])
+    ticks = np.radians(np.arange(-150, 151, 30))
+    ax.set_xticks(ticks)
+    ax.set_xticklabels([f"{int(round(np.degrees(-t) % 360 / 15))}h" for t in ticks])
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="lower center", bbox_to_anchor=(0.5, -0.22), ncol=3, fontsize=8, markerscale=2)
-    ax.set_title("Worst result per boresight (cf. seed 000 fig. 10)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.05), ncol=3, fontsize=8, markerscale=2)
+    ax.set_title("Worst result per boresight (cf. seed 000 fig. 10)", pad=18)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
