@@ -40,6 +40,13 @@ UNTRUSTED_CENTROID_FLOOR_PX = 0.5
 
 #: Fewest detections given to the geometric matcher.
 MIN_GEOMETRIC_DETECTIONS = 8
+#: Brightest-detection counts tried in turn by the 4-star matcher before the density cap: a
+#: small set of bright stars is most likely all in the catalog (beyond seed 001, which takes
+#: its groups from the frame centre whatever their brightness).
+GEOMETRIC_STEPS = (4, 6, 8)
+
+#: Method codes of the result extension (``ext.method``).
+METHOD_CODES = {"colour": 1, "geometric": 2, "geometric-consensus": 3}
 
 #: Stage names reported in the result extension, in order.
 STAGES = ("detect", "fit", "vectors", "identify", "attitude", "total")
@@ -59,8 +66,11 @@ class PipelineParams:
     again; the second answer is taken only if it is high-confidence and agrees with the first.
 
     ``geometric_density_factor``: the geometric (4-star) method sees only the brightest
-    detections, this factor times the catalog stars expected in the field
-    (:func:`geometric_detection_cap`)."""
+    detections: first :data:`GEOMETRIC_STEPS` of them, then this factor times the catalog
+    stars expected in the field (:func:`geometric_detection_cap`). ``geometric_fallback``: when that 4-star match finds
+    nothing, the consensus matcher of seed 000 runs on geometry alone (colours unknown), which
+    tolerates missing and extra stars far better; its answers are labelled
+    ``geometric-consensus``."""
 
     extract: ExtractParams = ExtractParams()
     solve: SolveParams = SolveParams()
@@ -68,6 +78,7 @@ class PipelineParams:
     fixed_sigma_px: float | None = None
     photometric_gate: float | None = 0.1
     geometric_density_factor: float = 1.5
+    geometric_fallback: bool = True
 
 
 @dataclass
@@ -82,6 +93,13 @@ class PipelineOutput:
     @property
     def ok(self) -> bool:
         return self.status is Status.OK
+
+
+def with_psf_sigma(params: PipelineParams, sigma_px: float) -> PipelineParams:
+    """``params`` for optics whose PSF Gaussian sigma is ``sigma_px`` (detection and fit)."""
+    ex = params.extract
+    return replace(params, extract=replace(ex, detect=replace(ex.detect, psf_sigma_px=sigma_px),
+                                           fit=replace(ex.fit, psf_sigma_px=sigma_px)))
 
 
 def apply_colour_correction(rg, bg, beta):
@@ -119,41 +137,76 @@ def identify_stars(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
     geometric = params.solve.mode == "geometric" or (params.solve.mode == "auto" and (
         not catalog.has_colour or not np.isfinite(stars.rg[used]).any()))
     if geometric:
-        used = used[:geometric_detection_cap(camera, catalog, params.geometric_density_factor)]
-    flags = stars.flags[used]
-    colour_ok = (flags & int(StarFlag.SATURATED | StarFlag.BLEND)) == 0
-    rg = np.where(colour_ok, stars.rg[used], np.nan)
-    bg = np.where(colour_ok, stars.bg[used], np.nan)
-    if params.colour_beta is not None:
-        rg, bg = apply_colour_correction(rg, bg, params.colour_beta)
-    if params.fixed_sigma_px is not None:
-        sigma_px = np.full(len(used), float(params.fixed_sigma_px))
+        sol, rows = _solve_geometric(used, stars, camera, catalog, params, timings)
     else:
-        var = 0.5 * (stars.cov_xy[used, 0, 0] + stars.cov_xy[used, 1, 1])
-        var = np.where(np.isfinite(var), var, UNKNOWN_CENTROID_SIGMA_PX ** 2)
-        floor = np.where((flags & int(UNTRUSTED)) != 0, UNTRUSTED_CENTROID_FLOOR_PX, CENTROID_SIGMA_FLOOR_PX)
-        sigma_px = np.sqrt(var + floor ** 2)
-    solve_params = replace(
-        params.solve, sigma_vec=sigma_px / camera.f, fov=params.solve.fov or FieldOfView.from_camera(camera),
-        sigma_rg=float(np.nanmax([params.solve.sigma_rg, catalog.meta.get("sigma_rg", np.nan)])),
-        sigma_bg=float(np.nanmax([params.solve.sigma_bg, catalog.meta.get("sigma_bg", np.nan)])))
-    sol = solve(stars.vectors[used], rg, bg, catalog, solve_params)
-    timings["identify"] = sol.timings.get("match", 0.0) + sol.timings.get("validate", 0.0)
-    timings["attitude"] = sol.timings.get("verify", 0.0)
-    if sol.status is Outcome.LOW_CONFIDENCE and params.photometric_gate is not None:
-        gated = _photometric_gate(stars.flux[used], sol, catalog, params.photometric_gate)
-        if gated is not None and 2 <= len(gated) < len(used):
-            sub = replace(solve_params, sigma_vec=solve_params.sigma_vec[gated])
-            sol2 = solve(stars.vectors[used][gated], rg[gated], bg[gated], catalog, sub)
-            timings["identify"] += sol2.timings.get("match", 0.0) + sol2.timings.get("validate", 0.0)
-            timings["attitude"] += sol2.timings.get("verify", 0.0)
-            if sol2.status is Outcome.HIGH_CONFIDENCE and _same_attitude(sol, sol2, 5 * float(np.max(sigma_px)) / camera.f):
-                used, sol = used[gated], sol2
+        sol, rows = _solve_rows(used, stars, camera, catalog, params, params.solve.mode, True, timings)
+    if geometric and sol.status is Outcome.NO_MATCH and params.geometric_fallback and catalog.has_colour:
+        sol2, rows2 = _solve_rows(used, stars, camera, catalog, params, "colour", False, timings)
+        if sol2.status is not Outcome.NO_MATCH:
+            sol2.method = "geometric-consensus"
+            sol, rows = sol2, rows2
+    used = rows
     timings["total"] = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
     if sol.status is Outcome.NO_MATCH:
         return PipelineOutput(Status.NO_MATCH, sol.reason, stars, used, sol, timings)
     status = Status.OK if sol.status is Outcome.HIGH_CONFIDENCE else Status.LOW_CONFIDENCE
     return PipelineOutput(status, sol.reason, stars, used, sol, timings)
+
+
+def _solve_rows(rows, stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams,
+                mode: str, use_colour: bool, timings: dict):
+    """Solve on ``rows`` of ``stars`` (adds to ``timings``); returns (solution, rows it refers to).
+
+    Saturated or blended stars keep their geometry but lose their colour; the per-star
+    direction noise comes from the fit covariance with a floor, larger for untrusted fits. A
+    low-confidence answer is retried with the photometric gate (:class:`PipelineParams`)."""
+    flags = stars.flags[rows]
+    colour_ok = ((flags & int(StarFlag.SATURATED | StarFlag.BLEND)) == 0) & use_colour
+    rg = np.where(colour_ok, stars.rg[rows], np.nan)
+    bg = np.where(colour_ok, stars.bg[rows], np.nan)
+    if params.colour_beta is not None:
+        rg, bg = apply_colour_correction(rg, bg, params.colour_beta)
+    if params.fixed_sigma_px is not None:
+        sigma_px = np.full(len(rows), float(params.fixed_sigma_px))
+    else:
+        var = 0.5 * (stars.cov_xy[rows, 0, 0] + stars.cov_xy[rows, 1, 1])
+        var = np.where(np.isfinite(var), var, UNKNOWN_CENTROID_SIGMA_PX ** 2)
+        floor = np.where((flags & int(UNTRUSTED)) != 0, UNTRUSTED_CENTROID_FLOOR_PX, CENTROID_SIGMA_FLOOR_PX)
+        sigma_px = np.sqrt(var + floor ** 2)
+    solve_params = replace(
+        params.solve, mode=mode, sigma_vec=sigma_px / camera.f, fov=params.solve.fov or FieldOfView.from_camera(camera),
+        sigma_rg=float(np.nanmax([params.solve.sigma_rg, catalog.meta.get("sigma_rg", np.nan)])),
+        sigma_bg=float(np.nanmax([params.solve.sigma_bg, catalog.meta.get("sigma_bg", np.nan)])))
+
+    def run(sub_rows, sub):
+        out = solve(stars.vectors[sub_rows], rg[sub], bg[sub], catalog, replace(solve_params, sigma_vec=solve_params.sigma_vec[sub]))
+        timings["identify"] = timings.get("identify", 0.0) + out.timings.get("match", 0.0) + out.timings.get("validate", 0.0)
+        timings["attitude"] = timings.get("attitude", 0.0) + out.timings.get("verify", 0.0)
+        return out
+
+    everything = np.arange(len(rows))
+    sol = run(rows, everything)
+    if sol.status is Outcome.LOW_CONFIDENCE and params.photometric_gate is not None:
+        gated = _photometric_gate(stars.flux[rows], sol, catalog, params.photometric_gate)
+        if gated is not None and 2 <= len(gated) < len(rows):
+            sol2 = run(rows[gated], gated)
+            if sol2.status is Outcome.HIGH_CONFIDENCE and _same_attitude(sol, sol2, 5 * float(np.max(sigma_px)) / camera.f):
+                return sol2, rows[gated]
+    return sol, rows
+
+
+def _solve_geometric(used, stars, camera, catalog, params: PipelineParams, timings: dict):
+    """4-star matching on the brightest detections, widening the set (:data:`GEOMETRIC_STEPS`,
+    then :func:`geometric_detection_cap`) until a high-confidence answer; the best answer else."""
+    cap = geometric_detection_cap(camera, catalog, params.geometric_density_factor)
+    best = None
+    for k in sorted({min(k, cap, len(used)) for k in (*GEOMETRIC_STEPS, cap)}):
+        sol, rows = _solve_rows(used[:k], stars, camera, catalog, params, params.solve.mode, False, timings)
+        if sol.status is Outcome.HIGH_CONFIDENCE:
+            return sol, rows
+        if best is None or (best[0].status is Outcome.NO_MATCH and sol.status is not Outcome.NO_MATCH):
+            best = (sol, rows)
+    return best
 
 
 def geometric_detection_cap(camera: CameraModel, catalog: OnboardCatalog, factor: float) -> int:
@@ -250,6 +303,6 @@ def result_fields(out: PipelineOutput) -> dict:
     fields["ext.n_matched"] = n_matched
     fields["ext.stars"] = ext_stars
     fields["ext.stage_times"] = np.array([out.timings.get(s, 0.0) for s in STAGES], dtype=np.float32)
-    fields["ext.method"] = {"colour": 1, "geometric": 2}.get(sol.method if sol else "", 0)
+    fields["ext.method"] = METHOD_CODES.get(sol.method if sol else "", 0)
     fields["return_code"] = result.make_return_code(out.status, int(bits))
     return fields

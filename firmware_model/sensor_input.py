@@ -24,7 +24,7 @@ from firmware_model.camera import CameraModel
 from firmware_model.device import FrameUnavailable, SlotHandler, SolveContext
 from firmware_model.frame import Frame, frame_from_bytes
 from firmware_model.frame_io import FrameReadError, read_frame
-from firmware_model.pipeline import PipelineParams, result_fields, run_pipeline
+from firmware_model.pipeline import PipelineParams, result_fields, run_pipeline, with_psf_sigma
 from protocol.commands import SlotRejected
 
 FRAME_SOURCE_GROUP = "st16.frame_sources"
@@ -66,7 +66,8 @@ class DeviceParams:
 
     ``mode`` "auto" | "colour" | "geometric"; ``sigma_rg``, ``sigma_bg`` colour noise for
     matching; ``centroid_sigma_px`` fixed centroid noise (else from the fit); ``time_budget_s``
-    identification budget; ``colour_correction`` eq. 24 as ``{"beta": [6 numbers]}``.
+    identification budget; ``psf_sigma_px`` the optics' PSF sigma (detection's hot-pixel test
+    and the fit's start); ``colour_correction`` eq. 24 as ``{"beta": [6 numbers]}``.
     """
 
     mode: str | None = None
@@ -74,9 +75,10 @@ class DeviceParams:
     sigma_bg: float | None = None
     centroid_sigma_px: float | None = None
     time_budget_s: float | None = None
+    psf_sigma_px: float | None = None
     colour_beta: tuple | None = None
 
-    KEYS = ("mode", "sigma_rg", "sigma_bg", "centroid_sigma_px", "time_budget_s", "colour_correction")
+    KEYS = ("mode", "sigma_rg", "sigma_bg", "centroid_sigma_px", "time_budget_s", "psf_sigma_px", "colour_correction")
 
     @classmethod
     def from_json(cls, data: bytes) -> "DeviceParams":
@@ -110,7 +112,7 @@ class DeviceParams:
                 raise SlotRejected(REJECT_PARAMS_VALUE, "colour_correction must be {\"beta\": [6 finite numbers]}")
             beta = tuple(float(x) for x in b)
         return cls(mode, positive("sigma_rg"), positive("sigma_bg"), positive("centroid_sigma_px"),
-                   positive("time_budget_s"), beta)
+                   positive("time_budget_s"), positive("psf_sigma_px"), beta)
 
     def apply(self, base: PipelineParams) -> PipelineParams:
         solve = base.solve
@@ -118,6 +120,8 @@ class DeviceParams:
             value = getattr(self, key)
             if value is not None:
                 solve = replace(solve, **{key: value})
+        if self.psf_sigma_px is not None:
+            base = with_psf_sigma(base, self.psf_sigma_px)
         return replace(base, solve=solve,
                        colour_beta=self.colour_beta if self.colour_beta is not None else base.colour_beta,
                        fixed_sigma_px=self.centroid_sigma_px if self.centroid_sigma_px is not None

@@ -12,11 +12,11 @@ from __future__ import annotations
 import numpy as np
 
 from firmware_model.frames import quat_to_matrix, radec_roll_from_attitude
-from firmware_model.pipeline import STAGES, PipelineOutput, result_fields
+from firmware_model.pipeline import METHOD_CODES, STAGES, PipelineOutput, result_fields
 from protocol import result
 
 ARCSEC = 180.0 / np.pi * 3600.0
-METHODS = {0: "", 1: "colour", 2: "geometric"}
+METHODS = {0: "", **{code: name for name, code in METHOD_CODES.items()}}
 
 
 def _num(v) -> float | None:

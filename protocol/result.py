@@ -76,7 +76,7 @@ EXT_REASON_BYTES = 96  #: UTF-8 reason text (NUL padded) when the status is not 
 #: attitude (scalar first, ICRS -> sensor); ``sigma`` its 1-sigma errors about sensor x, y, z (rad);
 #: ``solve_time`` seconds spent in the solver; CRC-32s identify the catalog and frame used;
 #: ``stage_times`` seconds for detect, fit, vectors, identify, attitude, total
-#: (``firmware_model.pipeline.STAGES``); ``method`` 0 none, 1 colour, 2 geometric; ``reason``
+#: (``firmware_model.pipeline.STAGES``); ``method`` 0 none, 1 colour, 2 geometric (4-star), 3 geometric consensus; ``reason``
 #: why the status is what it is (UTF-8, truncated to EXT_REASON_BYTES).
 EXTENSION = _struct([
     ("magic", "<u4", 0), ("version", "<u2", 4), ("n_detected", "<u2", 6), ("n_matched", "<u2", 8),
