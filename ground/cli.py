@@ -18,6 +18,7 @@ COMMAND_MODULES = (
     "ground.cli_frame",
     "ground.cli_sim",
     "ground.cli_solve",
+    "ground.cli_camera",
 )
 
 
