@@ -29,12 +29,13 @@ from protocol.commands import SlotRejected
 
 FRAME_SOURCE_GROUP = "st16.frame_sources"
 
-#: Slot reason codes (ours, docs/ICD.md): frames 0x0200-, parameter sets 0x0300-.
-REJECT_FRAME_FORMAT = 0x0200
-REJECT_FRAME_SIZE = 0x0201
-REJECT_PARAMS_JSON = 0x0300
-REJECT_PARAMS_KEY = 0x0301
-REJECT_PARAMS_VALUE = 0x0302
+#: Slot reason codes (ours, docs/ICD.md): catalog images use 0x0201-0x0212
+#: (protocol.catalog_image), frames 0x0300-, parameter sets 0x0400-.
+REJECT_FRAME_FORMAT = 0x0300
+REJECT_FRAME_SIZE = 0x0301
+REJECT_PARAMS_JSON = 0x0400
+REJECT_PARAMS_KEY = 0x0401
+REJECT_PARAMS_VALUE = 0x0402
 
 
 def frame_slot_handler(camera: CameraModel) -> SlotHandler:

@@ -94,7 +94,7 @@ def test_wrong_size_frame_is_refused_and_nothing_changes(device, scene):
     with Client(device) as c:
         with pytest.raises(Nack) as err:
             c.upload(1, frame_to_bytes(small), progress=False)
-        assert err.value.reason == 0x0201 and "2592 x 1944" in str(err.value)
+        assert err.value.reason == 0x0301 and "2592 x 1944" in str(err.value)
         assert not c.slot_info(1).active
         assert c.slot_info(0).active  # the catalog is untouched
         assert c.diagnostic().nacked >= 1
