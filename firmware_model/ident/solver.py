@@ -2,7 +2,8 @@
 
 ``solve(vectors, rg, bg, catalog, params)`` picks the method per frame: colour consensus
 (seed 000 + backtracking + verification) when the frame and the catalog both carry colour,
-4-star K-vector matching (seed 001) otherwise, or the one forced by ``params.mode``. It never
+4-star K-vector matching (seed 001) with a verified triangle fallback (``triangle``) otherwise,
+or the one forced by ``params.mode``. It never
 raises on bad input: malformed arrays, no usable detections or an impossible geometry give
 ``status = NO_MATCH`` with a reason.
 
@@ -23,8 +24,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from firmware_model.ident.consensus import ConsensusParams, Outcome, match_scene
+from firmware_model.frames import rotation_angle
 from firmware_model.ident.four_star import FourStarParams, match_four_star
 from firmware_model.ident.pair_match import PairNoise, sigma_phi_from_centroid
+from firmware_model.ident.triangle import TriangleParams, match_triangles
 from firmware_model.ident.verify import FieldOfView, VerifiedMatch, VerifyParams, verify
 from firmware_model.onboard_catalog import OnboardCatalog, angle_between
 
@@ -53,7 +56,8 @@ class SolveParams:
     sigma_rg: float = 0.05
     sigma_bg: float = 0.05
     consensus: ConsensusParams = ConsensusParams()
-    four_star: FourStarParams = FourStarParams(stop_after=3)
+    four_star: FourStarParams = FourStarParams(stop_after=3, max_groups=6)
+    triangle: TriangleParams = TriangleParams()
     verify: VerifyParams = VerifyParams()
     fov: FieldOfView | None = None
     time_budget_s: float = 0.05
@@ -221,23 +225,55 @@ def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveP
         out = _result(res.best, res.outcome, res.reason, index_map, catalog, method, min(n, params.consensus.max_stars))
         out.attempts = res.attempts
     else:
-        if n < 4:
-            return no_match(f"geometric mode needs at least four detections, got {n}", method)
-        eps = params.four_star.epsilon or params.four_star.epsilon_sigmas * noise.sigma_phi
-        fs = match_four_star(v, catalog, eps, params.four_star)
-        timings["match"] = time.perf_counter() - t1
-        if len(fs.det) < 2:
-            return no_match(f"4-star matching identified {len(fs.det)} star(s) in {fs.groups} group(s)", method)
-        match, why = check(fs.det, fs.cat)
-        timings["verify"] = verify_time[0]
-        timings["total"] = time.perf_counter() - t0
-        if match is None:
-            return no_match(f"4-star identification failed verification ({why})", method)
-        high = match.n >= 3 and match.n >= params.consensus.eta * n
-        reason = "" if high else f"{match.n} of {n} detections matched"
-        out = _result(match, Outcome.HIGH_CONFIDENCE if high else Outcome.LOW_CONFIDENCE, reason, index_map,
-                      catalog, method, n)
-        out.attempts = fs.groups
+        out = _solve_geometric(v, catalog, noise, params, check, n, t0, t1, timings, verify_time, index_map)
+        if isinstance(out, str):
+            return no_match(out, method)
     out.timings = timings
     out.notes = notes
     return out
+
+
+def _solve_geometric(v, catalog, noise, params, check, n, t0, t1, timings, verify_time, index_map):
+    """4-star matching (seed 001), then the triangle fallback when it is not conclusive."""
+    if n < 3:
+        return f"geometric mode needs at least three detections, got {n}"
+    eps = params.four_star.epsilon or params.four_star.epsilon_sigmas * noise.sigma_phi
+    cp = params.consensus
+    found, groups = [], 0
+    if n >= 4:
+        fs = match_four_star(v, catalog, eps, params.four_star)
+        groups = fs.groups
+        if len(fs.det) >= 2:
+            match, _ = check(fs.det, fs.cat)
+            if match is not None:
+                found.append(match)
+    if not (found and _geometric_high(found[0], [], n, cp)):
+        found += match_triangles(v, catalog, eps, check, params.triangle, deadline=t0 + params.time_budget_s)
+    timings["match"] = time.perf_counter() - t1 - verify_time[0]
+    timings["verify"] = verify_time[0]
+    timings["total"] = time.perf_counter() - t0
+    if not found:
+        return f"no verified identification ({groups} 4-star group(s), triangle fallback)"
+    best = max(found, key=lambda f: (f.n, f.coverage if np.isfinite(f.coverage) else 0.0))
+    rivals = [f for f in found if f is not best and f.n >= max(3, cp.rival_ratio * best.n)
+              and rotation_angle(f.attitude.a, best.attitude.a) >= cp.rival_angle]
+    high = _geometric_high(best, rivals, n, cp)
+    if high:
+        reason = ""
+    elif rivals:
+        reason = f"{len(rivals)} rival hypothesis(es) with comparable support"
+    else:
+        reason = f"{best.n} of {n} detections matched"
+    out = _result(best, Outcome.HIGH_CONFIDENCE if high else Outcome.LOW_CONFIDENCE, reason, index_map,
+                  catalog, "geometric", n)
+    out.attempts = groups
+    return out
+
+
+def _geometric_high(best, rivals, n, cp: ConsensusParams) -> bool:
+    """High confidence for a geometric answer: no rival, at least three stars, and the eta test or
+    a large well-covering set (as in the colour consensus)."""
+    if rivals or best.n < 3:
+        return False
+    cov = best.coverage if np.isfinite(best.coverage) else 0.0
+    return best.n >= cp.eta * n or (best.n >= cp.confident_stars and cov >= cp.confident_coverage)
