@@ -10,7 +10,8 @@ against truth, log every result as it comes, and summarise.
   logged is lost and nothing is logged twice.
 * :class:`OfflineSolver` runs the same pipeline in-process.
 * Scoring: ``correct`` when the attitude error is at most :data:`CORRECT_DEG` and no matched
-  star carries a wrong id; ``wrong`` for any other returned attitude; ``no_match`` when no
+  star carries a wrong id (an id is wrong when truth stars lie within :data:`MATCH_RADIUS_PX`
+  of the detection and none of them has it: a blend may be matched to either component); ``wrong`` for any other returned attitude; ``no_match`` when no
   attitude came back; ``unscored`` without truth; ``unreadable`` when the file could not be
   read (the run goes on).
 """
@@ -69,12 +70,11 @@ class Truth:
                    np.array([s["id"] for s in stars], dtype=np.int64),
                    np.array([s["x"] for s in stars], dtype=float), np.array([s["y"] for s in stars], dtype=float))
 
-    def star_at(self, x: float, y: float) -> int | None:
+    def stars_near(self, x: float, y: float) -> set[int]:
+        """Ids of truth stars within MATCH_RADIUS_PX (a blend may hold several)."""
         if not len(self.x):
-            return None
-        d = np.hypot(self.x - x, self.y - y)
-        k = int(np.argmin(d))
-        return int(self.star_id[k]) if d[k] <= MATCH_RADIUS_PX else None
+            return set()
+        return {int(i) for i in self.star_id[np.hypot(self.x - x, self.y - y) <= MATCH_RADIUS_PX]}
 
 
 def score(record: dict, truth: Truth | None) -> dict:
@@ -86,8 +86,8 @@ def score(record: dict, truth: Truth | None) -> dict:
     err = np.degrees(rotation_angle(quat_to_matrix(record["q_icrs_to_sensor"]), quat_to_matrix(truth.q_icrs_to_sensor)))
     wrong = 0
     for s in matched_stars(record):
-        true_id = truth.star_at(s["x"], s["y"])
-        wrong += int(true_id is not None and true_id != s["catalog_id"])
+        near = truth.stars_near(s["x"], s["y"])
+        wrong += int(bool(near) and s["catalog_id"] not in near)
     outcome = "correct" if err <= CORRECT_DEG and wrong == 0 else "wrong"
     return {"outcome": outcome, "attitude_error_deg": float(err), "wrong_ids": wrong}
 
