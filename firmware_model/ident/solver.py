@@ -168,7 +168,7 @@ def _result(match: VerifiedMatch, status: Outcome, reason: str, index_map, catal
         matched_det=index_map[match.det], matched_cat=match.cat, matched_star_id=catalog.star_id[match.cat],
         matched_rg=catalog.rg[match.cat].astype(float), matched_bg=catalog.bg[match.cat].astype(float),
         residuals=att.residuals, consensus_size=match.n_consensus, consensus_rms=att.rms,
-        confidence=float(match.coverage if np.isfinite(match.coverage) else 1.0) * match.n / max(n_used, 1),
+        confidence=float(match.coverage if np.isfinite(match.coverage) else 1.0) * min(1.0, match.n / max(n_used, 1)),
         method=method, n_used=n_used)
 
 
@@ -222,7 +222,7 @@ def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveP
         timings["total"] = time.perf_counter() - t0
         if res.best is None:
             return no_match(res.reason, method)
-        out = _result(res.best, res.outcome, res.reason, index_map, catalog, method, min(n, params.consensus.max_stars))
+        out = _result(res.best, res.outcome, res.reason, index_map, catalog, method, n)
         out.attempts = res.attempts
     else:
         out = _solve_geometric(v, catalog, noise, params, check, n, t0, t1, timings, verify_time, index_map)
