@@ -78,7 +78,7 @@ class VerifyParams:
     """Knobs of the verification (see module docstring)."""
 
     residual_sigmas: float = 5.0
-    refine_sigmas: float = 5.0
+    refine_sigmas: float = 4.0
     refine_passes: int = 2
     colour_gate: float = 4.65
     min_coverage: float = 0.7
