@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from firmware_model.ident.consensus import ConsensusParams, Outcome, match_scene
 from firmware_model.frames import rotation_angle
+from firmware_model.ident.consensus import ConsensusParams, Outcome, match_scene
 from firmware_model.ident.four_star import FourStarParams, match_four_star
 from firmware_model.ident.pair_match import PairNoise, sigma_phi_from_centroid
 from firmware_model.ident.triangle import TriangleParams, match_triangles
