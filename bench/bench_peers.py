@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from firmware_model.camera import CameraModel
-from firmware_model.frames import attitude_from_radec_roll, radec_to_vec, rotation_angle, quat_to_matrix
+from firmware_model.frames import attitude_from_radec_roll, quat_to_matrix, radec_to_vec, rotation_angle
 from firmware_model.ident.attitude import svd_attitude
 from firmware_model.ident.solver import SolveParams, solve
 from firmware_model.ident.verify import FieldOfView, VerifyParams
