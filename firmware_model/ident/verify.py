@@ -12,6 +12,10 @@ explains the whole frame:
    are known, the colour distance is below ``colour_gate``. Two passes.
    Matched stars with a second catalog star inside the same gate (unresolved doubles at this
    noise) are dropped from the answer when ``drop_ambiguous``: their identity cannot be told.
+   Then a **final residual test** on each star's own noise (the refinement gate includes the
+   attitude covariance, which is wide for a loose early hypothesis): stars beyond
+   ``residual_sigmas`` sigma are dropped and the attitude re-solved, and the hypothesis fails if
+   the normalised RMS residual exceeds ``max_normalised_rms``.
 3. **Coverage (likelihood of non-detections)**: the catalog stars the attitude puts inside the
    field of view (shrunk by ``edge_margin``) and at least ``mag_margin`` brighter than the
    catalog limit should have been detected. With ``coverage_limit = "matched"`` only stars no
@@ -78,6 +82,7 @@ class VerifyParams:
     """Knobs of the verification (see module docstring)."""
 
     residual_sigmas: float = 5.0
+    max_normalised_rms: float = 3.0
     refine_sigmas: float = 4.0
     refine_passes: int = 2
     colour_gate: float = 4.65
@@ -182,6 +187,20 @@ def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray
         if not clear.all() and clear.sum() >= 2:
             det, cat = det[clear], cat[clear]
             sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
+    # 2c. final residual test on the measurement noise alone: refinement gates include the
+    # attitude covariance, which is large for a loose early hypothesis, so stars taken in then
+    # must still fit the final attitude within residual_sigmas of their own noise
+    for _ in range(params.refine_passes + 1):
+        bad = sol.residuals > params.residual_sigmas * sigma[det]
+        if not bad.any():
+            break
+        det, cat = det[~bad], cat[~bad]
+        if len(det) < 2:
+            return None, "final residual test left fewer than two stars"
+        sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
+    chi = float(np.sqrt(np.mean((sol.residuals / sigma[det]) ** 2)))
+    if chi > params.max_normalised_rms:
+        return None, f"residuals {chi:.1f} sigma RMS: inconsistent with the measurement noise"
     # 3. coverage of predicted-visible catalog stars
     mag_limit = float(catalog.__dict__.setdefault("_ident_mag_limit", float(np.max(catalog.mag)))) - params.mag_margin
     limit = params.coverage_limit
