@@ -70,7 +70,9 @@ class PipelineParams:
     stars expected in the field (:func:`geometric_detection_cap`). ``geometric_fallback``: when that 4-star match finds
     nothing, the consensus matcher of seed 000 runs on geometry alone (colours unknown), which
     tolerates missing and extra stars far better; its answers are labelled
-    ``geometric-consensus``."""
+    ``geometric-consensus``. ``colour_fallback``: in ``auto`` mode a colour frame that the colour
+    matcher cannot solve (colours biased beyond the catalog's noise model, e.g. through the
+    atmosphere before calibration) is solved on geometry alone, as a mono frame would be."""
 
     extract: ExtractParams = ExtractParams()
     solve: SolveParams = SolveParams()
@@ -79,6 +81,7 @@ class PipelineParams:
     photometric_gate: float | None = 0.1
     geometric_density_factor: float = 1.5
     geometric_fallback: bool = True
+    colour_fallback: bool = True
 
 
 @dataclass
@@ -89,6 +92,7 @@ class PipelineOutput:
     used: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))  #: star rows given to the solver
     solution: SolveResult | None = None
     timings: dict = field(default_factory=dict)  #: seconds per stage (STAGES)
+    colour_beta: tuple | None = None  #: the eq. 24 correction the matcher's colours went through
 
     @property
     def ok(self) -> bool:
@@ -140,6 +144,10 @@ def identify_stars(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
         sol, rows = _solve_geometric(used, stars, camera, catalog, params, timings)
     else:
         sol, rows = _solve_rows(used, stars, camera, catalog, params, params.solve.mode, True, timings)
+        if sol.status is Outcome.NO_MATCH and params.colour_fallback and params.solve.mode == "auto":
+            geometric = True  # colours biased beyond the catalog's noise model: try geometry alone
+            sol, rows = _solve_geometric(used, stars, camera, catalog, replace(params, solve=replace(
+                params.solve, mode="geometric")), timings)
     if geometric and sol.status is Outcome.NO_MATCH and params.geometric_fallback and catalog.has_colour:
         sol2, rows2 = _solve_rows(used, stars, camera, catalog, params, "colour", False, timings)
         if sol2.status is not Outcome.NO_MATCH:
@@ -148,9 +156,9 @@ def identify_stars(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
     used = rows
     timings["total"] = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
     if sol.status is Outcome.NO_MATCH:
-        return PipelineOutput(Status.NO_MATCH, sol.reason, stars, used, sol, timings)
+        return PipelineOutput(Status.NO_MATCH, sol.reason, stars, used, sol, timings, params.colour_beta)
     status = Status.OK if sol.status is Outcome.HIGH_CONFIDENCE else Status.LOW_CONFIDENCE
-    return PipelineOutput(status, sol.reason, stars, used, sol, timings)
+    return PipelineOutput(status, sol.reason, stars, used, sol, timings, params.colour_beta)
 
 
 def _solve_rows(rows, stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams,
@@ -295,9 +303,10 @@ def result_fields(out: PipelineOutput) -> dict:
             "ext.quaternion": q, "ext.sigma": _sigma_axes(sol.covariance),
             "ext.residual_rms": float(sol.consensus_rms),
         })
-        if sol.method == "colour" and n_matched:
-            obs_rg = out.stars.rg[rows] if out.stars is not None else np.nan
-            obs_bg = out.stars.bg[rows] if out.stars is not None else np.nan
+        if n_matched and out.stars is not None and np.isfinite(out.stars.rg[rows]).any():
+            obs_rg, obs_bg = out.stars.rg[rows], out.stars.bg[rows]
+            if out.colour_beta is not None:
+                obs_rg, obs_bg = apply_colour_correction(obs_rg, obs_bg, out.colour_beta)
             d = np.concatenate([obs_rg - sol.matched_rg, obs_bg - sol.matched_bg])
             fields["ext.colour_rms"] = float(np.sqrt(np.nanmean(d ** 2)))
     fields["ext.n_matched"] = n_matched

@@ -75,6 +75,8 @@ EXT_REASON_BYTES = 96  #: UTF-8 reason text (NUL padded) when the status is not 
 #: Extension header (ours), 128 bytes, then EXT_MAX_STARS stars. ``quaternion`` is the solved
 #: attitude (scalar first, ICRS -> sensor); ``sigma`` its 1-sigma errors about sensor x, y, z (rad);
 #: ``solve_time`` seconds spent in the solver; CRC-32s identify the catalog and frame used;
+#: ``colour_rms`` RMS of (rg, bg) minus the catalog's over the matched stars, after the device's
+#: colour correction (the stars' ``rg``, ``bg`` are the raw measurements);
 #: ``stage_times`` seconds for detect, fit, vectors, identify, attitude, total
 #: (``firmware_model.pipeline.STAGES``); ``method`` 0 none, 1 colour, 2 geometric (4-star), 3 geometric consensus; ``reason``
 #: why the status is what it is (UTF-8, truncated to EXT_REASON_BYTES).

@@ -1,0 +1,132 @@
+"""Field workflows end to end: the device rendering the sky from an attitude schedule, a colour
+calibration fitted from a run and uploaded as a parameter set, and the table-5 replay."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from firmware_model.camera import CameraModel
+from firmware_model.catalog_image_io import catalog_to_image
+from firmware_model.frame import frame_to_bytes
+from firmware_model.frame_io import read_frame
+from firmware_model.frames import matrix_to_quat, quat_to_matrix, rotation_angle
+from ground.catalog.build import build_catalog
+from ground.catalog.design import CatalogDesign
+from ground.client import Client
+from ground.corrections import ColourCorrection
+from ground.demo import pick_attitudes, start_device, stop_device
+from ground.frame_writer import write_frame
+from ground.replay import OfflineSolver, TABLE5_MODES, frame_files, replay, table5
+from ground.sensor_sim import DetectorModel, Stars, render_frame
+from ground.sky_model import sky_stars
+from ground.solve_report import solve_record
+
+CAMERA = CameraModel.reference_design()
+#: The "atmosphere" of these tests: observed rg, bg are a linear map of the catalog's.
+BIAS = np.array([[0.85, 0.0], [0.05, 0.8]]), np.array([0.02, -0.05])
+
+
+@pytest.fixture(scope="module")
+def catalog():
+    return build_catalog(CatalogDesign())
+
+
+def biased_sky() -> Stars:
+    s = sky_stars()
+    obs = np.column_stack([s.rg, s.bg]) @ BIAS[0].T + BIAS[1]
+    return Stars(ids=s.ids, vectors=s.vectors, vmag=s.vmag, rg=obs[:, 0], bg=obs[:, 1])
+
+
+def test_device_renders_the_sky_from_a_schedule(catalog, tmp_path):
+    atts = pick_attitudes(catalog, CAMERA, 2, np.random.default_rng(9))
+    schedule = tmp_path / "schedule.csv"
+    schedule.write_text("# two exposures\nqw,qx,qy,qz,pattern\n" + "".join(
+        ",".join(f"{v:.12f}" for v in matrix_to_quat(a)) + f",{p}\n" for a, p in zip(atts, ("RGGB", "MONO"))))
+    proc, pty = start_device(tmp_path / "state", "--sky", str(schedule))
+    try:
+        with Client(pty) as c:
+            c.init()
+            c.upload(0, catalog_to_image(catalog), progress=False)
+            recs = [solve_record(c.go_and_wait(timeout=60)) for _ in atts]
+    finally:
+        assert stop_device(proc) == 0
+    for rec, a, method in zip(recs, atts, ("colour", "geometric")):
+        assert rec["status"] == "OK" and rec["method"] == method
+        err = np.degrees(rotation_angle(quat_to_matrix(rec["q_icrs_to_sensor"]), a))
+        assert err < 0.01
+
+
+def test_bad_schedule_is_refused(tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("qw,qx,qy,qz\n1,0,0,0.5\n")
+    run = subprocess.run([sys.executable, "-m", "firmware_model.cli", "--pty", "--sky", str(bad)],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2 and "row 1: quaternion norm" in run.stderr
+
+
+@pytest.fixture(scope="module")
+def biased_frames(catalog, tmp_path_factory):
+    """Six colour frames through the biased 'atmosphere', with truth."""
+    d = tmp_path_factory.mktemp("biased")
+    sky = biased_sky()
+    for k, a in enumerate(pick_attitudes(catalog, CAMERA, 6, np.random.default_rng(21))):
+        r = render_frame(sky, a, CAMERA, DetectorModel(), seed=300 + k)
+        path = write_frame(r.frame, d / f"b{k}.dng")
+        (d / f"{path.stem}.truth.json").write_text(json.dumps(r.truth))
+    return d
+
+
+def test_colour_calibration_from_a_run_and_on_the_device(catalog, biased_frames, tmp_path):
+    summary = replay(biased_frames, OfflineSolver(CAMERA, catalog), tmp_path / "run", progress=False, make_plots=False)
+    assert summary["counts"].get("correct", 0) >= 4
+    image = tmp_path / "cat.st16cat"
+    image.write_bytes(catalog_to_image(catalog))
+    exe = Path(sys.executable).parent / "st16-ground"
+    out = tmp_path / "cc.json"
+    run = subprocess.run([str(exe), "colour", "fit", str(tmp_path / "run" / "results.jsonl"), "--catalog",
+                          str(image), "-o", str(out)], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    fit = ColourCorrection.from_json(out.read_text())
+    assert fit.rms_after < 0.5 * fit.rms_before and fit.n_used >= 20
+    # star colours lie near a one-dimensional locus, so the 2 x 2 map is only determined along
+    # it: check that the fit takes the biased colours of the catalog's stars back to the catalog
+    cat = np.column_stack([catalog.rg, catalog.bg]).astype(float)
+    cat = cat[np.isfinite(cat).all(axis=1)]
+    observed = cat @ BIAS[0].T + BIAS[1]
+    rg, bg = fit.apply(observed[:, 0], observed[:, 1])
+    back = np.sqrt(np.mean((np.column_stack([rg, bg]) - cat) ** 2))
+    assert back < 0.25 * np.sqrt(np.mean((observed - cat) ** 2))
+    # the parameter set goes to the device, which then sees catalog-like colours on the same frame
+    frame = frame_to_bytes(read_frame(frame_files(biased_frames)[0]))
+    proc, pty = start_device(tmp_path / "state")
+    try:
+        with Client(pty) as c:
+            c.init()
+            c.upload(0, image.read_bytes(), progress=False)
+            c.upload(1, frame, progress=False)
+            before = solve_record(c.go_and_wait(timeout=60)), float(c.read_result_record()["ext"]["colour_rms"])
+            params = out.with_suffix(".params.json")
+            run = subprocess.run([str(exe), "--port", pty, "params", "upload", str(params)], capture_output=True,
+                                 text=True, timeout=60)
+            assert run.returncode == 0, run.stderr
+            assert c.slot_info(2).active
+            c.upload(1, frame, progress=False)
+            after = solve_record(c.go_and_wait(timeout=60)), float(c.read_result_record()["ext"]["colour_rms"])
+    finally:
+        assert stop_device(proc) == 0
+    assert before[0]["q_icrs_to_sensor"] is not None and after[0]["status"] == "OK"
+    assert after[0]["method"] == "colour"
+    assert after[1] < 0.75 * before[1]  # what remains is mostly photon noise of the fainter stars
+
+
+def test_table5_modes_on_frames_with_truth(catalog, biased_frames):
+    out = table5(frame_files(biased_frames), CAMERA, catalog, progress=False)
+    assert out["frames"] == 6 and list(out["table"]) == list(TABLE5_MODES)
+    for mode, counts in out["table"].items():
+        assert sum(counts.values()) == 6
+    # removing each star's mean colour error can only help a biased run
+    assert out["table"]["ideal colour"]["correct"] >= out["table"]["basic"]["correct"]
