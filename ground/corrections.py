@@ -2,7 +2,7 @@
 
 * :class:`ColourCorrection` is the six-parameter bilinear map of eq. 24,
   ``[rg', bg'] = B @ [rg, bg] + c``, fitted by least squares on matched stars with iterative
-  outlier rejection. RMS figures are over both ratios of every star used:
+  outlier rejection (bounded, and with a weak pull of ``B`` towards the identity). RMS figures are over both ratios of every star used:
   ``sqrt(mean((rg' - rg_cat)^2 + (bg' - bg_cat)^2) / 2)``.
 * :func:`correct_refraction` removes atmospheric refraction from observed sensor-frame star
   vectors, given an approximate attitude (within about a degree, as in eq. 25), the site, the
@@ -49,28 +49,42 @@ class ColourCorrection:
         return out[..., 0], out[..., 1]
 
     @classmethod
-    def fit(cls, observed, catalog, clip: float = 3.0, max_iter: int = 10, min_stars: int = 4):
+    def fit(cls, observed, catalog, clip: float = 3.0, max_iter: int = 10, min_stars: int = 4,
+            min_sigma: float = 0.01, max_reject: float = 0.2, prior_weight: float = 0.01):
         """Least-squares fit of eq. 24 with iterative rejection of outliers.
 
-        ``observed`` and ``catalog`` are (N, 2) arrays of (rg, bg). A star is rejected when its
-        residual norm exceeds ``clip`` times the robust (MAD-based) scale of the residual norms.
+        ``observed`` and ``catalog`` are (N, 2) arrays of (rg, bg). The residual scale is
+        estimated robustly (``median |r| / 1.1774``, the Rayleigh median, floored at
+        ``min_sigma``) and stars beyond ``clip`` scales are rejected, never more than
+        ``max_reject`` of them. Star colours lie near a one-dimensional locus and a field may
+        hold few distinct spectra, so the matrix is weakly pulled towards the identity
+        (``prior_weight`` x N pseudo-observations): directions the data do not constrain stay
+        as they are instead of collapsing.
         """
         obs = np.asarray(observed, dtype=float)
         cat = np.asarray(catalog, dtype=float)
         if obs.shape != cat.shape or obs.ndim != 2 or obs.shape[1] != 2:
             raise ValueError(f"observed and catalog must both be (N, 2); got {obs.shape} and {cat.shape}")
         finite = np.isfinite(obs).all(axis=1) & np.isfinite(cat).all(axis=1)
-        if finite.sum() < min_stars:
-            raise ValueError(f"need at least {min_stars} stars with finite colours to fit 6 parameters, got {int(finite.sum())}")
-        use = finite.copy()
+        n_finite = int(finite.sum())
+        if n_finite < min_stars:
+            raise ValueError(f"need at least {min_stars} stars with finite colours to fit 6 parameters, got {n_finite}")
         design = np.hstack([obs, np.ones((len(obs), 1))])
+        use = finite.copy()
         coef = None
         for _ in range(max_iter):
-            coef, *_ = np.linalg.lstsq(design[use], cat[use], rcond=None)
+            w = np.sqrt(prior_weight * use.sum())
+            prior_x = np.array([[w, 0.0, 0.0], [0.0, w, 0.0]])
+            prior_y = np.array([[w, 0.0], [0.0, w]])
+            coef, *_ = np.linalg.lstsq(np.vstack([design[use], prior_x]), np.vstack([cat[use], prior_y]), rcond=None)
             resid = np.linalg.norm(design @ coef - cat, axis=1)
-            scale = 1.4826 * np.median(np.abs(resid[use] - np.median(resid[use]))) + 1e-12
-            keep = finite & (resid <= np.median(resid[use]) + clip * scale)
-            if keep.sum() < min_stars or np.array_equal(keep, use):
+            scale = max(float(np.median(resid[use])) / 1.1774, min_sigma)
+            keep = finite & (resid <= clip * scale)
+            if keep.sum() < max(min_stars, (1 - max_reject) * n_finite):
+                worst = np.argsort(np.where(finite, resid, np.inf))  # keep the best (1 - max_reject)
+                keep = np.zeros_like(finite)
+                keep[worst[: int(np.ceil((1 - max_reject) * n_finite))]] = True
+            if np.array_equal(keep, use):
                 break
             use = keep
         beta = np.array([coef[0, 0], coef[1, 0], coef[0, 1], coef[1, 1], coef[2, 0], coef[2, 1]])
@@ -79,7 +93,7 @@ class ColourCorrection:
         corr.rms_before = _rms(obs[use], cat[use])
         corr.rms_after = _rms(np.stack([rg2, bg2], axis=1), cat[use])
         corr.n_used = int(use.sum())
-        corr.n_rejected = int(finite.sum() - use.sum())
+        corr.n_rejected = n_finite - corr.n_used
         return corr
 
     def to_json(self) -> str:
