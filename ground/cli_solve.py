@@ -101,7 +101,16 @@ def _replay(args) -> int:
     if args.offline:
         if not args.catalog:
             raise SystemExit("st16-ground: replay --offline needs --catalog IMAGE")
-        solver = OfflineSolver(_load_camera(args.camera), _load_catalog(args.catalog), PipelineParams())
+        site = None
+        if args.site:
+            from ground.corrections import Site
+
+            try:
+                parts = [float(v) for v in args.site.split(",")]
+                site = Site(*parts[:3], pressure_hpa=args.pressure, temperature_c=args.temperature)
+            except (ValueError, TypeError):
+                raise SystemExit(f"st16-ground: --site wants LAT,LON[,HEIGHT_M] in degrees/metres, got {args.site!r}")
+        solver = OfflineSolver(_load_camera(args.camera), _load_catalog(args.catalog), PipelineParams(), site)
     else:
         if not args.port:
             raise SystemExit("st16-ground: --port URL is required (or use --offline)")
@@ -204,6 +213,9 @@ def register(sub) -> None:
     p.add_argument("--offline", action="store_true", help="run the pipeline in-process instead of over the link")
     p.add_argument("--catalog", help="catalog image for --offline")
     p.add_argument("--camera", help="camera model JSON for --offline (default: reference design)")
+    p.add_argument("--site", help="with --offline: LAT,LON[,HEIGHT] (deg, m) of a ground site: correct refraction")
+    p.add_argument("--pressure", type=float, default=1013.25, help="site pressure, hPa (with --site)")
+    p.add_argument("--temperature", type=float, default=10.0, help="site temperature, deg C (with --site)")
     p.add_argument("--out", default=DEFAULT_RESULTS, help="output directory (log, summary, plots)")
     p.add_argument("--reconnect-timeout", type=float, default=120.0, help="wait this long for a silent device, s")
     p.set_defaults(func=_replay)
