@@ -13,7 +13,7 @@ Usage: .venv/bin/python bench/bench_link.py [--pings 3000] [--upload-kib 96] [--
 from __future__ import annotations
 
 import argparse
-import os
+import json
 import random
 import struct
 import subprocess
@@ -110,8 +110,21 @@ def bench_ping(n: int) -> None:
 
 
 def bench_upload(kib: int, baud: int = 115200) -> None:
-    data = os.urandom(kib * 1024)
-    proc, path = start(device_cmd("--pace", "--baud", str(baud)))
+    """A frame of random pixels into slot 1 (the device validates what it receives), sized to
+    about ``kib`` KiB with a small camera model."""
+    import tempfile
+
+    from firmware_model.camera import CameraModel
+    from firmware_model.frame import Frame, frame_to_bytes
+
+    width = 256
+    height = max(2, (kib * 1024 // (2 * width)) // 2 * 2)
+    camera = CameraModel.from_fov(width, height, 7.5)
+    pixels = np.random.default_rng(0).integers(0, 4096, (height, width), dtype=np.uint16)
+    data = frame_to_bytes(Frame(pixels=pixels, pattern="RGGB", black_level=64, white_level=4095))
+    cam_file = Path(tempfile.mkdtemp()) / "camera.json"
+    cam_file.write_text(json.dumps(camera.to_dict()))
+    proc, path = start(device_cmd("--pace", "--baud", str(baud), "--camera", str(cam_file)))
     try:
         with Client(path, timeout=2.0) as c:
             report = c.upload(1, data, progress=True)

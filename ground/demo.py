@@ -20,7 +20,7 @@ import numpy as np
 
 from firmware_model.camera import CameraModel
 from firmware_model.catalog_image_io import catalog_to_image
-from firmware_model.frames import attitude_from_radec_roll, quat_to_matrix
+from firmware_model.frames import attitude_from_radec_roll
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
 from ground.frame_writer import write_frame

@@ -33,7 +33,7 @@ import numpy as np
 from scipy.special import erf
 
 from firmware_model.camera import CameraModel
-from firmware_model.frame import Frame, pattern_codes, normalise_pattern, RED, GREEN, BLUE
+from firmware_model.frame import Frame, normalise_pattern, pattern_codes
 from firmware_model.frames import matrix_to_quat
 
 #: Johnson V zero-point photon flux density, photons s^-1 cm^-2 A^-1 (3.63e-9 erg/s/cm^2/A at 5500 A).
@@ -241,7 +241,6 @@ def render_frame(
                 raise ValueError("a satellite streak needs x2, y2")
             _add_streak(signal, chan_map, det, obj, mono)
         elif obj.kind == "cosmic":
-            r, c = int(round(obj.y)), int(round(obj.x))
             x2 = obj.x if obj.x2 is None else obj.x2
             y2 = obj.y if obj.y2 is None else obj.y2
             n = int(max(abs(x2 - obj.x), abs(y2 - obj.y))) + 1

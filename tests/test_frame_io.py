@@ -5,7 +5,7 @@ import pytest
 
 from firmware_model.frame import Frame, frame_from_bytes, frame_to_bytes, pattern_codes, RED, GREEN, BLUE
 from firmware_model.frame_io import FrameReadError, read_frame
-from ground.frame_writer import write_dng, write_fits, write_frame, write_npy
+from ground.frame_writer import write_dng, write_frame
 
 
 def _frame(pattern="RGGB", shape=(48, 64), seed=0):

@@ -154,7 +154,6 @@ def grow(seed_det, seed_cat, vectors, rg, bg, ang, catalog: OnboardCatalog, nois
     the first one consistent with all of ``S`` (eqs 8-9) is accepted.
     """
     indptr, nbr, nphi, crg, cbg = neighbour_table(catalog)
-    n = len(vectors)
     s_det = list(seed_det)
     s_cat = list(seed_cat)
     dphi_star = consistency_tolerance(noise.sigma_phi, delta_star)
