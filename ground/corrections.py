@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from firmware_model.pipeline import apply_colour_correction
+
 PARAMETER_KIND = "colour_correction"
 
 
@@ -43,10 +45,8 @@ class ColourCorrection:
         return np.asarray(self.beta[4:6], dtype=float)
 
     def apply(self, rg, bg):
-        """Corrected (rg', bg') for observed ratios (arrays or scalars)."""
-        obs = np.stack([np.asarray(rg, float), np.asarray(bg, float)], axis=-1)
-        out = obs @ self.matrix.T + self.offset
-        return out[..., 0], out[..., 1]
+        """Corrected (rg', bg') for observed ratios (arrays or scalars), as the device applies it."""
+        return apply_colour_correction(np.asarray(rg, float), np.asarray(bg, float), self.beta)
 
     @classmethod
     def fit(cls, observed, catalog, clip: float = 3.0, max_iter: int = 10, min_stars: int = 4,
