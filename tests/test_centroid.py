@@ -126,3 +126,29 @@ def test_cog_method_is_coarser_than_the_fit_and_bad_method_rejected():
     assert np.all(np.isfinite(cog.rg)) and np.all(cog.flags & StarFlag.FIT_FAILED == 0)
     with pytest.raises(ValueError, match="unknown fit method"):
         fit_stars(res.frame, det, FitParams(method="gauss"))
+
+
+def test_batched_windows_match_single_window_model():
+    """The all-windows model, Jacobian and linear solve equal the one-window reference."""
+    from firmware_model.centroid import _Windows
+
+    stars = random_star_field(CAM, ATT, 6, vmag_range=(2.0, 4.0), seed=11, min_separation_px=25)
+    res = render_frame(stars, ATT, CAM, seed=11)
+    det = detect_stars(res.frame)
+    win = _Windows(res.frame, det, 4)
+    rng = np.random.default_rng(1)
+    n = len(det)
+    p = np.column_stack([det.x + rng.normal(0, 0.3, n), det.y + rng.normal(0, 0.3, n), rng.uniform(0.8, 1.3, n),
+                         rng.uniform(500, 2000, (n, 3)), rng.uniform(2, 8, (n, 3))])
+    r, jac, jfd = win.residuals(p, win.w), win.jacobian(p, win.w), win.jacobian_fd(p, win.w)
+    lin = win.linear_solve(p[:, 0], p[:, 1], p[:, 2], win.w)
+    for i in range(n):
+        v = win.valid[i]
+        rows = np.repeat(win.row_coords[i], win.side)[v]
+        cols = np.tile(win.col_coords[i], win.side)[v]
+        wm = _WindowModel(rows, cols, win.chan[i][v], 3, win.w[i][v])
+        assert np.allclose(r[i][v], wm.residuals(p[i], win.data[i][v]), rtol=1e-10, atol=1e-10)
+        assert np.allclose(jac[i][v], wm.jacobian(p[i]), rtol=1e-10, atol=1e-10)
+        assert np.allclose(jfd[i][v], jac[i][v], rtol=1e-4, atol=1e-4)
+        assert np.allclose(lin[i], wm.linear_solve(p[i, 0], p[i, 1], p[i, 2], win.data[i][v]), rtol=1e-8)
+        assert np.all(r[i][~v] == 0) and np.all(jac[i][~v] == 0)
