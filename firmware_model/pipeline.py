@@ -11,6 +11,7 @@ sections (quaternion, centroid and matching telemetry for image 1) and our exten
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -166,8 +167,12 @@ def _solve_rows(rows, stars: StarList, camera: CameraModel, catalog: OnboardCata
     """Solve on ``rows`` of ``stars`` (adds to ``timings``); returns (solution, rows it refers to).
 
     Saturated or blended stars keep their geometry but lose their colour; the per-star
-    direction noise comes from the fit covariance with a floor, larger for untrusted fits. A
-    low-confidence answer is retried with the photometric gate (:class:`PipelineParams`)."""
+    direction noise comes from the fit covariance with a floor, larger for untrusted fits. The
+    colour noise given to the matcher is the largest of the solver setting, the catalog's
+    design value and the median colour sigma the fit measured on this frame (a small aperture
+    leaves 4th-magnitude stars with ~0.1 colour noise; matching them at 0.05 rejects true
+    matches). A low-confidence answer is retried with the photometric gate
+    (:class:`PipelineParams`)."""
     flags = stars.flags[rows]
     colour_ok = ((flags & int(StarFlag.SATURATED | StarFlag.BLEND)) == 0) & use_colour
     rg = np.where(colour_ok, stars.rg[rows], np.nan)
@@ -181,10 +186,14 @@ def _solve_rows(rows, stars: StarList, camera: CameraModel, catalog: OnboardCata
         var = np.where(np.isfinite(var), var, UNKNOWN_CENTROID_SIGMA_PX ** 2)
         floor = np.where((flags & int(UNTRUSTED)) != 0, UNTRUSTED_CENTROID_FLOOR_PX, CENTROID_SIGMA_FLOOR_PX)
         sigma_px = np.sqrt(var + floor ** 2)
+    measured = np.sqrt(np.where(colour_ok[:, None], stars.cov_colour[rows][:, [0, 1], [0, 1]], np.nan))
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: no colour measured
+        frame_rg, frame_bg = np.nanmedian(measured, axis=0) if len(rows) else (np.nan, np.nan)
     solve_params = replace(
         params.solve, mode=mode, sigma_vec=sigma_px / camera.f, fov=params.solve.fov or FieldOfView.from_camera(camera),
-        sigma_rg=float(np.nanmax([params.solve.sigma_rg, catalog.meta.get("sigma_rg", np.nan)])),
-        sigma_bg=float(np.nanmax([params.solve.sigma_bg, catalog.meta.get("sigma_bg", np.nan)])))
+        sigma_rg=float(np.nanmax([params.solve.sigma_rg, catalog.meta.get("sigma_rg", np.nan), frame_rg])),
+        sigma_bg=float(np.nanmax([params.solve.sigma_bg, catalog.meta.get("sigma_bg", np.nan), frame_bg])))
 
     def run(sub_rows, sub):
         out = solve(stars.vectors[sub_rows], rg[sub], bg[sub], catalog, replace(solve_params, sigma_vec=solve_params.sigma_vec[sub]))
