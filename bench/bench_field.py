@@ -42,13 +42,14 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from firmware_model.camera import CameraModel
+    from firmware_model.frame_io import frame_files
     from firmware_model.frames import attitude_from_radec_roll, radec_to_vec
     from firmware_model.pipeline import PipelineParams
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
     from ground.corrections import ColourCorrection
     from ground.frame_writer import write_frame
-    from ground.replay import OfflineSolver, TABLE5_MODES, frame_files, replay, table5
+    from ground.replay import OfflineSolver, TABLE5_MODES, replay, table5
     from ground.sensor_sim import DetectorModel, Stars, render_frame
     from ground.sky_model import sky_stars
 

@@ -40,6 +40,8 @@ RAW_EXTENSIONS = {
     ".rw2", ".pef", ".srw", ".3fr", ".iiq", ".mos", ".erf", ".kdc", ".raw", ".rwl",
 }
 FITS_CAMERA_KEYS = ("f", "cx", "cy", "k1", "k2", "k3", "p1", "p2")
+#: File suffixes taken for frames when a directory is listed (sidecars and truth files are not).
+FRAME_SUFFIXES = RAW_EXTENSIONS | {".fits", ".fit", ".fts", ".tif", ".tiff", ".npy"}
 
 
 class FrameReadError(ValueError):
@@ -71,6 +73,14 @@ def read_frame(path) -> Frame:
     except (ValueError, OSError, KeyError, TypeError) as exc:
         raise FrameReadError(f"{path}: {exc}") from exc
     raise FrameReadError(f"{path}: not a recognised frame file (DNG/raw, FITS, TIFF, .npy, frame blob)")
+
+
+def frame_files(directory) -> list[Path]:
+    """Frame files of a directory (by :data:`FRAME_SUFFIXES`), in name order."""
+    d = Path(directory)
+    if not d.is_dir():
+        raise ValueError(f"{d} is not a directory")
+    return sorted(p for p in d.iterdir() if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES)
 
 
 def _tiff_is_raw(path: Path) -> bool:

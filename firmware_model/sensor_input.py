@@ -23,7 +23,7 @@ from typing import Any, Callable
 from firmware_model.camera import CameraModel
 from firmware_model.device import FrameUnavailable, SlotHandler, SolveContext
 from firmware_model.frame import Frame, frame_from_bytes
-from firmware_model.frame_io import FrameReadError, read_frame
+from firmware_model.frame_io import FrameReadError, frame_files, read_frame
 from firmware_model.pipeline import PipelineParams, result_fields, run_pipeline, with_psf_sigma
 from protocol.commands import SlotRejected
 
@@ -140,16 +140,15 @@ def params_slot_handler() -> SlotHandler:
 
 
 class FileFrames:
-    """Capture source replaying frame files in name order (``DIR`` or a glob), optionally looping.
+    """Capture source replaying frame files in name order (``DIR``: its files with frame suffixes,
+    as ``replay`` lists them; or a glob), optionally looping.
 
     An unreadable file or one of the wrong size makes that capture fail with a reason (the
     sequence reports BAD_FRAME); the next GO takes the next file.
     """
 
     def __init__(self, spec: str, camera: CameraModel, loop: bool = False):
-        path = Path(spec)
-        paths = sorted(p for p in path.iterdir() if p.is_file() and not p.name.endswith(".json")) \
-            if path.is_dir() else sorted(Path(p) for p in glob.glob(spec))
+        paths = frame_files(spec) if Path(spec).is_dir() else sorted(Path(p) for p in glob.glob(spec))
         if not paths:
             raise ValueError(f"no frame files in {spec!r}")
         self.paths = paths

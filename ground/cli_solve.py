@@ -129,7 +129,8 @@ def _replay(args) -> int:
 
 
 def _table5(args) -> int:
-    from ground.replay import TABLE5_MODES, frame_files, table5
+    from firmware_model.frame_io import frame_files
+    from ground.replay import TABLE5_MODES, table5
 
     out = table5(frame_files(args.directory), _load_camera(args.camera), _load_catalog(args.catalog),
                  progress=not args.json)

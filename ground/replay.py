@@ -30,7 +30,7 @@ from tqdm import tqdm
 from firmware_model.camera import CameraModel
 from firmware_model.extract import StarList, extract_stars
 from firmware_model.frame import Frame, frame_to_bytes
-from firmware_model.frame_io import read_frame
+from firmware_model.frame_io import frame_files, read_frame
 from firmware_model.frames import quat_to_matrix, rotation_angle
 from firmware_model.onboard_catalog import OnboardCatalog
 from firmware_model.pipeline import PipelineParams, identify_stars, run_pipeline
@@ -41,15 +41,6 @@ CORRECT_DEG = 0.1  #: attitude error bound of a correct solve (peer_solvers.md s
 MATCH_RADIUS_PX = 2.0  #: detection <-> truth association radius
 FRAME_SLOT = 1
 LOOSE_SIGMA_PX = 3.0  #: centroid noise assumed for the approximate attitude before refraction correction
-SUFFIXES = {".dng", ".nef", ".cr2", ".arw", ".raw", ".fits", ".fit", ".fts", ".tif", ".tiff", ".npy"}
-
-
-def frame_files(directory) -> list[Path]:
-    """Frame files of a directory (by suffix), in name order; truth and sidecars excluded."""
-    d = Path(directory)
-    if not d.is_dir():
-        raise ValueError(f"{d} is not a directory")
-    return sorted(p for p in d.iterdir() if p.is_file() and p.suffix.lower() in SUFFIXES)
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ import pytest
 from firmware_model.camera import CameraModel
 from firmware_model.catalog_image_io import catalog_to_image
 from firmware_model.frame import frame_to_bytes
-from firmware_model.frame_io import read_frame
+from firmware_model.frame_io import frame_files, read_frame
 from firmware_model.frames import matrix_to_quat, quat_to_matrix, rotation_angle
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
@@ -20,7 +20,7 @@ from ground.client import Client
 from ground.corrections import ColourCorrection
 from ground.demo import pick_attitudes, start_device, stop_device
 from ground.frame_writer import write_frame
-from ground.replay import OfflineSolver, TABLE5_MODES, frame_files, replay, table5
+from ground.replay import OfflineSolver, TABLE5_MODES, replay, table5
 from ground.sensor_sim import DetectorModel, Stars, render_frame
 from ground.sky_model import sky_stars
 from ground.solve_report import solve_record
