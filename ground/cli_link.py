@@ -263,11 +263,16 @@ def report_error(exc: LinkError, as_json: bool) -> None:
         print(f"{payload['error']}: {payload['message']}\n  raw: {payload['raw']}", file=sys.stderr)
 
 
+def client_kwargs(args) -> dict:
+    """``Client`` keyword arguments from the global options of ``st16-ground``."""
+    return {"device_address": args.device_address, "host_address": args.host_address,
+            "timeout": args.timeout, "log": args.log, "baudrate": args.baud}
+
+
 def open_client(args) -> Client:
     if not args.port:
         raise SystemExit("st16-ground: --port URL is required for link commands")
-    return Client(args.port, device_address=args.device_address, host_address=args.host_address,
-                  timeout=args.timeout, log=args.log, baudrate=args.baud)
+    return Client(args.port, **client_kwargs(args))
 
 
 def _handler(run: Run):

@@ -28,15 +28,6 @@ def _load_catalog(path):
     return catalog_from_image(Path(path).read_bytes())
 
 
-def _load_camera(path):
-    from firmware_model.cli import load_camera
-
-    return load_camera(path)
-
-
-def _client_kw(args) -> dict:
-    return {"device_address": args.device_address, "host_address": args.host_address,
-            "timeout": args.timeout, "baudrate": args.baud}
 
 
 def _print_record(rec: dict, as_json: bool) -> None:
@@ -62,6 +53,7 @@ def _print_record(rec: dict, as_json: bool) -> None:
 
 def _solve(args) -> int:
     from firmware_model.frame_io import read_frame
+    from ground.cli_link import client_kwargs
     from ground.replay import LinkSolver, Truth, score
     from ground.results_log import ResultsLog
 
@@ -74,7 +66,7 @@ def _solve(args) -> int:
         except Exception as exc:
             print(f"st16-ground: {args.frame}: {exc}", file=sys.stderr)
             return 2
-    solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, log=args.log, **_client_kw(args))
+    solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, **client_kwargs(args))
     t0 = time.perf_counter()
     try:
         rec = solver.solve(frame, say=lambda m: print(m, file=sys.stderr))
@@ -95,7 +87,9 @@ def _solve(args) -> int:
 
 
 def _replay(args) -> int:
+    from firmware_model.cli import load_camera
     from firmware_model.pipeline import PipelineParams
+    from ground.cli_link import client_kwargs
     from ground.replay import LinkSolver, OfflineSolver, replay
 
     if args.offline:
@@ -110,11 +104,11 @@ def _replay(args) -> int:
                 site = Site(*parts[:3], pressure_hpa=args.pressure, temperature_c=args.temperature)
             except (ValueError, TypeError):
                 raise SystemExit(f"st16-ground: --site wants LAT,LON[,HEIGHT_M] in degrees/metres, got {args.site!r}")
-        solver = OfflineSolver(_load_camera(args.camera), _load_catalog(args.catalog), PipelineParams(), site)
+        solver = OfflineSolver(load_camera(args.camera), _load_catalog(args.catalog), PipelineParams(), site)
     else:
         if not args.port:
             raise SystemExit("st16-ground: --port URL is required (or use --offline)")
-        solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, log=args.log, **_client_kw(args))
+        solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, **client_kwargs(args))
     try:
         summary = replay(args.directory, solver, args.out, progress=not args.json)
     except (ValueError, TimeoutError) as exc:
@@ -129,10 +123,11 @@ def _replay(args) -> int:
 
 
 def _table5(args) -> int:
+    from firmware_model.cli import load_camera
     from firmware_model.frame_io import frame_files
     from ground.replay import TABLE5_MODES, table5
 
-    out = table5(frame_files(args.directory), _load_camera(args.camera), _load_catalog(args.catalog),
+    out = table5(frame_files(args.directory), load_camera(args.camera), _load_catalog(args.catalog),
                  progress=not args.json)
     if args.json:
         print(json.dumps(out))
