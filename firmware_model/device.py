@@ -16,7 +16,7 @@ import threading
 import time
 import traceback
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from protocol import nsp, result, slip
@@ -139,9 +139,8 @@ class Counters:
     per_code: list[int] = field(default_factory=lambda: [0] * 32)
 
     def snapshot(self) -> Diagnostics:
-        return Diagnostics(self.framing, self.runt, self.oversize, self.bad_crc, self.fifo_overflow,
-                           self.accepted, self.nacked, self.silent, self.other_address, self.replies,
-                           tuple(self.per_code))
+        """The DIAGNOSTIC reply of these counters (fields matched by name)."""
+        return Diagnostics(**{**asdict(self), "per_code": tuple(self.per_code)})
 
 
 class Device:

@@ -1,5 +1,6 @@
 """Shared fixtures: the read-only data in ../shared (skipped cleanly when absent)."""
 
+import threading
 from pathlib import Path
 
 import pytest
@@ -10,6 +11,21 @@ settings.register_profile("project", deadline=None)
 settings.load_profile("project")
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+
+
+@pytest.fixture
+def served_device():
+    """Path of a pty served by an in-process default Device (stopped after the test)."""
+    from firmware_model.device import Device
+    from firmware_model.link import PtyLink, serve
+
+    link, stop = PtyLink(), threading.Event()
+    thread = threading.Thread(target=serve, args=(Device(), link, stop), daemon=True)
+    thread.start()
+    yield link.path
+    stop.set()
+    thread.join(2)
+    link.close()
 
 
 @pytest.fixture(scope="session")

@@ -5,8 +5,7 @@ import threading
 
 import pytest
 
-from firmware_model.device import Device
-from firmware_model.link import PtyLink, serve
+from firmware_model.link import PtyLink
 from ground.client import Client, MalformedReply, Nack, ReplyTimeout
 from protocol import nsp, slip
 from protocol.commands import Code, NackReason
@@ -50,17 +49,6 @@ def responder():
     yield make
     for r in made:
         r.close()
-
-
-@pytest.fixture
-def served_device():
-    link, stop = PtyLink(), threading.Event()
-    thread = threading.Thread(target=serve, args=(Device(), link, stop), daemon=True)
-    thread.start()
-    yield link.path
-    stop.set()
-    thread.join(2)
-    link.close()
 
 
 def test_timeout_carries_raw_bytes_and_ignores_own_echo():

@@ -2,26 +2,17 @@
 
 import io
 import json
-import threading
 
 import pytest
 
-from firmware_model.device import Device
-from firmware_model.link import PtyLink, serve
 from ground.cli import main
 from ground.client import Client
 from ground.console import Console
 
 
 @pytest.fixture
-def port():
-    link, stop = PtyLink(), threading.Event()
-    thread = threading.Thread(target=serve, args=(Device(), link, stop), daemon=True)
-    thread.start()
-    yield link.path
-    stop.set()
-    thread.join(2)
-    link.close()
+def port(served_device):
+    return served_device
 
 
 def run_json(port, capsys, *argv):
