@@ -187,26 +187,26 @@ def _solve_rows(rows, stars: StarList, camera: CameraModel, catalog: OnboardCata
         floor = np.where((flags & int(UNTRUSTED)) != 0, UNTRUSTED_CENTROID_FLOOR_PX, CENTROID_SIGMA_FLOOR_PX)
         sigma_px = np.sqrt(var + floor ** 2)
     measured = np.sqrt(np.where(colour_ok[:, None], stars.cov_colour[rows][:, [0, 1], [0, 1]], np.nan))
-    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+    with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: no colour measured
-        frame_rg, frame_bg = np.nanmedian(measured, axis=0) if len(rows) else (np.nan, np.nan)
+        frame_rg, frame_bg = np.nanmedian(measured, axis=0)
     solve_params = replace(
         params.solve, mode=mode, sigma_vec=sigma_px / camera.f, fov=params.solve.fov or FieldOfView.from_camera(camera),
         sigma_rg=float(np.nanmax([params.solve.sigma_rg, catalog.meta.get("sigma_rg", np.nan), frame_rg])),
         sigma_bg=float(np.nanmax([params.solve.sigma_bg, catalog.meta.get("sigma_bg", np.nan), frame_bg])))
 
-    def run(sub_rows, sub):
-        out = solve(stars.vectors[sub_rows], rg[sub], bg[sub], catalog, replace(solve_params, sigma_vec=solve_params.sigma_vec[sub]))
+    def run(sub):
+        out = solve(stars.vectors[rows[sub]], rg[sub], bg[sub], catalog,
+                    replace(solve_params, sigma_vec=solve_params.sigma_vec[sub]))
         timings["identify"] = timings.get("identify", 0.0) + out.timings.get("match", 0.0) + out.timings.get("validate", 0.0)
         timings["attitude"] = timings.get("attitude", 0.0) + out.timings.get("verify", 0.0)
         return out
 
-    everything = np.arange(len(rows))
-    sol = run(rows, everything)
+    sol = run(np.arange(len(rows)))
     if sol.status is Outcome.LOW_CONFIDENCE and params.photometric_gate is not None:
         gated = _photometric_gate(stars.flux[rows], sol, catalog, params.photometric_gate)
         if gated is not None and 2 <= len(gated) < len(rows):
-            sol2 = run(rows[gated], gated)
+            sol2 = run(gated)
             if sol2.status is Outcome.HIGH_CONFIDENCE and _same_attitude(sol, sol2, 5 * float(np.max(sigma_px)) / camera.f):
                 return sol2, rows[gated]
     return sol, rows
