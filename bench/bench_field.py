@@ -48,7 +48,7 @@ def main(argv=None) -> int:
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
     from ground.corrections import ColourCorrection
-    from ground.frame_writer import write_frame
+    from ground.frame_writer import write_rendered
     from ground.replay import OfflineSolver, TABLE5_MODES, replay, table5
     from ground.sensor_sim import DetectorModel, Stars, render_frame
     from ground.sky_model import sky_stars
@@ -81,8 +81,7 @@ def main(argv=None) -> int:
         truth_pos = {int(i): (float(xx), float(yy)) for i, xx, yy in zip(sky.ids[near], x, y)}
         for s in r.truth["stars"]:
             s["x"], s["y"] = truth_pos[s["id"]]
-        path = write_frame(r.frame, frames_dir / f"orion_{k:03d}.dng")
-        (frames_dir / f"{path.stem}.truth.json").write_text(json.dumps(r.truth))
+        write_rendered(r, frames_dir / f"orion_{k:03d}.dng")
 
     paths = frame_files(frames_dir)
     print(f"\n{len(paths)} frames of Orion's belt, reference design; atmosphere B = {ATMOSPHERE[0].tolist()}, "

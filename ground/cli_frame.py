@@ -23,16 +23,13 @@ from firmware_model.detect import DetectParams
 from firmware_model.extract import ExtractParams, extract_stars
 from firmware_model.frame_io import FrameReadError, read_frame
 from firmware_model.frames import attitude_from_radec_roll
+from ground.frame_writer import truth_path_for, write_rendered
 
 
 def _fail(message: str) -> int:
     print(f"st16-ground frame: {message}", file=sys.stderr)
     return 2
 
-
-def truth_path_for(frame_path) -> Path:
-    p = Path(frame_path)
-    return p.with_name(p.stem + ".truth.json")
 
 
 def register(sub) -> None:
@@ -96,7 +93,6 @@ def _camera_from_args(args) -> CameraModel:
 
 
 def cmd_render(args) -> int:
-    from ground.frame_writer import write_frame
     from ground.sensor_sim import DetectorModel, FalseObject, Stars, random_star_field, render_frame
 
     try:
@@ -135,11 +131,10 @@ def cmd_render(args) -> int:
     try:
         res = render_frame(stars, attitude, camera, detector, seed=args.seed, false_objects=objs,
                            timestamp=args.timestamp)
-        out = write_frame(res.frame, args.out)
+        out = write_rendered(res, args.out)
     except (ValueError, OSError) as exc:
         return _fail(str(exc))
     truth_file = truth_path_for(out)
-    truth_file.write_text(json.dumps(res.truth, indent=1))
     summary = {"frame": str(out), "truth": str(truth_file), "stars_in_frame": len(res.truth["stars"]),
                "false_objects": len(objs), "pattern": res.frame.pattern,
                "size": [res.frame.width, res.frame.height]}

@@ -8,7 +8,6 @@ the output folder it names; the device's state directory is a temporary folder.
 
 from __future__ import annotations
 
-import json
 import signal
 import subprocess
 import sys
@@ -23,7 +22,7 @@ from firmware_model.catalog_image_io import catalog_to_image
 from firmware_model.frames import attitude_from_radec_roll
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
-from ground.frame_writer import write_frame
+from ground.frame_writer import write_rendered
 from ground.replay import LinkSolver, replay
 from ground.sensor_sim import DetectorModel, render_frame
 from ground.sky_model import sky_stars
@@ -86,8 +85,7 @@ def run_demo(out, n_frames: int = 6, seed: int = 2026) -> int:
         pattern = "MONO" if k >= n_frames - n_mono else "RGGB"
         rendered = render_frame(stars, a, camera, DetectorModel(pattern=pattern), seed=seed + k,
                                 timestamp="2026-01-01T00:00:00Z")
-        path = write_frame(rendered.frame, frames_dir / f"frame_{k:02d}_{pattern.lower()}.dng")
-        (frames_dir / f"{path.stem}.truth.json").write_text(json.dumps(rendered.truth))
+        write_rendered(rendered, frames_dir / f"frame_{k:02d}_{pattern.lower()}.dng")
     print(f"frames: {n_frames} rendered at known attitudes ({n_frames - n_mono} colour RGGB, {n_mono} mono), "
           f"sky to V {6.5}, in {frames_dir}", flush=True)
 

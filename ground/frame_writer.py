@@ -121,6 +121,19 @@ def write_npy(frame: Frame, path) -> Path:
     return path
 
 
+def truth_path_for(frame_path) -> Path:
+    """Where the truth of a rendered frame lives: ``NAME.truth.json`` beside ``NAME.ext``."""
+    p = Path(frame_path)
+    return p.with_name(p.stem + ".truth.json")
+
+
+def write_rendered(rendered, path) -> Path:
+    """Write a ``sensor_sim.RenderResult``: the frame (by extension) and its truth beside it."""
+    out = write_frame(rendered.frame, path)
+    truth_path_for(out).write_text(json.dumps(rendered.truth, indent=1))
+    return out
+
+
 def write_frame(frame: Frame, path) -> Path:
     """Write by extension: .dng, .fits/.fit/.fts, .npy."""
     suffix = Path(path).suffix.lower()

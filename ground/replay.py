@@ -34,6 +34,7 @@ from firmware_model.frame_io import frame_files, read_frame
 from firmware_model.frames import quat_to_matrix, rotation_angle
 from firmware_model.onboard_catalog import OnboardCatalog
 from firmware_model.pipeline import PipelineParams, identify_stars, run_pipeline
+from ground.frame_writer import truth_path_for
 from ground.results_log import ResultsLog, plot_summary, summarize
 from ground.solve_report import matched_stars, record_from_output, solve_record
 
@@ -52,8 +53,7 @@ class Truth:
 
     @classmethod
     def for_frame(cls, frame_path) -> "Truth | None":
-        p = Path(frame_path)
-        path = p.with_name(p.stem + ".truth.json")
+        path = truth_path_for(frame_path)
         if not path.is_file():
             return None
         data = json.loads(path.read_text())

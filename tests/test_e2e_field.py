@@ -1,7 +1,6 @@
 """Field workflows end to end: the device rendering the sky from an attitude schedule, a colour
 calibration fitted from a run and uploaded as a parameter set, and the table-5 replay."""
 
-import json
 import subprocess
 import sys
 from pathlib import Path
@@ -19,7 +18,7 @@ from ground.catalog.design import CatalogDesign
 from ground.client import Client
 from ground.corrections import ColourCorrection
 from ground.demo import pick_attitudes, start_device, stop_device
-from ground.frame_writer import write_frame
+from ground.frame_writer import write_rendered
 from ground.replay import OfflineSolver, TABLE5_MODES, replay, table5
 from ground.sensor_sim import DetectorModel, Stars, render_frame
 from ground.sky_model import sky_stars
@@ -75,8 +74,7 @@ def biased_frames(catalog, tmp_path_factory):
     sky = biased_sky()
     for k, a in enumerate(pick_attitudes(catalog, CAMERA, 6, np.random.default_rng(21))):
         r = render_frame(sky, a, CAMERA, DetectorModel(), seed=300 + k)
-        path = write_frame(r.frame, d / f"b{k}.dng")
-        (d / f"{path.stem}.truth.json").write_text(json.dumps(r.truth))
+        write_rendered(r, d / f"b{k}.dng")
     return d
 
 

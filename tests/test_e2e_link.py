@@ -20,7 +20,7 @@ from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
 from ground.client import Client, Nack
 from ground.demo import pick_attitudes, start_device, stop_device
-from ground.frame_writer import write_frame
+from ground.frame_writer import write_rendered
 from ground.replay import LinkSolver, Truth, replay, score
 from ground.sensor_sim import DetectorModel, render_frame
 from ground.sky_model import sky_stars
@@ -41,8 +41,7 @@ def scene(tmp_path_factory):
     for k, a in enumerate(pick_attitudes(catalog, CAMERA, 3, np.random.default_rng(42))):
         pattern = "MONO" if k == 2 else "RGGB"
         r = render_frame(stars, a, CAMERA, DetectorModel(pattern=pattern), seed=100 + k)
-        path = write_frame(r.frame, frames / f"f{k}_{pattern.lower()}.dng")
-        (frames / f"{path.stem}.truth.json").write_text(json.dumps(r.truth))
+        write_rendered(r, frames / f"f{k}_{pattern.lower()}.dng")
     return {"image": image, "frames": frames, "root": root}
 
 
