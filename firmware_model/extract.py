@@ -3,12 +3,21 @@ colour fit, and (with a camera model) sensor-frame unit vectors.
 
 ``extract_stars(frame, camera=None, params=ExtractParams()) -> StarList``. Pure: no I/O,
 no global state. Times per stage are measured with ``time.perf_counter`` (seconds).
+
+**PSF width, measured per frame.** Detection's hot-pixel tests, the fit's start and window
+and its sharp-artefact test all depend on the PSF Gaussian sigma. Unless the parameters fix it
+(``ExtractParams.psf_sigma_px``, an override), detection and fit run with a starting guess,
+the sigma is measured as the median fitted sigma of the brightest clean stars
+(:func:`measure_psf_sigma`), and when that disagrees with the value used by more than
+``psf_tolerance`` (relative) detection and fit run again with the measurement (at most
+``psf_max_passes`` passes in all). A guess far too wide makes detection clean star cores as
+hot pixels; the fit on the remaining pixels still measures the width well enough to recover.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -19,10 +28,26 @@ from firmware_model.frame import Frame
 from firmware_model.star_flags import StarFlag, UNTRUSTED
 
 
+#: Brightest clean stars whose fitted sigmas make the PSF measurement, and the fewest accepted.
+PSF_SAMPLE_STARS = 20
+PSF_MIN_STARS = 3
+#: Flags that exclude a star from the PSF measurement (POOR_FIT stays: a non-Gaussian PSF
+#: makes every bright star a poor Gaussian fit, but its fitted width is still the best measure).
+_PSF_EXCLUDE = int(StarFlag.SATURATED | StarFlag.EDGE | StarFlag.BLEND | StarFlag.FIT_FAILED)
+
+
 @dataclass(frozen=True)
 class ExtractParams:
+    """``psf_sigma_px``: the optics' PSF Gaussian sigma (px) as an override; None (default)
+    measures it on each frame starting from ``psf_start_px`` (module docstring). The
+    ``psf_sigma_px`` fields of ``detect`` and ``fit`` are set from it for every pass."""
+
     detect: DetectParams = DetectParams()
     fit: FitParams = FitParams()
+    psf_sigma_px: float | None = None
+    psf_start_px: float = 1.0
+    psf_tolerance: float = 0.2
+    psf_max_passes: int = 3
 
 
 @dataclass
@@ -51,6 +76,10 @@ class StarList:
     vectors: np.ndarray | None = None
     timings: dict = field(default_factory=dict)
     reason: str = ""
+    psf_sigma_px: float = float("nan")  #: PSF sigma detection and fit used (px)
+    psf_measured_px: float = float("nan")  #: PSF sigma measured on this frame (px); NaN: too few stars
+    psf_source: str = ""  #: "setting" (override), "measured" or "start" (too few stars to measure)
+    psf_passes: int = 0  #: detection + fit passes run
 
     def __len__(self) -> int:
         return len(self.x)
@@ -84,12 +113,46 @@ class StarList:
         return recs
 
 
+def measure_psf_sigma(fit: FitResults, snr: np.ndarray) -> float:
+    """Median fitted PSF sigma (px) of the :data:`PSF_SAMPLE_STARS` highest-SNR stars whose fit
+    converged and is not saturated, clipped, blended or sharp; NaN with fewer than
+    :data:`PSF_MIN_STARS` such stars."""
+    ok = np.isfinite(fit.sigma) & ((fit.flags & _PSF_EXCLUDE) == 0) & ~fit.sharp
+    idx = np.flatnonzero(ok)
+    if len(idx) < PSF_MIN_STARS:
+        return float("nan")
+    idx = idx[np.argsort(-snr[idx])][:PSF_SAMPLE_STARS]
+    return float(np.median(fit.sigma[idx]))
+
+
+def _detect_and_fit(frame: Frame, params: ExtractParams, sigma_px: float):
+    det = detect_stars(frame, replace(params.detect, psf_sigma_px=sigma_px))
+    t1 = time.perf_counter()
+    fit = fit_stars(frame, det, replace(params.fit, psf_sigma_px=sigma_px))
+    return det, fit, time.perf_counter() - t1
+
+
 def extract_stars(frame: Frame, camera: CameraModel | None = None, params: ExtractParams = ExtractParams()) -> StarList:
     """Detect and fit stars in ``frame``; ``camera`` (or ``frame.camera``) adds unit vectors."""
     t0 = time.perf_counter()
-    det = detect_stars(frame, params.detect)
-    t1 = time.perf_counter()
-    fit = fit_stars(frame, det, params.fit)
+    sigma = params.psf_sigma_px if params.psf_sigma_px is not None else params.psf_start_px
+    source, measured, passes, fit_s = "setting", float("nan"), 0, 0.0
+    while True:
+        det, fit, dt = _detect_and_fit(frame, params, sigma)
+        passes += 1
+        fit_s += dt
+        if params.psf_sigma_px is not None:
+            break
+        measured = measure_psf_sigma(fit, det.snr)
+        if not np.isfinite(measured):
+            source = "start"
+            break
+        source = "measured"
+        if abs(measured / sigma - 1.0) <= params.psf_tolerance or passes >= params.psf_max_passes:
+            break
+        sigma = measured
+    t2 = time.perf_counter()
+    t1 = t2 - fit_s
     keep = ~fit.sharp
     reason = det.reason
     if not keep.all():
@@ -100,7 +163,6 @@ def extract_stars(frame: Frame, camera: CameraModel | None = None, params: Extra
         snr = det.snr[keep]
     else:
         snr = det.snr
-    t2 = time.perf_counter()
     if camera is None and frame.camera:
         camera = CameraModel.from_dict(frame.camera)
     if camera is not None and (camera.width, camera.height) != (frame.width, frame.height):
@@ -118,5 +180,5 @@ def extract_stars(frame: Frame, camera: CameraModel | None = None, params: Extra
         cov_colour=fit.cov_colour, snr=snr, sigma=fit.sigma, reduced_chi2=fit.reduced_chi2,
         flags=fit.flags, vectors=vectors,
         timings={"detect_s": t1 - t0, "fit_s": t2 - t1, "vectors_s": t3 - t2, "total_s": t3 - t0},
-        reason=reason,
+        reason=reason, psf_sigma_px=float(sigma), psf_measured_px=measured, psf_source=source, psf_passes=passes,
     )

@@ -100,11 +100,10 @@ class PipelineOutput:
         return self.status is Status.OK
 
 
-def with_psf_sigma(params: PipelineParams, sigma_px: float) -> PipelineParams:
-    """``params`` for optics whose PSF Gaussian sigma is ``sigma_px`` (detection and fit)."""
-    ex = params.extract
-    return replace(params, extract=replace(ex, detect=replace(ex.detect, psf_sigma_px=sigma_px),
-                                           fit=replace(ex.fit, psf_sigma_px=sigma_px)))
+def with_psf_sigma(params: PipelineParams, sigma_px: float | None) -> PipelineParams:
+    """``params`` with the PSF Gaussian sigma fixed to ``sigma_px`` (an override of the per-frame
+    measurement; None measures again)."""
+    return replace(params, extract=replace(params.extract, psf_sigma_px=sigma_px))
 
 
 def apply_colour_correction(rg, bg, beta):
