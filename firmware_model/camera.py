@@ -77,6 +77,16 @@ class CameraModel:
         return cls(width, height, float(f), (width - 1) / 2.0, (height - 1) / 2.0, **distortion)
 
     @classmethod
+    def from_horizontal_fov(cls, width: int, height: int, fov_deg: float) -> "CameraModel":
+        """Distortion-free camera whose full field of view across the array width (outer pixel
+        edges) is ``fov_deg``, principal point at the array centre: what a plate solver's
+        field-of-view estimate gives."""
+        if not 0.0 < fov_deg < 180.0:
+            raise ValueError(f"field of view must be in (0, 180) deg, got {fov_deg}")
+        f = width / 2.0 / np.tan(np.radians(fov_deg) / 2.0)
+        return cls(width, height, float(f), (width - 1) / 2.0, (height - 1) / 2.0)
+
+    @classmethod
     def from_focal(cls, width: int, height: int, focal_mm: float, pixel_um: float, **distortion) -> "CameraModel":
         """Camera from a focal length in mm and a pixel pitch in micrometres; principal
         point at the array centre."""

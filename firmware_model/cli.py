@@ -23,12 +23,15 @@ import threading
 from pathlib import Path
 
 from protocol import nsp
+from protocol.commands import SlotRejected
 
 from .camera import CameraModel
 from .catalog_image_io import catalog_slot_handler
 from .device import FRAME_SLOT, Device
 from .link import PtyLink, SerialLink, TcpLink, parse_tcp, serve
-from .sensor_input import FileFrames, PipelineSolver, frame_slot_handler, load_frame_source, params_slot_handler
+from .pipeline import PipelineParams
+from .sensor_input import (DeviceParams, FileFrames, PipelineSolver, frame_slot_handler, load_frame_source,
+                           params_slot_handler)
 from .state import SlotStore
 
 DEFAULT_PACED_TURNAROUND_MS = 1.0  #: ours; the research documents no turnaround
@@ -55,6 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
     capture.add_argument("--sky", metavar="SCHEDULE", help="capture source: render each exposure with the sensor "
                                                           "simulator at the attitudes of this schedule file")
     parser.add_argument("--loop", action="store_true", help="with --frames, start again after the last file")
+    parser.add_argument("--params", help="default parameter set JSON (the slot-2 schema); an uploaded set wins")
     return parser
 
 
@@ -80,7 +84,15 @@ def build_device(args: argparse.Namespace) -> Device:
         source = load_frame_source("sky", args.sky, camera)
     store = SlotStore(args.state, volatile={FRAME_SLOT}) if args.state else None
     slots = {0: catalog_slot_handler(), 1: frame_slot_handler(camera), 2: params_slot_handler()}
-    return Device(args.address, store=store, slots=slots, solver=PipelineSolver(camera), frame_source=source,
+    params = PipelineParams()
+    if args.params:
+        try:
+            params = DeviceParams.from_json(Path(args.params).read_bytes()).apply(params)
+        except OSError as exc:
+            raise ValueError(f"--params {args.params}: {exc.strerror or exc}") from None
+        except SlotRejected as exc:
+            raise ValueError(f"--params {args.params}: {exc.message}") from None
+    return Device(args.address, store=store, slots=slots, solver=PipelineSolver(camera, params), frame_source=source,
                   sensor_shape=(camera.height, camera.width))
 
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from firmware_model.camera import CameraModel
+from firmware_model.camera_fit import StarObservations, calibrate
 from firmware_model.extract import ExtractParams, StarList, extract_stars
 from firmware_model.frame import Frame
 from firmware_model.frames import quat_to_matrix, rotation_angle
@@ -54,6 +55,45 @@ STAGES = ("detect", "fit", "vectors", "identify", "attitude", "total")
 
 
 @dataclass(frozen=True)
+class OpticsSearch:
+    """Lost in space with a datasheet camera (focal length off by a few per cent, radial
+    distortion and principal-point offset not modelled), as plate solvers do it.
+
+    When the nominal camera gives no high-confidence answer, identification is repeated over
+    focal-length scales ``1, 1 +- step, 1 +- 2 step, ...`` up to ``1 +- focal_range`` with a loose
+    camera-model error (half a step's scale error plus ``distortion_px`` at the farthest corner,
+    see ``PipelineParams.camera_sigma_px``). A hypothesis found that way only seeds a fit of
+    ``fit`` (focal length, and k1 when at least ``k1_min_stars`` stars are matched) with the
+    attitude to its matched stars; the answer is then identified again from scratch with the
+    fitted camera and the normal tight noise model, and taken only if that is high-confidence.
+    Every solve reports the fitted optics and their 1-sigma (``PipelineOutput.optics``); when the
+    fit moves a corner by more than ``refit_px``, the frame is identified again with it so stars
+    the first camera missed are matched. The search stops after ``budget_s`` seconds."""
+
+    focal_range: float = 0.03
+    focal_step: float = 0.01
+    distortion_px: float = 5.0
+    k1_min_stars: int = 8
+    min_stars: int = 4
+    refit_px: float = 1.0
+    budget_s: float = 2.0
+
+
+@dataclass
+class OpticsFit:
+    """Optics fitted to the matched stars of one solve: the camera (principal point held at the
+    nominal one: on a narrow field it is degenerate with the attitude), 1-sigma of each fitted
+    parameter (``f`` px, ``k1``), RMS residual (px), stars used, and ``focal_scale`` the search
+    step that found the answer (1.0 when the nominal camera did, NaN if no search was needed)."""
+
+    camera: CameraModel
+    sigmas: dict
+    residual_rms_px: float
+    n_stars: int
+    focal_scale: float = float("nan")
+
+
+@dataclass(frozen=True)
 class PipelineParams:
     """Pipeline configuration. ``colour_beta`` is the eq. 24 correction (6 numbers) or None;
     ``solve`` is the solver configuration (its colour sigmas are raised to the catalog's design
@@ -73,7 +113,12 @@ class PipelineParams:
     tolerates missing and extra stars far better; its answers are labelled
     ``geometric-consensus``. ``colour_fallback``: in ``auto`` mode a colour frame that the colour
     matcher cannot solve (colours biased beyond the catalog's noise model, e.g. through the
-    atmosphere before calibration) is solved on geometry alone, as a mono frame would be."""
+    atmosphere before calibration) is solved on geometry alone, as a mono frame would be.
+
+    ``camera_sigma_px``: camera-model error (px) at the array corner farthest from the principal
+    point, growing linearly from it, added in quadrature to each star's noise (0 for a
+    calibrated camera; the optics search sets it). ``optics``: the uncalibrated-optics search
+    and the per-solve focal-length/distortion fit (:class:`OpticsSearch`; None disables both)."""
 
     extract: ExtractParams = ExtractParams()
     solve: SolveParams = SolveParams()
@@ -83,6 +128,8 @@ class PipelineParams:
     geometric_density_factor: float = 1.5
     geometric_fallback: bool = True
     colour_fallback: bool = True
+    camera_sigma_px: float = 0.0
+    optics: OpticsSearch | None = OpticsSearch()
 
 
 @dataclass
@@ -94,6 +141,9 @@ class PipelineOutput:
     solution: SolveResult | None = None
     timings: dict = field(default_factory=dict)  #: seconds per stage (STAGES)
     colour_beta: tuple | None = None  #: the eq. 24 correction the matcher's colours went through
+    camera: CameraModel | None = None  #: the camera model the answer was identified with
+    optics: OpticsFit | None = None  #: focal length and distortion fitted to the matched stars
+    planets: list = field(default_factory=list)  #: ``planets.PlanetLabel`` of detections on a planet / the moon
 
     @property
     def ok(self) -> bool:
@@ -114,7 +164,7 @@ def apply_colour_correction(rg, bg, beta):
 
 def run_pipeline(frame: Frame, camera: CameraModel, catalog: OnboardCatalog,
                  params: PipelineParams = PipelineParams()) -> PipelineOutput:
-    """Frame -> stars -> identification -> attitude (module docstring)."""
+    """Frame -> stars -> identification -> attitude (module docstring), then planet labelling."""
     t0 = time.perf_counter()
     if (frame.width, frame.height) != (camera.width, camera.height):
         return PipelineOutput(Status.BAD_FRAME, f"frame is {frame.width} x {frame.height} but the camera is "
@@ -124,20 +174,66 @@ def run_pipeline(frame: Frame, camera: CameraModel, catalog: OnboardCatalog,
     except ValueError as exc:
         return PipelineOutput(Status.BAD_FRAME, f"frame rejected: {exc}")
     out = identify_stars(stars, camera, catalog, params)
+    if frame.timestamp and out.solution is not None and out.solution.q_icrs_to_sensor is not None:
+        out = _label_planets(out, frame, catalog, params)
     out.timings["total"] = time.perf_counter() - t0
+    return out
+
+
+def _label_planets(out: PipelineOutput, frame: Frame, catalog: OnboardCatalog, params: PipelineParams):
+    """Label detections on a predicted planet or the moon at the frame's epoch (``planets``); if
+    one of them was matched to a catalog star, identify again without them."""
+    from firmware_model.planets import label_planets
+
+    site = frame.site or {}
+    where = (site["lat_deg"], site["lon_deg"], site.get("height_m", 0.0)) if {"lat_deg", "lon_deg"} <= set(site) else None
+    try:
+        labels = label_planets(out.stars.x, out.stars.y, out.solution.q_icrs_to_sensor, out.camera, frame.timestamp,
+                               site=where)
+    except ValueError as exc:  # an unreadable timestamp: no labels, and say so
+        out.reason = f"{out.reason}; planets not predicted: {exc}" if out.reason else f"planets not predicted: {exc}"
+        return out
+    rows = np.array([lab.index for lab in labels], dtype=np.int64)
+    if len(rows) and np.isin(out.used[out.solution.matched_det], rows).any():
+        hidden = replace(out.stars, x=out.stars.x.copy(), y=out.stars.y.copy(), vectors=out.stars.vectors.copy())
+        hidden.x[rows] = hidden.y[rows] = np.nan
+        hidden.vectors[rows] = np.nan
+        again = identify_stars(hidden, out.camera, catalog, params)
+        again.stars = out.stars
+        if again.optics is None:
+            again.optics = out.optics
+        out = again
+    out.planets = labels
     return out
 
 
 def identify_stars(stars: StarList, camera: CameraModel, catalog: OnboardCatalog,
                    params: PipelineParams = PipelineParams()) -> PipelineOutput:
-    """Identification and attitude from extracted stars (``stars.vectors`` from ``camera``)."""
+    """Identification and attitude from extracted stars (``stars.vectors`` from ``camera``),
+    with the optics search and fit of :class:`OpticsSearch`."""
     t0 = time.perf_counter()
     timings = {"detect": stars.timings.get("detect_s", 0.0), "fit": stars.timings.get("fit_s", 0.0),
                "vectors": stars.timings.get("vectors_s", 0.0)}
+    out = _identify(stars, camera, catalog, params, timings)
+    if params.optics is not None and out.status is not Status.TOO_FEW_STARS:
+        if out.status is not Status.OK:
+            found = _search_optics(stars, camera, catalog, params, timings, t0)
+            if found is not None:
+                out = found
+        elif (refined := _refine_optics(out, stars, camera, catalog, params, timings)) is not None:
+            out = refined
+    out.timings = timings
+    timings["total"] = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
+    return out
+
+
+def _identify(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams,
+              timings: dict) -> PipelineOutput:
+    """One identification with one camera model: colour or geometric with their fallbacks."""
     used = np.flatnonzero(np.isfinite(stars.vectors).all(axis=1)) if len(stars) else np.empty(0, np.int64)
     if len(used) < 2:
         why = stars.reason or f"{len(stars)} detection(s)"
-        return PipelineOutput(Status.TOO_FEW_STARS, f"too few stars: {why}", stars, used, timings=timings)
+        return PipelineOutput(Status.TOO_FEW_STARS, f"too few stars: {why}", stars, used, camera=camera)
     geometric = params.solve.mode == "geometric" or (params.solve.mode == "auto" and (
         not catalog.has_colour or not np.isfinite(stars.rg[used]).any()))
     if geometric:
@@ -153,12 +249,84 @@ def identify_stars(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
         if sol2.status is not Outcome.NO_MATCH:
             sol2.method = "geometric-consensus"
             sol, rows = sol2, rows2
-    used = rows
-    timings["total"] = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
     if sol.status is Outcome.NO_MATCH:
-        return PipelineOutput(Status.NO_MATCH, sol.reason, stars, used, sol, timings, params.colour_beta)
+        return PipelineOutput(Status.NO_MATCH, sol.reason, stars, rows, sol, colour_beta=params.colour_beta,
+                              camera=camera)
     status = Status.OK if sol.status is Outcome.HIGH_CONFIDENCE else Status.LOW_CONFIDENCE
-    return PipelineOutput(status, sol.reason, stars, used, sol, timings, params.colour_beta)
+    return PipelineOutput(status, sol.reason, stars, rows, sol, colour_beta=params.colour_beta, camera=camera)
+
+
+def _with_camera(stars: StarList, camera: CameraModel) -> StarList:
+    return replace(stars, vectors=camera.pixel_to_vector(stars.x, stars.y))
+
+
+def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSearch) -> OpticsFit | None:
+    """Focal length (and k1 with enough stars) fitted with the attitude to the matched stars."""
+    sol = out.solution
+    if sol is None or len(sol.matched_det) < search.min_stars:
+        return None
+    rows = out.used[sol.matched_det]
+    fit = ("f", "k1") if len(rows) >= search.k1_min_stars else ("f",)
+    obs = StarObservations(out.stars.x[rows], out.stars.y[rows], catalog.vec[sol.matched_cat])
+    try:
+        res = calibrate([obs], out.camera, fit=fit)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    if not res.success or not np.isfinite(res.residual_rms_px):
+        return None
+    return OpticsFit(res.camera, res.sigmas, res.residual_rms_px, len(rows))
+
+
+def _corner_shift_px(a: CameraModel, b: CameraModel) -> float:
+    """Largest pixel displacement between two camera models over the array corners."""
+    xs = np.array([0.0, a.width - 1.0, 0.0, a.width - 1.0])
+    ys = np.array([0.0, 0.0, a.height - 1.0, a.height - 1.0])
+    x2, y2 = b.vector_to_pixel(a.pixel_to_vector(xs, ys))
+    return float(np.nanmax(np.hypot(x2 - xs, y2 - ys)))
+
+
+def _refine_optics(out: PipelineOutput, stars: StarList, camera: CameraModel, catalog: OnboardCatalog,
+                   params: PipelineParams, timings: dict) -> PipelineOutput | None:
+    """Attach the optics fit to a high-confidence ``out``; identify again with the fitted camera when
+    it moves a corner by more than ``refit_px`` and keep that answer if it is high-confidence,
+    agrees and matches at least as many stars."""
+    fit = _fit_optics(out, catalog, params.optics)
+    out.optics = fit
+    if fit is None or _corner_shift_px(camera, fit.camera) <= params.optics.refit_px:
+        return None
+    again = _identify(_with_camera(stars, fit.camera), fit.camera, catalog, params, timings)
+    if (again.status is Status.OK and len(again.solution.matched_det) >= len(out.solution.matched_det)
+            and _same_attitude(again.solution, out.solution, 1e-3)):
+        again.optics = _fit_optics(again, catalog, params.optics) or fit
+        return again
+    return None
+
+
+def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams,
+                   timings: dict, t0: float) -> PipelineOutput | None:
+    """The focal-length search of :class:`OpticsSearch`; None when no scale gives a
+    high-confidence answer with the fitted camera."""
+    search = params.optics
+    loose = replace(params, camera_sigma_px=0.5 * search.focal_step * _corner_distance_px(camera)
+                    + search.distortion_px, optics=None)
+    n_steps = int(round(search.focal_range / search.focal_step))
+    scales = [1.0] + [1.0 + sign * k * search.focal_step for k in range(1, n_steps + 1) for sign in (1, -1)]
+    for scale in scales:
+        if time.perf_counter() - t0 > search.budget_s:
+            break
+        trial = replace(camera, f=camera.f * scale)
+        hyp = _identify(_with_camera(stars, trial), trial, catalog, loose, timings)
+        if hyp.solution is None or hyp.status is Status.NO_MATCH:
+            continue
+        fit = _fit_optics(hyp, catalog, search)
+        if fit is None:
+            continue
+        out = _identify(_with_camera(stars, fit.camera), fit.camera, catalog, replace(params, optics=None), timings)
+        if out.status is Status.OK:
+            out.optics = _fit_optics(out, catalog, search) or fit
+            out.optics.focal_scale = scale
+            return out
+    return None
 
 
 def _solve_rows(rows, stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams,
@@ -184,7 +352,8 @@ def _solve_rows(rows, stars: StarList, camera: CameraModel, catalog: OnboardCata
         var = 0.5 * (stars.cov_xy[rows, 0, 0] + stars.cov_xy[rows, 1, 1])
         var = np.where(np.isfinite(var), var, UNKNOWN_CENTROID_SIGMA_PX ** 2)
         floor = np.where((flags & int(UNTRUSTED)) != 0, UNTRUSTED_CENTROID_FLOOR_PX, CENTROID_SIGMA_FLOOR_PX)
-        sigma_px = np.sqrt(var + floor ** 2)
+        sigma_px = np.sqrt(var + floor ** 2 + _camera_sigma_px(stars.x[rows], stars.y[rows], camera,
+                                                               params.camera_sigma_px) ** 2)
     measured = np.sqrt(np.where(colour_ok[:, None], stars.cov_colour[rows][:, [0, 1], [0, 1]], np.nan))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: no colour measured
@@ -209,6 +378,20 @@ def _solve_rows(rows, stars: StarList, camera: CameraModel, catalog: OnboardCata
             if sol2.status is Outcome.HIGH_CONFIDENCE and _same_attitude(sol, sol2, 5 * float(np.max(sigma_px)) / camera.f):
                 return sol2, rows[gated]
     return sol, rows
+
+
+def _camera_sigma_px(x, y, camera: CameraModel, at_corner_px: float) -> np.ndarray:
+    """Camera-model error (px) at pixels (x, y): ``at_corner_px`` at the farthest array corner,
+    linear in the distance from the principal point."""
+    if at_corner_px <= 0:
+        return np.zeros(len(x))
+    return at_corner_px * np.hypot(x - camera.cx, y - camera.cy) / _corner_distance_px(camera)
+
+
+def _corner_distance_px(camera: CameraModel) -> float:
+    """Distance (px) from the principal point to the farthest array corner."""
+    return float(np.max(np.hypot(np.array([-0.5, camera.width - 0.5]) - camera.cx,
+                                 np.array([-0.5, camera.height - 0.5])[:, None] - camera.cy)))
 
 
 def _solve_geometric(used, stars, camera, catalog, params: PipelineParams, timings: dict):
@@ -259,6 +442,24 @@ def _sigma_axes(cov) -> np.ndarray:
     if cov is None:
         return np.zeros(3)
     return np.sqrt(np.clip(np.diag(np.asarray(cov, dtype=float)), 0.0, None))
+
+
+def _optics_fields(out: PipelineOutput) -> dict:
+    """The extension's optics block: PSF sigma and the fitted focal length and distortion."""
+    stars, fit = out.stars, out.optics
+    flags = result.PSF_MEASURED if stars is not None and stars.psf_source == "measured" else 0
+    fields = {"ext.psf_sigma": stars.psf_sigma_px if stars is not None else np.nan,
+              "ext.focal_px": out.camera.f if out.camera is not None else np.nan, "ext.focal_sigma": np.nan,
+              "ext.k1": out.camera.k1 if out.camera is not None else np.nan, "ext.k1_sigma": np.nan,
+              "ext.optics_rms": np.nan, "ext.focal_scale": np.nan}
+    if fit is not None:
+        flags |= result.OPTICS_FITTED | (result.OPTICS_SEARCHED if np.isfinite(fit.focal_scale) else 0)
+        fields.update({"ext.focal_px": fit.camera.f, "ext.focal_sigma": fit.sigmas.get("f", np.nan),
+                       "ext.k1": fit.camera.k1, "ext.k1_sigma": fit.sigmas.get("k1", np.nan),
+                       "ext.optics_rms": fit.residual_rms_px, "ext.optics_stars": fit.n_stars,
+                       "ext.focal_scale": fit.focal_scale})
+    fields["ext.optics_flags"] = flags
+    return fields
 
 
 def result_fields(out: PipelineOutput) -> dict:
@@ -317,7 +518,12 @@ def result_fields(out: PipelineOutput) -> dict:
                 obs_rg, obs_bg = apply_colour_correction(obs_rg, obs_bg, out.colour_beta)
             d = np.concatenate([obs_rg - sol.matched_rg, obs_bg - sol.matched_bg])
             fields["ext.colour_rms"] = float(np.sqrt(np.nanmean(d ** 2)))
+    for lab in out.planets:
+        if lab.index < result.EXT_MAX_STARS:
+            ext_stars["flags"][lab.index] |= 4 | (1 + result.BODIES.index(lab.body)) << 8
+    fields["ext.n_planets"] = min(len(out.planets), 255)
     fields["ext.n_matched"] = n_matched
+    fields.update(_optics_fields(out))
     fields["ext.stars"] = ext_stars
     fields["ext.stage_times"] = np.array([out.timings.get(s, 0.0) for s in STAGES], dtype=np.float32)
     fields["ext.method"] = METHOD_CODES.get(sol.method if sol else "", 0)

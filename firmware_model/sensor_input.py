@@ -67,8 +67,12 @@ class DeviceParams:
 
     ``mode`` "auto" | "colour" | "geometric"; ``sigma_rg``, ``sigma_bg`` colour noise for
     matching; ``centroid_sigma_px`` fixed centroid noise (else from the fit); ``time_budget_s``
-    identification budget; ``psf_sigma_px`` the optics' PSF sigma (detection's hot-pixel test
-    and the fit's start); ``colour_correction`` eq. 24 as ``{"beta": [6 numbers]}``.
+    identification budget; ``psf_sigma_px`` the optics' PSF sigma, an override of the per-frame
+    measurement (detection's hot-pixel tests, the fit's start); ``colour_correction`` eq. 24 as
+    ``{"beta": [6 numbers]}``; ``focal_search`` relative half-range of the focal-length search
+    for uncalibrated optics (0 to 0.2; 0 takes the camera as calibrated: no search, no optics
+    fit); ``distortion_px`` unmodelled distortion allowed at the array corner during that search.
+    The same file drives the offline paths (``--params``).
     """
 
     mode: str | None = None
@@ -78,8 +82,11 @@ class DeviceParams:
     time_budget_s: float | None = None
     psf_sigma_px: float | None = None
     colour_beta: tuple | None = None
+    focal_search: float | None = None
+    distortion_px: float | None = None
 
-    KEYS = ("mode", "sigma_rg", "sigma_bg", "centroid_sigma_px", "time_budget_s", "psf_sigma_px", "colour_correction")
+    KEYS = ("mode", "sigma_rg", "sigma_bg", "centroid_sigma_px", "time_budget_s", "psf_sigma_px", "colour_correction",
+            "focal_search", "distortion_px")
 
     @classmethod
     def from_json(cls, data: bytes) -> "DeviceParams":
@@ -93,13 +100,18 @@ class DeviceParams:
         if unknown:
             raise SlotRejected(REJECT_PARAMS_KEY, f"unknown parameter(s) {unknown}; known: {list(cls.KEYS)}")
 
-        def positive(key):
+        def number(key, lo=0.0, hi=1e3, lo_open=True):
             v = obj.get(key)
             if v is None:
                 return None
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or not 0 < v < 1e3:
-                raise SlotRejected(REJECT_PARAMS_VALUE, f"{key} must be a positive number below 1000, got {v!r}")
+            if (not isinstance(v, (int, float)) or isinstance(v, bool) or not (lo < v if lo_open else lo <= v)
+                    or not v < hi):
+                raise SlotRejected(REJECT_PARAMS_VALUE, f"{key} must be a number in {'(' if lo_open else '['}{lo:g}, "
+                                                        f"{hi:g}), got {v!r}")
             return float(v)
+
+        def positive(key):
+            return number(key)
 
         mode = obj.get("mode")
         if mode is not None and mode not in ("auto", "colour", "geometric"):
@@ -113,7 +125,8 @@ class DeviceParams:
                 raise SlotRejected(REJECT_PARAMS_VALUE, "colour_correction must be {\"beta\": [6 finite numbers]}")
             beta = tuple(float(x) for x in b)
         return cls(mode, positive("sigma_rg"), positive("sigma_bg"), positive("centroid_sigma_px"),
-                   positive("time_budget_s"), positive("psf_sigma_px"), beta)
+                   positive("time_budget_s"), number("psf_sigma_px", 0.1, 20.0, lo_open=False), beta,
+                   number("focal_search", 0.0, 0.2, lo_open=False), number("distortion_px", 0.0, 100.0, lo_open=False))
 
     def apply(self, base: PipelineParams) -> PipelineParams:
         solve = base.solve
@@ -123,6 +136,11 @@ class DeviceParams:
                 solve = replace(solve, **{key: value})
         if self.psf_sigma_px is not None:
             base = with_psf_sigma(base, self.psf_sigma_px)
+        if self.focal_search == 0.0:
+            base = replace(base, optics=None)
+        elif base.optics is not None and (self.focal_search is not None or self.distortion_px is not None):
+            base = replace(base, optics=replace(base.optics, **{k: v for k, v in (
+                ("focal_range", self.focal_search), ("distortion_px", self.distortion_px)) if v is not None}))
         return replace(base, solve=solve,
                        colour_beta=self.colour_beta if self.colour_beta is not None else base.colour_beta,
                        fixed_sigma_px=self.centroid_sigma_px if self.centroid_sigma_px is not None

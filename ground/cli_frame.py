@@ -3,7 +3,7 @@
 * ``frame render --out F.dng [sky] [camera] [detector]``: writes the frame (.dng, .fits or
   .npy) and ``F.truth.json`` beside it. The sky is either an on-board catalog image
   (``--catalog IMAGE --ra --dec --roll``, degrees) or ``--random N`` synthetic stars.
-* ``frame inspect FRAME [--plot PNG] [--truth JSON]``: detections (x, y, rg, bg, flags,
+* ``frame inspect FRAME [--plot PNG] [--truth JSON] [--params FILE]``: the measured PSF, detections (x, y, rg, bg, flags,
   fit residual) and the time per stage; ``--json`` (global) for machine output. With a
   truth file (default ``FRAME.truth.json`` when present) each detection is matched to the
   nearest true star and the errors are reported.
@@ -20,7 +20,7 @@ import numpy as np
 from firmware_model.camera import CameraModel
 from firmware_model.centroid import FitParams
 from firmware_model.detect import DetectParams
-from firmware_model.extract import ExtractParams, extract_stars
+from firmware_model.extract import extract_stars
 from firmware_model.frame_io import FrameReadError, read_frame
 from firmware_model.frames import attitude_from_radec_roll
 from ground.frame_writer import truth_path_for, write_rendered
@@ -72,13 +72,15 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_render)
 
     p = fsub.add_parser("inspect", help="detect and fit stars in a frame; list them with timings")
-    p.add_argument("frame", help="frame file: DNG/raw, FITS, TIFF, .npy")
+    p.add_argument("frame", help="frame file: DNG/raw, FITS, TIFF, PNG/JPEG, .npy")
     p.add_argument("--camera", help="CameraModel JSON for unit vectors (default: the frame's own, if any)")
+    p.add_argument("--params", help="parameter set JSON, the schema of the device's slot 2 (params upload)")
     p.add_argument("--truth", help="truth JSON (default FRAME.truth.json when present)")
     p.add_argument("--plot", help="write an overlay PNG here")
     p.add_argument("--k-sigma", type=float, default=DetectParams.k_sigma, help="detection threshold")
     p.add_argument("--max-stars", type=int, default=DetectParams.max_candidates)
-    p.add_argument("--psf-sigma", type=float, default=FitParams.psf_sigma_px, help="expected PSF sigma, px")
+    p.add_argument("--psf-sigma", type=float, help="PSF Gaussian sigma, px (an override: measured on the frame "
+                                                   "by default)")
     p.add_argument("--gain", type=float, default=FitParams.gain_e_per_dn, help="e-/DN for fit weights")
     p.set_defaults(func=cmd_inspect)
 
@@ -174,10 +176,17 @@ def cmd_inspect(args) -> int:
         camera = CameraModel.from_dict(json.loads(Path(args.camera).read_text())) if args.camera else None
     except (FrameReadError, ValueError, OSError) as exc:
         return _fail(str(exc))
-    params = ExtractParams(
-        detect=DetectParams(k_sigma=args.k_sigma, max_candidates=args.max_stars, psf_sigma_px=args.psf_sigma),
-        fit=FitParams(psf_sigma_px=args.psf_sigma, gain_e_per_dn=args.gain),
-    )
+    from dataclasses import replace
+
+    from ground.offline_options import load_params
+
+    if args.psf_sigma is not None and not 0.1 <= args.psf_sigma <= 20:
+        return _fail(f"--psf-sigma must be in [0.1, 20] px, got {args.psf_sigma}")
+
+    base = load_params(args.params).extract
+    params = replace(base, detect=replace(base.detect, k_sigma=args.k_sigma, max_candidates=args.max_stars),
+                     fit=replace(base.fit, gain_e_per_dn=args.gain),
+                     psf_sigma_px=args.psf_sigma if args.psf_sigma is not None else base.psf_sigma_px)
     try:
         stars = extract_stars(frame, camera, params)
     except ValueError as exc:
@@ -191,8 +200,10 @@ def cmd_inspect(args) -> int:
         for rec, m in zip(records, _match_truth(stars, truth)):
             rec["truth"] = m
     timings_ms = {k.replace("_s", "_ms"): round(v * 1e3, 3) for k, v in stars.timings.items()}
+    psf = {"sigma_px": stars.psf_sigma_px, "measured_px": stars.psf_measured_px if np.isfinite(stars.psf_measured_px)
+           else None, "source": stars.psf_source, "passes": stars.psf_passes}
     report = {"frame": str(args.frame), "size": [frame.width, frame.height], "pattern": frame.pattern,
-              "n_stars": len(stars), "reason": stars.reason, "timings_ms": timings_ms, "stars": records}
+              "n_stars": len(stars), "reason": stars.reason, "psf": psf, "timings_ms": timings_ms, "stars": records}
     if args.plot:
         from ground.frame_plot import plot_detections
 
@@ -202,6 +213,7 @@ def cmd_inspect(args) -> int:
         return 0
     print(f"{args.frame}: {frame.width} x {frame.height} {frame.pattern}, {len(stars)} stars"
           + (f" ({stars.reason})" if stars.reason else ""))
+    print(f"PSF sigma {stars.psf_sigma_px:.3f} px ({stars.psf_source}, {stars.psf_passes} pass(es))")
     print("timings ms: " + ", ".join(f"{k} {v:.1f}" for k, v in timings_ms.items()))
     print(f"{'#':>3} {'x':>9} {'y':>9} {'rg':>6} {'bg':>6} {'snr':>7} {'chi2r':>6}  flags")
     for i, r in enumerate(records):

@@ -30,6 +30,17 @@ def _load_catalog(path):
 
 
 
+def _optics_line(o: dict) -> str:
+    psf = "PSF sigma " + ("-" if o["psf_sigma_px"] is None else
+                          f"{o['psf_sigma_px']:.2f} px ({'measured' if o['psf_measured'] else 'set'})")
+    if not o["fitted"]:
+        return f"optics: {psf}; focal {o['focal_px'] or float('nan'):.1f} px (nominal, not fitted)"
+    k1 = f"k1 {o['k1']:+.4f}" + (f" +- {o['k1_sigma']:.4f}" if o["k1_sigma"] is not None else " (held)")
+    found = f", found at focal scale {o['focal_scale']:.2f}" if o["searched"] else ""
+    return (f"optics: {psf}; focal {o['focal_px']:.1f} +- {o['focal_sigma_px']:.1f} px, {k1} "
+            f"(fitted over {o['fit_stars']} stars, RMS {o['fit_rms_px']:.3f} px{found})")
+
+
 def _print_record(rec: dict, as_json: bool) -> None:
     if as_json:
         print(json.dumps(rec))
@@ -42,6 +53,11 @@ def _print_record(rec: dict, as_json: bool) -> None:
         print(f"boresight RA {rec['ra_deg']:.5f} deg, Dec {rec['dec_deg']:+.5f} deg, roll {rec['roll_deg']:.4f} deg; "
               f"1-sigma x/y/z {', '.join(f'{s:.2f}' for s in rec['sigma_arcsec'])} arcsec")
     print(f"detected {rec['n_detected']}, matched {rec['n_matched']}")
+    if rec.get("optics"):
+        print(_optics_line(rec["optics"]))
+    for s in rec["stars"]:
+        if s.get("body"):
+            print(f"  on {s['body']}: x {s['x']:8.2f}  y {s['y']:8.2f} (predicted at the frame's epoch; not used as a star)")
     for s in rec["stars"]:
         if s["catalog_id"] is not None:
             colour = f" rg {s['rg']:.3f} bg {s['bg']:.3f}" if s["rg"] is not None else ""
@@ -53,12 +69,14 @@ def _print_record(rec: dict, as_json: bool) -> None:
 
 def _solve(args) -> int:
     from firmware_model.frame_io import read_frame
-    from ground.cli_link import client_kwargs
-    from ground.replay import LinkSolver, Truth, score
+    from ground.replay import Truth, score
     from ground.results_log import ResultsLog
 
-    if not args.port:
-        raise SystemExit("st16-ground: --port URL is required for solve")
+    if args.offline and not (args.catalog and args.frame):
+        raise SystemExit("st16-ground: solve --offline needs --frame FILE and --catalog IMAGE")
+    if not args.offline and not args.port:
+        raise SystemExit("st16-ground: --port URL is required for solve (or use --offline)")
+    solver = _offline_solver(args) if args.offline else None
     frame = None
     if args.frame:
         try:
@@ -66,15 +84,13 @@ def _solve(args) -> int:
         except Exception as exc:
             print(f"st16-ground: {args.frame}: {exc}", file=sys.stderr)
             return 2
-    solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, **client_kwargs(args))
     t0 = time.perf_counter()
-    try:
-        rec = solver.solve(frame, say=lambda m: print(m, file=sys.stderr))
-    except TimeoutError as exc:
-        print(f"st16-ground: {exc}", file=sys.stderr)
-        return 1
-    finally:
-        solver.close()
+    if solver is not None:
+        rec = solver.solve(frame)
+    else:
+        rec = _solve_on_device(args, frame)
+        if rec is None:
+            return 1
     rec["exchange_s"] = time.perf_counter() - t0
     rec["solve_s"] = rec["timings_s"].get("total")
     rec["time_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
@@ -86,25 +102,50 @@ def _solve(args) -> int:
     return 0 if rec["q_icrs_to_sensor"] is not None else 3
 
 
-def _replay(args) -> int:
-    from firmware_model.cli import load_camera
-    from firmware_model.pipeline import PipelineParams
+def _solve_on_device(args, frame):
     from ground.cli_link import client_kwargs
-    from ground.replay import LinkSolver, OfflineSolver, replay
+    from ground.replay import LinkSolver
+
+    solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, **client_kwargs(args))
+    try:
+        return solver.solve(frame, say=lambda m: print(m, file=sys.stderr))
+    except TimeoutError as exc:
+        print(f"st16-ground: {exc}", file=sys.stderr)
+        return None
+    finally:
+        solver.close()
+
+
+def _offline_solver(args):
+    """The in-process solver the offline options describe (camera, catalog, parameters, site)."""
+    from ground.offline_options import camera_for_frames, load_params
+    from ground.replay import OfflineSolver
+
+    if not args.catalog:
+        raise SystemExit("st16-ground: the offline solver needs --catalog IMAGE")
+    camera, params = camera_for_frames(args), load_params(args.params)
+    site = None
+    if getattr(args, "site", None):
+        from ground.corrections import Site
+
+        try:
+            parts = [float(v) for v in args.site.split(",")]
+            site = Site(*parts[:3], pressure_hpa=args.pressure, temperature_c=args.temperature)
+        except (ValueError, TypeError):
+            raise SystemExit(f"st16-ground: --site wants LAT,LON[,HEIGHT_M] in degrees/metres, got {args.site!r}")
+    try:
+        catalog = _load_catalog(args.catalog)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"st16-ground: --catalog {args.catalog}: {exc}") from None
+    return OfflineSolver(camera, catalog, params, site)
+
+
+def _replay(args) -> int:
+    from ground.cli_link import client_kwargs
+    from ground.replay import LinkSolver, replay
 
     if args.offline:
-        if not args.catalog:
-            raise SystemExit("st16-ground: replay --offline needs --catalog IMAGE")
-        site = None
-        if args.site:
-            from ground.corrections import Site
-
-            try:
-                parts = [float(v) for v in args.site.split(",")]
-                site = Site(*parts[:3], pressure_hpa=args.pressure, temperature_c=args.temperature)
-            except (ValueError, TypeError):
-                raise SystemExit(f"st16-ground: --site wants LAT,LON[,HEIGHT_M] in degrees/metres, got {args.site!r}")
-        solver = OfflineSolver(load_camera(args.camera), _load_catalog(args.catalog), PipelineParams(), site)
+        solver = _offline_solver(args)
     else:
         if not args.port:
             raise SystemExit("st16-ground: --port URL is required (or use --offline)")
@@ -198,8 +239,15 @@ def _demo(args) -> int:
 
 
 def register(sub) -> None:
+    from ground.offline_options import add_camera_options, add_params_option
+
     p = sub.add_parser("solve", help="command one lost-in-space solve (upload --frame, or capture)")
-    p.add_argument("--frame", help="frame file to upload and solve (DNG/raw, FITS, TIFF, .npy)")
+    p.add_argument("--frame", help="frame file to upload and solve (DNG/raw, FITS, TIFF, PNG/JPEG, .npy)")
+    p.add_argument("--offline", action="store_true", help="solve --frame in-process (needs --catalog) instead of "
+                                                          "on the device")
+    p.add_argument("--catalog", help="catalog image for --offline")
+    add_camera_options(p)
+    add_params_option(p)
     p.add_argument("--out", default=DEFAULT_RESULTS, help="results log directory (JSONL + CSV)")
     p.add_argument("--reconnect-timeout", type=float, default=30.0, help="wait this long for a silent device, s")
     p.set_defaults(func=_solve)
@@ -208,7 +256,8 @@ def register(sub) -> None:
     p.add_argument("directory")
     p.add_argument("--offline", action="store_true", help="run the pipeline in-process instead of over the link")
     p.add_argument("--catalog", help="catalog image for --offline")
-    p.add_argument("--camera", help="camera model JSON for --offline (default: reference design)")
+    add_camera_options(p)
+    add_params_option(p)
     p.add_argument("--site", help="with --offline: LAT,LON[,HEIGHT] (deg, m) of a ground site: correct refraction")
     p.add_argument("--pressure", type=float, default=1013.25, help="site pressure, hPa (with --site)")
     p.add_argument("--temperature", type=float, default=10.0, help="site temperature, deg C (with --site)")

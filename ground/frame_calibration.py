@@ -1,5 +1,5 @@
 """Camera calibration from real sky frames: identify stars with the device pipeline, then fit
-the camera model to them (``ground.calibration``).
+the camera model to them (``firmware_model.camera_fit``).
 
 A nominal focal length (lens label, pixel pitch) is often off by about a percent, which at the
 edge of a 10-degree field is several pixels: too much for a tight lost-in-space match. So:
@@ -25,7 +25,7 @@ from firmware_model.frame import Frame
 from firmware_model.ident.consensus import Outcome
 from firmware_model.onboard_catalog import OnboardCatalog
 from firmware_model.pipeline import PipelineOutput, PipelineParams, identify_stars
-from ground.calibration import CalibrationResult, StarObservations, calibrate
+from firmware_model.camera_fit import CalibrationResult, StarObservations, calibrate
 
 
 @dataclass

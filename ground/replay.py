@@ -23,6 +23,7 @@ import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from tqdm import tqdm
@@ -92,16 +93,30 @@ class OfflineSolver:
     first solve (with a loose :data:`LOOSE_SIGMA_PX` noise model if the rigorous one fails: the
     paper used a manual match) gives the approximate attitude that places each star in the
     sky, the vectors are corrected (``correct_refraction``) and the stars identified again at
-    full rigour; the record then says ``"refraction": "corrected"``.
+    full rigour; the record then says ``"refraction": "corrected"``. With a site the camera is
+    taken as calibrated (no optics search): on one low field, refraction and a focal-length error
+    are nearly degenerate.
+
+    ``camera`` is one model for every frame, or a function of the frame (``--fov-deg``: a pinhole
+    camera per frame size).
     """
 
-    def __init__(self, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams = PipelineParams(),
-                 site=None):
+    def __init__(self, camera: CameraModel | Callable[[Frame], CameraModel], catalog: OnboardCatalog,
+                 params: PipelineParams = PipelineParams(), site=None):
         self.camera, self.catalog, self.params, self.site = camera, catalog, params, site
 
+    def camera_for(self, frame: Frame) -> CameraModel:
+        return self.camera if isinstance(self.camera, CameraModel) else self.camera(frame)
+
     def solve(self, frame: Frame) -> dict:
-        out = run_pipeline(frame, self.camera, self.catalog, self.params)
-        if self.site is None or out.stars is None or len(out.stars) < 2:
+        camera = self.camera_for(frame)
+        if self.site is None:
+            return record_from_output(run_pipeline(frame, camera, self.catalog, self.params))
+        # refraction squeezes a low field like a focal-length error: with a site, the camera is
+        # taken as calibrated (no optics search), so the two are not confused
+        params = replace(self.params, optics=None)
+        out = run_pipeline(frame, camera, self.catalog, params)
+        if out.stars is None or len(out.stars) < 2:
             return record_from_output(out)
         if not frame.timestamp:
             raise ValueError("refraction correction needs the frame's timestamp")
@@ -114,15 +129,14 @@ class OfflineSolver:
         if out.solution is None or out.solution.q_icrs_to_sensor is None:
             # differential refraction can exceed the centroid noise: look for the approximate
             # attitude with a loose noise model (the final match below is made at full rigour)
-            approx = identify_stars(stars, self.camera, self.catalog,
-                                    replace(self.params, fixed_sigma_px=LOOSE_SIGMA_PX))
+            approx = identify_stars(stars, camera, self.catalog, replace(params, fixed_sigma_px=LOOSE_SIGMA_PX))
             if approx.solution is None or approx.solution.q_icrs_to_sensor is None:
                 rec = record_from_output(out)
                 rec["refraction"] = "not corrected: no approximate attitude"
                 return rec
         vec = correct_refraction(stars.vectors, quat_to_matrix(approx.solution.q_icrs_to_sensor), self.site,
                                  Time(frame.timestamp, scale="utc"))
-        corrected = identify_stars(replace(stars, vectors=vec), self.camera, self.catalog, self.params)
+        corrected = identify_stars(replace(stars, vectors=vec), camera, self.catalog, params)
         rec = record_from_output(corrected)
         rec["refraction"] = "corrected"
         return rec

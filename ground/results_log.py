@@ -79,7 +79,8 @@ def summarize(records: list[dict]) -> dict:
     counts = {k: outcomes.count(k) for k in sorted(set(outcomes))}
     errors = np.array([r["attitude_error_deg"] for r in records
                        if r.get("outcome") in ("correct", "wrong") and r.get("attitude_error_deg") is not None])
-    summary = {"frames": len(records), "counts": counts}
+    statuses = [r.get("status", "?") for r in records]
+    summary = {"frames": len(records), "counts": counts, "status": {k: statuses.count(k) for k in sorted(set(statuses))}}
     scored = counts.get("correct", 0) + counts.get("wrong", 0) + counts.get("no_match", 0)
     if scored:
         summary["success_rate"] = counts.get("correct", 0) / scored

@@ -24,6 +24,27 @@ def _num(v) -> float | None:
     return v if np.isfinite(v) else None
 
 
+def _body(flags: int) -> str | None:
+    """The planet or moon a star's flags name (protocol.result.EXT_STAR), or None."""
+    code = (flags >> 8) & 0xF
+    return result.BODIES[code - 1] if flags & 4 and 1 <= code <= len(result.BODIES) else None
+
+
+def _optics(ext) -> dict:
+    """PSF and optics block of the extension (``None`` for values the device did not set)."""
+    flags = int(ext["optics_flags"])
+    fitted = bool(flags & result.OPTICS_FITTED)
+    return {
+        "psf_sigma_px": _num(ext["psf_sigma"]), "psf_measured": bool(flags & result.PSF_MEASURED),
+        "focal_px": _num(ext["focal_px"]), "focal_sigma_px": _num(ext["focal_sigma"]) if fitted else None,
+        "k1": _num(ext["k1"]), "k1_sigma": _num(ext["k1_sigma"]) if fitted else None,
+        "fit_rms_px": _num(ext["optics_rms"]) if fitted else None,
+        "fit_stars": int(ext["optics_stars"]) if fitted else 0, "fitted": fitted,
+        "searched": bool(flags & result.OPTICS_SEARCHED),
+        "focal_scale": _num(ext["focal_scale"]) if flags & result.OPTICS_SEARCHED else None,
+    }
+
+
 def solve_record(rec: np.ndarray) -> dict:
     """JSON-ready dict of a parsed result record (protocol.result.RESULT)."""
     rc = int(rec["return_code"])
@@ -40,6 +61,8 @@ def solve_record(rec: np.ndarray) -> dict:
         "q_icrs_to_sensor": None, "ra_deg": None, "dec_deg": None, "roll_deg": None,
         "sigma_arcsec": None, "residual_rms_arcsec": None,
         "timings_s": {name: float(t) for name, t in zip(STAGES, ext["stage_times"])},
+        "optics": _optics(ext),
+        "n_planets": int(ext["n_planets"]),
         "stars": [],
     }
     q = np.asarray(ext["quaternion"], dtype=float)
@@ -55,6 +78,7 @@ def solve_record(rec: np.ndarray) -> dict:
             "catalog_id": int(s["catalog_id"]) if int(s["catalog_id"]) >= 0 else None,
             "residual_arcsec": _num(s["residual"] * ARCSEC) if int(s["flags"]) & 1 else None,
             "saturated": bool(int(s["flags"]) & 2),
+            "body": _body(int(s["flags"])),
         })
     return out
 

@@ -58,11 +58,15 @@ MATCHING = _struct([
     ("matched_stars", "<10i4", 56), ("quaternion", "<4f8", 96), ("omega_covariance", "<6f8", 128),
 ], 176)
 
-EXT_MAX_STARS = 32
+EXT_MAX_STARS = 31
+
+#: Solar-system bodies a star's flags can name (bits 8-11: 1 + index here; 0 none).
+BODIES = ("mercury", "venus", "mars", "jupiter", "saturn", "uranus", "neptune", "moon")
 
 #: One detected star in the extension region (ours): pixel centroid (x = column, y = row), flux in
 #: DN, colour ratios rg = S_r/S_g and bg = S_b/S_g with 1-sigma, matched catalog id (-1: none),
-#: residual to the matched catalog direction (rad), flags (bit 0 matched, bit 1 saturated).
+#: residual to the matched catalog direction (rad), flags (bit 0 matched, bit 1 saturated,
+#: bit 2 on a predicted planet or the moon, bits 8-11 which: 1 + index into :data:`BODIES`).
 EXT_STAR = _struct([
     ("x", "<f4", 0), ("y", "<f4", 4), ("flux", "<f4", 8), ("rg", "<f4", 12), ("bg", "<f4", 16),
     ("rg_sigma", "<f4", 20), ("bg_sigma", "<f4", 24), ("catalog_id", "<i4", 28),
@@ -70,25 +74,38 @@ EXT_STAR = _struct([
 ], 40)
 
 EXT_MAGIC = 0x31545343  # b"CST1"
+EXT_VERSION = 2  #: 2: optics block added, EXT_MAX_STARS 32 -> 31 (same total length)
 EXT_REASON_BYTES = 96  #: UTF-8 reason text (NUL padded) when the status is not OK
 
-#: Extension header (ours), 128 bytes, then EXT_MAX_STARS stars. ``quaternion`` is the solved
+#: Optics flags (``ext.optics_flags``).
+OPTICS_FITTED = 0x01  #: focal length (and k1 when ``k1_sigma`` is finite) fitted to this solve's stars
+OPTICS_SEARCHED = 0x02  #: found by the focal-length search (``focal_scale`` is the step that found it)
+PSF_MEASURED = 0x04  #: ``psf_sigma`` was measured on this frame (else: the setting or the start value)
+
+#: Extension header (ours), 168 bytes, then EXT_MAX_STARS stars. ``quaternion`` is the solved
 #: attitude (scalar first, ICRS -> sensor); ``sigma`` its 1-sigma errors about sensor x, y, z (rad);
 #: ``solve_time`` seconds spent in the solver; CRC-32s identify the catalog and frame used;
 #: ``colour_rms`` RMS of (rg, bg) minus the catalog's over the matched stars, after the device's
 #: colour correction (the stars' ``rg``, ``bg`` are the raw measurements);
 #: ``stage_times`` seconds for detect, fit, vectors, identify, attitude, total
 #: (``firmware_model.pipeline.STAGES``); ``method`` 0 none, 1 colour, 2 geometric (4-star), 3 geometric consensus; ``reason``
-#: why the status is what it is (UTF-8, truncated to EXT_REASON_BYTES).
+#: why the status is what it is (UTF-8, truncated to EXT_REASON_BYTES). Optics block: ``psf_sigma``
+#: PSF Gaussian sigma used (px); ``focal_px`` / ``focal_sigma`` fitted focal length and 1-sigma (px),
+#: ``k1`` / ``k1_sigma`` radial distortion (NaN sigma: held), ``optics_rms`` residual of that fit
+#: (px) over ``optics_stars`` stars, ``optics_flags`` (OPTICS_*, PSF_MEASURED), ``n_planets``
+#: detections labelled as planets or the moon, ``focal_scale`` the search step that solved.
 EXTENSION = _struct([
     ("magic", "<u4", 0), ("version", "<u2", 4), ("n_detected", "<u2", 6), ("n_matched", "<u2", 8),
     ("n_reported", "<u2", 10), ("solve_time", "<f4", 12), ("quaternion", "<4f8", 16),
     ("sigma", "<3f8", 48), ("catalog_crc32", "<u4", 72), ("frame_crc32", "<u4", 76),
     ("colour_rms", "<f4", 80), ("residual_rms", "<f4", 84), ("stage_times", "<6f4", 88),
     ("method", "u1", 112), ("spare", "15u1", 113),
-    ("stars", np.dtype((EXT_STAR, (EXT_MAX_STARS,))), 128),
-    ("reason", f"S{EXT_REASON_BYTES}", 128 + 40 * EXT_MAX_STARS),
-], 128 + 40 * EXT_MAX_STARS + EXT_REASON_BYTES)
+    ("psf_sigma", "<f4", 128), ("focal_px", "<f4", 132), ("focal_sigma", "<f4", 136), ("k1", "<f4", 140),
+    ("k1_sigma", "<f4", 144), ("optics_rms", "<f4", 148), ("optics_stars", "<u2", 152),
+    ("optics_flags", "u1", 154), ("n_planets", "u1", 155), ("focal_scale", "<f4", 156), ("spare2", "8u1", 160),
+    ("stars", np.dtype((EXT_STAR, (EXT_MAX_STARS,))), 168),
+    ("reason", f"S{EXT_REASON_BYTES}", 168 + 40 * EXT_MAX_STARS),
+], 168 + 40 * EXT_MAX_STARS + EXT_REASON_BYTES)
 
 STANDARD_LENGTH = 2616  #: 0x0A38, the length COSMOS waits for at EDAC 0x004C
 EXT_OFFSET = STANDARD_LENGTH
@@ -174,7 +191,7 @@ def build(fields: Mapping[str, Any], sequence: int = 0) -> bytes:
     rec = empty()
     rec["sequence"] = sequence
     rec["ext"]["magic"] = EXT_MAGIC
-    rec["ext"]["version"] = 1
+    rec["ext"]["version"] = EXT_VERSION
     for path, value in fields.items():
         obj, last = _target(rec, path)
         if last.isdigit():
