@@ -17,13 +17,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from firmware_model.camera import CameraModel
+from firmware_model import scale_free
 from firmware_model.camera_fit import StarObservations, calibrate
 from firmware_model.extract import ExtractParams, StarList, extract_stars
 from firmware_model.frame import Frame
 from firmware_model.frames import quat_to_matrix, rotation_angle
 from firmware_model.ident.consensus import Outcome
-from firmware_model.ident.solver import SolveParams, SolveResult, solve
-from firmware_model.ident.verify import FieldOfView
+from firmware_model.ident.solver import SolveParams, SolveResult, solution_from_match, solve
+from firmware_model.ident.verify import FieldOfView, verify
 from firmware_model.onboard_catalog import OnboardCatalog
 from firmware_model.star_flags import UNTRUSTED, StarFlag
 from protocol import result
@@ -59,20 +60,20 @@ class OpticsSearch:
     """Lost in space with a datasheet camera (focal length off by a few per cent, radial
     distortion and principal-point offset not modelled), as plate solvers do it.
 
-    When the nominal camera gives no high-confidence answer, identification is repeated over
-    focal-length scales ``1, 1 +- step, 1 +- 2 step, ...`` up to ``1 +- focal_range`` with a loose
-    camera-model error (half a step's scale error plus ``distortion_px`` at the farthest corner,
-    see ``PipelineParams.camera_sigma_px``). A hypothesis found that way only seeds a fit of
-    ``fit`` (focal length, and k1 when at least ``k1_min_stars`` stars are matched) with the
-    attitude to its matched stars; the answer is then identified again from scratch with the
-    fitted camera and the normal tight noise model, and taken only if that is high-confidence.
-    Every solve reports the fitted optics and their 1-sigma (``PipelineOutput.optics``); when the
-    fit moves a corner by more than ``refit_px``, the frame is identified again with it so stars
-    the first camera missed are matched. The search stops after ``budget_s`` seconds."""
+    When the nominal camera gives no high-confidence answer, the brightest ``n_bright``
+    detections are matched as scale-free 4-star patterns (``firmware_model.scale_free``: edge
+    ratios within ``pattern_tolerance``, focal length within ``focal_range`` of the nominal).
+    Each pattern match, best first, only seeds a predict-match-fit of the focal length (and k1
+    when at least ``k1_min_stars`` stars match) with the attitude; the frame is then identified
+    again from scratch with the fitted camera and the normal tight noise model, and the answer
+    taken only if that is high-confidence. Every solve reports the fitted optics and their
+    1-sigma (``PipelineOutput.optics``, from at least ``min_stars`` matched stars); when the fit
+    moves a corner by more than ``refit_px``, the frame is identified again with it so stars the
+    first camera missed are matched. The search stops after ``budget_s`` seconds."""
 
-    focal_range: float = 0.03
-    focal_step: float = 0.01
-    distortion_px: float = 5.0
+    focal_range: float = 0.05
+    n_bright: int = 12
+    pattern_tolerance: float = 0.015
     k1_min_stars: int = 8
     min_stars: int = 4
     refit_px: float = 1.0
@@ -115,10 +116,8 @@ class PipelineParams:
     matcher cannot solve (colours biased beyond the catalog's noise model, e.g. through the
     atmosphere before calibration) is solved on geometry alone, as a mono frame would be.
 
-    ``camera_sigma_px``: camera-model error (px) at the array corner farthest from the principal
-    point, growing linearly from it, added in quadrature to each star's noise (0 for a
-    calibrated camera; the optics search sets it). ``optics``: the uncalibrated-optics search
-    and the per-solve focal-length/distortion fit (:class:`OpticsSearch`; None disables both)."""
+    ``optics``: the uncalibrated-optics search and the per-solve focal-length/distortion fit
+    (:class:`OpticsSearch`; None takes the camera as calibrated: neither runs)."""
 
     extract: ExtractParams = ExtractParams()
     solve: SolveParams = SolveParams()
@@ -128,7 +127,6 @@ class PipelineParams:
     geometric_density_factor: float = 1.5
     geometric_fallback: bool = True
     colour_fallback: bool = True
-    camera_sigma_px: float = 0.0
     optics: OpticsSearch | None = OpticsSearch()
 
 
@@ -304,64 +302,46 @@ def _refine_optics(out: PipelineOutput, stars: StarList, camera: CameraModel, ca
 
 def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams,
                    timings: dict, t0: float) -> PipelineOutput | None:
-    """The focal-length search of :class:`OpticsSearch`; None when no scale gives a
+    """The scale-free search of :class:`OpticsSearch`; None when no pattern match leads to a
     high-confidence answer with the fitted camera."""
     search = params.optics
-    loose = replace(params, camera_sigma_px=0.5 * search.focal_step * _corner_distance_px(camera)
-                    + search.distortion_px, optics=None)
-    n_steps = int(round(search.focal_range / search.focal_step))
-    scales = [1.0] + [1.0 + sign * k * search.focal_step for k in range(1, n_steps + 1) for sign in (1, -1)]
-    for scale in scales:
+    tight = replace(params, optics=None)
+    t1 = time.perf_counter()
+    hyps = scale_free.hypotheses(stars.x, stars.y, camera, catalog, search.n_bright, search.pattern_tolerance,
+                                 search.focal_range)
+    timings["identify"] = timings.get("identify", 0.0) + time.perf_counter() - t1
+    tried: list[np.ndarray] = []
+    for hyp in hyps:
         if time.perf_counter() - t0 > search.budget_s:
             break
-        trial = replace(camera, f=camera.f * scale)
-        hyp = _identify(_with_camera(stars, trial), trial, catalog, loose, timings)
-        if hyp.solution is None or hyp.status is Status.NO_MATCH:
+        if any(rotation_angle(hyp.a, a) < _SAME_SEED_RAD for a in tried):
             continue
-        fit = _fit_optics(hyp, catalog, search)
-        if fit is None:
+        tried.append(hyp.a)
+        t1 = time.perf_counter()
+        refined = scale_free.refine(stars.x, stars.y, camera, hyp, catalog, k1_min_stars=search.k1_min_stars)
+        timings["attitude"] = timings.get("attitude", 0.0) + time.perf_counter() - t1
+        if refined is None:
             continue
-        out = _identify(_with_camera(stars, fit.camera), fit.camera, catalog, replace(params, optics=None), timings)
+        fitted = refined[0]
+        out = _identify(_with_camera(stars, fitted), fitted, catalog, tight, timings)
         if out.status is Status.OK:
-            out.optics = _fit_optics(out, catalog, search) or fit
-            out.optics.focal_scale = scale
+            out.optics = _fit_optics(out, catalog, search)
+            if out.optics is not None:
+                out.optics.focal_scale = hyp.f / camera.f
             return out
     return None
+
+
+#: Pattern seeds whose attitudes differ by less than this (rad) lead to the same refined answer.
+_SAME_SEED_RAD = np.radians(0.2)
 
 
 def _solve_rows(rows, stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams,
                 mode: str, use_colour: bool, timings: dict):
     """Solve on ``rows`` of ``stars`` (adds to ``timings``); returns (solution, rows it refers to).
-
-    Saturated or blended stars keep their geometry but lose their colour; the per-star
-    direction noise comes from the fit covariance with a floor, larger for untrusted fits. The
-    colour noise given to the matcher is the largest of the solver setting, the catalog's
-    design value and the median colour sigma the fit measured on this frame (a small aperture
-    leaves 4th-magnitude stars with ~0.1 colour noise; matching them at 0.05 rejects true
-    matches). A low-confidence answer is retried with the photometric gate
-    (:class:`PipelineParams`)."""
-    flags = stars.flags[rows]
-    colour_ok = ((flags & int(StarFlag.SATURATED | StarFlag.BLEND)) == 0) & use_colour
-    rg = np.where(colour_ok, stars.rg[rows], np.nan)
-    bg = np.where(colour_ok, stars.bg[rows], np.nan)
-    if params.colour_beta is not None:
-        rg, bg = apply_colour_correction(rg, bg, params.colour_beta)
-    if params.fixed_sigma_px is not None:
-        sigma_px = np.full(len(rows), float(params.fixed_sigma_px))
-    else:
-        var = 0.5 * (stars.cov_xy[rows, 0, 0] + stars.cov_xy[rows, 1, 1])
-        var = np.where(np.isfinite(var), var, UNKNOWN_CENTROID_SIGMA_PX ** 2)
-        floor = np.where((flags & int(UNTRUSTED)) != 0, UNTRUSTED_CENTROID_FLOOR_PX, CENTROID_SIGMA_FLOOR_PX)
-        sigma_px = np.sqrt(var + floor ** 2 + _camera_sigma_px(stars.x[rows], stars.y[rows], camera,
-                                                               params.camera_sigma_px) ** 2)
-    measured = np.sqrt(np.where(colour_ok[:, None], stars.cov_colour[rows][:, [0, 1], [0, 1]], np.nan))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: no colour measured
-        frame_rg, frame_bg = np.nanmedian(measured, axis=0)
-    solve_params = replace(
-        params.solve, mode=mode, sigma_vec=sigma_px / camera.f, fov=params.solve.fov or FieldOfView.from_camera(camera),
-        sigma_rg=float(np.nanmax([params.solve.sigma_rg, catalog.meta.get("sigma_rg", np.nan), frame_rg])),
-        sigma_bg=float(np.nanmax([params.solve.sigma_bg, catalog.meta.get("sigma_bg", np.nan), frame_bg])))
+    Inputs as :func:`_solver_inputs`; a low-confidence answer is retried with the photometric
+    gate (:class:`PipelineParams`)."""
+    rg, bg, sigma_px, solve_params = _solver_inputs(rows, stars, camera, catalog, params, mode, use_colour)
 
     def run(sub):
         out = solve(stars.vectors[rows[sub]], rg[sub], bg[sub], catalog,
@@ -380,18 +360,39 @@ def _solve_rows(rows, stars: StarList, camera: CameraModel, catalog: OnboardCata
     return sol, rows
 
 
-def _camera_sigma_px(x, y, camera: CameraModel, at_corner_px: float) -> np.ndarray:
-    """Camera-model error (px) at pixels (x, y): ``at_corner_px`` at the farthest array corner,
-    linear in the distance from the principal point."""
-    if at_corner_px <= 0:
-        return np.zeros(len(x))
-    return at_corner_px * np.hypot(x - camera.cx, y - camera.cy) / _corner_distance_px(camera)
+def _solver_inputs(rows, stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams,
+                   mode: str, use_colour: bool):
+    """Colours, per-star noise (px) and solver parameters for ``rows`` of ``stars``.
 
+    Saturated or blended stars keep their geometry but lose their colour; the per-star
+    direction noise comes from the fit covariance with a floor, larger for untrusted fits. The
+    colour noise given to the matcher is the largest of the solver setting, the catalog's
+    design value and the median colour sigma the fit measured on this frame (a small aperture
+    leaves 4th-magnitude stars with ~0.1 colour noise; matching them at 0.05 rejects true
+    matches)."""
+    flags = stars.flags[rows]
+    colour_ok = ((flags & int(StarFlag.SATURATED | StarFlag.BLEND)) == 0) & use_colour
+    rg = np.where(colour_ok, stars.rg[rows], np.nan)
+    bg = np.where(colour_ok, stars.bg[rows], np.nan)
+    if params.colour_beta is not None:
+        rg, bg = apply_colour_correction(rg, bg, params.colour_beta)
+    if params.fixed_sigma_px is not None:
+        sigma_px = np.full(len(rows), float(params.fixed_sigma_px))
+    else:
+        var = 0.5 * (stars.cov_xy[rows, 0, 0] + stars.cov_xy[rows, 1, 1])
+        var = np.where(np.isfinite(var), var, UNKNOWN_CENTROID_SIGMA_PX ** 2)
+        floor = np.where((flags & int(UNTRUSTED)) != 0, UNTRUSTED_CENTROID_FLOOR_PX, CENTROID_SIGMA_FLOOR_PX)
+        sigma_px = np.sqrt(var + floor ** 2)
+    measured = np.sqrt(np.where(colour_ok[:, None], stars.cov_colour[rows][:, [0, 1], [0, 1]], np.nan))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: no colour measured
+        frame_rg, frame_bg = np.nanmedian(measured, axis=0)
+    solve_params = replace(
+        params.solve, mode=mode, sigma_vec=sigma_px / camera.f, fov=params.solve.fov or FieldOfView.from_camera(camera),
+        sigma_rg=float(np.nanmax([params.solve.sigma_rg, catalog.meta.get("sigma_rg", np.nan), frame_rg])),
+        sigma_bg=float(np.nanmax([params.solve.sigma_bg, catalog.meta.get("sigma_bg", np.nan), frame_bg])))
 
-def _corner_distance_px(camera: CameraModel) -> float:
-    """Distance (px) from the principal point to the farthest array corner."""
-    return float(np.max(np.hypot(np.array([-0.5, camera.width - 0.5]) - camera.cx,
-                                 np.array([-0.5, camera.height - 0.5])[:, None] - camera.cy)))
+    return rg, bg, sigma_px, solve_params
 
 
 def _solve_geometric(used, stars, camera, catalog, params: PipelineParams, timings: dict):
@@ -402,10 +403,31 @@ def _solve_geometric(used, stars, camera, catalog, params: PipelineParams, timin
     for k in sorted({min(k, cap, len(used)) for k in (*GEOMETRIC_STEPS, cap)}):
         sol, rows = _solve_rows(used[:k], stars, camera, catalog, params, params.solve.mode, False, timings)
         if sol.status is Outcome.HIGH_CONFIDENCE:
-            return sol, rows
+            return _match_all(sol, rows, used, stars, camera, catalog, params, timings)
         if best is None or (best[0].status is Outcome.NO_MATCH and sol.status is not Outcome.NO_MATCH):
             best = (sol, rows)
     return best
+
+
+def _match_all(sol, rows, used, stars: StarList, camera: CameraModel, catalog: OnboardCatalog,
+               params: PipelineParams, timings: dict):
+    """A high-confidence answer found on the brightest ``rows`` verified again over every usable
+    detection (``used``), so every star in view is matched; the answer stands if that verification
+    fails, finds fewer stars or moves the attitude."""
+    if len(rows) >= len(used):
+        return sol, rows
+    t0 = time.perf_counter()
+    rg, bg, sigma_px, sp = _solver_inputs(used, stars, camera, catalog, params, "geometric", False)
+    det = np.searchsorted(used, rows[sol.matched_det])
+    match, _ = verify(det, sol.matched_cat, stars.vectors[used], rg, bg, sigma_px / camera.f, catalog, sp.fov,
+                      0.0, 0.0, sp.verify)
+    timings["attitude"] = timings.get("attitude", 0.0) + time.perf_counter() - t0
+    if (match is None or match.n < len(sol.matched_det)
+            or rotation_angle(match.attitude.a, quat_to_matrix(sol.q_icrs_to_sensor)) > 5 * float(np.max(sigma_px)) / camera.f):
+        return sol, rows
+    full = solution_from_match(match, sol.status, sol.reason, np.arange(len(used)), catalog, sol.method, len(used))
+    full.attempts, full.timings, full.notes = sol.attempts, sol.timings, sol.notes
+    return full, used
 
 
 def geometric_detection_cap(camera: CameraModel, catalog: OnboardCatalog, factor: float) -> int:

@@ -71,7 +71,7 @@ class DeviceParams:
     measurement (detection's hot-pixel tests, the fit's start); ``colour_correction`` eq. 24 as
     ``{"beta": [6 numbers]}``; ``focal_search`` relative half-range of the focal-length search
     for uncalibrated optics (0 to 0.2; 0 takes the camera as calibrated: no search, no optics
-    fit); ``distortion_px`` unmodelled distortion allowed at the array corner during that search.
+    fit).
     The same file drives the offline paths (``--params``).
     """
 
@@ -83,10 +83,9 @@ class DeviceParams:
     psf_sigma_px: float | None = None
     colour_beta: tuple | None = None
     focal_search: float | None = None
-    distortion_px: float | None = None
 
     KEYS = ("mode", "sigma_rg", "sigma_bg", "centroid_sigma_px", "time_budget_s", "psf_sigma_px", "colour_correction",
-            "focal_search", "distortion_px")
+            "focal_search")
 
     @classmethod
     def from_json(cls, data: bytes) -> "DeviceParams":
@@ -126,7 +125,7 @@ class DeviceParams:
             beta = tuple(float(x) for x in b)
         return cls(mode, positive("sigma_rg"), positive("sigma_bg"), positive("centroid_sigma_px"),
                    positive("time_budget_s"), number("psf_sigma_px", 0.1, 20.0, lo_open=False), beta,
-                   number("focal_search", 0.0, 0.2, lo_open=False), number("distortion_px", 0.0, 100.0, lo_open=False))
+                   number("focal_search", 0.0, 0.2, lo_open=False))
 
     def apply(self, base: PipelineParams) -> PipelineParams:
         solve = base.solve
@@ -138,9 +137,8 @@ class DeviceParams:
             base = with_psf_sigma(base, self.psf_sigma_px)
         if self.focal_search == 0.0:
             base = replace(base, optics=None)
-        elif base.optics is not None and (self.focal_search is not None or self.distortion_px is not None):
-            base = replace(base, optics=replace(base.optics, **{k: v for k, v in (
-                ("focal_range", self.focal_search), ("distortion_px", self.distortion_px)) if v is not None}))
+        elif base.optics is not None and self.focal_search is not None:
+            base = replace(base, optics=replace(base.optics, focal_range=self.focal_search))
         return replace(base, solve=solve,
                        colour_beta=self.colour_beta if self.colour_beta is not None else base.colour_beta,
                        fixed_sigma_px=self.centroid_sigma_px if self.centroid_sigma_px is not None
