@@ -161,7 +161,9 @@ def _clean(vectors, rg, bg, sigma, catalog: OnboardCatalog, params: SolveParams)
     return v, cols[0][idx], cols[1][idx], s[idx], idx, notes
 
 
-def _result(match: VerifiedMatch, status: Outcome, reason: str, index_map, catalog, method, n_used):
+def solution_from_match(match: VerifiedMatch, status: Outcome, reason: str, index_map, catalog, method,
+                        n_used) -> SolveResult:
+    """The solution a verified match stands for (``index_map``: input row of each detection)."""
     att = match.attitude
     return SolveResult(
         status=status, reason=reason, q_icrs_to_sensor=att.q.copy(), covariance=att.covariance,
@@ -222,7 +224,7 @@ def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveP
         timings["total"] = time.perf_counter() - t0
         if res.best is None:
             return no_match(res.reason, method)
-        out = _result(res.best, res.outcome, res.reason, index_map, catalog, method, n)
+        out = solution_from_match(res.best, res.outcome, res.reason, index_map, catalog, method, n)
         out.attempts = res.attempts
     else:
         out = _solve_geometric(v, catalog, noise, params, check, n, t0, t1, timings, verify_time, index_map)
@@ -264,7 +266,7 @@ def _solve_geometric(v, catalog, noise, params, check, n, t0, t1, timings, verif
         reason = f"{len(rivals)} rival hypothesis(es) with comparable support"
     else:
         reason = f"{best.n} of {n} detections matched"
-    out = _result(best, Outcome.HIGH_CONFIDENCE if high else Outcome.LOW_CONFIDENCE, reason, index_map,
+    out = solution_from_match(best, Outcome.HIGH_CONFIDENCE if high else Outcome.LOW_CONFIDENCE, reason, index_map,
                   catalog, "geometric", n)
     out.attempts = groups
     return out
