@@ -220,6 +220,10 @@ def identify_stars(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
                 out = found
         elif (refined := _refine_optics(out, stars, camera, catalog, params, timings)) is not None:
             out = refined
+        elif out.optics is None:  # too few stars matched to check the optics: a search may match more
+            found = _search_optics(stars, camera, catalog, params, timings, t0)
+            if found is not None and len(found.solution.matched_det) > len(out.solution.matched_det):
+                out = found
     out.timings = timings
     timings["total"] = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
     return out
@@ -283,18 +287,24 @@ def _corner_shift_px(a: CameraModel, b: CameraModel) -> float:
     return float(np.nanmax(np.hypot(x2 - xs, y2 - ys)))
 
 
+#: The frame is identified again with the fitted optics when they fit this much better (RMS ratio).
+REFIT_RMS_RATIO = 1.5
+
+
 def _refine_optics(out: PipelineOutput, stars: StarList, camera: CameraModel, catalog: OnboardCatalog,
                    params: PipelineParams, timings: dict) -> PipelineOutput | None:
     """Attach the optics fit to a high-confidence ``out``; identify again with the fitted camera when
-    it moves a corner by more than ``refit_px`` and keep that answer if it is high-confidence,
-    agrees and matches at least as many stars."""
+    it moves a corner by more than ``refit_px`` or fits the stars :data:`REFIT_RMS_RATIO` times
+    better than the answer's camera did, and keep that answer if it is high-confidence and
+    agrees (within 1 mrad): its camera fits the stars better by construction."""
     fit = _fit_optics(out, catalog, params.optics)
     out.optics = fit
-    if fit is None or _corner_shift_px(camera, fit.camera) <= params.optics.refit_px:
+    rms_px = out.solution.consensus_rms * camera.f
+    if fit is None or (_corner_shift_px(camera, fit.camera) <= params.optics.refit_px
+                       and rms_px <= REFIT_RMS_RATIO * fit.residual_rms_px):
         return None
     again = _identify(_with_camera(stars, fit.camera), fit.camera, catalog, params, timings)
-    if (again.status is Status.OK and len(again.solution.matched_det) >= len(out.solution.matched_det)
-            and _same_attitude(again.solution, out.solution, 1e-3)):
+    if again.status is Status.OK and _same_attitude(again.solution, out.solution, 1e-3):
         again.optics = _fit_optics(again, catalog, params.optics) or fit
         return again
     return None

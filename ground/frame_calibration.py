@@ -5,11 +5,12 @@ A nominal focal length (lens label, pixel pitch) is often off by about a percent
 edge of a 10-degree field is several pixels: too much for a tight lost-in-space match. So:
 
 1. extract stars once per frame;
-2. search a focal-length scale (``1 +- focal_search`` in ``steps`` steps) and keep the one
-   giving the most high-confidence solves (ties: smallest mean residual);
+2. identify each frame with the pipeline's uncalibrated-optics search (scale-free patterns,
+   focal length within ``focal_search`` of the initial camera, ``pipeline.OpticsSearch``); the
+   initial camera of the joint fit takes the median of the per-frame fitted focal lengths;
 3. fit the chosen camera parameters and per-frame attitudes to the identified stars;
-4. identify again with the fitted camera and refit (``rounds`` times), so stars that the
-   first camera missed join the fit.
+4. identify again with the fitted camera (no search) and refit (``rounds`` times), so stars that
+   the first camera missed join the fit.
 """
 
 from __future__ import annotations
@@ -24,14 +25,14 @@ from firmware_model.extract import StarList, extract_stars
 from firmware_model.frame import Frame
 from firmware_model.ident.consensus import Outcome
 from firmware_model.onboard_catalog import OnboardCatalog
-from firmware_model.pipeline import PipelineOutput, PipelineParams, identify_stars
+from firmware_model.pipeline import OpticsSearch, PipelineOutput, PipelineParams, identify_stars
 from firmware_model.camera_fit import CalibrationResult, StarObservations, calibrate
 
 
 @dataclass
 class FrameCalibration:
     result: CalibrationResult
-    focal_scale: float  #: chosen scale of the initial focal length before the fit
+    focal_scale: float  #: median per-frame focal length found by the search / the initial one
     solved: list[bool]  #: per frame: high-confidence solve with the final camera
     outputs: list[PipelineOutput]
 
@@ -55,27 +56,23 @@ def _observations(stars: list[StarList], outs: list[PipelineOutput], catalog: On
 
 
 def calibrate_from_frames(frames: list[Frame], catalog: OnboardCatalog, initial: CameraModel,
-                          params: PipelineParams = PipelineParams(), fit=("f", "k1"), focal_search: float = 0.03,
-                          steps: int = 13, rounds: int = 2, progress: bool = True) -> FrameCalibration:
+                          params: PipelineParams = PipelineParams(), fit=("f", "k1"), focal_search: float = 0.05,
+                          rounds: int = 2, progress: bool = True) -> FrameCalibration:
     """Calibrate ``initial`` on ``frames`` of the real sky (module docstring)."""
     stars = [extract_stars(f, None, params.extract) for f in frames]
-    best = None
-    for scale in tqdm(np.linspace(1 - focal_search, 1 + focal_search, steps), desc="focal search",
-                      disable=not progress):
-        cam = replace(initial, f=initial.f * scale)
-        outs = _identify_all(stars, cam, catalog, params)
-        n = sum(_high(o) for o in outs)
-        rms = np.mean([o.solution.consensus_rms for o in outs if _high(o)]) if n else np.inf
-        key = (n, -rms)
-        if best is None or key > best[0]:
-            best = (key, scale, cam, outs)
-    _, scale, camera, outs = best
-    if best[0][0] == 0:
-        raise ValueError("no frame could be identified at any focal length in the search range")
+    search = replace(params, optics=replace(params.optics or OpticsSearch(), focal_range=focal_search))
+    outs = [identify_stars(replace(s, vectors=initial.pixel_to_vector(s.x, s.y)), initial, catalog, search)
+            for s in tqdm(stars, desc="identify", disable=not progress)]
+    focals = [o.optics.camera.f for o in outs if _high(o) and o.optics is not None]
+    if not any(_high(o) for o in outs):
+        raise ValueError(f"no frame could be identified with focal lengths within {focal_search:.0%} of the initial camera")
+    camera = replace(initial, f=float(np.median(focals))) if focals else initial
+    scale = camera.f / initial.f
+    fixed = replace(params, optics=None)
     result = None
     for _ in range(rounds):
         obs = _observations(stars, outs, catalog)
         result = calibrate(obs, camera, fit=fit)
         camera = result.camera
-        outs = _identify_all(stars, camera, catalog, params)
+        outs = _identify_all(stars, camera, catalog, fixed)
     return FrameCalibration(result, float(scale), [_high(o) for o in outs], outs)
