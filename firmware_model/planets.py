@@ -36,6 +36,7 @@ i.e. 0.5-12 px worst for pixels of 10-70 arcsec.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from functools import lru_cache
 
 import erfa
@@ -108,7 +109,14 @@ class PlanetLabel:
 
 @lru_cache(maxsize=64)
 def _parse_utc(epoch: str) -> Time:
-    return Time(epoch, scale="utc")
+    """ISO-8601 time; an explicit UTC offset (``Z``, ``+00:00``, ``+02:00``) is applied, none means UTC."""
+    try:
+        when = datetime.fromisoformat(epoch)
+    except ValueError:
+        return Time(epoch, scale="utc")  # astropy's own formats (e.g. year-day)
+    if when.tzinfo is not None:
+        when = when.astimezone(timezone.utc).replace(tzinfo=None)
+    return Time(when, scale="utc")
 
 
 def _as_time(epoch) -> Time:

@@ -108,6 +108,9 @@ def run_colour(args) -> int:
     lines.append(f"{'high confidence (wrong)':32s}{summary['high_confidence']:>8d} ({summary['high_confidence_wrong']})")
     lines.append(f"{'low confidence (wrong)':32s}{summary['low_confidence']:>8d} ({summary['low_confidence_wrong']})")
     lines.append(f"incorrect breakdown (wrong of visible): {summary['incorrect_breakdown']}")
+    lines.append("no solution by cause (availability loss):")
+    for key, count in summary["no_solution_by_cause"].items():
+        lines.append(f"  {key:30s}{count:8d}{count / n * 100:13.3f}%")
     lines.append(f"solve time ms p50/p99/max: {summary['solve_ms_p50']:.3f} / {summary['solve_ms_p99']:.3f} / "
                  f"{summary['solve_ms_max']:.3f}")
     _emit(args, summary, "\n".join(lines))

@@ -32,18 +32,30 @@ from firmware_model.camera import CameraModel
 from firmware_model.frames import attitude_from_radec_roll, matrix_to_quat, vec_to_radec
 from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.four_star import FourStarParams, match_four_star
-from firmware_model.ident.solver import SolveParams, solve
+from firmware_model.ident.solver import SolveParams, check_hypothesis, solve
 from firmware_model.ident.verify import FieldOfView
 from firmware_model.onboard_catalog import OnboardCatalog
 
 STATUS_CODE = {Outcome.NO_MATCH: 0, Outcome.LOW_CONFIDENCE: 1, Outcome.HIGH_CONFIDENCE: 2}
 
-#: One row per simulated pose.
+#: One row per simulated pose. ``n_true``: true stars among the detections (after drops);
+#: ``cause``: index into ``CAUSES`` for a pose with no solution (0 otherwise).
 POSE_DTYPE = np.dtype([
     ("boresight", np.int32), ("roll", np.float64), ("n_visible", np.int16), ("n_det", np.int16),
     ("status", np.int8), ("n_matched", np.int16), ("n_correct", np.int16), ("n_wrong", np.int16),
-    ("err_deg", np.float64), ("time_s", np.float64),
+    ("err_deg", np.float64), ("time_s", np.float64), ("n_true", np.int16), ("cause", np.int8),
 ])
+
+#: Why a pose has no solution (the availability loss), decided in this order:
+#: ``too_few_true_stars``: fewer true stars detected than the method needs (2 for colour, 3 for
+#: geometric), or fewer than the poor-match fraction of the visible stars (a correct answer would
+#: still be a problem orientation): no matcher can help;
+#: ``verification_rejects_truth``: the true identification of the detected stars, handed to the
+#: solver's verification (``check_hypothesis``), is refused (e.g. too many predicted stars
+#: missed): the verification's fault, whatever the matcher did;
+#: ``time_budget``: the solver stopped on ``time_budget_s`` (load-dependent);
+#: ``matcher_missed``: the truth would verify but the matcher did not find it.
+CAUSES = ("", "too_few_true_stars", "verification_rejects_truth", "time_budget", "matcher_missed")
 
 
 def spiral_boresights(n: int) -> np.ndarray:
@@ -188,7 +200,10 @@ def run_poses(catalog: OnboardCatalog, camera: CameraModel, cfg: ColourSimConfig
         rec = out[row]
         rec["boresight"], rec["roll"], rec["n_visible"], rec["n_det"] = b_idx, roll, scene.n_visible, len(scene.truth)
         rec["status"], rec["time_s"] = STATUS_CODE[res.status], dt
+        rec["n_true"] = int(np.sum(scene.truth >= 0))
         rec["err_deg"] = np.nan
+        if res.q_icrs_to_sensor is None:
+            rec["cause"] = no_solution_cause(scene, res.reason, catalog, params, cfg.colour)
         if res.q_icrs_to_sensor is not None:
             truth = scene.truth[res.matched_det]
             rec["n_matched"] = len(truth)
@@ -196,6 +211,21 @@ def run_poses(catalog: OnboardCatalog, camera: CameraModel, cfg: ColourSimConfig
             rec["n_wrong"] = len(truth) - rec["n_correct"]
             rec["err_deg"] = np.degrees(attitude_error(matrix_to_quat(a), res.q_icrs_to_sensor))
     return out
+
+
+def no_solution_cause(scene: Scene, reason: str, catalog: OnboardCatalog, params: SolveParams, colour: bool,
+                      poor_fraction: float = 0.4) -> int:
+    """Index into ``CAUSES`` of an unsolved pose (see ``CAUSES`` for the order of the tests)."""
+    true_det = np.nonzero(scene.truth >= 0)[0]
+    need = 2 if colour else 3
+    if len(true_det) < need or len(true_det) < poor_fraction * scene.n_visible:
+        return CAUSES.index("too_few_true_stars")
+    match, _ = check_hypothesis(scene.vectors, scene.rg, scene.bg, true_det, scene.truth[true_det], catalog, params)
+    if match is None:
+        return CAUSES.index("verification_rejects_truth")
+    if "time budget" in reason:
+        return CAUSES.index("time_budget")
+    return CAUSES.index("matcher_missed")
 
 
 # ------------------------------------------------------------------ seed 001 4-star run
@@ -346,6 +376,7 @@ def colour_summary(rows: np.ndarray, poor_fraction: float = 0.4, high_error_deg:
         "fraction_within_0.01deg": float(np.mean(err <= 0.01)),
         "fraction_within_1deg": float(np.mean(err <= 1.0)),
         "fewer_than_2_visible": int((rows["n_visible"] < 2).sum()),
+        "no_solution_by_cause": {name: int((none & (rows["cause"] == k)).sum()) for k, name in enumerate(CAUSES) if k},
         "solve_ms_p50": float(np.percentile(t, 50) * 1e3) if n else float("nan"),
         "solve_ms_p99": float(np.percentile(t, 99) * 1e3) if n else float("nan"),
         "solve_ms_max": float(t.max() * 1e3) if n else float("nan"),

@@ -133,3 +133,164 @@ def test_bad_files(tmp_path):
     ]:
         with pytest.raises(FrameReadError, match=msg):
             read_frame(tmp_path / name)
+
+
+# ------------------------------------------------------------------ PNG / JPEG (Pillow)
+def _rgb_planes(h, w):
+    """An (h, w, 3) uint8 image whose R, G, B planes differ everywhere (R = 10+r, G = 100+c, B = 200+r+c)."""
+    r, c = np.mgrid[0:h, 0:w]
+    return np.stack([10 + r, 100 + c, 200 + (r + c) % 50], axis=-1).astype(np.uint8)
+
+
+def _check_rggb(f, rgb, atol=0):
+    h, w = f.height, f.width
+    assert f.pattern == "RGGB" and f.metadata["demosaiced"] is True
+    assert f.black_level == (0.0,) * 4 and f.white_level == 255
+    px = f.pixels.astype(int)
+    rgb = rgb.astype(int)
+    np.testing.assert_allclose(px[0::2, 0::2], rgb[0:h:2, 0:w:2, 0], atol=atol)
+    np.testing.assert_allclose(px[0::2, 1::2], rgb[0:h:2, 1:w:2, 1], atol=atol)
+    np.testing.assert_allclose(px[1::2, 0::2], rgb[1:h:2, 0:w:2, 1], atol=atol)
+    np.testing.assert_allclose(px[1::2, 1::2], rgb[1:h:2, 1:w:2, 2], atol=atol)
+
+
+def test_png_rgb_remosaiced_to_rggb(tmp_path):
+    from PIL import Image
+
+    rgb = _rgb_planes(6, 8)
+    Image.fromarray(rgb, "RGB").save(tmp_path / "c.png")
+    f = read_frame(tmp_path / "c.png")
+    assert (f.width, f.height) == (8, 6) and f.pixels.dtype == np.uint8
+    _check_rggb(f, rgb)
+    assert f.metadata["source_mode"] == "RGB" and f.metadata["source_size"] == [8, 6]
+    assert f.metadata["source_format"] == "PNG" and "cropped_px" not in f.metadata
+    assert f.timestamp is None and f.exposure_s is None
+    assert f.channel_map()[0, 0] == RED and f.channel_map()[1, 1] == BLUE
+
+
+def test_jpeg_rgb_remosaiced_to_rggb(tmp_path):
+    from PIL import Image
+
+    # flat 8x8 blocks of one colour each survive JPEG (4:4:4, q=100) within a few DN
+    rgb = np.zeros((16, 24, 3), np.uint8)
+    rgb[:, :8] = (200, 40, 90)
+    rgb[:, 8:16] = (30, 180, 60)
+    rgb[:, 16:] = (70, 90, 220)
+    Image.fromarray(rgb, "RGB").save(tmp_path / "c.jpg", quality=100, subsampling=0)
+    f = read_frame(tmp_path / "c.jpg")
+    assert (f.width, f.height) == (24, 16) and f.metadata["source_format"] == "JPEG"
+    _check_rggb(f, rgb, atol=4)
+
+
+def test_png_rgba_drops_alpha_and_odd_size_is_cropped(tmp_path):
+    from PIL import Image
+
+    rgb = _rgb_planes(7, 9)
+    rgba = np.concatenate([rgb, np.full((7, 9, 1), 17, np.uint8)], axis=-1)
+    Image.fromarray(rgba, "RGBA").save(tmp_path / "a.png")
+    f = read_frame(tmp_path / "a.png")
+    assert (f.width, f.height) == (8, 6)
+    assert f.metadata["cropped_px"] == [1, 1] and f.metadata["source_size"] == [9, 7]
+    assert f.metadata["source_mode"] == "RGBA"
+    _check_rggb(f, rgb)  # alpha (17) never appears: every value is a colour plane's
+    Image.fromarray(rgb[:, :8], "RGB").save(tmp_path / "o.png")  # odd height only
+    g = read_frame(tmp_path / "o.png")
+    assert (g.width, g.height) == (8, 6) and g.metadata["cropped_px"] == [0, 1]
+
+
+def test_greyscale_png_is_mono(tmp_path):
+    from PIL import Image
+
+    grey8 = (np.arange(5 * 7).reshape(5, 7) * 7).astype(np.uint8)
+    Image.fromarray(grey8, "L").save(tmp_path / "g8.png")
+    f = read_frame(tmp_path / "g8.png")
+    assert f.is_mono and np.array_equal(f.pixels, grey8) and f.white_level == 255
+    assert (f.width, f.height) == (7, 5) and "cropped_px" not in f.metadata  # MONO needs no even size
+    assert f.metadata["demosaiced"] is False and f.metadata["source_mode"] == "L"
+    grey16 = (np.arange(6 * 4).reshape(6, 4) * 2700).astype(np.uint16)
+    Image.fromarray(grey16).save(tmp_path / "g16.png")
+    g = read_frame(tmp_path / "g16.png")
+    assert g.is_mono and g.pixels.dtype == np.uint16 and np.array_equal(g.pixels, grey16)
+    assert g.white_level == 65535 and g.metadata["source_mode"].startswith("I;16")
+
+
+def test_jpeg_exif_timestamp_and_exposure(tmp_path):
+    from PIL import Image
+
+    rgb = _rgb_planes(8, 8)
+    exif = Image.Exif()
+    exif[271], exif[272] = "Canon", "Canon EOS Test"
+    sub = exif.get_ifd(0x8769)
+    sub[36867] = "2021:03:26 00:46:16"  # DateTimeOriginal
+    sub[37521] = "25"  # SubsecTimeOriginal
+    sub[33434] = 0.5  # ExposureTime
+    Image.fromarray(rgb, "RGB").save(tmp_path / "e.jpg", exif=exif, quality=95)
+    f = read_frame(tmp_path / "e.jpg")
+    assert f.timestamp == "2021-03-26T00:46:16.250000Z" and f.exposure_s == pytest.approx(0.5)
+    assert f.metadata["timestamp_utc_assumed"] is True
+    assert f.metadata["timestamp_source"] == "EXIF DateTimeOriginal"
+    assert f.metadata["exif_camera"] == "Canon EOS Test"
+    # an offset tag turns the local clock time into UTC
+    sub[36881] = "+02:00"  # OffsetTimeOriginal
+    Image.fromarray(rgb, "RGB").save(tmp_path / "o.png", exif=exif)
+    g = read_frame(tmp_path / "o.png")
+    assert g.timestamp == "2021-03-25T22:46:16.250000Z"
+    assert g.metadata["timestamp_utc_assumed"] is False and g.metadata["exif_time_offset"] == "+02:00"
+
+
+def test_bad_png_and_jpeg_files(tmp_path):
+    from PIL import Image
+
+    (tmp_path / "garbage.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)) * 4)
+    (tmp_path / "garbage.jpg").write_bytes(b"\xff\xd8\xff" + b"\x00" * 500)
+    (tmp_path / "text.png").write_text("hello, I am not a PNG\n")
+    Image.fromarray(_rgb_planes(64, 64), "RGB").save(tmp_path / "g.png")
+    good = (tmp_path / "g.png").read_bytes()
+    (tmp_path / "trunc.png").write_bytes(good[: len(good) // 2])
+    Image.fromarray(_rgb_planes(64, 64), "RGB").save(tmp_path / "g.jpg")
+    good = (tmp_path / "g.jpg").read_bytes()
+    (tmp_path / "trunc.jpg").write_bytes(good[: len(good) // 2])
+    Image.fromarray(_rgb_planes(1, 5), "RGB").save(tmp_path / "thin.png")
+    for name, msg in [
+        ("garbage.png", "not a readable PNG/JPEG"), ("garbage.jpg", "not a readable PNG/JPEG"),
+        ("text.png", "not a recognised"), ("trunc.png", "not a readable PNG/JPEG"),
+        ("trunc.jpg", "not a readable PNG/JPEG"), ("thin.png", "too small"),
+    ]:
+        with pytest.raises(FrameReadError, match=msg) as info:
+            read_frame(tmp_path / name)
+        text = str(info.value)
+        assert "\n" not in text and text.startswith(str(tmp_path / name)), text
+        exc = info.value  # no chained traceback behind the one-line reason
+        assert exc.__cause__ is None and (exc.__context__ is None or exc.__suppress_context__), name
+
+
+def test_frame_files_takes_png_and_jpeg(tmp_path):
+    from firmware_model.frame_io import frame_files
+
+    for name in ("a.png", "b.JPG", "c.jpeg", "d.json", "e.txt"):
+        (tmp_path / name).write_bytes(b"x")
+    assert [p.name for p in frame_files(tmp_path)] == ["a.png", "b.JPG", "c.jpeg"]
+
+
+def test_shared_real_colour_frames(shared_data):
+    import json
+
+    from firmware_model.frame_io import frame_files
+
+    folder = shared_data / "frames" / "colour-real"
+    if not folder.is_dir():
+        pytest.skip("colour-real frames are absent")
+    ref = json.loads((folder / "reference_pointing.json").read_text())
+    paths = frame_files(folder)
+    assert sorted(p.name for p in paths) == sorted(ref)
+    for p in paths:
+        f = read_frame(p)
+        w, h = ref[p.name]["size_px"]
+        assert f.metadata["source_size"] == [w, h] and f.metadata["source_mode"] == ref[p.name]["mode"]
+        assert (f.width, f.height) == (w - w % 2, h - h % 2) and f.pattern == "RGGB"
+        assert f.white_level == 255 and f.pixels.max() > f.pixels.min()
+    exif = read_frame(folder / "img_7660.png")
+    assert exif.exposure_s == pytest.approx(10.0) and exif.timestamp == "2021-03-26T00:46:16.870000Z"
+    from astropy.time import Time
+
+    assert Time(exif.timestamp, scale="utc").isot == "2021-03-26T00:46:16.870"  # the planets module parses it

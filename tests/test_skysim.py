@@ -125,7 +125,7 @@ def test_cli_runs_both_simulations(tmp_path, capsys):
     assert main(["sim", "colour", "--boresights", "20", "--rolls", "1", "--workers", "1", "--no-progress",
                  "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    assert "problem_orientations" in out and "seed 000" in out
+    assert "problem_orientations" in out and "seed 000" in out and "no solution by cause" in out
     assert (tmp_path / "error_cdf.png").exists() and (tmp_path / "problem_map.png").exists()
     assert main(["--json", "sim", "fourstar", "--step", "45", "--epsilon", "0.01", "--workers", "1",
                  "--no-progress"]) == 0
@@ -134,3 +134,36 @@ def test_cli_runs_both_simulations(tmp_path, capsys):
     s = json.loads(capsys.readouterr().out)["0.01"]
     assert s["observations"] == 40 and s["misidentified"] == 0
     assert main(["sim", "colour", "--boresights", "1", "--workers", "1"]) == 2
+
+
+def test_impaired_run_splits_the_availability_loss_by_cause(colour_catalog):
+    params = SolveParams(sigma_vec=0.2 / CAM.f, fov=FieldOfView.from_camera(CAM, 0.0), mode="colour",
+                         time_budget_s=10.0)
+    cfg = skysim.ColourSimConfig(n_boresights=200, n_roll=2, seed=3, solve=params,
+                                 model=skysim.ErrorModel(false_stars=3.0, p_drop=0.3))
+    rows, _ = skysim.execute("colour", colour_catalog, CAM, cfg, 400, workers=1, progress=False)
+    s = skysim.colour_summary(rows)
+    by = s["no_solution_by_cause"]
+    assert set(by) == set(skysim.CAUSES[1:]) and sum(by.values()) == s["no_solution"] > 0
+    assert by["time_budget"] == 0  # 10 s budget
+    unsolved = rows[rows["status"] == 0]
+    few = unsolved["cause"] == skysim.CAUSES.index("too_few_true_stars")
+    assert np.all((unsolved["n_true"][few] < 2) | (unsolved["n_true"][few] < 0.4 * unsolved["n_visible"][few]))
+    assert np.all(unsolved["n_true"][~few] >= 2)
+    assert np.all(rows["cause"][rows["status"] > 0] == 0)
+    assert np.all(rows["n_true"] <= rows["n_visible"]) and np.all(rows["n_true"] <= rows["n_det"])
+    # the verification tolerates 10 % missed stars, not 30 %: some true identifications are refused
+    assert by["verification_rejects_truth"] > 0
+
+
+def test_cause_of_a_frame_without_true_stars(colour_catalog):
+    params = SolveParams(sigma_vec=0.2 / CAM.f, fov=FieldOfView.from_camera(CAM, 0.0), mode="colour")
+    rng = np.random.default_rng(0)
+    v = CAM.pixel_to_vector(rng.uniform(0, CAM.width, 4), rng.uniform(0, CAM.height, 4))
+    sc = skysim.Scene(v, np.full(4, 0.7), np.full(4, 0.8), np.full(4, -1), 5)
+    assert skysim.CAUSES[skysim.no_solution_cause(sc, "", colour_catalog, params, True)] == "too_few_true_stars"
+    a = attitude_from_radec_roll(1.0, 0.2, 0.3)
+    sc = skysim.observe(colour_catalog, a, CAM, skysim.ErrorModel(), rng)
+    assert len(sc.truth) >= 3
+    assert skysim.CAUSES[skysim.no_solution_cause(sc, "time budget exhausted", colour_catalog, params, True)] == "time_budget"
+    assert skysim.CAUSES[skysim.no_solution_cause(sc, "", colour_catalog, params, True)] == "matcher_missed"

@@ -58,7 +58,10 @@ class ConsensusParams:
 
     p_correct: pair-match success probability defining ``Delta*`` (eq. 7; 0.99 -> 4.65).
     eta: consensus fraction for a high-confidence match (paper: 0.6-0.7).
-    attempts_per_star, max_attempts: seed-pair attempts ``min(ceil(3 N_A), max_attempts)``.
+    attempts_per_star, max_attempts: seed-pair attempts ``min(ceil(attempts_per_star N_A),
+        max_attempts)``; the paper's 3 N_A runs out in frames whose brightest detections are
+        false (three false among the four brightest leave true pairs only past attempt 3 N_A),
+        so the default is 6 N_A, which reaches every pair of up to 12 detections.
     k_best: catalog matches grown per seed pair (backtracking; 1 = paper).
     k_best_sparse: the same for scenes of at most three detections, where the seed pair is
         nearly all the evidence there is.
@@ -77,11 +80,18 @@ class ConsensusParams:
     confident_stars, confident_coverage: a verified set of at least this many stars that matches
         at least this fraction of the predicted stars is high confidence even below ``eta``
         (false detections do not make an answer that explains the sky less certain).
+    last_resort: in rich scenes, up to this many two-star sets skipped by ``min_consensus_rich``
+        are verified (the pairs with fewest catalog neighbours first, i.e. the sparsest sky, then
+        by seed ``Delta``) when no larger set verified: a frame
+        can hold only two true stars among false detections. Such an answer is below ``eta``,
+        so it is low confidence.
+    adaptive_seeds: seed pairs move away from detections whose seeds failed (``SeedOrder``);
+        False is the fixed brightest-first order.
     """
 
     p_correct: float = 0.99
     eta: float = 0.65
-    attempts_per_star: float = 3.0
+    attempts_per_star: float = 6.0
     max_attempts: int = 60
     k_best: int = 4
     k_best_sparse: int = 16
@@ -96,6 +106,8 @@ class ConsensusParams:
     confirmations: int = 3
     confident_stars: int = 6
     confident_coverage: float = 0.8
+    last_resort: int = 12
+    adaptive_seeds: bool = True
 
 
 @dataclass
@@ -120,6 +132,46 @@ def seed_pairs(n: int):
     for l in range(1, n):
         for k in range(l):
             yield k, l
+
+
+class SeedOrder:
+    """Seed pairs, brightest first, that move away from detections whose seeds failed.
+
+    With ``adaptive`` off this is ``seed_pairs``. With it on, the next pair is the untried one
+    whose two detections have taken part in the fewest failed seeds (ties: brightest-first
+    order). In a frame whose brightest detections are false, the fixed order spends its attempts
+    on pairs of false stars ((0,1), (0,2), (1,2), ... all contain one); after (0,1) fails this
+    order tries (2,3), (4,5), ..., so a pair of true stars comes up after a few attempts. A frame
+    whose first seed succeeds sees the fixed order.
+    """
+
+    def __init__(self, n: int, adaptive: bool = True):
+        pairs = list(seed_pairs(n))
+        self.k = np.array([p[0] for p in pairs], np.int64)
+        self.l = np.array([p[1] for p in pairs], np.int64)
+        self.untried = np.ones(len(pairs), bool)
+        self.fails = np.zeros(n, np.int64)
+        self.adaptive = adaptive
+        self._rank = np.arange(len(pairs))
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> tuple[int, int]:
+        if not self.untried.any():
+            raise StopIteration
+        if self.adaptive:
+            score = (self.fails[self.k] + self.fails[self.l]) * len(self._rank) + self._rank
+            i = int(np.argmin(np.where(self.untried, score, np.iinfo(np.int64).max)))
+        else:
+            i = int(np.argmax(self.untried))
+        self.untried[i] = False
+        return int(self.k[i]), int(self.l[i])
+
+    def failed(self, k: int, l: int) -> None:
+        """Report that the seed (k, l) gave no verified set holding both detections."""
+        self.fails[k] += 1
+        self.fails[l] += 1
 
 
 def neighbour_table(catalog: OnboardCatalog):
@@ -227,11 +279,13 @@ def match_scene(vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray, catalog: On
     tol = noise.sigma_phi * delta_star
     k_best = params.k_best_sparse if n <= 3 else params.k_best
     verified: list = []
+    small: list = []  # (seed Delta, det, cat, explored_all) of sets skipped as too small
     attempts = 0
     seeded = False
-    last_reason = "no detection pair within the catalog's pair-angle range"
+    last_reason = _NO_PAIR
     best = None
-    for k, l in seed_pairs(n):
+    order = SeedOrder(n, params.adaptive_seeds)
+    for k, l in order:
         if attempts >= max_attempts:
             break
         if deadline is not None and time.perf_counter() > deadline:
@@ -244,36 +298,70 @@ def match_scene(vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray, catalog: On
         cands = match_pair(np.array([rg[k], bg[k], phi, rg[l], bg[l]]), catalog, noise, delta_star,
                            params.max_window)
         if len(cands) == 0:
+            order.failed(k, l)
             if not seeded:
                 last_reason = "no seed pair matched the catalog within Delta*"
             continue
         seeded = True
         explored_all = len(cands) <= k_best and not cands.truncated
+        good = False
         for m in range(min(k_best, len(cands))):
             det, cat = grow((k, l), (int(cands.cat_k[m]), int(cands.cat_l[m])), vectors, rg, bg, ang,
                             catalog, noise, delta_star, params)
             if n >= params.rich_scene and len(det) < params.min_consensus_rich:
+                small.append((float(cands.delta[m]), det, cat, explored_all))
                 continue
             if best is not None and len(det) < params.rival_ratio * best.n:
                 continue  # can be neither the best nor a rival
             if best is not None and _same_set(best, det, cat):
                 best.confirmed += 1
+                good = True
                 continue
             match, why = verify(det, cat)
             if match is None:
                 last_reason = f"hypotheses failed verification ({why})"
                 continue
+            good = good or bool(np.isin([k, l], match.det).all())
             match.explored_all = explored_all
             match.seed_delta = float(cands.delta[m])
             _add_distinct(verified, match, params.rival_angle)
             if match.n >= max(params.decisive_stars, params.eta * n):
                 break  # a decisive set: lesser candidates of this seed cannot rival it
+        if not good:
+            order.failed(k, l)
         if verified:
             best = max(verified, key=_rank)
             if _is_high(best, verified, n, params):
                 return ConsensusResult(Outcome.HIGH_CONFIDENCE, best, "", attempts, len(verified))
             if best.confirmed >= params.confirmations:
                 break
+    if not verified and small:
+        # last resort: the frame may hold only two true stars among false ones; a two-star
+        # answer is never high confidence here (it is below eta of a rich scene)
+        if last_reason == _NO_PAIR:
+            last_reason = f"only two-star hypotheses ({len(small)}), none verified"
+        # sparse sky first: a frame with two true stars looks at a patch with few catalog stars,
+        # and a pair in a dense patch would fail the coverage test anyway
+        indptr = neighbour_table(catalog)[0]
+        seen_sets, ranked = set(), []
+        for delta, det, cat, explored in small:
+            key = (tuple(det.tolist()), tuple(cat.tolist()))
+            if key not in seen_sets:
+                seen_sets.add(key)
+                density = int(indptr[cat[0] + 1] - indptr[cat[0]] + indptr[cat[1] + 1] - indptr[cat[1]])
+                ranked.append((density, delta, det, cat, explored))
+        ranked.sort(key=lambda t: (t[0], t[1]))
+        for _, delta, det, cat, explored in ranked[: params.last_resort]:
+            if deadline is not None and time.perf_counter() > deadline:
+                last_reason = "time budget exhausted"
+                break
+            match, why = verify(det, cat)
+            if match is None:
+                last_reason = f"two-star hypotheses failed verification ({why})"
+                continue
+            match.explored_all = explored
+            match.seed_delta = delta
+            _add_distinct(verified, match, params.rival_angle)
     if not verified:
         return ConsensusResult(Outcome.NO_MATCH, None, last_reason, attempts, 0)
     best = max(verified, key=_rank)
@@ -291,11 +379,16 @@ def match_scene(vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray, catalog: On
     return ConsensusResult(Outcome.LOW_CONFIDENCE, best, reason, attempts, len(verified), rivals)
 
 
+_NO_PAIR = "no detection pair within the catalog's pair-angle range"
+
+
 def _is_high(best, verified: list, n: int, params: ConsensusParams) -> bool:
     """High confidence: no rival, and either the paper's eta test (a two-star set only when its
     seed pair's candidates were all explored) or a large, well-covering verified set."""
     if _rivals(best, verified, params):
         return False
+    if getattr(best, "low_coverage", False) and best.n < params.decisive_stars:
+        return False  # few stars and many predicted ones missed: plausible, not certain
     if best.n >= params.eta * n and (best.n >= 3 or best.explored_all):
         return True
     cov = best.coverage if np.isfinite(best.coverage) else 0.0

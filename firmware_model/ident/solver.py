@@ -235,6 +235,33 @@ def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveP
     return out
 
 
+def check_hypothesis(vectors, rg, bg, det, cat, catalog: OnboardCatalog,
+                     params: SolveParams = SolveParams()) -> tuple[VerifiedMatch | None, str]:
+    """Run the solver's verification on a given identification (``det`` input rows matched to
+    catalog indices ``cat``), with the cleaning, field of view and noise ``solve`` would use.
+
+    For diagnostics (the whole-sky simulation asks whether the true identification of a frame
+    that was not solved would have passed verification): returns ``(VerifiedMatch, "")`` with
+    indices into the cleaned detections, or ``(None, reason)``.
+    """
+    cleaned = _clean(vectors, rg, bg, params.sigma_vec, catalog, params)
+    if isinstance(cleaned, str):
+        return None, cleaned
+    v, rg, bg, sigma, index_map, _ = cleaned
+    pos = {int(r): k for k, r in enumerate(index_map.tolist())}
+    pairs = [(pos[int(d)], int(c)) for d, c in zip(np.atleast_1d(det), np.atleast_1d(cat)) if int(d) in pos]
+    if len(pairs) < 2:
+        return None, "fewer than two of the given detections survive input cleaning"
+    frame_colour = bool(np.isfinite(rg).any() and np.isfinite(bg).any())
+    method = params.mode if params.mode != "auto" else ("colour" if frame_colour and catalog.has_colour else "geometric")
+    fov = params.fov or FieldOfView.cone(float(np.max(np.arccos(np.clip(v[:, 2], -1, 1)))) + 1e-9)
+    colour = method == "colour"
+    d = np.array([p[0] for p in pairs], np.int64)
+    c = np.array([p[1] for p in pairs], np.int64)
+    return verify(d, c, v, rg, bg, sigma, catalog, fov, params.sigma_rg if colour else 0.0,
+                  params.sigma_bg if colour else 0.0, params.verify)
+
+
 def _solve_geometric(v, catalog, noise, params, check, n, t0, t1, timings, verify_time, index_map):
     """4-star matching (seed 001), then the triangle fallback when it is not conclusive."""
     if n < 3:
@@ -255,6 +282,8 @@ def _solve_geometric(v, catalog, noise, params, check, n, t0, t1, timings, verif
     timings["verify"] = verify_time[0]
     timings["total"] = time.perf_counter() - t0
     if not found:
+        if time.perf_counter() > t0 + params.time_budget_s:
+            return f"time budget exhausted ({groups} 4-star group(s), triangle fallback)"
         return f"no verified identification ({groups} 4-star group(s), triangle fallback)"
     best = max(found, key=lambda f: (f.n, f.coverage if np.isfinite(f.coverage) else 0.0))
     rivals = [f for f in found if f is not best and f.n >= max(3, cp.rival_ratio * best.n)
@@ -276,6 +305,8 @@ def _geometric_high(best, rivals, n, cp: ConsensusParams) -> bool:
     """High confidence for a geometric answer: no rival, at least three stars, and the eta test or
     a large well-covering set (as in the colour consensus)."""
     if rivals or best.n < 3:
+        return False
+    if best.low_coverage and best.n < cp.decisive_stars:
         return False
     cov = best.coverage if np.isfinite(best.coverage) else 0.0
     return best.n >= cp.eta * n or (best.n >= cp.confident_stars and cov >= cp.confident_coverage)

@@ -28,15 +28,20 @@ class TriangleParams:
     pairs per side above which the triad is skipped; decisive_stars: a verified set this large
     ends the search; probe_stars, probe_gate: before the full verification a triangle must put at
     least one of the next ``probe_stars`` bright detections within ``probe_gate_eps * eps`` of some
-    catalog star (when the frame has such detections): a cheap filter for wrong triangles."""
+    catalog star (when the frame has such detections): a cheap filter for wrong triangles, used
+    when the triad has more than ``probe_below`` candidate triangles;
+    adaptive: triads move away from detections whose triads failed (``TriadOrder``), False is
+    the base order."""
 
-    max_stars: int = 8
-    max_triads: int = 12
+    max_stars: int = 12
+    max_triads: int = 40
     max_triangles: int = 40
     max_pairs: int = 20000
     decisive_stars: int = 6
     probe_stars: int = 6
     probe_gate_eps: float = 2.0
+    probe_below: int = 3
+    adaptive: bool = True
 
 
 def _side(catalog: OnboardCatalog, theta: float, eps: float, max_pairs: int):
@@ -49,37 +54,49 @@ def _side(catalog: OnboardCatalog, theta: float, eps: float, max_pairs: int):
 
 def triangles(v3: np.ndarray, catalog: OnboardCatalog, eps: float, max_pairs: int = 20000) -> np.ndarray:
     """Catalog triangles ``(a, b, c)`` matching detections ``v3[0], v3[1], v3[2]`` within ``eps``
-    on all sides, same handedness, sorted by summed angle error; shape (M, 3)."""
-    ij = _side(catalog, float(angle_between(v3[0], v3[1])), eps, max_pairs)
-    ik = _side(catalog, float(angle_between(v3[0], v3[2])), eps, max_pairs)
-    jk = _side(catalog, float(angle_between(v3[1], v3[2])), eps, max_pairs)
-    if ij is None or ik is None or jk is None:
-        return np.empty((0, 3), np.int64)
-    n = catalog.n_stars
-    order = np.argsort(ik[0], kind="stable")
-    ik_a, ik_c = ik[0][order], ik[1][order]
-    lo = np.searchsorted(ik_a, ij[0], "left")
-    hi = np.searchsorted(ik_a, ij[0], "right")
+    on all sides, same handedness, sorted by summed angle error; shape (M, 3).
+
+    Two sides sharing a vertex come from the pair table (the first vertex, in detection order,
+    whose two sides are in the catalog's pair-angle range); the third side is checked on the
+    catalog vectors directly, so it may be longer than ``phi_max`` (a wide field's diagonal
+    exceeds the catalog's pair range)."""
+    meas = {(0, 1): float(angle_between(v3[0], v3[1])), (0, 2): float(angle_between(v3[0], v3[2])),
+            (1, 2): float(angle_between(v3[1], v3[2]))}
+    lo_ok, hi_ok = catalog.phi_min - eps, catalog.phi_max + eps
+    in_range = {k: lo_ok <= m <= hi_ok for k, m in meas.items()}
+    empty = np.empty((0, 3), np.int64)
+    for p, q, r in ((0, 1, 2), (1, 0, 2), (2, 0, 1)):
+        if in_range[tuple(sorted((p, q)))] and in_range[tuple(sorted((p, r)))]:
+            break
+    else:
+        return empty
+    pq = _side(catalog, meas[tuple(sorted((p, q)))], eps, max_pairs)
+    pr = _side(catalog, meas[tuple(sorted((p, r)))], eps, max_pairs)
+    if pq is None or pr is None:
+        return empty
+    order = np.argsort(pr[0], kind="stable")
+    pr_a, pr_c = pr[0][order], pr[1][order]
+    lo = np.searchsorted(pr_a, pq[0], "left")
+    hi = np.searchsorted(pr_a, pq[0], "right")
     count = hi - lo
     if count.sum() == 0:
-        return np.empty((0, 3), np.int64)
-    rows = np.repeat(np.arange(len(ij[0])), count)
+        return empty
+    rows = np.repeat(np.arange(len(pq[0])), count)
     pos = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count) + np.repeat(lo, count)
-    a, b, c = ij[0][rows], ij[1][rows], ik_c[pos]
-    keys = np.sort(jk[0] * n + jk[1])
-    hit = np.isin(b * n + c, keys, assume_unique=False) & (c != b)
-    tri = np.stack([a[hit], b[hit], c[hit]], axis=1)
+    sp, sq, sr = pq[0][rows], pq[1][rows], pr_c[pos]
+    cv = catalog.vec
+    keep = (sq != sr) & (np.abs(angle_between(cv[sq], cv[sr]) - meas[(q, r)]) <= eps)
+    cols = {p: sp[keep], q: sq[keep], r: sr[keep]}
+    tri = np.stack([cols[0], cols[1], cols[2]], axis=1)
     if len(tri) == 0:
         return tri
-    cv = catalog.vec
     hand = np.sign(np.linalg.det(np.stack([cv[tri[:, 0]], cv[tri[:, 1]], cv[tri[:, 2]]], axis=1)))
     tri = tri[hand == np.sign(np.linalg.det(v3))]
     if len(tri) == 0:
         return tri
-    meas = np.array([angle_between(v3[0], v3[1]), angle_between(v3[0], v3[2]), angle_between(v3[1], v3[2])])
-    err = (np.abs(angle_between(cv[tri[:, 0]], cv[tri[:, 1]]) - meas[0])
-           + np.abs(angle_between(cv[tri[:, 0]], cv[tri[:, 2]]) - meas[1])
-           + np.abs(angle_between(cv[tri[:, 1]], cv[tri[:, 2]]) - meas[2]))
+    err = (np.abs(angle_between(cv[tri[:, 0]], cv[tri[:, 1]]) - meas[(0, 1)])
+           + np.abs(angle_between(cv[tri[:, 0]], cv[tri[:, 2]]) - meas[(0, 2)])
+           + np.abs(angle_between(cv[tri[:, 1]], cv[tri[:, 2]]) - meas[(1, 2)]))
     return tri[np.argsort(err, kind="stable")]
 
 
@@ -96,6 +113,42 @@ def _probe(b3: np.ndarray, tris: np.ndarray, others: np.ndarray, catalog: Onboar
     return np.any(dist.reshape(len(tris), len(others)) < gate, axis=1)
 
 
+class TriadOrder:
+    """Triads of the ``n`` brightest detections, fewest failed detections first.
+
+    The base order grows the set of detections one at a time ((0,1,2), (0,1,3), (0,2,3),
+    (1,2,3), (0,1,4), ...: every triad of the five brightest comes before any triad with the
+    sixth). With ``adaptive`` the next triad is the untried one whose detections took part in
+    the fewest failed triads (ties: base order), so false detections among the brightest stop
+    spoiling triad after triad. A frame whose first triad succeeds sees the base order.
+    """
+
+    def __init__(self, n: int, adaptive: bool = True):
+        tri = sorted(combinations(range(n), 3), key=lambda t: (t[2], t[1], t[0]))
+        self.tri = np.array(tri, np.int64).reshape(-1, 3)
+        self.untried = np.ones(len(self.tri), bool)
+        self.fails = np.zeros(max(n, 1), np.int64)
+        self.adaptive = adaptive
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> tuple[int, int, int]:
+        if not self.untried.any():
+            raise StopIteration
+        if self.adaptive:
+            score = self.fails[self.tri].sum(axis=1) * len(self.tri) + np.arange(len(self.tri))
+            t = int(np.argmin(np.where(self.untried, score, np.iinfo(np.int64).max)))
+        else:
+            t = int(np.argmax(self.untried))
+        self.untried[t] = False
+        return tuple(int(x) for x in self.tri[t])
+
+    def failed(self, det) -> None:
+        """Report a triad that gave no verified set containing its three detections."""
+        self.fails[np.asarray(det, np.int64)] += 1
+
+
 def match_triangles(vectors: np.ndarray, catalog: OnboardCatalog, eps: float,
                     verify: Callable[[np.ndarray, np.ndarray], tuple[object | None, str]],
                     params: TriangleParams = TriangleParams(), deadline: float | None = None):
@@ -105,13 +158,17 @@ def match_triangles(vectors: np.ndarray, catalog: OnboardCatalog, eps: float,
 
     found = []
     n = min(len(vectors), params.max_stars)
-    for t, (i, j, k) in enumerate(combinations(range(n), 3)):
+    order = TriadOrder(n, params.adaptive)
+    for t, (i, j, k) in enumerate(order):
         if t >= params.max_triads or (deadline is not None and time.perf_counter() > deadline):
             break
         det = np.array([i, j, k])
+        n_found = len(found)
         others = np.setdiff1d(np.arange(min(len(vectors), 3 + params.probe_stars + 3)), det)[: params.probe_stars]
         tris = triangles(vectors[det], catalog, eps, params.max_pairs)[: params.max_triangles]
-        if len(tris) and len(others):
+        if len(tris) > params.probe_below and len(others):
+            # the probe needs a true star among the others: a triad with few candidates is
+            # verified in full (a frame with three true stars among false ones)
             tris = tris[_probe(vectors[det], tris, vectors[others], catalog, chord_of_angle(params.probe_gate_eps * eps))]
         for tri in tris:
             if any(set(tri.tolist()) <= set(f.cat.tolist()) for f in found):
@@ -119,6 +176,8 @@ def match_triangles(vectors: np.ndarray, catalog: OnboardCatalog, eps: float,
             match, _ = verify(det, tri)
             if match is not None:
                 found.append(match)
+        if not any(np.isin(det, f.det).all() for f in found[n_found:]):
+            order.failed(det)
         if found and max(f.n for f in found) >= params.decisive_stars:
             break
     return sorted(found, key=lambda f: (-f.n, -(f.coverage if np.isfinite(f.coverage) else 0.0)))

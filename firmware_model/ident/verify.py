@@ -10,6 +10,8 @@ explains the whole frame:
    catalog star when the separation is within ``refine_sigmas`` of the predicted scatter
    ``sqrt(sigma^2 + (tr P - b^T P b)/2)`` (``P`` the attitude covariance) and, when both colours
    are known, the colour distance is below ``colour_gate``. Two passes.
+   A matched star with a free detection closer to its prediction (and inside the gates) takes
+   that detection instead: a brighter false detection next to a star must not steal its identity.
    Matched stars with a second catalog star inside the same gate (unresolved doubles at this
    noise) are dropped from the answer when ``drop_ambiguous``: their identity cannot be told.
    Then a **final residual test** on each star's own noise (the refinement gate includes the
@@ -25,12 +27,20 @@ explains the whole frame:
    ``"auto"`` (default) uses "matched" for frames of at least ``full_frame`` detections (which
    may have been cut) and "catalog" below (which cannot have been cut there). If fewer than
    ``min_coverage`` of them are matched, the hypothesis is rejected: a wrong match lands on a
-   sky patch whose bright stars are missing from the frame.
+   sky patch whose bright stars are missing from the frame. Real frames miss stars (a star near
+   the detection limit, one hidden by a hot pixel or a cosmic ray): a hypothesis of at least
+   ``coverage_min_matched`` stars below ``min_coverage`` is still accepted when its number of
+   missed stars is plausible for a sensor that misses each predicted star with probability
+   ``miss_rate``: the binomial tail ``P(misses >= observed)`` is at least ``coverage_alpha``
+   (10 % missed stars: 4 of 6, 6 of 9 or 9 of 13 pass, 4 of 12 or 2 of 8 do not). Sets of two or
+   three stars keep the fixed ``min_coverage`` floor: with so few stars the coverage is most of
+   the evidence against a coincidental match.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from math import comb
 
 import numpy as np
 
@@ -87,6 +97,9 @@ class VerifyParams:
     refine_passes: int = 2
     colour_gate: float = 4.65
     min_coverage: float = 0.7
+    miss_rate: float = 0.1
+    coverage_alpha: float = 2e-3
+    coverage_min_matched: int = 2
     mag_margin: float = 0.0
     coverage_limit: str = "auto"
     drop_ambiguous: bool = True
@@ -109,10 +122,31 @@ class VerifiedMatch:
     explored_all: bool = True
     seed_delta: float = 0.0
     confirmed: int = 1
+    low_coverage: bool = False
 
     @property
     def n(self) -> int:
         return len(self.det)
+
+
+def miss_tail(n_pred: int, n_missed: int, miss_rate: float) -> float:
+    """``P(X >= n_missed)`` for ``X ~ Binomial(n_pred, miss_rate)``: the chance that a sensor that
+    misses each predicted star with probability ``miss_rate`` misses at least this many."""
+    if n_missed <= 0:
+        return 1.0
+    if n_missed > n_pred or miss_rate <= 0.0:
+        return 0.0
+    q = min(float(miss_rate), 1.0)
+    return float(sum(comb(n_pred, k) * q**k * (1.0 - q) ** (n_pred - k) for k in range(n_missed, n_pred + 1)))
+
+
+def coverage_ok(n_pred: int, n_matched: int, params: "VerifyParams") -> bool:
+    """The coverage test of step 3 (module docstring)."""
+    if n_pred == 0 or n_matched >= params.min_coverage * n_pred:
+        return True
+    if n_matched < params.coverage_min_matched or params.miss_rate <= 0.0:
+        return False
+    return miss_tail(n_pred, n_pred - n_matched, params.miss_rate) >= params.coverage_alpha
 
 
 def _predicted_scatter(b: np.ndarray, sigma: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -175,6 +209,29 @@ def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray
         det = np.concatenate([det, add_det[first]])
         cat = np.concatenate([cat, add_cat[first]])
         sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
+    # 2a. one detection per catalog star, the closest: a false detection near a star (taken
+    # first because it is brighter) must give way to the star's own detection
+    free = np.setdiff1d(np.arange(len(vectors)), det)
+    if len(free):
+        pred = catalog.vec[cat] @ sol.a.T
+        sep = 2.0 * np.arcsin(np.clip(np.linalg.norm(vectors[free][:, None, :] - pred[None, :, :], axis=2) / 2.0, 0.0, 1.0))
+        tol = params.refine_sigmas * _predicted_scatter(vectors[free], sigma[free], sol.covariance)
+        ok = sep < np.minimum(tol[:, None], sol.residuals[None, :])
+        if ok.any() and noise_rg > 0 and noise_bg > 0:
+            d2 = (_sq((rg[free][:, None] - catalog.rg[cat][None, :]) / noise_rg)
+                  + _sq((bg[free][:, None] - catalog.bg[cat][None, :]) / noise_bg))
+            ok &= np.sqrt(d2) < params.colour_gate
+        if ok.any():
+            sep = np.where(ok, sep, np.inf)
+            best = np.argmin(sep, axis=0)  # per matched star, the closest free detection
+            swap = np.isfinite(sep[best, np.arange(len(cat))])
+            det = det.copy()
+            det[swap] = free[best[swap]]
+            _, first = np.unique(det, return_index=True)
+            keep = np.zeros(len(det), bool)
+            keep[first] = True
+            det, cat = det[keep], cat[keep]
+            sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
     # 2b. identities that cannot be told apart: another catalog star inside the gate
     seen = cat  # they were seen all the same: coverage counts them
     if params.drop_ambiguous and len(det) > 2:
@@ -213,6 +270,8 @@ def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray
     n_pred = len(inside)
     matched_inside = int(np.isin(inside, seen).sum())
     coverage = matched_inside / n_pred if n_pred else 1.0
-    if n_pred and coverage < params.min_coverage:
-        return None, f"coverage {matched_inside}/{n_pred} predicted stars below {params.min_coverage}"
-    return VerifiedMatch(det, cat, sol, float(coverage), n_pred, n_consensus), ""
+    if not coverage_ok(n_pred, matched_inside, params):
+        return None, (f"coverage {matched_inside}/{n_pred} predicted stars below {params.min_coverage} "
+                      f"and not explained by a {params.miss_rate:g} miss rate")
+    return VerifiedMatch(det, cat, sol, float(coverage), n_pred, n_consensus,
+                         low_coverage=bool(n_pred and coverage < params.min_coverage)), ""
