@@ -29,6 +29,8 @@ def _design_args(p) -> None:
     g.add_argument("--source", choices=("hipparcos", "bsc5"))
     g.add_argument("--source-path", help="catalog file (default: bundled hip2.dat / ../shared BSC5)")
     g.add_argument("--theta-fov", type=float, help="half-angle FOV along the minor axis, deg")
+    g.add_argument("--fov-deg", type=float, help="horizontal field of view across --width, deg: sets theta-fov, "
+                                                 "phi-max (the diagonal) and m-thresh (~15 stars in view) unless given")
     g.add_argument("--width", type=int, help="sensor width, px")
     g.add_argument("--height", type=int, help="sensor height, px")
     g.add_argument("--m-thresh", type=float, help="limiting V magnitude")
@@ -50,6 +52,10 @@ def _design_args(p) -> None:
 def design_from_args(args) -> CatalogDesign:
     """TOML file (if any) updated with the flags given on the command line."""
     base = CatalogDesign.from_toml(args.design).to_dict() if args.design else {}
+    if getattr(args, "fov_deg", None) is not None:
+        if not (args.width and args.height):
+            raise DesignError("--fov-deg needs --width and --height")
+        base.update(CatalogDesign.for_field(args.width, args.height, args.fov_deg).to_dict())
     for flag, name in _DESIGN_FLAGS.items():
         value = getattr(args, flag, None)
         if value is not None:

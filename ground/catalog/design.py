@@ -49,6 +49,27 @@ class CatalogDesign:
     def __post_init__(self):
         self.validate()
 
+    @classmethod
+    def for_field(cls, width_px: int, height_px: int, fov_deg: float, stars_in_view: float = 15.0,
+                  **overrides) -> "CatalogDesign":
+        """A design for a camera known only by its array and horizontal field of view (deg, across
+        the width): the minor half-angle from a pinhole, pairs up to the diagonal, and the limiting
+        magnitude that puts about ``stars_in_view`` catalog stars in the field (star counts
+        ``N(<V) ~ 10^(0.515 V + 0.63)`` over the whole sky, a fit to Hipparcos within ~10 % for
+        V 4-7; clamped to V 4-7.5). ``overrides`` are further CatalogDesign fields."""
+        if not 0.0 < fov_deg < 180.0:
+            raise DesignError(f"field of view must be in (0, 180) deg, got {fov_deg}")
+        f = 0.5 * width_px / math.tan(math.radians(fov_deg) / 2.0)
+        theta = math.degrees(math.atan(0.5 * min(width_px, height_px) / f))
+        diagonal = 2.0 * math.degrees(math.atan(0.5 * math.hypot(width_px, height_px) / f))
+        area = fov_deg * 2.0 * math.degrees(math.atan(0.5 * height_px / f))  # deg^2, small-field
+        m = (math.log10(stars_in_view * 41253.0 / area) - 0.63) / 0.515
+        design = {"theta_fov_deg": theta, "sensor_width_px": width_px, "sensor_height_px": height_px,
+                  "m_thresh": math.ceil(min(max(m, 4.0), 7.5) * 10.0) / 10.0, "phi_max_deg": diagonal,
+                  "phi_min_deg": theta / 100.0}
+        design.update(overrides)
+        return cls(**design)
+
     # --- derived quantities (radians) ---------------------------------------------------------
     @property
     def theta_fov(self) -> float:
