@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
-from scipy.special import erf
+from scipy.special import erf, ndtri
 
 from firmware_model.frame import Frame
 from firmware_model.star_flags import StarFlag
@@ -87,6 +87,9 @@ def _empty(reason: str, **counts) -> Detections:
 
 
 _K121 = np.array([1.0, 2.0, 1.0], dtype=np.float32)
+#: Significant regions examined at most, as a multiple of ``max_candidates`` (the brightest by
+#: filtered peak); beyond it detection work would grow with clutter, not with stars.
+REGION_CAP_FACTOR = 8
 
 
 def frame_problem(frame: Frame, params: DetectParams) -> str:
@@ -112,13 +115,32 @@ def _phase_background(phase: np.ndarray, block: int):
     blocks = dense.reshape(ny, b, nx, b).transpose(0, 2, 1, 3).reshape(ny, nx, b * b)
     sparse = blocks[:, :, :: max((b * b) // 64, 1)]
     med = np.median(sparse, axis=2)
-    mad = np.maximum(np.median(np.abs(sparse - med[:, :, None]), axis=2) * 1.4826, 0.5)
+    mad = np.maximum(np.maximum(np.median(np.abs(sparse - med[:, :, None]), axis=2) * 1.4826, _clipped_width(sparse)), 0.5)
     keep = np.abs(blocks - med[:, :, None]) < 4.0 * mad[:, :, None]
     n = np.maximum(keep.sum(axis=2), 1)
     mean = np.where(keep, blocks, 0).sum(axis=2) / n
     var = np.where(keep, (blocks - mean[:, :, None]) ** 2, 0).sum(axis=2) / np.maximum(n - 1, 1)
     # clipping at 4 sigma keeps 99.99% of a Gaussian: no variance correction needed
     return mean, np.sqrt(np.maximum(var, 1.0 / 12.0))  # floor: quantisation noise of 1 DN steps
+
+
+def _clipped_width(sparse: np.ndarray) -> np.ndarray:
+    """Noise width (DN) of blocks whose samples pile up at their minimum (a background clipped at
+    the black level, as in 8-bit images: the MAD of such a block is ~0): from two quantiles above
+    the clipped fraction, where a clipped Gaussian keeps its shape. 0 for unclipped blocks."""
+    n = sparse.shape[2]
+    clipped = (sparse <= sparse.min(axis=2, keepdims=True)).mean(axis=2)
+    out = np.zeros(clipped.shape)
+    hit = clipped > 0.25
+    if not hit.any() or n < 8:
+        return out
+    srt = np.sort(sparse[hit], axis=1)
+    p1 = np.clip(clipped[hit] + 0.05, 0.5, 0.85)
+    p2 = p1 + 0.1
+    q1 = np.take_along_axis(srt, np.round(p1 * (n - 1)).astype(int)[:, None], axis=1)[:, 0]
+    q2 = np.take_along_axis(srt, np.round(p2 * (n - 1)).astype(int)[:, None], axis=1)[:, 0]
+    out[hit] = (q2 - q1) / (ndtri(p2) - ndtri(p1))
+    return out
 
 
 def _expand(grid: np.ndarray, block: int, shape) -> np.ndarray:
@@ -196,6 +218,14 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     labels, n_regions = ndimage.label(mask)
     if n_regions == 0:
         return _empty("no pixel above the detection threshold", n_rejected_sharp=n_sharp, bad_pixels=bad_pixels)
+    region_note = ""
+    if n_regions > REGION_CAP_FACTOR * params.max_candidates:  # glare, clutter, a wrong noise level: bound the work
+        keep_n = REGION_CAP_FACTOR * params.max_candidates
+        peaks = ndimage.maximum(filt, labels, np.arange(1, n_regions + 1))
+        top = np.argsort(-peaks)[:keep_n] + 1
+        mask = np.isin(labels, top)
+        labels, n_regions = ndimage.label(mask)
+        region_note = f"{len(peaks)} regions above the threshold: only the {keep_n} brightest examined"
     mr_, mc_ = np.nonzero(mask)
     pr, pc = _local_maxima(filt, mr_, mc_, params.peak_separation // 2)
     pr, pc = _merge_without_dip(filt, snr_map, labels, pr, pc)
@@ -244,6 +274,7 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
             noise[:, a, b] = _grid_at(noise_grids[a, b], gy, gx)
             bgv[:, a, b] = _grid_at(bg_grids[a, b], gy, gx)
     reason = f"{n_drop} fainter candidates dropped by the cap of {params.max_candidates}" if n_drop else ""
+    reason = "; ".join(r for r in (region_note, reason) if r)
     return Detections(
         x=2.0 * x_sp + 0.5, y=2.0 * y_sp + 0.5, flux=flux, snr=snr_map[pr, pc].astype(float), flags=flags,
         noise=noise, background=bgv, n_rejected_sharp=n_sharp, n_rejected_streak=n_streak,
@@ -327,7 +358,7 @@ def _peaked_candidates(phases, bg_grids, noise_grids, block, pr, pc, params, mon
     """True for candidates whose brightest raw pixel holds far more of the 6x6 raw window's
     signal than a PSF allows: hot pixels and cosmic-ray hits the per-pixel cleaning missed
     (it needs ~45 sigma; this pools 36 pixels). A centred Gaussian puts p0 = erf(1 /
-    (2 sqrt 2 s))^2 of the flux in one pixel; colour can at most double that on a CFA
+    (2 sqrt 2 s))^2 of the flux in one pixel, erf(3 / (sqrt 2 s))^2 in the window; colour can at most double that on a CFA
     (rg or bg up to ~2.5 against a channel mean ~1.2); 1.5x margin. Sharp if the peak
     exceeds that share of the window sum by 3 standard deviations."""
     n = len(pr)
@@ -346,7 +377,8 @@ def _peaked_candidates(phases, bg_grids, noise_grids, block, pr, pc, params, mon
             bg = np.broadcast_to(_grid_at(bg_grids[a, b], gy, gx)[:, None, None], rr.shape)
             win[m] = phases[a, b][rr[m] // 2, cc[m] // 2] - bg[m]
             sig2 += _grid_at(noise_grids[a, b], gy, gx) ** 2 / 4.0
-    p0 = erf(1.0 / (2.0 * np.sqrt(2.0) * params.psf_sigma_px)) ** 2
+    # peak-pixel share of the flux inside the 6x6 window (a wide PSF spills out of the window)
+    p0 = (erf(1.0 / (2.0 * np.sqrt(2.0) * params.psf_sigma_px)) / erf(3.0 / (np.sqrt(2.0) * params.psf_sigma_px))) ** 2
     share = min(0.9, 1.5 * p0 * (1.0 if mono else 2.0))
     flat = win.reshape(n, -1)
     peak = flat.max(axis=1)

@@ -49,7 +49,7 @@ MIN_GEOMETRIC_DETECTIONS = 8
 GEOMETRIC_STEPS = (4, 6, 8)
 
 #: Method codes of the result extension (``ext.method``).
-METHOD_CODES = {"colour": 1, "geometric": 2, "geometric-consensus": 3}
+METHOD_CODES = {"colour": 1, "geometric": 2, "geometric-consensus": 3, "pattern": 4}
 
 #: Stage names reported in the result extension, in order.
 STAGES = ("detect", "fit", "vectors", "identify", "attitude", "total")
@@ -62,7 +62,8 @@ class OpticsSearch:
 
     When the nominal camera gives no high-confidence answer, the brightest ``n_bright``
     detections are matched as scale-free 4-star patterns (``firmware_model.scale_free``: edge
-    ratios within ``pattern_tolerance``, focal length within ``focal_range`` of the nominal).
+    ratios within ``pattern_tolerance``, focal length within ``focal_range`` of the nominal; blended,
+    failed-fit and edge detections are left out: clutter such as a foreground tree is).
     Each pattern match, best first, only seeds a predict-match-fit of the focal length (and k1
     when at least ``k1_min_stars`` stars match) with the attitude; the frame is then identified
     again from scratch with the fitted camera and the normal tight noise model, and the answer
@@ -317,8 +318,9 @@ def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
     search = params.optics
     tight = replace(params, optics=None)
     t1 = time.perf_counter()
-    hyps = scale_free.hypotheses(stars.x, stars.y, camera, catalog, search.n_bright, search.pattern_tolerance,
-                                 search.focal_range)
+    clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)  # clutter is blended or badly fitted
+    hyps = scale_free.hypotheses(stars.x[clean], stars.y[clean], camera, catalog, search.n_bright,
+                                 search.pattern_tolerance, search.focal_range)
     timings["identify"] = timings.get("identify", 0.0) + time.perf_counter() - t1
     tried: list[np.ndarray] = []
     for hyp in hyps:
@@ -326,14 +328,16 @@ def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
             break
         if any(rotation_angle(hyp.a, a) < _SAME_SEED_RAD for a in tried):
             continue
-        tried.append(hyp.a)
         t1 = time.perf_counter()
         refined = scale_free.refine(stars.x, stars.y, camera, hyp, catalog, k1_min_stars=search.k1_min_stars)
         timings["attitude"] = timings.get("attitude", 0.0) + time.perf_counter() - t1
         if refined is None:
             continue
-        fitted = refined[0]
+        tried.append(hyp.a)  # a seed near one that refined to a failed identification leads there too
+        fitted, rows, cat = refined
         out = _identify(_with_camera(stars, fitted), fitted, catalog, tight, timings)
+        if out.status is not Status.OK:
+            out = _verify_pattern(_with_camera(stars, fitted), fitted, rows, cat, catalog, tight, timings) or out
         if out.status is Status.OK:
             out.optics = _fit_optics(out, catalog, search)
             if out.optics is not None:
@@ -341,6 +345,30 @@ def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
             return out
     return None
 
+
+def _verify_pattern(stars: StarList, camera: CameraModel, rows, cat, catalog: OnboardCatalog, params: PipelineParams,
+                    timings: dict) -> PipelineOutput | None:
+    """The refined pattern match itself (detection ``rows`` on catalog stars ``cat``), verified over
+    every usable detection with the fitted camera and the tight noise model; high confidence only
+    as the solver grants a large set (at least ``confident_stars`` matched covering at least
+    ``confident_coverage`` of the predicted stars), else None. Method "pattern"."""
+    t0 = time.perf_counter()
+    used = np.flatnonzero(np.isfinite(stars.vectors).all(axis=1))
+    rows, cat = np.asarray(rows), np.asarray(cat)
+    inside = np.isin(rows, used)
+    rg, bg, sigma_px, sp = _solver_inputs(used, stars, camera, catalog, params, "geometric", False)
+    match, _ = verify(np.searchsorted(used, rows[inside]), cat[inside], stars.vectors[used], rg, bg,
+                      sigma_px / camera.f, catalog, sp.fov, 0.0, 0.0, sp.verify)
+    timings["attitude"] = timings.get("attitude", 0.0) + time.perf_counter() - t0
+    cp = sp.consensus
+    if match is None or match.n < cp.confident_stars or not match.coverage >= cp.confident_coverage:
+        return None
+    sol = solution_from_match(match, Outcome.HIGH_CONFIDENCE, "", np.arange(len(used)), catalog, "pattern", len(used))
+    return PipelineOutput(Status.OK, "", stars, used, sol, colour_beta=params.colour_beta, camera=camera)
+
+
+#: Detections left out of the pattern search's brightest stars (saturated stars stay: they are real).
+_PATTERN_EXCLUDE = int(StarFlag.BLEND | StarFlag.FIT_FAILED | StarFlag.EDGE)
 
 #: Pattern seeds whose attitudes differ by less than this (rad) lead to the same refined answer.
 _SAME_SEED_RAD = np.radians(0.2)

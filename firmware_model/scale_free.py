@@ -137,7 +137,7 @@ def _assign(b: np.ndarray, r: np.ndarray):
 
 
 def refine(x: np.ndarray, y: np.ndarray, camera: CameraModel, hyp: Hypothesis, catalog: OnboardCatalog,
-           radii_px=(12.0, 5.0, 2.5), min_stars: int = 4, k1_min_stars: int = 8):
+           radii_px=(30.0, 10.0, 4.0, 2.5), min_stars: int = 4, k1_min_stars: int = 8):
     """Predict-match-fit from a pattern hypothesis: the camera with the hypothesis' focal length,
     then for each radius in ``radii_px`` match every detection to the nearest predicted catalog
     star within it (one detection per star) and fit f, k1 (with enough stars) and the attitude.

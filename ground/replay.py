@@ -38,6 +38,7 @@ from firmware_model.pipeline import PipelineParams, identify_stars, run_pipeline
 from ground.frame_writer import truth_path_for
 from ground.results_log import ResultsLog, plot_summary, summarize
 from ground.solve_report import matched_stars, record_from_output, solve_record
+from protocol.result import Status
 
 CORRECT_DEG = 0.1  #: attitude error bound of a correct solve (peer_solvers.md section 5)
 MATCH_RADIUS_PX = 2.0  #: detection <-> truth association radius
@@ -126,9 +127,10 @@ class OfflineSolver:
 
         stars = out.stars
         approx = out
-        if out.solution is None or out.solution.q_icrs_to_sensor is None:
+        if out.status is not Status.OK:
             # differential refraction can exceed the centroid noise: look for the approximate
-            # attitude with a loose noise model (the final match below is made at full rigour)
+            # attitude with a loose noise model (the final match below is made at full rigour); a
+            # low-confidence first answer (e.g. a two-star last resort) is no approximation to trust
             approx = identify_stars(stars, camera, self.catalog, replace(params, fixed_sigma_px=LOOSE_SIGMA_PX))
             if approx.solution is None or approx.solution.q_icrs_to_sensor is None:
                 rec = record_from_output(out)

@@ -23,6 +23,8 @@ Signal model (docs/pipeline.md has the defaults and their rationale):
   (Gaussian, e-), gain (e-/DN), black level (DN), quantisation and clipping to
   ``2**bit_depth - 1``. Fixed-pattern maps come from ``sensor_seed`` so every frame of one
   simulated sensor shares them; temporal noise comes from the frame ``seed``.
+* Optional ``render_frame`` arguments bring in what the solver does not model (another PSF,
+  extra background, per-channel gains, another camera mapping): ``ground/openloop.py``.
 """
 
 from __future__ import annotations
@@ -165,14 +167,15 @@ def _stamp_half_width(det: DetectorModel) -> int:
     return int(np.ceil(5.0 * det.psf_sigma_px + det.defocus_radius_px + 2))
 
 
-def _add_source(img, chan_map, det, x0, y0, s_rgb, mono):
+def _add_source(img, chan_map, det, x0, y0, s_rgb, mono, psf=None):
     h, w = img.shape
-    hw = _stamp_half_width(det)
+    hw = _stamp_half_width(det) if psf is None else psf.half_width(x0, y0)
     c0, c1 = max(int(np.floor(x0)) - hw, 0), min(int(np.floor(x0)) + hw + 1, w)
     r0, r1 = max(int(np.floor(y0)) - hw, 0), min(int(np.floor(y0)) + hw + 1, h)
     if c0 >= c1 or r0 >= r1:
         return
-    stamp = _psf_stamp(det, x0, y0, np.arange(c0, c1, dtype=float), np.arange(r0, r1, dtype=float))
+    cols, rows = np.arange(c0, c1, dtype=float), np.arange(r0, r1, dtype=float)
+    stamp = _psf_stamp(det, x0, y0, cols, rows) if psf is None else psf.stamp(x0, y0, cols, rows)
     if mono:
         img[r0:r1, c0:c1] += det.mono_response * sum(s_rgb) * stamp
     else:
@@ -180,20 +183,30 @@ def _add_source(img, chan_map, det, x0, y0, s_rgb, mono):
         img[r0:r1, c0:c1] += amp * stamp
 
 
-def _add_streak(img, chan_map, det, obj, mono):
+def _add_streak(img, chan_map, det, obj, mono, psf=None):
     length = np.hypot(obj.x2 - obj.x, obj.y2 - obj.y)
     n = max(int(np.ceil(length / 0.5)), 2)
     s = np.array([obj.rg, 1.0, obj.bg]) * obj.electrons_g / n
     for t in np.linspace(0.0, 1.0, n):
-        _add_source(img, chan_map, det, obj.x + t * (obj.x2 - obj.x), obj.y + t * (obj.y2 - obj.y), s, mono)
+        _add_source(img, chan_map, det, obj.x + t * (obj.x2 - obj.x), obj.y + t * (obj.y2 - obj.y), s, mono, psf)
+
+
+_FIXED_CACHE: dict = {}  #: last fixed-pattern maps (read-only arrays), keyed by what draws them
 
 
 def _fixed_pattern(det: DetectorModel, shape):
+    key = (det.sensor_seed, det.prnu, det.dsnu_e, det.hot_pixel_fraction, tuple(shape))
+    if key in _FIXED_CACHE:
+        return _FIXED_CACHE[key]
     rng = np.random.default_rng(det.sensor_seed)
     prnu = 1.0 + det.prnu * rng.standard_normal(shape)
     dsnu = det.dsnu_e * rng.standard_normal(shape)
     n_hot = rng.binomial(shape[0] * shape[1], det.hot_pixel_fraction)
     hot = rng.choice(shape[0] * shape[1], size=n_hot, replace=False)
+    for arr in (prnu, dsnu, hot):
+        arr.setflags(write=False)
+    _FIXED_CACHE.clear()  # one sensor at a time: the maps of a full frame are ~80 MB
+    _FIXED_CACHE[key] = (prnu, dsnu, hot)
     return prnu, dsnu, hot
 
 
@@ -205,9 +218,26 @@ def render_frame(
     seed: int = 0,
     false_objects: list[FalseObject] = (),
     timestamp: str | None = None,
+    psf=None,
+    extra_e: np.ndarray | None = None,
+    channel_gain: tuple[float, float, float] | None = None,
 ) -> RenderResult:
     """Render one frame. ``attitude`` is A (v_sensor = A @ v_icrs). Returns the frame, the
-    truth dict (JSON-serialisable) and the noise-free expected signal electrons."""
+    truth dict (JSON-serialisable) and the noise-free expected signal electrons.
+
+    Optional impairments (defaults leave the frame exactly as without them):
+
+    * ``psf``: an object with ``half_width(x0, y0) -> int`` (px), ``max_half_width`` (px),
+      ``stamp(x0, y0, cols, rows) -> array`` (fraction of a unit source per pixel) and
+      ``to_dict()``, used instead of the detector's Gaussian/defocus PSF for every source
+      (``ground.openloop`` has Moffat, donut and field-dependent coma PSFs);
+    * ``extra_e``: noise-free e- per pixel over the exposure (shape ``(height, width)``) added
+      to the Poisson mean after PRNU (sky gradients, hot-pixel clusters);
+    * ``channel_gain``: ``(g_r, g_g, g_b)`` multipliers on the signal and sky electrons of the
+      R, G, B sites (per-channel QE/gain error; ignored for MONO).
+
+    ``camera`` may be any object with ``width``, ``height``, ``vector_to_pixel``, ``in_frame``
+    and ``to_dict`` (``ground.openloop.RadialMappedCamera`` renders non-Brown-Conrady optics)."""
     det = detector
     h, w = camera.height, camera.width
     mono = det.pattern == "MONO"
@@ -217,14 +247,14 @@ def render_frame(
     a = np.asarray(attitude, dtype=float)
     v_sensor = stars.vectors @ a.T
     x, y = camera.vector_to_pixel(v_sensor)
-    margin = _stamp_half_width(det)
+    margin = _stamp_half_width(det) if psf is None else psf.max_half_width
     near = np.isfinite(x) & camera.in_frame(x, y, margin=-margin)
     s_g = det.green_electrons(stars.vmag)
     signal = np.zeros((h, w))
     star_rows = []
     for i in np.flatnonzero(near):
         s_rgb = (stars.rg[i] * s_g[i], s_g[i], stars.bg[i] * s_g[i])
-        _add_source(signal, chan_map, det, x[i], y[i], s_rgb, mono)
+        _add_source(signal, chan_map, det, x[i], y[i], s_rgb, mono, psf)
         if camera.in_frame(x[i], y[i]):
             star_rows.append({
                 "id": int(stars.ids[i]), "x": float(x[i]), "y": float(y[i]), "vmag": float(stars.vmag[i]),
@@ -235,11 +265,12 @@ def render_frame(
     false_rows = []
     for obj in false_objects:
         if obj.kind == "planet":
-            _add_source(signal, chan_map, det, obj.x, obj.y, (obj.rg * obj.electrons_g, obj.electrons_g, obj.bg * obj.electrons_g), mono)
+            _add_source(signal, chan_map, det, obj.x, obj.y, (obj.rg * obj.electrons_g, obj.electrons_g, obj.bg * obj.electrons_g),
+                        mono, psf)
         elif obj.kind == "satellite":
             if obj.x2 is None or obj.y2 is None:
                 raise ValueError("a satellite streak needs x2, y2")
-            _add_streak(signal, chan_map, det, obj, mono)
+            _add_streak(signal, chan_map, det, obj, mono, psf)
         elif obj.kind == "cosmic":
             x2 = obj.x if obj.x2 is None else obj.x2
             y2 = obj.y if obj.y2 is None else obj.y2
@@ -255,7 +286,16 @@ def render_frame(
     rng = np.random.default_rng(seed)
     dark = np.full((h, w), det.dark_e_per_s * det.exposure_s)
     dark.ravel()[hot] += det.hot_pixel_e_per_s * det.exposure_s
-    expected = (signal + det.sky_e_per_s * det.exposure_s) * prnu + dark
+    sky = det.sky_e_per_s * det.exposure_s
+    if channel_gain is not None and not mono:
+        gmap = np.asarray(channel_gain, dtype=float)[chan_map]
+        signal *= gmap
+        sky = sky * gmap
+    expected = (signal + sky) * prnu + dark
+    if extra_e is not None:
+        if np.shape(extra_e) != (h, w):
+            raise ValueError(f"extra_e must have shape {(h, w)}, got {np.shape(extra_e)}")
+        expected = expected + np.asarray(extra_e, dtype=float)
     electrons = rng.poisson(expected).astype(float) + dsnu
     electrons = np.minimum(electrons, det.full_well_e)
     electrons += det.read_noise_e * rng.standard_normal((h, w))
@@ -279,6 +319,10 @@ def render_frame(
         "stars": star_rows,
         "false_objects": false_rows,
     }
+    if psf is not None:
+        truth["psf"] = psf.to_dict()
+    if channel_gain is not None and not mono:
+        truth["channel_gain"] = [float(g) for g in channel_gain]
     return RenderResult(frame=frame, truth=truth, electrons=signal)
 
 
