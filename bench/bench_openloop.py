@@ -394,7 +394,7 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=20, help="frames per cell (alternating RGGB / MONO)")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--seed", type=int, default=9300)
-    ap.add_argument("--cells", default=",".join(CELLS), help="comma-separated subset of: " + ", ".join(CELLS))
+    ap.add_argument("--cells", default=",".join(CELLS), help="comma-separated subset of: " + ", ".join(CELLS).replace("%", "%%"))
     ap.add_argument("--out", default="out/bench_openloop")
     ap.add_argument("--figure", default="docs/figures/openloop.png", help="plot path ('' for none)")
     ap.add_argument("--from-json", help="reprint the table and redraw the figure from a rows.json; no run")

@@ -41,6 +41,9 @@ UNKNOWN_CENTROID_SIGMA_PX = 1.0
 #: their colour (the identification then uses their geometry alone).
 UNTRUSTED_CENTROID_FLOOR_PX = 0.5
 
+#: Detections whose fitted centroid is less certain than this (px, 1-sigma) are not used.
+MAX_CENTROID_SIGMA_PX = 3.0
+
 #: Fewest detections given to the geometric matcher.
 MIN_GEOMETRIC_DETECTIONS = 8
 #: Brightest-detection counts tried in turn by the 4-star matcher before the density cap: a
@@ -75,7 +78,7 @@ class OpticsSearch:
     focal_range: float = 0.05
     n_bright: int = 12
     pattern_tolerance: float = 0.015
-    k1_min_stars: int = 8
+    k1_min_stars: int = 6
     min_stars: int = 4
     refit_px: float = 1.0
     budget_s: float = 2.0
@@ -233,7 +236,7 @@ def identify_stars(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
 def _identify(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams,
               timings: dict) -> PipelineOutput:
     """One identification with one camera model: colour or geometric with their fallbacks."""
-    used = np.flatnonzero(np.isfinite(stars.vectors).all(axis=1)) if len(stars) else np.empty(0, np.int64)
+    used = _usable(stars)
     if len(used) < 2:
         why = stars.reason or f"{len(stars)} detection(s)"
         return PipelineOutput(Status.TOO_FEW_STARS, f"too few stars: {why}", stars, used, camera=camera)
@@ -259,25 +262,48 @@ def _identify(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, par
     return PipelineOutput(status, sol.reason, stars, rows, sol, colour_beta=params.colour_beta, camera=camera)
 
 
+def _usable(stars: StarList) -> np.ndarray:
+    """Rows with a direction and a centroid known to better than :data:`MAX_CENTROID_SIGMA_PX` (a
+    degenerate fit can report a finite centre with a covariance of tens of px^2)."""
+    if not len(stars):
+        return np.empty(0, np.int64)
+    var = 0.5 * (stars.cov_xy[:, 0, 0] + stars.cov_xy[:, 1, 1])
+    known = ~(var > MAX_CENTROID_SIGMA_PX ** 2)  # NaN (no covariance) stays: the pipeline gives it 1 px
+    return np.flatnonzero(np.isfinite(stars.vectors).all(axis=1) & known)
+
+
 def _with_camera(stars: StarList, camera: CameraModel) -> StarList:
     return replace(stars, vectors=camera.pixel_to_vector(stars.x, stars.y))
 
 
 def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSearch) -> OpticsFit | None:
-    """Focal length (and k1 with enough stars) fitted with the attitude to the matched stars."""
+    """Focal length (and k1 with enough stars) fitted with the attitude to the matched stars; stars
+    off by more than :data:`OPTICS_OUTLIER_PX` (or 5 x the median) after a first fit (a blend, a
+    saturated or badly fitted star the answer keeps with a wide noise floor) are left out of a second."""
     sol = out.solution
     if sol is None or len(sol.matched_det) < search.min_stars:
         return None
-    rows = out.used[sol.matched_det]
-    fit = ("f", "k1") if len(rows) >= search.k1_min_stars else ("f",)
-    obs = StarObservations(out.stars.x[rows], out.stars.y[rows], catalog.vec[sol.matched_cat])
-    try:
-        res = calibrate([obs], out.camera, fit=fit)
-    except (ValueError, np.linalg.LinAlgError):
-        return None
-    if not res.success or not np.isfinite(res.residual_rms_px):
-        return None
+    rows, cat = out.used[sol.matched_det], sol.matched_cat
+    res = None
+    for _ in range(2):
+        fit = ("f", "k1") if len(rows) >= search.k1_min_stars else ("f",)
+        try:
+            res = calibrate([StarObservations(out.stars.x[rows], out.stars.y[rows], catalog.vec[cat])], out.camera,
+                            fit=fit)
+        except (ValueError, np.linalg.LinAlgError):
+            return None
+        if not res.success or not np.isfinite(res.residual_rms_px):
+            return None
+        err = np.hypot(*res.residuals[0].T)
+        keep = err <= max(OPTICS_OUTLIER_PX, 5.0 * float(np.median(err)))
+        if keep.all() or keep.sum() < search.min_stars:
+            break
+        rows, cat = rows[keep], cat[keep]
     return OpticsFit(res.camera, res.sigmas, res.residual_rms_px, len(rows))
+
+
+#: Star residual (px) beyond which a star is left out of the optics fit (with 5 x the median).
+OPTICS_OUTLIER_PX = 1.0
 
 
 def _corner_shift_px(a: CameraModel, b: CameraModel) -> float:
@@ -353,7 +379,7 @@ def _verify_pattern(stars: StarList, camera: CameraModel, rows, cat, catalog: On
     as the solver grants a large set (at least ``confident_stars`` matched covering at least
     ``confident_coverage`` of the predicted stars), else None. Method "pattern"."""
     t0 = time.perf_counter()
-    used = np.flatnonzero(np.isfinite(stars.vectors).all(axis=1))
+    used = _usable(stars)
     rows, cat = np.asarray(rows), np.asarray(cat)
     inside = np.isin(rows, used)
     rg, bg, sigma_px, sp = _solver_inputs(used, stars, camera, catalog, params, "geometric", False)

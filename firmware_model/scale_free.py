@@ -113,7 +113,10 @@ def hypotheses(x: np.ndarray, y: np.ndarray, camera: CameraModel, catalog: Onboa
             scale = t / top_c[k]
             if abs(scale - 1.0) > focal_range:
                 continue
-            a = _assign(v[g], catalog.vec[groups_c[k]])
+            # directions through the hypothesised focal length: with the nominal one, a pattern off
+            # the boresight would tilt the attitude by the scale error times its field angle
+            b = replace(camera, f=camera.f * scale).pixel_to_vector(x[g], y[g])
+            a = _assign(b, catalog.vec[groups_c[k]])
             if a is not None:
                 out.append(Hypothesis(camera.f * scale, a, float(np.max(np.abs(key - keys_c[k]))), g, groups_c[k]))
     out.sort(key=lambda h: h.key_distance)
@@ -137,7 +140,7 @@ def _assign(b: np.ndarray, r: np.ndarray):
 
 
 def refine(x: np.ndarray, y: np.ndarray, camera: CameraModel, hyp: Hypothesis, catalog: OnboardCatalog,
-           radii_px=(30.0, 10.0, 4.0, 2.5), min_stars: int = 4, k1_min_stars: int = 8):
+           radii_px=(30.0, 10.0, 4.0, 2.5), min_stars: int = 4, k1_min_stars: int = 6):
     """Predict-match-fit from a pattern hypothesis: the camera with the hypothesis' focal length,
     then for each radius in ``radii_px`` match every detection to the nearest predicted catalog
     star within it (one detection per star) and fit f, k1 (with enough stars) and the attitude.
