@@ -8,8 +8,8 @@ raises on bad input: malformed arrays, no usable detections or an impossible geo
 ``status = NO_MATCH`` with a reason.
 
 Input cleaning: rows that are not finite or have zero norm are dropped; vectors are
-normalised; of detections closer than the catalog's ``phi_min`` (unresolvable duplicates) the
-later (fainter) one is dropped; beyond ``max_detections`` the faintest are dropped. Every drop is
+normalised; detections closer than the catalog's ``phi_min`` (unresolvable duplicates, or a false
+detection on a star) are both dropped: which of the two is the star cannot be told; beyond ``max_detections`` the faintest are dropped. Every drop is
 counted in ``SolveResult.notes``. Indices in the result refer to the caller's input rows.
 
 Time is bounded: consensus attempts, backtracking depth, look-up windows and 4-star groups are
@@ -151,9 +151,9 @@ def _clean(vectors, rg, bg, sigma, catalog: OnboardCatalog, params: SolveParams)
     if len(v) > 1:
         ang = angle_between(v[:, None, :], v[None, :, :])
         close = np.triu(ang < max(catalog.phi_min, 1e-9), k=1)
-        dup = close.any(axis=0)
+        dup = close.any(axis=0) | close.any(axis=1)  # both: which of the two is the star cannot be told
         if dup.any():
-            notes.append(f"dropped {int(dup.sum())} duplicate detection(s) closer than phi_min")
+            notes.append(f"dropped {int(dup.sum())} detection(s) of pairs closer than phi_min")
             idx, v = idx[~dup], v[~dup]
     if len(idx) > params.max_detections:
         notes.append(f"used the {params.max_detections} brightest of {len(idx)} detections")
