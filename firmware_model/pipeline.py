@@ -117,8 +117,10 @@ class PipelineParams:
     nothing, the consensus matcher of seed 000 runs on geometry alone (colours unknown), which
     tolerates missing and extra stars far better; its answers are labelled
     ``geometric-consensus``. ``colour_fallback``: in ``auto`` mode a colour frame that the colour
-    matcher cannot solve (colours biased beyond the catalog's noise model, e.g. through the
-    atmosphere before calibration) is solved on geometry alone, as a mono frame would be.
+    matcher cannot solve with high confidence (colours biased beyond the catalog's noise model,
+    e.g. through the atmosphere before calibration, or gamma-encoded sRGB images) is solved on
+    geometry alone, as a mono frame would be; that answer is taken when the colour matcher found
+    none or when it is high-confidence.
 
     ``optics``: the uncalibrated-optics search and the per-solve focal-length/distortion fit
     (:class:`OpticsSearch`; None takes the camera as calibrated: neither runs)."""
@@ -246,10 +248,12 @@ def _identify(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, par
         sol, rows = _solve_geometric(used, stars, camera, catalog, params, timings)
     else:
         sol, rows = _solve_rows(used, stars, camera, catalog, params, params.solve.mode, True, timings)
-        if sol.status is Outcome.NO_MATCH and params.colour_fallback and params.solve.mode == "auto":
-            geometric = True  # colours biased beyond the catalog's noise model: try geometry alone
-            sol, rows = _solve_geometric(used, stars, camera, catalog, replace(params, solve=replace(
+        if sol.status is not Outcome.HIGH_CONFIDENCE and params.colour_fallback and params.solve.mode == "auto":
+            # colours biased beyond the catalog's noise model (the atmosphere, an sRGB image): geometry alone
+            geo, geo_rows = _solve_geometric(used, stars, camera, catalog, replace(params, solve=replace(
                 params.solve, mode="geometric")), timings)
+            if sol.status is Outcome.NO_MATCH or geo.status is Outcome.HIGH_CONFIDENCE:
+                geometric, sol, rows = True, geo, geo_rows
     if geometric and sol.status is Outcome.NO_MATCH and params.geometric_fallback and catalog.has_colour:
         sol2, rows2 = _solve_rows(used, stars, camera, catalog, params, "colour", False, timings)
         if sol2.status is not Outcome.NO_MATCH:
