@@ -13,6 +13,7 @@ the GO solver that runs the pipeline.
 from __future__ import annotations
 
 import glob
+import importlib
 import json
 import threading
 from dataclasses import dataclass, replace
@@ -205,6 +206,8 @@ class PipelineSolver:
     def __init__(self, camera: CameraModel, params: PipelineParams = PipelineParams()):
         self.camera = camera
         self.params = params
+        # the planet check imports astropy (~0.3 s): at start-up, not inside the first GO
+        importlib.import_module("firmware_model.planets")
 
     def __call__(self, ctx: SolveContext) -> dict:
         params = ctx.params.apply(self.params) if isinstance(ctx.params, DeviceParams) else self.params
