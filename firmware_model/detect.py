@@ -73,6 +73,8 @@ class Detections:
     n_rejected_sharp: int = 0
     n_rejected_streak: int = 0
     n_dropped_cap: int = 0
+    n_regions: int = 0  #: significant regions found
+    n_regions_examined: int = 0  #: of them, the brightest examined (REGION_CAP_FACTOR)
     bad_pixels: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     reason: str = ""
 
@@ -218,14 +220,12 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     labels, n_regions = ndimage.label(mask)
     if n_regions == 0:
         return _empty("no pixel above the detection threshold", n_rejected_sharp=n_sharp, bad_pixels=bad_pixels)
-    region_note = ""
+    n_found = n_regions
     if n_regions > REGION_CAP_FACTOR * params.max_candidates:  # glare, clutter, a wrong noise level: bound the work
-        keep_n = REGION_CAP_FACTOR * params.max_candidates
         peaks = ndimage.maximum(filt, labels, np.arange(1, n_regions + 1))
-        top = np.argsort(-peaks)[:keep_n] + 1
-        mask = np.isin(labels, top)
-        labels, n_regions = ndimage.label(mask)
-        region_note = f"{len(peaks)} regions above the threshold: only the {keep_n} brightest examined"
+        top = np.argsort(-peaks)[: REGION_CAP_FACTOR * params.max_candidates] + 1
+        labels, n_regions = ndimage.label(np.isin(labels, top))
+        mask = labels > 0
     mr_, mc_ = np.nonzero(mask)
     pr, pc = _local_maxima(filt, mr_, mc_, params.peak_separation // 2)
     pr, pc = _merge_without_dip(filt, snr_map, labels, pr, pc)
@@ -273,13 +273,24 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
         for b in (0, 1):
             noise[:, a, b] = _grid_at(noise_grids[a, b], gy, gx)
             bgv[:, a, b] = _grid_at(bg_grids[a, b], gy, gx)
-    reason = f"{n_drop} fainter candidates dropped by the cap of {params.max_candidates}" if n_drop else ""
-    reason = "; ".join(r for r in (region_note, reason) if r)
-    return Detections(
+    det = Detections(
         x=2.0 * x_sp + 0.5, y=2.0 * y_sp + 0.5, flux=flux, snr=snr_map[pr, pc].astype(float), flags=flags,
         noise=noise, background=bgv, n_rejected_sharp=n_sharp, n_rejected_streak=n_streak,
-        n_dropped_cap=n_drop, bad_pixels=bad_pixels, reason=reason,
+        n_dropped_cap=n_drop, n_regions=n_found, n_regions_examined=n_regions, bad_pixels=bad_pixels,
     )
+    det.reason = "; ".join(bound_notes(det, n_drop, params.max_candidates))
+    return det
+
+
+def bound_notes(det: Detections, n_dropped_cap: int, max_candidates: int) -> list[str]:
+    """What the work bounds left out: significant regions not examined, candidates beyond the cap."""
+    notes = []
+    if det.n_regions > det.n_regions_examined:
+        notes.append(f"{det.n_regions} regions above the threshold: only the {det.n_regions_examined} brightest "
+                     f"examined")
+    if n_dropped_cap:
+        notes.append(f"{n_dropped_cap} fainter candidates dropped by the cap of {max_candidates}")
+    return notes
 
 
 def _local_maxima(img: np.ndarray, r: np.ndarray, c: np.ndarray, half: int):

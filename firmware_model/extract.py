@@ -23,11 +23,13 @@ import numpy as np
 
 from firmware_model.camera import CameraModel
 from firmware_model.centroid import FitParams, FitResults, fit_stars
-from firmware_model.detect import DetectParams, detect_stars
+from firmware_model.detect import DetectParams, bound_notes, detect_stars
 from firmware_model.frame import Frame
 from firmware_model.star_flags import StarFlag, UNTRUSTED
 
 
+#: Accepted range of a set PSF sigma (px): [low, high).
+PSF_SIGMA_RANGE_PX = (0.1, 20.0)
 #: Detection keeps this many times the candidate cap; the cap applies after the fit's sharpness test.
 CAP_MARGIN = 2
 #: Brightest clean stars whose fitted sigmas make the PSF measurement, and the fewest accepted.
@@ -130,20 +132,22 @@ def measure_psf_sigma(fit: FitResults, snr: np.ndarray) -> float:
 def _detect_and_fit(frame: Frame, params: ExtractParams, sigma_px: float):
     """One pass at PSF sigma ``sigma_px``: detection with twice the candidate cap, the fit, and
     then the cap applied to the candidates the fit did not reject as sharper than the PSF (so
-    hot pixels cannot crowd stars out of the cap). Returns (detections, fit, seconds in the fit,
-    candidates dropped by the cap, sharp candidates rejected)."""
+    hot pixels cannot crowd stars out of the cap). Returns (fit, detection SNR, seconds in the
+    fit, notes on what was left out)."""
     cap = params.detect.max_candidates
     det = detect_stars(frame, replace(params.detect, psf_sigma_px=sigma_px, max_candidates=CAP_MARGIN * cap))
     t1 = time.perf_counter()
     fit = fit_stars(frame, det, replace(params.fit, psf_sigma_px=sigma_px))
     dt = time.perf_counter() - t1
+    if not len(det):
+        return fit, det.snr, dt, [det.reason]
     keep = np.flatnonzero(~fit.sharp)
-    n_sharp, n_cap = len(fit.sharp) - len(keep), det.n_dropped_cap + max(len(keep) - cap, 0)
+    n_sharp = len(fit.sharp) - len(keep)
+    notes = bound_notes(det, det.n_dropped_cap + max(len(keep) - cap, 0), cap)
+    if n_sharp:
+        notes.append(f"{n_sharp} candidate(s) sharper than the PSF rejected by the fit (hot pixels / cosmic rays)")
     keep = keep[:cap]
-    fit = FitResults(**{k: v[keep] for k, v in vars(fit).items()})
-    det = replace(det, x=det.x[keep], y=det.y[keep], flux=det.flux[keep], snr=det.snr[keep], flags=det.flags[keep],
-                  noise=det.noise[keep], background=det.background[keep])
-    return det, fit, dt, n_cap, n_sharp
+    return FitResults(**{k: v[keep] for k, v in vars(fit).items()}), det.snr[keep], dt, notes
 
 
 def extract_stars(frame: Frame, camera: CameraModel | None = None, params: ExtractParams = ExtractParams()) -> StarList:
@@ -152,33 +156,27 @@ def extract_stars(frame: Frame, camera: CameraModel | None = None, params: Extra
     sigma = params.psf_sigma_px if params.psf_sigma_px is not None else params.psf_start_px
     source, measured, passes, fit_s, previous = "setting", float("nan"), 0, 0.0, None
     while True:
-        det, fit, dt, n_cap, n_sharp = _detect_and_fit(frame, params, sigma)
+        fit, snr, dt, notes = _detect_and_fit(frame, params, sigma)
         passes += 1
         fit_s += dt
-        if previous is not None and len(fit.x) < 0.5 * len(previous[1].x):
+        if previous is not None and len(fit.x) < 0.5 * len(previous[0].x):
             # the measured width lost most of the stars (a PSF far from Gaussian): keep the pass before
-            (det, fit, n_cap, n_sharp), sigma = previous[:4], previous[4]
+            fit, snr, notes, sigma = previous
             break
         if params.psf_sigma_px is not None:
             break
-        measured = measure_psf_sigma(fit, det.snr)
+        measured = measure_psf_sigma(fit, snr)
         if not np.isfinite(measured):
             source = "start"
             break
         source = "measured"
         if abs(measured / sigma - 1.0) <= params.psf_tolerance or passes >= params.psf_max_passes:
             break
-        previous = (det, fit, n_cap, n_sharp, sigma)
+        previous = (fit, snr, notes, sigma)
         sigma = measured
     t2 = time.perf_counter()
     t1 = t2 - fit_s
-    notes = [r for r in det.reason.split("; ") if r and "dropped by the cap" not in r]
-    if n_cap:
-        notes.append(f"{n_cap} fainter candidates dropped by the cap of {params.detect.max_candidates}")
-    if n_sharp:
-        notes.append(f"{n_sharp} candidate(s) sharper than the PSF rejected by the fit (hot pixels / cosmic rays)")
     reason = "; ".join(notes)
-    snr = det.snr
     if camera is None and frame.camera:
         camera = CameraModel.from_dict(frame.camera)
     if camera is not None and (camera.width, camera.height) != (frame.width, frame.height):
