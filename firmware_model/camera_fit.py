@@ -1,4 +1,5 @@
-"""Camera calibration from identified stars over several frames.
+"""Camera calibration from identified stars over several frames, or one (``fit_frame``: the
+device's per-solve focal length and distortion).
 
 Unknowns: the chosen camera parameters (``CameraModel`` fields: f, cx, cy, k1, k2, k3,
 p1, p2) shared by all frames, plus one attitude per frame (a rotation vector applied to
@@ -121,3 +122,12 @@ def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_
         residuals=per_frame, sigmas=dict(zip(fit, (float(s) for s in sig))), n_observations=n_obs,
         success=bool(res.success), message=str(res.message),
     )
+
+
+def fit_frame(obs: StarObservations, camera: CameraModel, k1_min_stars: int) -> CalibrationResult | None:
+    """One frame's focal length, and k1 when at least ``k1_min_stars`` stars are given, fitted with
+    its attitude (principal point held); None when the stars cannot constrain it."""
+    try:
+        return calibrate([obs], camera, fit=("f", "k1") if len(obs.x) >= k1_min_stars else ("f",))
+    except (ValueError, np.linalg.LinAlgError):
+        return None

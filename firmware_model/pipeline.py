@@ -18,7 +18,7 @@ import numpy as np
 
 from firmware_model.camera import CameraModel
 from firmware_model import scale_free
-from firmware_model.camera_fit import StarObservations, calibrate
+from firmware_model.camera_fit import StarObservations, fit_frame
 from firmware_model.extract import ExtractParams, StarList, extract_stars
 from firmware_model.frame import Frame
 from firmware_model.frames import quat_to_matrix, rotation_angle
@@ -70,10 +70,12 @@ class OpticsSearch:
     Each pattern match, best first, only seeds a predict-match-fit of the focal length (and k1
     when at least ``k1_min_stars`` stars match) with the attitude; the frame is then identified
     again from scratch with the fitted camera and the normal tight noise model, and the answer
-    taken only if that is high-confidence. Every solve reports the fitted optics and their
-    1-sigma (``PipelineOutput.optics``, from at least ``min_stars`` matched stars); when the fit
-    moves a corner by more than ``refit_px``, the frame is identified again with it so stars the
-    first camera missed are matched. The search stops after ``budget_s`` seconds."""
+    taken only if that is high-confidence (else the refined match itself, verified over every
+    detection, when it is large). Every solve reports the fitted optics and their 1-sigma
+    (``PipelineOutput.optics``, from at least ``min_stars`` matched stars); when the fit moves a
+    corner by more than ``refit_px`` or fits the stars :data:`REFIT_RMS_RATIO` times better, the
+    frame is identified again with it so stars the first camera missed are matched. The search
+    stops after ``budget_s`` seconds."""
 
     focal_range: float = 0.05
     n_bright: int = 12
@@ -88,8 +90,8 @@ class OpticsSearch:
 class OpticsFit:
     """Optics fitted to the matched stars of one solve: the camera (principal point held at the
     nominal one: on a narrow field it is degenerate with the attitude), 1-sigma of each fitted
-    parameter (``f`` px, ``k1``), RMS residual (px), stars used, and ``focal_scale`` the search
-    step that found the answer (1.0 when the nominal camera did, NaN if no search was needed)."""
+    parameter (``f`` px, ``k1``), RMS residual (px), stars used, and ``focal_scale`` the focal
+    length of the pattern match that found the answer over the nominal one (NaN: no search)."""
 
     camera: CameraModel
     sigmas: dict
@@ -290,13 +292,9 @@ def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSear
     rows, cat = out.used[sol.matched_det], sol.matched_cat
     res = None
     for _ in range(2):
-        fit = ("f", "k1") if len(rows) >= search.k1_min_stars else ("f",)
-        try:
-            res = calibrate([StarObservations(out.stars.x[rows], out.stars.y[rows], catalog.vec[cat])], out.camera,
-                            fit=fit)
-        except (ValueError, np.linalg.LinAlgError):
-            return None
-        if not res.success or not np.isfinite(res.residual_rms_px):
+        res = fit_frame(StarObservations(out.stars.x[rows], out.stars.y[rows], catalog.vec[cat]), out.camera,
+                        search.k1_min_stars)
+        if res is None or not res.success or not np.isfinite(res.residual_rms_px):
             return None
         err = np.hypot(*res.residuals[0].T)
         keep = err <= max(OPTICS_OUTLIER_PX, 5.0 * float(np.median(err)))
@@ -365,9 +363,10 @@ def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
             continue
         tried.append(hyp.a)  # a seed near one that refined to a failed identification leads there too
         fitted, rows, cat = refined
-        out = _identify(_with_camera(stars, fitted), fitted, catalog, tight, timings)
+        seen = _with_camera(stars, fitted)
+        out = _identify(seen, fitted, catalog, tight, timings)
         if out.status is not Status.OK:
-            out = _verify_pattern(_with_camera(stars, fitted), fitted, rows, cat, catalog, tight, timings) or out
+            out = _verify_pattern(seen, fitted, rows, cat, catalog, tight, timings) or out
         if out.status is Status.OK:
             out.optics = _fit_optics(out, catalog, search)
             if out.optics is not None:
@@ -382,14 +381,10 @@ def _verify_pattern(stars: StarList, camera: CameraModel, rows, cat, catalog: On
     every usable detection with the fitted camera and the tight noise model; high confidence only
     as the solver grants a large set (at least ``confident_stars`` matched covering at least
     ``confident_coverage`` of the predicted stars), else None. Method "pattern"."""
-    t0 = time.perf_counter()
     used = _usable(stars)
     rows, cat = np.asarray(rows), np.asarray(cat)
     inside = np.isin(rows, used)
-    rg, bg, sigma_px, sp = _solver_inputs(used, stars, camera, catalog, params, "geometric", False)
-    match, _ = verify(np.searchsorted(used, rows[inside]), cat[inside], stars.vectors[used], rg, bg,
-                      sigma_px / camera.f, catalog, sp.fov, 0.0, 0.0, sp.verify)
-    timings["attitude"] = timings.get("attitude", 0.0) + time.perf_counter() - t0
+    match, _, sp = _verify_over(used, rows[inside], cat[inside], stars, camera, catalog, params, timings)
     cp = sp.consensus
     if match is None or match.n < cp.confident_stars or not match.coverage >= cp.confident_coverage:
         return None
@@ -484,18 +479,27 @@ def _match_all(sol, rows, used, stars: StarList, camera: CameraModel, catalog: O
     fails, finds fewer stars or moves the attitude."""
     if len(rows) >= len(used):
         return sol, rows
-    t0 = time.perf_counter()
-    rg, bg, sigma_px, sp = _solver_inputs(used, stars, camera, catalog, params, "geometric", False)
-    det = np.searchsorted(used, rows[sol.matched_det])
-    match, _ = verify(det, sol.matched_cat, stars.vectors[used], rg, bg, sigma_px / camera.f, catalog, sp.fov,
-                      0.0, 0.0, sp.verify)
-    timings["attitude"] = timings.get("attitude", 0.0) + time.perf_counter() - t0
+    match, sigma_px, _ = _verify_over(used, rows[sol.matched_det], sol.matched_cat, stars, camera, catalog, params,
+                                      timings)
     if (match is None or match.n < len(sol.matched_det)
             or rotation_angle(match.attitude.a, quat_to_matrix(sol.q_icrs_to_sensor)) > 5 * float(np.max(sigma_px)) / camera.f):
         return sol, rows
     full = solution_from_match(match, sol.status, sol.reason, np.arange(len(used)), catalog, sol.method, len(used))
     full.attempts, full.timings, full.notes = sol.attempts, sol.timings, sol.notes
     return full, used
+
+
+def _verify_over(used, rows, cat, stars: StarList, camera: CameraModel, catalog: OnboardCatalog,
+                 params: PipelineParams, timings: dict):
+    """The solver's verification (geometry only) of detection ``rows`` matched to catalog stars
+    ``cat``, over every detection in ``used`` (sorted rows): (VerifiedMatch or None, per-star noise
+    px, solver parameters); its time goes to ``timings["attitude"]``."""
+    t0 = time.perf_counter()
+    rg, bg, sigma_px, sp = _solver_inputs(used, stars, camera, catalog, params, "geometric", False)
+    match, _ = verify(np.searchsorted(used, rows), cat, stars.vectors[used], rg, bg, sigma_px / camera.f, catalog,
+                      sp.fov, 0.0, 0.0, sp.verify)
+    timings["attitude"] = timings.get("attitude", 0.0) + time.perf_counter() - t0
+    return match, sigma_px, sp
 
 
 def geometric_detection_cap(camera: CameraModel, catalog: OnboardCatalog, factor: float) -> int:

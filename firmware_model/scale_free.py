@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from firmware_model.camera import CameraModel
-from firmware_model.camera_fit import StarObservations, calibrate
+from firmware_model.camera_fit import StarObservations, fit_frame
 from firmware_model.onboard_catalog import OnboardCatalog, angle_between
 
 #: Neighbours per pattern centre (the brightest within the radius), three of which join it.
@@ -39,14 +39,12 @@ _PERMS = np.array(list(permutations(range(4))))
 
 @dataclass
 class Hypothesis:
-    """A pattern match: focal length (px), attitude ``a`` (v_sensor = a @ v_icrs), the key distance
-    and the four (detection row, catalog index) pairs."""
+    """A pattern match: focal length (px), attitude ``a`` (v_sensor = a @ v_icrs) and the key
+    distance (largest difference of the edge ratios)."""
 
     f: float
     a: np.ndarray
     key_distance: float
-    det: np.ndarray
-    cat: np.ndarray
 
 
 def _keys(vectors: np.ndarray, groups: np.ndarray):
@@ -118,15 +116,15 @@ def hypotheses(x: np.ndarray, y: np.ndarray, camera: CameraModel, catalog: Onboa
             b = replace(camera, f=camera.f * scale).pixel_to_vector(x[g], y[g])
             a = _assign(b, catalog.vec[groups_c[k]])
             if a is not None:
-                out.append(Hypothesis(camera.f * scale, a, float(np.max(np.abs(key - keys_c[k]))), g, groups_c[k]))
+                out.append(Hypothesis(camera.f * scale, a, float(np.max(np.abs(key - keys_c[k])))))
     out.sort(key=lambda h: h.key_distance)
     return out[:max_hypotheses]
 
 
 def _assign(b: np.ndarray, r: np.ndarray):
-    """Attitude from the best of the 24 assignments of frame directions ``b`` (nominal camera) to
-    catalog directions ``r`` (edges compared after a common scale), or None when even the best
-    leaves an edge mismatch above 2 % of the largest edge."""
+    """Attitude from the best of the 24 assignments of frame directions ``b`` (through the
+    hypothesised focal length) to catalog directions ``r`` (edges compared after a common scale),
+    or None when even the best leaves an edge mismatch above 2 % of the largest edge."""
     eb = np.stack([angle_between(b[i], b[j]) for i, j in _PAIRS])
     rp = r[_PERMS]  # (24, 4, 3)
     er = np.stack([angle_between(rp[:, i], rp[:, j]) for i, j in _PAIRS], axis=1)
@@ -162,10 +160,8 @@ def refine(x: np.ndarray, y: np.ndarray, camera: CameraModel, hyp: Hypothesis, c
         if len(rows) < min_stars:
             return None
         det, cat = rows, ci[j[rows]]
-        fit = ("f", "k1") if len(det) >= k1_min_stars else ("f",)
-        try:
-            res = calibrate([StarObservations(x[det], y[det], catalog.vec[cat])], cam, fit=fit)
-        except (ValueError, np.linalg.LinAlgError):
+        res = fit_frame(StarObservations(x[det], y[det], catalog.vec[cat]), cam, k1_min_stars)
+        if res is None:
             return None
         cam, a = res.camera, res.attitudes[0]
     return cam, det, cat
