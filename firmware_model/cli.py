@@ -23,7 +23,6 @@ import threading
 from pathlib import Path
 
 from protocol import nsp
-from protocol.commands import SlotRejected
 
 from .camera import CameraModel
 from .catalog_image_io import catalog_slot_handler
@@ -84,14 +83,7 @@ def build_device(args: argparse.Namespace) -> Device:
         source = load_frame_source("sky", args.sky, camera)
     store = SlotStore(args.state, volatile={FRAME_SLOT}) if args.state else None
     slots = {0: catalog_slot_handler(), 1: frame_slot_handler(camera), 2: params_slot_handler()}
-    params = PipelineParams()
-    if args.params:
-        try:
-            params = DeviceParams.from_json(Path(args.params).read_bytes()).apply(params)
-        except OSError as exc:
-            raise ValueError(f"--params {args.params}: {exc.strerror or exc}") from None
-        except SlotRejected as exc:
-            raise ValueError(f"--params {args.params}: {exc.message}") from None
+    params = DeviceParams.load(args.params).apply(PipelineParams()) if args.params else PipelineParams()
     return Device(args.address, store=store, slots=slots, solver=PipelineSolver(camera, params), frame_source=source,
                   sensor_shape=(camera.height, camera.width))
 

@@ -25,6 +25,7 @@ from firmware_model.camera import CameraModel
 from firmware_model.device import FrameUnavailable, SlotHandler, SolveContext
 from firmware_model.frame import Frame, frame_from_bytes
 from firmware_model.frame_io import FrameReadError, frame_files, read_frame
+from firmware_model.extract import PSF_SIGMA_RANGE_PX
 from firmware_model.pipeline import PipelineParams, result_fields, run_pipeline, with_psf_sigma
 from protocol.commands import SlotRejected
 
@@ -89,6 +90,17 @@ class DeviceParams:
             "focal_search")
 
     @classmethod
+    def load(cls, path) -> "DeviceParams":
+        """A parameter file (``st16-device --params``, the offline ``--params``); ValueError with a
+        one-line reason for an unreadable or invalid one."""
+        try:
+            return cls.from_json(Path(path).read_bytes())
+        except OSError as exc:
+            raise ValueError(f"--params {path}: {exc.strerror or exc}") from None
+        except SlotRejected as exc:
+            raise ValueError(f"--params {path}: {exc.message}") from None
+
+    @classmethod
     def from_json(cls, data: bytes) -> "DeviceParams":
         try:
             obj = json.loads(data.decode("utf-8"))
@@ -125,7 +137,7 @@ class DeviceParams:
                 raise SlotRejected(REJECT_PARAMS_VALUE, "colour_correction must be {\"beta\": [6 finite numbers]}")
             beta = tuple(float(x) for x in b)
         return cls(mode, positive("sigma_rg"), positive("sigma_bg"), positive("centroid_sigma_px"),
-                   positive("time_budget_s"), number("psf_sigma_px", 0.1, 20.0, lo_open=False), beta,
+                   positive("time_budget_s"), number("psf_sigma_px", *PSF_SIGMA_RANGE_PX, lo_open=False), beta,
                    number("focal_search", 0.0, 0.2, lo_open=False))
 
     def apply(self, base: PipelineParams) -> PipelineParams:

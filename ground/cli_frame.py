@@ -20,7 +20,7 @@ import numpy as np
 from firmware_model.camera import CameraModel
 from firmware_model.centroid import FitParams
 from firmware_model.detect import DetectParams
-from firmware_model.extract import extract_stars
+from firmware_model.extract import PSF_SIGMA_RANGE_PX, extract_stars
 from firmware_model.frame_io import FrameReadError, read_frame
 from firmware_model.frames import attitude_from_radec_roll
 from ground.frame_writer import truth_path_for, write_rendered
@@ -180,8 +180,9 @@ def cmd_inspect(args) -> int:
 
     from ground.offline_options import load_params
 
-    if args.psf_sigma is not None and not 0.1 <= args.psf_sigma <= 20:
-        return _fail(f"--psf-sigma must be in [0.1, 20] px, got {args.psf_sigma}")
+    lo, hi = PSF_SIGMA_RANGE_PX
+    if args.psf_sigma is not None and not lo <= args.psf_sigma < hi:
+        return _fail(f"--psf-sigma must be in [{lo:g}, {hi:g}) px, got {args.psf_sigma}")
 
     base = load_params(args.params).extract
     params = replace(base, detect=replace(base.detect, k_sigma=args.k_sigma, max_candidates=args.max_stars),

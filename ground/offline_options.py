@@ -12,7 +12,6 @@ Bad values fail before any work with a one-line ``SystemExit`` message.
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Callable
 
 from firmware_model.camera import CameraModel
@@ -34,16 +33,13 @@ def add_params_option(parser) -> None:
 def load_params(path: str | None) -> PipelineParams:
     """Pipeline parameters from a slot-2 parameter file (defaults without one)."""
     from firmware_model.sensor_input import DeviceParams
-    from protocol.commands import SlotRejected
 
     if path is None:
         return PipelineParams()
     try:
-        return DeviceParams.from_json(Path(path).read_bytes()).apply(PipelineParams())
-    except OSError as exc:
-        raise SystemExit(f"st16-ground: --params {path}: {exc.strerror or exc}") from None
-    except SlotRejected as exc:
-        raise SystemExit(f"st16-ground: --params {path}: {exc.message}") from None
+        return DeviceParams.load(path).apply(PipelineParams())
+    except ValueError as exc:
+        raise SystemExit(f"st16-ground: {exc}") from None
 
 
 def camera_for_frames(args) -> Callable[[Frame], CameraModel]:

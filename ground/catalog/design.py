@@ -59,10 +59,13 @@ class CatalogDesign:
         V 4-7; clamped to V 4-7.5). ``overrides`` are further CatalogDesign fields."""
         if not 0.0 < fov_deg < 180.0:
             raise DesignError(f"field of view must be in (0, 180) deg, got {fov_deg}")
-        f = 0.5 * width_px / math.tan(math.radians(fov_deg) / 2.0)
-        theta = math.degrees(math.atan(0.5 * min(width_px, height_px) / f))
-        diagonal = 2.0 * math.degrees(math.atan(0.5 * math.hypot(width_px, height_px) / f))
-        area = fov_deg * 2.0 * math.degrees(math.atan(0.5 * height_px / f))  # deg^2, small-field
+        from firmware_model.camera import CameraModel
+
+        camera = CameraModel.from_horizontal_fov(width_px, height_px, fov_deg)
+        theta = math.degrees(camera.fov_half_angle_minor)
+        diagonal = 2.0 * math.degrees(camera.fov_half_angle_diagonal)
+        vertical = camera.fov_half_angle_minor if width_px >= height_px else camera.fov_half_angle_major
+        area = fov_deg * 2.0 * math.degrees(vertical)  # deg^2, small-field
         m = (math.log10(stars_in_view * 41253.0 / area) - 0.63) / 0.515
         design = {"theta_fov_deg": theta, "sensor_width_px": width_px, "sensor_height_px": height_px,
                   "m_thresh": math.ceil(min(max(m, 4.0), 7.5) * 10.0) / 10.0, "phi_max_deg": diagonal,
