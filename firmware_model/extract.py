@@ -12,6 +12,10 @@ the sigma is measured as the median fitted sigma of the brightest clean stars
 ``psf_tolerance`` (relative) detection and fit run again with the measurement (at most
 ``psf_max_passes`` passes in all). A guess far too wide makes detection clean star cores as
 hot pixels; the fit on the remaining pixels still measures the width well enough to recover.
+A guess far too narrow for a PSF that is not Gaussian (a defocus ring) makes most fits fail,
+and the few converged ones (hot-pixel clusters) then measure a width near the guess: when more
+than :data:`PSF_FAIL_FRACTION` of the brightest candidates' fits fail, one pass runs at
+:data:`PSF_WIDEN_FACTOR` times the width, and is kept only if fewer of its fits fail.
 """
 
 from __future__ import annotations
@@ -35,6 +39,9 @@ CAP_MARGIN = 2
 #: Brightest clean stars whose fitted sigmas make the PSF measurement, and the fewest accepted.
 PSF_SAMPLE_STARS = 20
 PSF_MIN_STARS = 3
+#: Share of failed fits among the brightest candidates above which the PSF guess is widened once.
+PSF_FAIL_FRACTION = 0.3
+PSF_WIDEN_FACTOR = 2.0
 #: Flags that exclude a star from the PSF measurement (POOR_FIT stays: a non-Gaussian PSF
 #: makes every bright star a poor Gaussian fit, but its fitted width is still the best measure).
 _PSF_EXCLUDE = int(StarFlag.SATURATED | StarFlag.EDGE | StarFlag.BLEND | StarFlag.FIT_FAILED)
@@ -129,6 +136,16 @@ def measure_psf_sigma(fit: FitResults, snr: np.ndarray) -> float:
     return float(np.median(fit.sigma[idx]))
 
 
+def failed_fit_fraction(fit: FitResults, snr: np.ndarray) -> float:
+    """Share of the :data:`PSF_SAMPLE_STARS` highest-SNR candidates (not saturated, clipped or
+    blended) whose fit failed; 0 without such candidates."""
+    idx = np.flatnonzero((fit.flags & int(StarFlag.SATURATED | StarFlag.EDGE | StarFlag.BLEND)) == 0)
+    if not len(idx):
+        return 0.0
+    idx = idx[np.argsort(-snr[idx])][:PSF_SAMPLE_STARS]
+    return float(np.mean((fit.flags[idx] & int(StarFlag.FIT_FAILED)) != 0))
+
+
 def _detect_and_fit(frame: Frame, params: ExtractParams, sigma_px: float):
     """One pass at PSF sigma ``sigma_px``: detection with twice the candidate cap, the fit, and
     then the cap applied to the candidates the fit did not reject as sharper than the PSF (so
@@ -154,25 +171,32 @@ def extract_stars(frame: Frame, camera: CameraModel | None = None, params: Extra
     """Detect and fit stars in ``frame``; ``camera`` (or ``frame.camera``) adds unit vectors."""
     t0 = time.perf_counter()
     sigma = params.psf_sigma_px if params.psf_sigma_px is not None else params.psf_start_px
-    source, measured, passes, fit_s, previous = "setting", float("nan"), 0, 0.0, None
+    source, measured, passes, fit_s, previous, widened = "setting", float("nan"), 0, 0.0, None, False
     while True:
         fit, snr, dt, notes = _detect_and_fit(frame, params, sigma)
         passes += 1
         fit_s += dt
-        if previous is not None and len(fit.x) < 0.5 * len(previous[0].x):
-            # the measured width lost most of the stars (a PSF far from Gaussian): keep the pass before
-            fit, snr, notes, sigma = previous
+        failed = failed_fit_fraction(fit, snr)
+        if previous is not None and (len(fit.x) < 0.5 * len(previous[0].x)
+                                     or (widened and passes == 2 and failed >= previous[4])):
+            # the new width lost most of the stars (a PSF far from Gaussian), or widening did not
+            # help the fits: keep the pass before
+            fit, snr, notes, sigma, _, measured, source = previous
             break
         if params.psf_sigma_px is not None:
             break
         measured = measure_psf_sigma(fit, snr)
+        source = "measured" if np.isfinite(measured) else "start"
+        if passes == 1 and failed > PSF_FAIL_FRACTION and passes < params.psf_max_passes:
+            widened = True
+            previous = (fit, snr, notes, sigma, failed, measured, source)
+            sigma = PSF_WIDEN_FACTOR * max(sigma, measured if np.isfinite(measured) else 0.0)
+            continue
         if not np.isfinite(measured):
-            source = "start"
             break
-        source = "measured"
         if abs(measured / sigma - 1.0) <= params.psf_tolerance or passes >= params.psf_max_passes:
             break
-        previous = (fit, snr, notes, sigma)
+        previous = (fit, snr, notes, sigma, failed, measured, source)
         sigma = measured
     t2 = time.perf_counter()
     t1 = t2 - fit_s
