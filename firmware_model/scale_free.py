@@ -1,7 +1,7 @@
 """Scale-free first match for uncalibrated optics: 4-star patterns whose edge ratios do not
 depend on the focal length, as plate solvers do it (tetra3's patterns, astrometry.net's quads).
 
-A pattern is a star and three of the five brightest stars within ``radius`` of it; its key is
+A pattern is a star and three of its brightest neighbours within ``radius``; its key is
 the six pairwise angles sorted and divided by the largest (five numbers in (0, 1]). A focal-length
 error scales every edge alike and leaves the key unchanged; radial distortion of a few pixels
 changes it by well under a per cent for patterns of a few hundred pixels. Catalog patterns are
@@ -31,8 +31,14 @@ from firmware_model.camera import CameraModel
 from firmware_model.camera_fit import StarObservations, fit_frame
 from firmware_model.onboard_catalog import OnboardCatalog, angle_between
 
-#: Neighbours per pattern centre (the brightest within the radius), three of which join it.
-NEIGHBOURS = 5
+#: Neighbours per pattern centre (the brightest within the radius), three of which join it: in the
+#: catalog, and among the frame's detections.
+CATALOG_NEIGHBOURS = 10
+FRAME_NEIGHBOURS = 8
+#: Catalog stars that centre patterns: those with fewer brighter stars than this within the pattern
+#: radius (a frame's brightest detections are among its region's brightest stars); bounds the
+#: patterns per area of sky, not per star.
+PATTERN_STARS_PER_CAP = 12
 _PAIRS = list(combinations(range(4), 2))
 _PERMS = np.array(list(permutations(range(4))))
 
@@ -57,8 +63,9 @@ def _keys(vectors: np.ndarray, groups: np.ndarray):
         return edges[:, :-1] / top[:, None], top
 
 
-def _groups(vectors: np.ndarray, brightness_rank: np.ndarray, radius: float, centres: np.ndarray) -> np.ndarray:
-    """4-star groups: each centre with three of its NEIGHBOURS brightest neighbours within ``radius``."""
+def _groups(vectors: np.ndarray, brightness_rank: np.ndarray, radius: float, centres: np.ndarray,
+            neighbours: int) -> np.ndarray:
+    """4-star groups: each centre with three of its ``neighbours`` brightest neighbours within ``radius``."""
     tree = cKDTree(vectors)
     chord = 2.0 * np.sin(radius / 2.0)
     out = []
@@ -66,7 +73,7 @@ def _groups(vectors: np.ndarray, brightness_rank: np.ndarray, radius: float, cen
         near = np.array([j for j in near if j != c], dtype=np.int64)
         if len(near) < 3:
             continue
-        near = near[np.argsort(brightness_rank[near])][:NEIGHBOURS]
+        near = near[np.argsort(brightness_rank[near])][:neighbours]
         out.extend((c, *trio) for trio in combinations(near.tolist(), 3))
     return np.array(out, dtype=np.int64).reshape(-1, 4)
 
@@ -78,7 +85,12 @@ def catalog_patterns(catalog: OnboardCatalog, radius: float):
     mrad = int(round(radius * 1000.0))
     if mrad not in cache:
         rank = np.argsort(np.argsort(catalog.mag, kind="stable"), kind="stable")
-        groups = _groups(catalog.vec, rank, mrad / 1000.0, np.arange(len(catalog.vec)))
+        tree = cKDTree(catalog.vec)
+        near = tree.query_ball_point(catalog.vec, 2.0 * np.sin(mrad / 2000.0))
+        brighter = np.array([np.count_nonzero(rank[n] < rank[i]) for i, n in enumerate(near)])
+        centres = np.flatnonzero(brighter < PATTERN_STARS_PER_CAP)
+        groups = _groups(catalog.vec, rank, mrad / 1000.0, centres, CATALOG_NEIGHBOURS)
+        groups = np.unique(np.sort(groups, axis=1), axis=0)  # a 4-set found from several of its stars once
         keys, top = _keys(catalog.vec, groups)
         ok = np.isfinite(keys).all(axis=1) & (top > 0)
         cache[mrad] = (groups[ok], keys[ok], top[ok], cKDTree(keys[ok]))
@@ -86,8 +98,9 @@ def catalog_patterns(catalog: OnboardCatalog, radius: float):
 
 
 def pattern_radius(camera: CameraModel) -> float:
-    """Pattern radius for a camera: half the field of view across the minor axis (rad)."""
-    return camera.fov_half_angle_minor
+    """Pattern radius for a camera: three quarters of the field of view across the minor axis (rad),
+    so that a sparse field whose catalog stars sit far apart still forms patterns."""
+    return 1.5 * camera.fov_half_angle_minor
 
 
 def hypotheses(x: np.ndarray, y: np.ndarray, camera: CameraModel, catalog: OnboardCatalog, n_bright: int = 12,
@@ -101,24 +114,29 @@ def hypotheses(x: np.ndarray, y: np.ndarray, camera: CameraModel, catalog: Onboa
     radius = pattern_radius(camera)
     groups_c, keys_c, top_c, tree = catalog_patterns(catalog, radius)
     v = camera.pixel_to_vector(x[:n], y[:n])
-    groups = _groups(v, np.arange(n), radius * (1 + focal_range), np.arange(n))
+    groups = _groups(v, np.arange(n), radius * (1 + focal_range), np.arange(n), FRAME_NEIGHBOURS)
     if len(groups) == 0:
         return []
     keys, top = _keys(v, groups)
+    found = tree.query_ball_point(keys, tolerance, p=np.inf)
+    gi = np.repeat(np.arange(len(groups)), [len(f) for f in found])
+    ci = np.fromiter((k for f in found for k in f), dtype=np.int64, count=len(gi))
+    scale = top[gi] / top_c[ci]
+    ok = np.abs(scale - 1.0) <= focal_range
+    gi, ci, scale = gi[ok], ci[ok], scale[ok]
+    dist = np.max(np.abs(keys[gi] - keys_c[ci]), axis=1)
     out = []
-    for g, key, t, found in zip(groups, keys, top, tree.query_ball_point(keys, tolerance, p=np.inf)):
-        for k in found:
-            scale = t / top_c[k]
-            if abs(scale - 1.0) > focal_range:
-                continue
-            # directions through the hypothesised focal length: with the nominal one, a pattern off
-            # the boresight would tilt the attitude by the scale error times its field angle
-            b = replace(camera, f=camera.f * scale).pixel_to_vector(x[g], y[g])
-            a = _assign(b, catalog.vec[groups_c[k]])
-            if a is not None:
-                out.append(Hypothesis(camera.f * scale, a, float(np.max(np.abs(key - keys_c[k])))))
-    out.sort(key=lambda h: h.key_distance)
-    return out[:max_hypotheses]
+    for m in np.argsort(dist, kind="stable"):  # best key first; attitudes only for those returned
+        g = groups[gi[m]]
+        # directions through the hypothesised focal length: with the nominal one, a pattern off
+        # the boresight would tilt the attitude by the scale error times its field angle
+        b = replace(camera, f=camera.f * scale[m]).pixel_to_vector(x[g], y[g])
+        a = _assign(b, catalog.vec[groups_c[ci[m]]])
+        if a is not None:
+            out.append(Hypothesis(camera.f * scale[m], a, float(dist[m])))
+            if len(out) == max_hypotheses:
+                break
+    return out
 
 
 def _assign(b: np.ndarray, r: np.ndarray):
