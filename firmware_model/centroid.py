@@ -20,7 +20,8 @@ plus the shot noise of an initial linear fit (gain in e-/DN). ``rg = A_R / A_G``
 ``bg = A_B / A_G``; covariances from the Jacobian at the solution by linear propagation
 (scaled by the reduced chi-square when it exceeds 1). The fallback when the fit fails is a colour-normalised centre of gravity.
 A fit whose sigma is significantly (3 sd) below ``sharp_sigma_fraction`` x the expected
-sigma, or a failed fit that ended there, marks the candidate ``sharp``: a hot pixel or
+sigma, or a failed fit that ended there (from detection SNR ``sharp_fail_min_snr`` up: a faint
+star's failed fit ends anywhere), marks the candidate ``sharp``: a hot pixel or
 cosmic-ray hit that the detector's neighbour test let through.
 """
 
@@ -50,6 +51,7 @@ class FitParams:
     max_shift_px: float = 2.5  # fitted centre must stay this close to the start
     sigma_range_px: tuple = (0.3, 6.0)  # fitted sigma outside: FIT_FAILED
     sharp_sigma_fraction: float = 0.5  # fitted sigma (+3 sd) below this x psf_sigma_px: sharp artefact
+    sharp_fail_min_snr: float = 20.0  # a failed fit counts as sharp only from this detection SNR up
     max_nfev: int = 60  # residual evaluations per star (the start counts); not converged: FIT_FAILED
     method: str = "lm"  # "lm": PSF fit; "cog": centre of gravity + linear amplitudes only (fast)
     analytic_jacobian: bool = True  # False: forward-difference Jacobian (benchmark baseline)
@@ -443,8 +445,10 @@ def _fit_all(frame, det, params, gain, out):
     abs_s = np.abs(p[:, 2])
     ok = (started & conv & (shift <= params.max_shift_px) & (params.sigma_range_px[0] <= abs_s)
           & (abs_s <= params.sigma_range_px[1]) & (p[:, green] > 0))
-    # a failed fit that shrank the PSF far below the optics' is not a star either
-    sharp_fail = started & (abs_s < max(params.sigma_range_px[0], params.sharp_sigma_fraction * params.psf_sigma_px))
+    # a failed fit that shrank the PSF far below the optics' is not a star either, when the candidate
+    # was bright enough for its fit to mean something (a faint star's failed fit wanders anywhere)
+    bright = np.asarray(det.snr, float)[idx[fit]] >= params.sharp_fail_min_snr
+    sharp_fail = started & bright & (abs_s < max(params.sigma_range_px[0], params.sharp_sigma_fraction * params.psf_sigma_px))
     for j in np.flatnonzero(~ok):
         i, k = idx[fit[j]], fit[j]
         out.sharp[i] = sharp_fail[j]

@@ -15,7 +15,8 @@ hot pixels; the fit on the remaining pixels still measures the width well enough
 A guess far too narrow for a PSF that is not Gaussian (a defocus ring) makes most fits fail,
 and the few converged ones (hot-pixel clusters) then measure a width near the guess: when more
 than :data:`PSF_FAIL_FRACTION` of the brightest candidates' fits fail, one pass runs at
-:data:`PSF_WIDEN_FACTOR` times the width, and is kept only if fewer of its fits fail.
+:data:`PSF_WIDEN_FACTOR` times the width (or the measurement, if wider), and the measurement
+goes on from whichever of the two passes had fewer failed fits.
 """
 
 from __future__ import annotations
@@ -57,8 +58,8 @@ class ExtractParams:
     fit: FitParams = FitParams()
     psf_sigma_px: float | None = None
     psf_start_px: float = 1.0
-    psf_tolerance: float = 0.2
-    psf_max_passes: int = 3
+    psf_tolerance: float = 0.1
+    psf_max_passes: int = 4
 
 
 @dataclass
@@ -171,33 +172,36 @@ def extract_stars(frame: Frame, camera: CameraModel | None = None, params: Extra
     """Detect and fit stars in ``frame``; ``camera`` (or ``frame.camera``) adds unit vectors."""
     t0 = time.perf_counter()
     sigma = params.psf_sigma_px if params.psf_sigma_px is not None else params.psf_start_px
-    source, measured, passes, fit_s, previous, widened = "setting", float("nan"), 0, 0.0, None, False
-    while True:
-        fit, snr, dt, notes = _detect_and_fit(frame, params, sigma)
-        passes += 1
+    fit_s = 0.0
+
+    def one_pass(width):
+        nonlocal fit_s
+        fit, snr, dt, notes = _detect_and_fit(frame, params, width)
         fit_s += dt
-        failed = failed_fit_fraction(fit, snr)
-        if previous is not None and (len(fit.x) < 0.5 * len(previous[0].x)
-                                     or (widened and passes == 2 and failed >= previous[4])):
-            # the new width lost most of the stars (a PSF far from Gaussian), or widening did not
-            # help the fits: keep the pass before
-            fit, snr, notes, sigma, _, measured, source = previous
-            break
-        if params.psf_sigma_px is not None:
-            break
-        measured = measure_psf_sigma(fit, snr)
-        source = "measured" if np.isfinite(measured) else "start"
-        if passes == 1 and failed > PSF_FAIL_FRACTION and passes < params.psf_max_passes:
-            widened = True
-            previous = (fit, snr, notes, sigma, failed, measured, source)
-            sigma = PSF_WIDEN_FACTOR * max(sigma, measured if np.isfinite(measured) else 0.0)
-            continue
-        if not np.isfinite(measured):
-            break
-        if abs(measured / sigma - 1.0) <= params.psf_tolerance or passes >= params.psf_max_passes:
-            break
-        previous = (fit, snr, notes, sigma, failed, measured, source)
-        sigma = measured
+        return fit, snr, notes, width
+
+    current, passes = one_pass(sigma), 1
+    source, measured = "setting", float("nan")
+    if params.psf_sigma_px is None:
+        if failed_fit_fraction(*current[:2]) > PSF_FAIL_FRACTION and passes < params.psf_max_passes:
+            # most fits failed: either the guess is far too narrow for the PSF, or the few
+            # converged fits are right that it is narrower; a wide pass tells which
+            m = measure_psf_sigma(*current[:2])
+            wide, passes = one_pass(PSF_WIDEN_FACTOR * max(sigma, m if np.isfinite(m) else 0.0)), passes + 1
+            if (failed_fit_fraction(*wide[:2]) < failed_fit_fraction(*current[:2])
+                    and len(wide[0].x) >= 0.5 * len(current[0].x)):
+                current = wide
+        while True:
+            measured = measure_psf_sigma(*current[:2])
+            source = "measured" if np.isfinite(measured) else "start"
+            if (not np.isfinite(measured) or abs(measured / current[3] - 1.0) <= params.psf_tolerance
+                    or passes >= params.psf_max_passes):
+                break
+            nxt, passes = one_pass(measured), passes + 1
+            if len(nxt[0].x) < 0.5 * len(current[0].x):
+                break  # the measured width lost most of the stars (a PSF far from Gaussian): keep this pass
+            current = nxt
+    fit, snr, notes, sigma = current
     t2 = time.perf_counter()
     t1 = t2 - fit_s
     reason = "; ".join(notes)

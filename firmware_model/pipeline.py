@@ -105,7 +105,7 @@ class PipelineParams:
     """Pipeline configuration. ``colour_beta`` is the eq. 24 correction (6 numbers) or None;
     ``solve`` is the solver configuration (its colour sigmas are raised to the catalog's design
     values, its field of view defaults to the camera's); the per-detection direction noise is derived from
-    the fit covariance (with :data:`CENTROID_SIGMA_FLOOR_PX`) unless ``fixed_sigma_px`` is set.
+    the fit covariance (with the floor ``centroid_floor_px``) unless ``fixed_sigma_px`` is set.
 
     ``photometric_gate`` (mag, or None to disable): a low-confidence consensus may be caused by
     detections fainter than the catalog holds, which the eta test of seed 000 counts against the
@@ -136,6 +136,7 @@ class PipelineParams:
     geometric_fallback: bool = True
     colour_fallback: bool = True
     optics: OpticsSearch | None = OpticsSearch()
+    centroid_floor_px: float = CENTROID_SIGMA_FLOOR_PX
 
 
 @dataclass
@@ -344,17 +345,11 @@ def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
     """The scale-free search of :class:`OpticsSearch`; None when no pattern match leads to a
     high-confidence answer with the fitted camera."""
     search = params.optics
-    tight = replace(params, optics=None)
     t1 = time.perf_counter()
     scale_free.catalog_patterns(catalog, scale_free.pattern_radius(camera))  # once per catalog: not this frame's budget
     t0 += time.perf_counter() - t1
-    t1 = time.perf_counter()
-    clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)  # clutter is blended or badly fitted
-    hyps = scale_free.hypotheses(stars.x[clean], stars.y[clean], camera, catalog, search.n_bright,
-                                 search.pattern_tolerance, search.focal_range)
-    timings["identify"] = timings.get("identify", 0.0) + time.perf_counter() - t1
     tried: list[np.ndarray] = []
-    for hyp in hyps:
+    for hyp in _pattern_seeds(stars, camera, catalog, search, timings):
         if time.perf_counter() - t0 > search.budget_s:
             break
         if any(rotation_angle(hyp.a, a) < _SAME_SEED_RAD for a in tried):
@@ -365,8 +360,11 @@ def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
         if refined is None:
             continue
         tried.append(hyp.a)  # a seed near one that refined to a failed identification leads there too
-        fitted, rows, cat = refined
+        fitted, rows, cat, rms_px = refined
         seen = _with_camera(stars, fitted)
+        # the fitted optics leave residuals no centroid covariance knows about (coma, an unmodelled
+        # distortion): per axis, they set the floor of the noise the identification assumes
+        tight = replace(params, optics=None, centroid_floor_px=max(params.centroid_floor_px, rms_px / np.sqrt(2.0)))
         out = _identify(seen, fitted, catalog, tight, timings)
         if out.status is not Status.OK:
             out = _verify_pattern(seen, fitted, rows, cat, catalog, tight, timings) or out
@@ -376,6 +374,23 @@ def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
                 out.optics.focal_scale = hyp.f / camera.f
             return out
     return None
+
+
+def _pattern_seeds(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, search: OpticsSearch,
+                   timings: dict):
+    """Pattern hypotheses (``scale_free.hypotheses``) from the brightest clean detections, then, when
+    poor fits were among them (hot-pixel clusters and other unblurred clutter can outshine the
+    stars), from the brightest detections that also fit the PSF well."""
+    clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)  # clutter is blended or badly fitted
+    well = clean[(stars.flags[clean] & int(StarFlag.POOR_FIT)) == 0]
+    for rows in (clean, well):
+        if rows is well and np.array_equal(well[:search.n_bright], clean[:search.n_bright]):
+            return
+        t1 = time.perf_counter()
+        hyps = scale_free.hypotheses(stars.x[rows], stars.y[rows], camera, catalog, search.n_bright,
+                                     search.pattern_tolerance, search.focal_range)
+        timings["identify"] = timings.get("identify", 0.0) + time.perf_counter() - t1
+        yield from hyps
 
 
 def _verify_pattern(stars: StarList, camera: CameraModel, rows, cat, catalog: OnboardCatalog, params: PipelineParams,
@@ -447,7 +462,8 @@ def _solver_inputs(rows, stars: StarList, camera: CameraModel, catalog: OnboardC
     else:
         var = 0.5 * (stars.cov_xy[rows, 0, 0] + stars.cov_xy[rows, 1, 1])
         var = np.where(np.isfinite(var), var, UNKNOWN_CENTROID_SIGMA_PX ** 2)
-        floor = np.where((flags & int(UNTRUSTED)) != 0, UNTRUSTED_CENTROID_FLOOR_PX, CENTROID_SIGMA_FLOOR_PX)
+        floor = np.where((flags & int(UNTRUSTED)) != 0, max(UNTRUSTED_CENTROID_FLOOR_PX, params.centroid_floor_px),
+                         params.centroid_floor_px)
         sigma_px = np.sqrt(var + floor ** 2)
     measured = np.sqrt(np.where(colour_ok[:, None], stars.cov_colour[rows][:, [0, 1], [0, 1]], np.nan))
     with warnings.catch_warnings():
@@ -456,7 +472,8 @@ def _solver_inputs(rows, stars: StarList, camera: CameraModel, catalog: OnboardC
     solve_params = replace(
         params.solve, mode=mode, sigma_vec=sigma_px / camera.f, fov=params.solve.fov or FieldOfView.from_camera(camera),
         sigma_rg=float(np.nanmax([params.solve.sigma_rg, catalog.meta.get("sigma_rg", np.nan), frame_rg])),
-        sigma_bg=float(np.nanmax([params.solve.sigma_bg, catalog.meta.get("sigma_bg", np.nan), frame_bg])))
+        sigma_bg=float(np.nanmax([params.solve.sigma_bg, catalog.meta.get("sigma_bg", np.nan), frame_bg])),
+        verify=replace(params.solve.verify, frame_detections=len(stars)))  # the solver may see only the brightest
 
     return rg, bg, sigma_px, solve_params
 

@@ -160,10 +160,11 @@ def refine(x: np.ndarray, y: np.ndarray, camera: CameraModel, hyp: Hypothesis, c
     """Predict-match-fit from a pattern hypothesis: the camera with the hypothesis' focal length,
     then for each radius in ``radii_px`` match every detection to the nearest predicted catalog
     star within it (one detection per star) and fit f, k1 (with enough stars) and the attitude.
-    Returns (camera, detection rows, catalog indices) or None with fewer than ``min_stars``."""
+    Returns (camera, detection rows, catalog indices, RMS residual of the last fit in px) or None
+    with fewer than ``min_stars``."""
     cam, a = replace(camera, f=hyp.f), hyp.a
     near = catalog.stars_within(a[2], camera.fov_half_angle_diagonal * 1.2)
-    det = cat = None
+    det = cat = res = None
     for radius in radii_px:
         px, py = cam.vector_to_pixel(catalog.vec[near] @ a.T)
         inside = np.isfinite(px) & cam.in_frame(px, py)
@@ -182,4 +183,4 @@ def refine(x: np.ndarray, y: np.ndarray, camera: CameraModel, hyp: Hypothesis, c
         if res is None:
             return None
         cam, a = res.camera, res.attitudes[0]
-    return cam, det, cat
+    return cam, det, cat, res.residual_rms_px

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from firmware_model.camera import CameraModel
-from firmware_model.ident.consensus import ConsensusParams, Outcome, SeedOrder, match_scene, seed_pairs
+from firmware_model.ident.consensus import ConsensusParams, Outcome, SeedOrder, confident, match_scene, seed_pairs
 from firmware_model.ident.pair_match import PairNoise
 from firmware_model.ident.solver import SolveParams, check_hypothesis, solve
 from firmware_model.ident.triangle import TriadOrder, triangles
-from firmware_model.ident.verify import FieldOfView, VerifyParams, coverage_ok, miss_tail, verify
+from firmware_model.ident.verify import FieldOfView, VerifyParams, chance_alignment, coverage_ok, miss_tail, verify
 from firmware_model.onboard_catalog import OnboardCatalog, angle_between
 from ident_sky import random_attitude, random_catalog, scene
 
@@ -34,6 +34,33 @@ def test_miss_tail_is_the_binomial_tail():
         for m in range(0, n + 2):
             assert miss_tail(n, m, 0.1) == pytest.approx(binom.sf(m - 1, n, 0.1), rel=1e-9, abs=1e-15)
     assert miss_tail(5, 2, 0.0) == 0.0 and miss_tail(5, 0, 0.0) == 1.0
+
+
+def test_chance_alignment_is_the_binomial_tail_beyond_the_first_two_stars():
+    from scipy.stats import binom
+
+    omega, gate = FOV.solid_angle, 5 * SIG
+    p = 30 * np.pi * gate**2 / omega
+    assert chance_alignment(30, 8, 5, gate, omega) == pytest.approx(binom.sf(2, 6, p), rel=1e-9)
+    assert chance_alignment(30, 8, 2, gate, omega) == 1.0  # two stars only fix the attitude
+    assert chance_alignment(30, 3, 5, gate, omega) == pytest.approx(p**3, rel=1e-9)  # more matched than predicted
+    # more clutter or a wider gate makes a coincidence likelier
+    assert chance_alignment(60, 8, 5, gate, omega) > chance_alignment(30, 8, 5, gate, omega)
+    assert chance_alignment(30, 8, 5, 3 * gate, omega) > chance_alignment(30, 8, 5, gate, omega)
+    assert chance_alignment(10**9, 8, 5, gate, omega) == 1.0  # the per-star chance saturates at 1
+
+
+def test_few_stars_are_confident_only_when_chance_cannot_explain_them():
+    cp = ConsensusParams()
+
+    class Set:
+        def __init__(self, n, chance, coverage=0.5):
+            self.n, self.chance, self.coverage = n, chance, coverage
+
+    assert confident(Set(4, 1e-12), cp) and confident(Set(5, cp.chance_alpha), cp)
+    assert not confident(Set(4, 1e-6), cp)  # a coincidence is not negligible
+    assert not confident(Set(3, 1e-20), cp)  # below chance_stars
+    assert confident(Set(6, 1.0, coverage=0.8), cp) and not confident(Set(6, 1.0, coverage=0.7), cp)
 
 
 def test_coverage_tolerates_plausible_misses_only():

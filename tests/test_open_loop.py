@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from firmware_model.camera import CameraModel
-from firmware_model.extract import ExtractParams, extract_stars
+from firmware_model.extract import (PSF_FAIL_FRACTION, ExtractParams, _detect_and_fit, extract_stars,
+                                     failed_fit_fraction)
 from firmware_model.frame import Frame
 from firmware_model.frames import attitude_from_radec_roll, rotation_angle, quat_to_matrix, vec_to_radec
 from firmware_model.pipeline import PipelineParams, run_pipeline
@@ -60,6 +61,23 @@ def test_sharp_psf_with_a_wide_start_solves(catalog):
     out = run_pipeline(r.frame, NOMINAL, catalog)
     assert out.status is Status.OK, out.reason
     assert out.stars.psf_passes == 2
+    assert rotation_angle(quat_to_matrix(out.solution.q_icrs_to_sensor), a) < 2 * PIXEL_RAD
+
+
+def test_defocus_ring_among_hot_pixel_clusters_measures_a_wide_psf(catalog):
+    """A 1 px guess on a defocus ring fails most star fits while 2x2/3x3 hot-pixel clusters converge
+    near 0.8 px: the wide pass (PSF_WIDEN_FACTOR) must win, and the frame solve."""
+    from ground import openloop as ol
+
+    rng = np.random.default_rng(5)
+    hot, _ = ol.hot_clusters_e((NOMINAL.height, NOMINAL.width), 20, rng, e_range=(1000.0, 3000.0))
+    a, r = render(NOMINAL, POINTINGS[0], seed=3, psf=ol.DonutPSF(4.0, 2.0, 0.5), extra_e=hot)
+    fit, snr, _, _ = _detect_and_fit(r.frame, ExtractParams(), 1.0)
+    assert failed_fit_fraction(fit, snr) > PSF_FAIL_FRACTION  # the failure this mechanism is for
+    stars = extract_stars(r.frame, NOMINAL)
+    assert stars.psf_sigma_px > 1.8, stars.psf_sigma_px
+    out = run_pipeline(r.frame, NOMINAL, catalog)
+    assert out.status is Status.OK, out.reason
     assert rotation_angle(quat_to_matrix(out.solution.q_icrs_to_sensor), a) < 2 * PIXEL_RAD
 
 

@@ -13,10 +13,11 @@ import pytest
 from firmware_model.frames import radec_to_vec
 
 GROUND = [sys.executable, "-m", "ground.cli"]
-#: Solved today (docs/e2e.md); tree.jpg (foreground clutter) and openstartracker_img2 (3 real
-#: detections) are not, and must come back without a high-confidence answer or with a right one.
+#: Solved today (docs/e2e.md); tree.jpg (foreground clutter) is not, and must come back without a
+#: high-confidence answer or with a right one. openstartracker_img2 solves on 5 stars, three of them
+#: faint 2 x 2 px blobs of an 8-bit frame whose fits fail (kept as centre-of-gravity centroids).
 SOLVED = {"pifinder_debug_01.png", "pifinder_debug_02.png", "hale_bopp.jpg", "img_7660.png",
-          "openstartracker_img0.png"}
+          "openstartracker_img0.png", "openstartracker_img2.png"}
 
 
 @pytest.fixture(scope="module")

@@ -80,6 +80,9 @@ class ConsensusParams:
     confident_stars, confident_coverage: a verified set of at least this many stars that matches
         at least this fraction of the predicted stars is high confidence even below ``eta``
         (false detections do not make an answer that explains the sky less certain).
+    chance_stars, chance_alpha: so is a set of at least ``chance_stars`` stars whose stars
+        beyond the first two would line up by chance with probability below ``chance_alpha`` (``verify.chance_alignment``: a sparse field among
+        clutter, where a few stars matched to a fraction of a pixel are all the evidence there is).
     last_resort: in rich scenes, up to this many two-star sets skipped by ``min_consensus_rich``
         are verified (the pairs with fewest catalog neighbours first, i.e. the sparsest sky, then
         by seed ``Delta``) when no larger set verified: a frame
@@ -106,6 +109,8 @@ class ConsensusParams:
     confirmations: int = 3
     confident_stars: int = 6
     confident_coverage: float = 0.8
+    chance_stars: int = 4
+    chance_alpha: float = 1e-9
     last_resort: int = 12
     adaptive_seeds: bool = True
 
@@ -390,6 +395,15 @@ def _is_high(best, verified: list, n: int, params: ConsensusParams) -> bool:
     if getattr(best, "low_coverage", False) and best.n < params.decisive_stars:
         return False  # few stars and many predicted ones missed: plausible, not certain
     if best.n >= params.eta * n and (best.n >= 3 or best.explored_all):
+        return True
+    return confident(best, params)
+
+
+def confident(best, params: ConsensusParams) -> bool:
+    """The tests beyond eta: a large set covering the predicted stars, or one of at least
+    ``chance_stars`` whose alignment by chance is negligible (its missed stars passed
+    verification's miss-rate test) (``ConsensusParams``)."""
+    if best.n >= params.chance_stars and getattr(best, "chance", 1.0) <= params.chance_alpha:
         return True
     cov = best.coverage if np.isfinite(best.coverage) else 0.0
     return best.n >= params.confident_stars and cov >= params.confident_coverage

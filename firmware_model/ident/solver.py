@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from firmware_model.frames import rotation_angle
-from firmware_model.ident.consensus import ConsensusParams, Outcome, match_scene
+from firmware_model.ident.consensus import ConsensusParams, Outcome, confident, match_scene
 from firmware_model.ident.four_star import FourStarParams, match_four_star
 from firmware_model.ident.pair_match import PairNoise, sigma_phi_from_centroid
 from firmware_model.ident.triangle import TriangleParams, match_triangles
@@ -308,5 +308,4 @@ def _geometric_high(best, rivals, n, cp: ConsensusParams) -> bool:
         return False
     if best.low_coverage and best.n < cp.decisive_stars:
         return False
-    cov = best.coverage if np.isfinite(best.coverage) else 0.0
-    return best.n >= cp.eta * n or (best.n >= cp.confident_stars and cov >= cp.confident_coverage)
+    return best.n >= cp.eta * n or confident(best, cp)

@@ -72,6 +72,13 @@ class FieldOfView:
     def cone(cls, half_angle: float) -> "FieldOfView":
         return cls(float(half_angle))
 
+    @property
+    def solid_angle(self) -> float:
+        """Solid angle of the field (sr): the array through the pinhole part of the camera, or the cone."""
+        if self.camera is None:
+            return float(2.0 * np.pi * (1.0 - np.cos(self.radius)))
+        return float(self.camera.width * self.camera.height / self.camera.f ** 2)
+
     def contains(self, v_sensor: np.ndarray) -> np.ndarray:
         """Boolean mask of sensor-frame unit vectors inside the field (with the edge margin)."""
         v = np.asarray(v_sensor, float)
@@ -105,6 +112,7 @@ class VerifyParams:
     drop_ambiguous: bool = True
     full_frame: int = 20
     enabled: bool = True
+    frame_detections: int = 0  #: detections in the whole frame when the solver sees a subset (chance_alignment)
 
 
 @dataclass
@@ -123,6 +131,7 @@ class VerifiedMatch:
     seed_delta: float = 0.0
     confirmed: int = 1
     low_coverage: bool = False
+    chance: float = 1.0  #: probability that its stars beyond the first two line up by chance (chance_alignment)
 
     @property
     def n(self) -> int:
@@ -138,6 +147,18 @@ def miss_tail(n_pred: int, n_missed: int, miss_rate: float) -> float:
         return 0.0
     q = min(float(miss_rate), 1.0)
     return float(sum(comb(n_pred, k) * q**k * (1.0 - q) ** (n_pred - k) for k in range(n_missed, n_pred + 1)))
+
+
+def chance_alignment(n_det: int, n_pred: int, n_matched: int, gate_rad: float, solid_angle: float) -> float:
+    """Probability that a wrong attitude, fixed by two star pairs, still finds ``n_matched - 2`` of
+    the other ``max(n_pred, n_matched) - 2`` predicted stars each with some of the ``n_det``
+    detections inside a gate of ``gate_rad`` by chance: the binomial tail with the chance
+    ``n_det pi gate^2 / solid_angle`` per star (detections spread uniformly over the field)."""
+    k, trials = n_matched - 2, max(n_pred, n_matched) - 2
+    if k <= 0:
+        return 1.0
+    p = min(1.0, n_det * np.pi * gate_rad ** 2 / solid_angle)
+    return float(sum(comb(trials, j) * p**j * (1.0 - p) ** (trials - j) for j in range(k, trials + 1)))
 
 
 def coverage_ok(n_pred: int, n_matched: int, params: "VerifyParams") -> bool:
@@ -273,5 +294,7 @@ def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray
     if not coverage_ok(n_pred, matched_inside, params):
         return None, (f"coverage {matched_inside}/{n_pred} predicted stars below {params.min_coverage} "
                       f"and not explained by a {params.miss_rate:g} miss rate")
+    chance = chance_alignment(max(len(vectors), params.frame_detections), n_pred, len(det), params.residual_sigmas * float(np.median(sigma[det])),
+                              fov.solid_angle)
     return VerifiedMatch(det, cat, sol, float(coverage), n_pred, n_consensus,
-                         low_coverage=bool(n_pred and coverage < params.min_coverage)), ""
+                         low_coverage=bool(n_pred and coverage < params.min_coverage), chance=chance), ""
