@@ -25,6 +25,7 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from firmware_model.camera import CameraModel
 from firmware_model.centroid import FitParams, FitResults, fit_stars
@@ -147,6 +148,20 @@ def failed_fit_fraction(fit: FitResults, snr: np.ndarray) -> float:
     return float(np.mean((fit.flags[idx] & int(StarFlag.FIT_FAILED)) != 0))
 
 
+#: Fitted centres closer than this (px) are one star found twice (two peaks of a defocus ring).
+REPEAT_PX = 1.0
+
+
+def _repeats(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """True for candidates whose fitted centre lies within :data:`REPEAT_PX` of a brighter one's."""
+    ok = np.flatnonzero(np.isfinite(x) & np.isfinite(y))
+    out = np.zeros(len(x), bool)
+    if len(ok) > 1:
+        pairs = cKDTree(np.column_stack([x[ok], y[ok]])).query_pairs(REPEAT_PX, output_type="ndarray")
+        out[ok[pairs.max(axis=1)]] = True  # candidates come brightest first
+    return out
+
+
 def _detect_and_fit(frame: Frame, params: ExtractParams, sigma_px: float):
     """One pass at PSF sigma ``sigma_px``: detection with twice the candidate cap, the fit, and
     then the cap applied to the candidates the fit did not reject as sharper than the PSF (so
@@ -161,6 +176,7 @@ def _detect_and_fit(frame: Frame, params: ExtractParams, sigma_px: float):
         return fit, det.snr, dt, [det.reason]
     keep = np.flatnonzero(~fit.sharp)
     n_sharp = len(fit.sharp) - len(keep)
+    keep = keep[~_repeats(fit.x[keep], fit.y[keep])]
     notes = bound_notes(det, det.n_dropped_cap + max(len(keep) - cap, 0), cap)
     if n_sharp:
         notes.append(f"{n_sharp} candidate(s) sharper than the PSF rejected by the fit (hot pixels / cosmic rays)")
