@@ -106,10 +106,12 @@ def _solve_on_device(args, frame):
     from ground.cli_link import client_kwargs
     from ground.replay import LinkSolver
 
+    from ground.client import Nack
+
     solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, **client_kwargs(args))
     try:
         return solver.solve(frame, say=lambda m: print(m, file=sys.stderr))
-    except TimeoutError as exc:
+    except (TimeoutError, Nack) as exc:
         print(f"st16-ground: {exc}", file=sys.stderr)
         return None
     finally:

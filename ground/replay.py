@@ -173,10 +173,10 @@ class LinkSolver:
             self.client.close()
             self.client = None
 
-    def _wait_for_device(self, why: Exception, say) -> None:
-        say(f"device not answering ({type(why).__name__}: {why}); waiting up to {self.reconnect_timeout:.0f} s")
+    def _wait_for_device(self, why: Exception, say, deadline: float) -> None:
+        left = max(deadline - time.monotonic(), 0.0)
+        say(f"device not answering ({type(why).__name__}: {why}); waiting up to {left:.0f} s")
         self.close()
-        deadline = time.monotonic() + self.reconnect_timeout
         while time.monotonic() < deadline:
             try:
                 self._connect()
@@ -188,10 +188,13 @@ class LinkSolver:
         raise TimeoutError(f"device at {self.url} did not come back within {self.reconnect_timeout:.0f} s")
 
     def solve(self, frame: Frame | None, say=print) -> dict:
-        """Upload ``frame`` (or capture, when None), GO, and return the decoded result."""
-        from ground.client import LinkError
+        """Upload ``frame`` (or capture, when None), GO, and return the decoded result. A silent or
+        lost device is waited for, at most ``reconnect_timeout`` seconds in all for this frame; a
+        NACK is the device's answer and is raised (``ground.client.Nack``), never retried."""
+        from ground.client import LinkError, Nack
 
         data = frame_to_bytes(frame) if frame is not None else None
+        deadline = None
         while True:
             try:
                 if self.client is None:
@@ -199,12 +202,18 @@ class LinkSolver:
                 if data is not None:
                     self.client.upload(FRAME_SLOT, data, progress=False)
                 return solve_record(self.client.go_and_wait(timeout=self.go_timeout))
+            except Nack:
+                raise
             except (LinkError, OSError) as exc:
-                self._wait_for_device(exc, say)
+                if deadline is None:
+                    deadline = time.monotonic() + self.reconnect_timeout
+                self._wait_for_device(exc, say, deadline)
 
 
 def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool = True) -> dict:
     """Solve every frame of ``directory`` with ``solver`` (Link/OfflineSolver); log and summarise."""
+    from ground.client import Nack
+
     paths = frame_files(directory)
     log = ResultsLog(out_dir)
     say = tqdm.write if progress else (lambda msg: print(msg, file=sys.stderr))
@@ -217,7 +226,11 @@ def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool =
             log.append({**base, "outcome": "unreadable", "reason": f"{type(exc).__name__}: {exc}"})
             continue
         t0 = time.perf_counter()
-        record = solver.solve(frame, say) if isinstance(solver, LinkSolver) else solver.solve(frame)
+        try:
+            record = solver.solve(frame, say) if isinstance(solver, LinkSolver) else solver.solve(frame)
+        except Nack as exc:  # the device refused this frame (its size, say): logged, and the run goes on
+            log.append({**base, "outcome": "refused", "reason": str(exc)})
+            continue
         record["exchange_s"] = time.perf_counter() - t0
         record["solve_s"] = record["timings_s"].get("total")
         truth = Truth.for_frame(path)

@@ -185,3 +185,36 @@ def test_cli_solve_json_and_results_log(device, scene, tmp_path):
     matched = [s for s in rec["stars"] if s["catalog_id"] is not None]
     assert matched and all(s["x"] is not None and s["rg"] is not None for s in matched[:3])
     assert (tmp_path / "results.jsonl").exists() and (tmp_path / "results.csv").read_text().count("\n") == 2
+
+
+def test_refused_frame_is_an_answer_not_silence(device, scene, tmp_path):
+    """A frame of the wrong size is NACKed: `solve` ends at once with that one line (it used to
+    wait for a 'silent' device and retry for minutes), and a replay logs it and goes on."""
+    from ground.frame_writer import write_dng
+
+    _upload_catalog(device, scene["image"])
+    small = tmp_path / "small.dng"
+    write_dng(Frame(pixels=np.full((480, 640), 64, np.uint16), pattern="RGGB", black_level=64, white_level=4095),
+              small)
+    exe = Path(sys.executable).parent / "st16-ground"
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "ground.cli"]
+    t0 = time.monotonic()
+    run = subprocess.run(cmd + ["--port", device, "solve", "--frame", str(small), "--out", str(tmp_path / "s")],
+                         capture_output=True, text=True, timeout=60)
+    assert time.monotonic() - t0 < 20
+    assert run.returncode == 1 and "Traceback" not in run.stderr
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and "NACKed" in lines[0] and "640 x 480" in lines[0], run.stderr
+    frames = tmp_path / "replay"
+    frames.mkdir()
+    (frames / "a_small.dng").symlink_to(small)
+    (frames / "b_good.dng").symlink_to(sorted(scene["frames"].glob("*rggb.dng"))[0])
+    solver = LinkSolver(device, reconnect_timeout=5)
+    try:
+        summary = replay(frames, solver, tmp_path / "out", progress=False)
+    finally:
+        solver.close()
+    assert summary["counts"] == {"refused": 1, "unscored": 1}  # no truth beside the linked frame
+    log = [json.loads(line) for line in (tmp_path / "out" / "results.jsonl").read_text().splitlines()]
+    assert log[0]["frame"] == "a_small.dng" and "NACKed" in log[0]["reason"]
+    assert log[1]["frame"] == "b_good.dng" and log[1]["status"] == "OK"
