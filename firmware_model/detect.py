@@ -7,9 +7,10 @@ Steps (vectorised; Python loops only over candidates of multi-peak regions):
    deviation on a coarse grid of ``block_px`` blocks (1-in-4 subsample, +-4 sigma clip
    about a sparse block median); the background is interpolated bilinearly between block
    centres (no steps on a vignetted sky), the noise expanded piecewise constant.
-2. Cosmetic cleaning per phase: a pixel above ``k_sigma`` whose four same-colour
-   neighbours (adjacent pixels on a mono frame) hold far less than the PSF predicts is a
-   hot pixel or cosmic-ray hit; it is replaced for detection and listed in
+2. Cosmetic cleaning per phase: a column whose median departs from its neighbours' (stuck,
+   dead or offset columns) is shifted to their level and left out of the fit; a pixel above
+   ``k_sigma`` whose four same-colour neighbours (adjacent pixels on a mono frame) hold far
+   less than the PSF predicts is a hot pixel or cosmic-ray hit; it is replaced for detection and listed in
    ``bad_pixels`` for the fit.
 3. The four background-subtracted phases are summed into 2x2 super-pixels (each holds
    R, G, G, B: colour-blind) and filtered with a [1 2 1] x [1 2 1] kernel (a matched
@@ -115,7 +116,9 @@ def _phase_background(phase: np.ndarray, block: int):
     ny, nx = max(phase.shape[0] // block, 1), max(phase.shape[1] // block, 1)
     dense = phase[: ny * block : 2, : nx * block : 2][: ny * b, : nx * b]
     blocks = dense.reshape(ny, b, nx, b).transpose(0, 2, 1, 3).reshape(ny, nx, b * b)
-    sparse = blocks[:, :, :: max((b * b) // 64, 1)]
+    # an odd step walks across the block's columns: a step dividing the row length would sample
+    # the same few columns in every row (a dead column then looked like half the block)
+    sparse = blocks[:, :, :: max((b * b) // 64, 1) | 1]
     med = np.median(sparse, axis=2)
     mad = np.maximum(np.maximum(np.median(np.abs(sparse - med[:, :, None]), axis=2) * 1.4826, _clipped_width(sparse)), 0.5)
     keep = np.abs(blocks - med[:, :, None]) < 4.0 * mad[:, :, None]
@@ -202,6 +205,10 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
             phase = frame.pixels[py : 2 * h2 : 2, px_ : 2 * w2 : 2].astype(np.float32) - black[py, px_]
             med, sig = _phase_background(phase, block)
             bg_grids[py, px_], noise_grids[py, px_] = med, sig
+            cols = _clean_columns(phase, float(np.median(sig)))
+            if len(cols):
+                rows = np.arange(h2)
+                bad.append(((2 * rows[:, None] + py) * frame.width + (2 * cols[None, :] + px_)).ravel())
             mono = (frame.pixels, black[py, px_], py, px_) if frame.is_mono else None
             n_r, n_c = _clean_sharp(phase, med, sig, block, params.k_sigma, ratio, mono)
             bad.append((2 * n_r + py) * frame.width + (2 * n_c + px_))
@@ -232,22 +239,14 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     plabel = labels[pr, pc]
     peaks_per_region = np.bincount(plabel, minlength=n_regions + 1)
 
-    # streaks: second moments of each region's filtered signal (super-pixel units)
+    # streaks: second moments of each region's filtered signal (super-pixel units), and of its
+    # shape alone (a bright star on a faint trail dominates the signal's moments)
     lab = labels[mr_, mc_]
-    wgt = np.maximum(filt[mr_, mc_], 0).astype(float)
     nb = n_regions + 1
     area = np.bincount(lab, minlength=nb)
-    s0 = np.maximum(np.bincount(lab, wgt, nb), 1e-12)
-    m_r = np.bincount(lab, wgt * mr_, nb) / s0
-    m_c = np.bincount(lab, wgt * mc_, nb) / s0
-    drr, dcc = mr_ - m_r[lab], mc_ - m_c[lab]
-    mrr = np.bincount(lab, wgt * drr * drr, nb) / s0
-    mcc = np.bincount(lab, wgt * dcc * dcc, nb) / s0
-    mrc = np.bincount(lab, wgt * drr * dcc, nb) / s0
-    tr, det = mrr + mcc, mrr * mcc - mrc ** 2
-    disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
-    l1, l2 = tr / 2 + disc, np.maximum(tr / 2 - disc, 1e-3)
-    elongated = (area >= params.min_streak_area) & (np.sqrt(l1 / l2) > params.max_elongation)
+    elongated = np.zeros(nb, bool)
+    for wgt in (np.maximum(filt[mr_, mc_], 0).astype(float), np.ones(len(lab))):
+        elongated |= (area >= params.min_streak_area) & (_axis_ratio(lab, mr_, mc_, wgt, nb) > params.max_elongation)
     is_streak = elongated[plabel]
     n_streak = int(np.count_nonzero(is_streak))
     pr, pc, plabel = pr[~is_streak], pc[~is_streak], plabel[~is_streak]
@@ -280,6 +279,20 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     )
     det.reason = "; ".join(bound_notes(det, n_drop, params.max_candidates))
     return det
+
+
+def _axis_ratio(lab, r, c, wgt, nb) -> np.ndarray:
+    """Major / minor axis of each labelled region from the ``wgt``-weighted second moments of its
+    pixels ``(r, c)`` (labels ``lab`` < ``nb``)."""
+    s0 = np.maximum(np.bincount(lab, wgt, nb), 1e-12)
+    dr = r - (np.bincount(lab, wgt * r, nb) / s0)[lab]
+    dc = c - (np.bincount(lab, wgt * c, nb) / s0)[lab]
+    mrr = np.bincount(lab, wgt * dr * dr, nb) / s0
+    mcc = np.bincount(lab, wgt * dc * dc, nb) / s0
+    mrc = np.bincount(lab, wgt * dr * dc, nb) / s0
+    tr, det = mrr + mcc, mrr * mcc - mrc ** 2
+    disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
+    return np.sqrt((tr / 2 + disc) / np.maximum(tr / 2 - disc, 1e-3))
 
 
 def bound_notes(det: Detections, n_dropped_cap: int, max_candidates: int) -> list[str]:
@@ -325,6 +338,23 @@ def _subpixel_peak(img: np.ndarray, r: np.ndarray, c: np.ndarray):
     dy = (win.sum(axis=2) * np.arange(-1, 2)).sum(axis=1) / s
     dx = (win.sum(axis=1) * np.arange(-1, 2)).sum(axis=1) / s
     return r + dy, c + dx
+
+
+#: A column whose median departs from its neighbours' by more than this many noise sigmas is a
+#: column defect (stuck, dead or offset): no star or sky feature moves a whole column's median.
+COLUMN_DEFECT_SIGMAS = 2.0
+
+
+def _clean_columns(phase: np.ndarray, noise: float) -> np.ndarray:
+    """Column defects of one phase (``COLUMN_DEFECT_SIGMAS``): shifted, in place, to their
+    neighbours' level so that detection does not see a line; returns their indices (the fit
+    leaves their pixels out)."""
+    colmed = np.median(phase[::4], axis=0)
+    excess = colmed - ndimage.median_filter(colmed, size=9, mode="nearest")
+    cols = np.flatnonzero(np.abs(excess) > COLUMN_DEFECT_SIGMAS * noise)
+    if len(cols):
+        phase[:, cols] -= excess[cols][None, :].astype(np.float32)
+    return cols
 
 
 def _clean_sharp(phase: np.ndarray, med: np.ndarray, sig: np.ndarray, block: int, k_sigma: float,

@@ -109,3 +109,23 @@ def test_hot_pixels_over_a_bright_sky_are_not_stars():
     det_model = DetectorModel(sky_e_per_s=2000.0, hot_pixel_fraction=2e-3)
     found = [len(extract_stars(render_frame(empty, ATT, CAM, det_model, seed=k).frame)) for k in range(4)]
     assert sum(found) <= 6  # noise peaks only (was ~30 per frame before the peak-share test)
+
+
+@pytest.mark.parametrize("kind", ["stuck", "dead", "hot"])
+def test_column_defects_are_not_detected_and_do_not_hide_a_trail_crossing_them(kind):
+    """A bad column crossing a satellite trail used to merge with it into one region that was
+    neither a star nor elongated: hundreds of candidates along the trail filled the cap. A dead
+    column (here barely below this dark sky) once made its block's noise estimate collapse when
+    the background subsample kept hitting the same columns."""
+    from ground import openloop as ol
+
+    cam = CameraModel.from_fov(640, 480, 3.0)
+    trail = ol.streak(40.0, 400.0, 600.0, 80.0, 400.0)
+    r = render_frame(Stars(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0)),
+                     np.eye(3), cam, DetectorModel(hot_pixel_fraction=0), seed=2, false_objects=[trail])
+    frame = ol.apply_bad_columns(r.frame, [(321, kind)])
+    det = detect_stars(frame)
+    assert len(det) <= 2, (len(det), det.reason)
+    assert det.n_rejected_streak >= 1
+    if kind != "dead":  # stuck and offset columns are found and left out of the fit
+        assert 321 in np.unique(det.bad_pixels % frame.width)
