@@ -78,8 +78,8 @@ class OpticsSearch:
     stops after ``budget_s`` seconds."""
 
     focal_range: float = 0.05
-    n_bright: int = 16
-    pattern_tolerance: float = 0.015
+    n_bright: int = 20
+    pattern_tolerance: float = 0.01
     k1_min_stars: int = 6
     min_stars: int = 4
     refit_px: float = 1.0
@@ -346,7 +346,7 @@ def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
     high-confidence answer with the fitted camera."""
     search = params.optics
     t1 = time.perf_counter()
-    scale_free.catalog_patterns(catalog, scale_free.pattern_radius(camera))  # once per catalog: not this frame's budget
+    scale_free.catalog_patterns(catalog, camera)  # once per catalog: not this frame's budget
     t0 += time.perf_counter() - t1
     tried: list[np.ndarray] = []
     for hyp in _pattern_seeds(stars, camera, catalog, search, timings):

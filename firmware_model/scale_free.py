@@ -1,14 +1,14 @@
 """Scale-free first match for uncalibrated optics: 4-star patterns whose edge ratios do not
 depend on the focal length, as plate solvers do it (tetra3's patterns, astrometry.net's quads).
 
-A pattern is a star and three of its brightest neighbours within ``radius``; its key is
-the six pairwise angles sorted and divided by the largest (five numbers in (0, 1]). A focal-length
-error scales every edge alike and leaves the key unchanged; radial distortion of a few pixels
-changes it by well under a per cent for patterns of a few hundred pixels. Catalog patterns are
-built once per (catalog, radius) and kept in a KD-tree (L-infinity ball queries).
+A pattern is four stars; its key is the six pairwise angles sorted and divided by the largest
+(five numbers in (0, 1]). A focal-length error scales every edge alike and leaves the key
+unchanged; radial distortion of a few pixels changes it by well under a per cent for patterns of a
+few hundred pixels. Catalog patterns (the module constants say which 4-sets) are built once per
+(catalog, field) and kept in a KD-tree (L-infinity ball queries).
 
-``hypotheses`` matches the frame's patterns (from its brightest detections, directions taken
-through the nominal camera) and turns each key match into a focal length (ratio of the
+``hypotheses`` matches the frame's patterns (every 4-combination of its brightest detections no
+wider than the widest catalog pattern, directions taken through the nominal camera) and turns each key match into a focal length (ratio of the
 catalog's largest edge to the frame's) and an attitude (the four stars, best of the 24
 assignments). ``refine`` then predicts every catalog star in the field, matches detections
 within a shrinking radius and fits focal length (and k1) with the attitude
@@ -31,14 +31,18 @@ from firmware_model.camera import CameraModel
 from firmware_model.camera_fit import StarObservations, fit_frame
 from firmware_model.onboard_catalog import OnboardCatalog, angle_between
 
-#: Neighbours per pattern centre (the brightest within the radius), three of which join it: in the
-#: catalog, and among the frame's detections.
+#: Catalog patterns of two kinds, both scale free: (1) for each region of the sky the size of the
+#: field (circles of the minor half-field on a Fibonacci lattice spaced REGION_SPACING of that
+#: radius), every 4-combination of its REGION_STARS brightest stars, as tetra3 builds its database
+#: (a frame's brightest stars are its region's brightest); (2) for each star with fewer than
+#: PATTERN_STARS_PER_CAP brighter stars within the pattern radius, three of its
+#: CATALOG_NEIGHBOURS brightest neighbours there (sparse fields whose stars sit far apart).
+REGION_STARS = 10
+REGION_SPACING = 1.0
 CATALOG_NEIGHBOURS = 10
-FRAME_NEIGHBOURS = 8
-#: Catalog stars that centre patterns: those with fewer brighter stars than this within the pattern
-#: radius (a frame's brightest detections are among its region's brightest stars); bounds the
-#: patterns per area of sky, not per star.
 PATTERN_STARS_PER_CAP = 12
+#: Pattern radius over the minor half-field (kind 2, and the frame's widest pattern: twice it).
+PATTERN_RADIUS_FACTOR = 1.5
 _PAIRS = list(combinations(range(4), 2))
 _PERMS = np.array(list(permutations(range(4))))
 
@@ -78,29 +82,42 @@ def _groups(vectors: np.ndarray, brightness_rank: np.ndarray, radius: float, cen
     return np.array(out, dtype=np.int64).reshape(-1, 4)
 
 
-def catalog_patterns(catalog: OnboardCatalog, radius: float):
-    """(groups, keys, largest edge, KD-tree of keys) of the catalog's patterns of ``radius`` (rad),
-    cached on the catalog object per radius (to 1 mrad)."""
+def _region_groups(vectors: np.ndarray, mag: np.ndarray, field_radius: float) -> np.ndarray:
+    """Every 4-combination of the :data:`REGION_STARS` brightest stars of each field-sized region."""
+    spacing = REGION_SPACING * field_radius
+    n = int(np.ceil(4.0 * np.pi / spacing ** 2))
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * i
+    points = np.column_stack([np.sqrt(1.0 - z * z) * np.cos(phi), np.sqrt(1.0 - z * z) * np.sin(phi), z])
+    out = [np.zeros((0, 4), np.int64)]
+    for near in cKDTree(vectors).query_ball_point(points, 2.0 * np.sin(field_radius / 2.0)):
+        near = np.asarray(near, np.int64)
+        near = np.sort(near[np.argsort(mag[near], kind="stable")][:REGION_STARS])
+        if len(near) >= 4:
+            out.append(np.array(list(combinations(near.tolist(), 4)), np.int64))
+    return np.concatenate(out)
+
+
+def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
+    """(groups, keys, largest edge, KD-tree of keys) of the catalog's patterns for a camera's field
+    (module constants), cached on the catalog object per minor half-field (to 1 mrad)."""
     cache = catalog.__dict__.setdefault("_pattern_cache", {})
-    mrad = int(round(radius * 1000.0))
+    mrad = int(round(camera.fov_half_angle_minor * 1000.0))
     if mrad not in cache:
+        field = mrad / 1000.0
+        radius = PATTERN_RADIUS_FACTOR * field
         rank = np.argsort(np.argsort(catalog.mag, kind="stable"), kind="stable")
-        tree = cKDTree(catalog.vec)
-        near = tree.query_ball_point(catalog.vec, 2.0 * np.sin(mrad / 2000.0))
+        near = cKDTree(catalog.vec).query_ball_point(catalog.vec, 2.0 * np.sin(radius / 2.0))
         brighter = np.array([np.count_nonzero(rank[n] < rank[i]) for i, n in enumerate(near)])
         centres = np.flatnonzero(brighter < PATTERN_STARS_PER_CAP)
-        groups = _groups(catalog.vec, rank, mrad / 1000.0, centres, CATALOG_NEIGHBOURS)
-        groups = np.unique(np.sort(groups, axis=1), axis=0)  # a 4-set found from several of its stars once
+        groups = np.concatenate([_groups(catalog.vec, rank, radius, centres, CATALOG_NEIGHBOURS),
+                                 _region_groups(catalog.vec, catalog.mag, field)])
+        groups = np.unique(np.sort(groups, axis=1), axis=0)  # a 4-set found several ways once
         keys, top = _keys(catalog.vec, groups)
         ok = np.isfinite(keys).all(axis=1) & (top > 0)
         cache[mrad] = (groups[ok], keys[ok], top[ok], cKDTree(keys[ok]))
     return cache[mrad]
-
-
-def pattern_radius(camera: CameraModel) -> float:
-    """Pattern radius for a camera: three quarters of the field of view across the minor axis (rad),
-    so that a sparse field whose catalog stars sit far apart still forms patterns."""
-    return 1.5 * camera.fov_half_angle_minor
 
 
 def hypotheses(x: np.ndarray, y: np.ndarray, camera: CameraModel, catalog: OnboardCatalog, n_bright: int = 12,
@@ -111,13 +128,14 @@ def hypotheses(x: np.ndarray, y: np.ndarray, camera: CameraModel, catalog: Onboa
     n = min(len(x), n_bright)
     if n < 4:
         return []
-    radius = pattern_radius(camera)
-    groups_c, keys_c, top_c, tree = catalog_patterns(catalog, radius)
+    groups_c, keys_c, top_c, tree = catalog_patterns(catalog, camera)
     v = camera.pixel_to_vector(x[:n], y[:n])
-    groups = _groups(v, np.arange(n), radius * (1 + focal_range), np.arange(n), FRAME_NEIGHBOURS)
+    groups = np.array(list(combinations(range(n), 4)), np.int64)
+    keys, top = _keys(v, groups)
+    wide = top <= 2.0 * PATTERN_RADIUS_FACTOR * camera.fov_half_angle_minor * (1 + focal_range)
+    groups, keys, top = groups[wide], keys[wide], top[wide]
     if len(groups) == 0:
         return []
-    keys, top = _keys(v, groups)
     found = tree.query_ball_point(keys, tolerance, p=np.inf)
     gi = np.repeat(np.arange(len(groups)), [len(f) for f in found])
     ci = np.fromiter((k for f in found for k in f), dtype=np.int64, count=len(gi))
