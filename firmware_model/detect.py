@@ -349,7 +349,7 @@ def _clean_columns(phase: np.ndarray, noise: float) -> np.ndarray:
     """Column defects of one phase (``COLUMN_DEFECT_SIGMAS``): shifted, in place, to their
     neighbours' level so that detection does not see a line; returns their indices (the fit
     leaves their pixels out)."""
-    colmed = np.median(phase[::4], axis=0)
+    colmed = np.median(phase[:: max(phase.shape[0] // 64, 1)], axis=0)  # ~64 rows: the median is robust
     excess = colmed - ndimage.median_filter(colmed, size=9, mode="nearest")
     cols = np.flatnonzero(np.abs(excess) > COLUMN_DEFECT_SIGMAS * noise)
     if len(cols):
