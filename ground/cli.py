@@ -2,13 +2,16 @@
 
 Each feature module contributes its subcommands through ``register(subparsers)``; a handler
 receives the parsed ``args`` and returns a process exit code. Global options (link URL,
-addresses, JSON output, exchange log) are parsed here once for every subcommand.
+addresses, JSON output, exchange log) are parsed here once for every subcommand. Expected
+failures that a handler does not report itself end here as one line on stderr with the exit
+code of their class (:data:`EXIT_CODES`); ``--debug`` shows the traceback instead.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 #: Modules that add subcommands, in help order. Each defines ``register(subparsers)``.
@@ -22,12 +25,27 @@ COMMAND_MODULES = (
 )
 
 
+#: Exit codes by class of outcome (also in ``st16-ground --help``).
+EXIT_CODES = {
+    0: "success (a solve: a high-confidence attitude)",
+    1: "the command failed or its answer is not a confident solve (the reason is printed)",
+    2: "usage or input: bad arguments, a missing or unreadable file",
+    3: "solve: no attitude",
+    4: "link: the port cannot be opened, or the device does not answer",
+    5: "refused: the device answered with a NACK",
+    130: "interrupted (Ctrl-C)",
+}
+
+
 def _int_auto(text: str) -> int:
     return int(text, 0)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="st16-ground", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="st16-ground", description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="exit codes:\n" + "\n".join(f"  {code:>3}  {text}" for code, text in EXIT_CODES.items()))
+    parser.add_argument("--debug", action="store_true", help="show the traceback of a failure")
     parser.add_argument("--port", help="pyserial URL of the device: pty path, /dev/tty*, socket://host:port, loop://")
     parser.add_argument("--baud", type=int, default=115200, help="baud rate for real serial ports")
     parser.add_argument("--device-address", type=_int_auto, default=0x0E, help="NSP address of the tracker")
@@ -49,8 +67,27 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from serial import SerialException
+
+    from ground.client import LinkError, Nack
+
     args = build_parser().parse_args(argv)
-    return int(args.func(args) or 0)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        if args.debug:
+            raise
+        print("st16-ground: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # the reader went away (| head): no traceback, no second error at exit
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
+    except (LinkError, SerialException, OSError) as exc:
+        if args.debug:
+            raise
+        code = 5 if isinstance(exc, Nack) else 4 if isinstance(exc, (LinkError, SerialException, TimeoutError)) else 2
+        print(f"st16-ground: {exc}", file=sys.stderr)
+        return code
 
 
 if __name__ == "__main__":

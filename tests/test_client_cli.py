@@ -55,3 +55,19 @@ def test_console_session(port, capsys):
     assert "ST16-EMU BOOTLOADER" in text and "tx: c0 0e 11" in text and "hex: 0000" in text
     assert "required: count" in text and "invalid choice: 'bogus'" in text
     assert "READ_ONLY" in out.err
+
+
+@pytest.mark.parametrize("url", ["/dev/no-such-port", "socket://127.0.0.1:1"])
+def test_a_port_that_cannot_be_opened_is_one_line_and_exit_4(url, capsys):
+    for command in (["ping"], ["init"], ["read-edac", "0x4C", "4"]):
+        assert main(["--port", url, *command]) == 4
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("st16-ground: ") and url.split("//")[-1] in err[0], err
+
+
+def test_debug_shows_the_traceback():
+    from serial import SerialException
+
+    with pytest.raises(SerialException):
+        main(["--debug", "--port", "/dev/no-such-port", "ping"])
+

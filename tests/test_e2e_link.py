@@ -202,7 +202,7 @@ def test_refused_frame_is_an_answer_not_silence(device, scene, tmp_path):
     run = subprocess.run(cmd + ["--port", device, "solve", "--frame", str(small), "--out", str(tmp_path / "s")],
                          capture_output=True, text=True, timeout=60)
     assert time.monotonic() - t0 < 20
-    assert run.returncode == 1 and "Traceback" not in run.stderr
+    assert run.returncode == 5 and "Traceback" not in run.stderr  # 5: refused (st16-ground --help)
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and "NACKed" in lines[0] and "640 x 480" in lines[0], run.stderr
     frames = tmp_path / "replay"
