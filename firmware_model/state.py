@@ -1,10 +1,13 @@
 """Persistent slot storage (the emulated flash) and resumable partial transfers.
 
-With a ``root`` directory, every slot lives in ``root/slot<N>/``: ``active.bin`` + ``active.json``
-(length, CRC-32) for the committed image, ``partial.bin`` + ``partial.json`` (length, CRC-32,
-received byte ranges) for a transfer in progress. Slots named ``volatile`` (the frame slot: image
+With a ``root`` directory, every slot lives in ``root/slot<N>/``: ``active.img`` for the committed
+image (one file: a 16-byte header of magic, length and CRC-32, then the data, so that a commit is a
+single rename and a power loss leaves the old image or the new one, never a mismatched pair;
+the ``active.bin`` + ``active.json`` pair of older state directories is still read), and
+``partial.bin`` + ``partial.json`` (length, CRC-32, received byte ranges) for a transfer in
+progress. Slots named ``volatile`` (the frame slot: image
 buffers are RAM on the real device) are kept in memory even with a ``root``. Metadata files are replaced atomically
-(write to a temporary file, fsync, rename); ``partial.bin`` is written in place before its range
+(write to a temporary file, fsync, rename, fsync the directory); ``partial.bin`` is written in place before its range
 list is updated, so after a crash or restart the range list never claims bytes that were not
 written. Committed images are fsynced. Without ``root`` everything is kept in memory.
 """
@@ -13,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import struct
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +31,34 @@ def _atomic_write(path: Path, data: bytes) -> None:
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)
+    fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(fd)  # the rename itself is durable
+    finally:
+        os.close(fd)
+
+
+#: Header of a committed slot image file: magic, then length (u64) and CRC-32 (u32), little-endian.
+IMAGE_MAGIC = b"ST16IMG1"
+_IMAGE_HEADER = struct.Struct("<8sQI")
+
+
+def pack_image(data: bytes) -> bytes:
+    """A committed image with its header (magic, length, CRC-32)."""
+    return _IMAGE_HEADER.pack(IMAGE_MAGIC, len(data), crc32(data)) + data
+
+
+def unpack_image(blob: bytes) -> bytes:
+    """The data of a committed image file; ValueError if its header, length or CRC-32 is wrong."""
+    if len(blob) < _IMAGE_HEADER.size:
+        raise ValueError(f"image file of {len(blob)} bytes is shorter than its header")
+    magic, length, crc = _IMAGE_HEADER.unpack_from(blob)
+    data = blob[_IMAGE_HEADER.size:]
+    if magic != IMAGE_MAGIC:
+        raise ValueError(f"image file has magic {magic!r}, expected {IMAGE_MAGIC!r}")
+    if len(data) != length or crc32(data) != crc:
+        raise ValueError(f"image file fails its length/CRC-32 check ({len(data)} of {length} bytes)")
+    return data
 
 
 def _merge(ranges: list[list[int]], start: int, end: int) -> list[list[int]]:
@@ -118,7 +150,12 @@ class SlotStore:
 
     def _load_slot(self, slot: int, sub: Path) -> None:
         meta_path, bin_path = sub / "active.json", sub / "active.bin"
-        if meta_path.exists() and bin_path.exists():
+        if (sub / "active.img").exists():
+            try:
+                self._active[slot] = unpack_image((sub / "active.img").read_bytes())
+            except ValueError as exc:
+                print(f"state: slot {slot}: {exc}; ignored", file=sys.stderr)
+        elif meta_path.exists() and bin_path.exists():  # a state directory from before active.img
             meta = json.loads(meta_path.read_text())
             data = bin_path.read_bytes()
             if len(data) == meta["length"] and crc32(data) == meta["crc32"]:
@@ -146,8 +183,9 @@ class SlotStore:
         data = bytes(data)
         if self._persistent(slot):
             d = self._dir(slot)
-            _atomic_write(d / "active.bin", data)
-            _atomic_write(d / "active.json", json.dumps({"length": len(data), "crc32": crc32(data)}).encode())
+            _atomic_write(d / "active.img", pack_image(data))  # the commit: one rename
+            for old in ("active.json", "active.bin"):  # an older directory's pair, superseded
+                (d / old).unlink(missing_ok=True)
         self._active[slot] = data
 
     # ------------------------------------------------------------------ transfers
