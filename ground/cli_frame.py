@@ -194,8 +194,16 @@ def cmd_inspect(args) -> int:
         return _fail(str(exc))
     truth = None
     tpath = Path(args.truth) if args.truth else truth_path_for(args.frame)
-    if tpath.is_file():
-        truth = json.loads(tpath.read_text())
+    if args.truth or tpath.is_file():
+        try:
+            truth = json.loads(tpath.read_text())
+            if not isinstance(truth, dict):
+                raise ValueError("not a JSON object")
+        except (OSError, ValueError) as exc:
+            if args.truth:  # asked for: an error
+                return _fail(f"--truth {args.truth}: {exc}")
+            print(f"st16-ground: {tpath.name} is not a readable truth file ({exc}); ignored", file=sys.stderr)
+            truth = None
     records = stars.to_records()
     if truth:
         for rec, m in zip(records, _match_truth(stars, truth)):

@@ -94,10 +94,12 @@ def _solve(args) -> int:
     rec["time_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     rec["frame"] = Path(args.frame).name if args.frame else "(capture)"
     if args.frame:
-        rec.update(score(rec, Truth.for_frame(args.frame)))
+        rec.update(score(rec, Truth.for_frame(args.frame, frame)))
     ResultsLog(args.out).append(rec)
     _print_record(rec, args.json)
-    return 0 if rec["q_icrs_to_sensor"] is not None else 3
+    if rec["q_icrs_to_sensor"] is None:
+        return 3
+    return 0 if rec["status"] == "OK" else 1  # an attitude that is not high confidence: use with care
 
 
 def _solve_on_device(args, frame):

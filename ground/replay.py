@@ -54,15 +54,34 @@ class Truth:
     y: np.ndarray
 
     @classmethod
-    def for_frame(cls, frame_path) -> "Truth | None":
+    def for_frame(cls, frame_path, frame: Frame | None = None, warn=None) -> "Truth | None":
+        """The truth beside a rendered frame (``NAME.truth.json``), or None: absent, unreadable, or
+        (with ``frame``) written for another frame (its camera size or render seed differ). The
+        last two are said through ``warn`` (default: one line on stderr): the frame is then not
+        scored, and nothing else is lost."""
         path = truth_path_for(frame_path)
         if not path.is_file():
             return None
-        data = json.loads(path.read_text())
-        stars = data.get("stars", [])
-        return cls(np.asarray(data["attitude_quaternion"], dtype=float),
-                   np.array([s["id"] for s in stars], dtype=np.int64),
-                   np.array([s["x"] for s in stars], dtype=float), np.array([s["y"] for s in stars], dtype=float))
+        say = warn or (lambda msg: print(f"st16-ground: {msg}", file=sys.stderr))
+        try:
+            data = json.loads(path.read_text())
+            stars = data.get("stars", [])
+            truth = cls(np.asarray(data["attitude_quaternion"], dtype=float).reshape(4),
+                        np.array([s["id"] for s in stars], dtype=np.int64),
+                        np.array([s["x"] for s in stars], dtype=float), np.array([s["y"] for s in stars], dtype=float))
+            camera, seed = data.get("camera") or {}, data.get("seed")
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            say(f"{path.name} is not a readable truth file ({type(exc).__name__}: {exc}); frame not scored")
+            return None
+        if frame is not None:
+            size = (camera.get("width"), camera.get("height"))
+            frame_seed = (frame.metadata or {}).get("seed")
+            if (None not in size and size != (frame.width, frame.height)) or (
+                    seed is not None and frame_seed is not None and int(seed) != int(frame_seed)):
+                say(f"{path.name} describes another frame ({size[0]} x {size[1]}, seed {seed}; the frame is "
+                    f"{frame.width} x {frame.height}, seed {frame_seed}); frame not scored")
+                return None
+        return truth
 
     def stars_near(self, x: float, y: float) -> set[int]:
         """Ids of truth stars within MATCH_RADIUS_PX (a blend may hold several)."""
@@ -233,7 +252,7 @@ def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool =
             continue
         record["exchange_s"] = time.perf_counter() - t0
         record["solve_s"] = record["timings_s"].get("total")
-        truth = Truth.for_frame(path)
+        truth = Truth.for_frame(path, frame, say)
         record.update(base)
         record.update(score(record, truth))
         record["residuals_arcsec"] = [s["residual_arcsec"] for s in matched_stars(record)

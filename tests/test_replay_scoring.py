@@ -25,3 +25,30 @@ def test_scores_correct_wrong_and_no_match():
     assert far["outcome"] == "wrong" and 0.5 < far["attitude_error_deg"] < 0.6
     assert score({"q_icrs_to_sensor": None, "stars": []}, truth) == {"outcome": "no_match"}
     assert score(record(Q, []), None) == {"outcome": "unscored"}
+
+
+def test_a_malformed_or_foreign_truth_file_is_not_scored_and_says_why(tmp_path):
+    import json
+
+    from firmware_model.frame import Frame
+
+    frame = Frame(pixels=np.zeros((40, 60), np.uint16), pattern="MONO", metadata={"seed": 5})
+    good = {"seed": 5, "camera": {"width": 60, "height": 40}, "attitude_quaternion": [1, 0, 0, 0],
+            "stars": [{"id": 7, "x": 3.0, "y": 4.0}]}
+    cases = {
+        "garbage": "{not json",
+        "no_quaternion": json.dumps({"stars": []}),
+        "bad_star": json.dumps({**good, "stars": [{"x": 1}]}),
+        "other_size": json.dumps({**good, "camera": {"width": 2592, "height": 1944}}),
+        "other_seed": json.dumps({**good, "seed": 6}),
+    }
+    for name, text in cases.items():
+        (tmp_path / f"{name}.truth.json").write_text(text)
+        said = []
+        assert Truth.for_frame(tmp_path / f"{name}.dng", frame, said.append) is None, name
+        assert len(said) == 1 and "not scored" in said[0], (name, said)
+    (tmp_path / "ok.truth.json").write_text(json.dumps(good))
+    said = []
+    truth = Truth.for_frame(tmp_path / "ok.dng", frame, said.append)
+    assert truth is not None and not said and truth.stars_near(3.2, 4.1) == {7}
+    assert Truth.for_frame(tmp_path / "absent.dng", frame, said.append) is None and not said
