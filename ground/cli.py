@@ -14,6 +14,8 @@ import importlib
 import os
 import sys
 
+from ground.cli_types import U8, ranged
+
 #: Modules that add subcommands, in help order. Each defines ``register(subparsers)``.
 COMMAND_MODULES = (
     "ground.cli_link",
@@ -37,20 +39,16 @@ EXIT_CODES = {
 }
 
 
-def _int_auto(text: str) -> int:
-    return int(text, 0)
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="st16-ground", description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="exit codes:\n" + "\n".join(f"  {code:>3}  {text}" for code, text in EXIT_CODES.items()))
     parser.add_argument("--debug", action="store_true", help="show the traceback of a failure")
     parser.add_argument("--port", help="pyserial URL of the device: pty path, /dev/tty*, socket://host:port, loop://")
-    parser.add_argument("--baud", type=int, default=115200, help="baud rate for real serial ports")
-    parser.add_argument("--device-address", type=_int_auto, default=0x0E, help="NSP address of the tracker")
-    parser.add_argument("--host-address", type=_int_auto, default=0x11, help="our NSP address")
-    parser.add_argument("--timeout", type=float, default=1.0, help="reply timeout in seconds")
+    parser.add_argument("--baud", type=ranged(int, 50, 16_000_000, "a baud rate"), default=115200, help="baud rate for real serial ports")
+    parser.add_argument("--device-address", type=U8, default=0x0E, help="NSP address of the tracker")
+    parser.add_argument("--host-address", type=U8, default=0x11, help="our NSP address")
+    parser.add_argument("--timeout", type=ranged(float, 0.001, 3600.0, "a reply timeout in s"), default=1.0, help="reply timeout in seconds")
     parser.add_argument("--json", action="store_true", help="machine-readable output")
     parser.add_argument("--log", help="append every exchange to this JSONL file")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

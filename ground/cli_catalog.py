@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from ground.catalog.colour import ColourDataError
+from ground.cli_types import SENSOR_PX
 from ground.catalog.design import CatalogDesign, DesignError
 from ground.catalog.sources import CatalogFormatError
 from protocol.catalog_image import CatalogImageError, crc32, parse_image
@@ -31,8 +32,8 @@ def _design_args(p) -> None:
     g.add_argument("--theta-fov", type=float, help="half-angle FOV along the minor axis, deg")
     g.add_argument("--fov-deg", type=float, help="horizontal field of view across --width, deg: sets theta-fov, "
                                                  "phi-max (the diagonal) and m-thresh (~15 stars in view) unless given")
-    g.add_argument("--width", type=int, help="sensor width, px")
-    g.add_argument("--height", type=int, help="sensor height, px")
+    g.add_argument("--width", type=SENSOR_PX, help="sensor width, px")
+    g.add_argument("--height", type=SENSOR_PX, help="sensor height, px")
     g.add_argument("--m-thresh", type=float, help="limiting V magnitude")
     g.add_argument("--sigma-pix", type=float, help="centroid noise, px")
     g.add_argument("--sigma-rg", type=float)

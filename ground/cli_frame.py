@@ -23,6 +23,7 @@ from firmware_model.detect import DetectParams
 from firmware_model.extract import PSF_SIGMA_RANGE_PX, extract_stars
 from firmware_model.frame_io import FrameReadError, read_frame
 from firmware_model.frames import attitude_from_radec_roll
+from ground.cli_types import ANGLE_DEG, DEC_DEG, RA_DEG, SECONDS, SEED, SENSOR_PX, ranged
 from ground.frame_writer import truth_path_for, write_rendered
 
 
@@ -41,19 +42,19 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="output frame: .dng, .fits or .npy")
     sky = p.add_argument_group("sky")
     sky.add_argument("--catalog", help="on-board catalog image (st16-ground catalog build)")
-    sky.add_argument("--ra", type=float, default=83.8, help="boresight RA, deg")
-    sky.add_argument("--dec", type=float, default=-5.4, help="boresight Dec, deg")
-    sky.add_argument("--roll", type=float, default=0.0, help="roll, deg")
-    sky.add_argument("--random", type=int, default=20, help="synthetic stars when no --catalog is given")
+    sky.add_argument("--ra", type=RA_DEG, default=83.8, help="boresight RA, deg")
+    sky.add_argument("--dec", type=DEC_DEG, default=-5.4, help="boresight Dec, deg")
+    sky.add_argument("--roll", type=ANGLE_DEG, default=0.0, help="roll, deg")
+    sky.add_argument("--random", type=ranged(int, 0, 100_000, "a star count"), default=20, help="synthetic stars when no --catalog is given")
     sky.add_argument("--mag-range", type=float, nargs=2, default=(2.0, 6.0), metavar=("BRIGHT", "FAINT"))
     cam = p.add_argument_group("camera (default: seed 000 reference design)")
     cam.add_argument("--camera", help="CameraModel JSON (to_dict keys)")
-    cam.add_argument("--width", type=int)
-    cam.add_argument("--height", type=int)
+    cam.add_argument("--width", type=SENSOR_PX)
+    cam.add_argument("--height", type=SENSOR_PX)
     cam.add_argument("--fov", type=float, help="half field of view on the minor axis, deg")
     det = p.add_argument_group("detector (defaults in docs/pipeline.md)")
     det.add_argument("--pattern", default="RGGB", help="RGGB, BGGR, GRBG, GBRG or MONO")
-    det.add_argument("--exposure", type=float, default=0.1, help="s")
+    det.add_argument("--exposure", type=SECONDS, default=0.1, help="s")
     det.add_argument("--psf-sigma", type=float, default=1.0, help="Gaussian PSF sigma, px")
     det.add_argument("--defocus", type=float, default=0.0, help="defocus disc radius, px")
     det.add_argument("--read-noise", type=float, default=3.0, help="e-")
@@ -67,7 +68,7 @@ def register(sub) -> None:
     p.add_argument("--cosmics", type=int, default=0, help="number of cosmic-ray hits")
     p.add_argument("--satellite", action="store_true", help="add one satellite streak")
     p.add_argument("--planet", action="store_true", help="add one bright planet-like source")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--timestamp", help="UTC ISO-8601 time to record")
     p.set_defaults(func=cmd_render)
 

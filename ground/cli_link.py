@@ -16,6 +16,7 @@ from pathlib import Path
 from protocol import result
 from protocol.commands import GO_OPERATIONAL, DarkWindow
 
+from .cli_types import SECONDS, U8, U16, U32, ranged
 from .client import Client, LinkError, Nack
 
 
@@ -35,17 +36,17 @@ def _args_none(p: argparse.ArgumentParser) -> None:
 
 
 def _args_addr_count(p):
-    p.add_argument("address", type=_int)
-    p.add_argument("count", type=_int)
+    p.add_argument("address", type=U32)
+    p.add_argument("count", type=ranged(int, 1, 1 << 20, "a byte count (1 to 1048576)"))
 
 
 def _args_addr_data(p):
-    p.add_argument("address", type=_int)
+    p.add_argument("address", type=U32)
     p.add_argument("data", type=_hex, help="hex bytes, e.g. 01020304")
 
 
 def _args_slot(p):
-    p.add_argument("slot", type=_int, help="0 catalog, 1 frame, 2 parameters")
+    p.add_argument("slot", type=U8, help="0 catalog, 1 frame, 2 parameters")
 
 
 def _bytes_out(address: int, data: bytes) -> dict:
@@ -154,7 +155,7 @@ def _run_send(c, a):
 
 
 def _a_init(p):
-    p.add_argument("--address", type=_int, default=0x2000, help="application start address (0x2000)")
+    p.add_argument("--address", type=U32, default=0x2000, help="application start address (0x2000)")
 
 
 def _a_diag(p):
@@ -162,39 +163,40 @@ def _a_diag(p):
 
 
 def _a_file(p, data: bool):
-    p.add_argument("address", type=_int, help="EDAC address (multiple of 4)")
+    p.add_argument("address", type=U32, help="EDAC address (multiple of 4)")
     if data:
         p.add_argument("data", type=_hex, help="4 hex bytes")
     p.add_argument("--long", action="store_true", help="long form (u16 address) instead of the file index")
 
 
 def _a_crc(p):
-    p.add_argument("space", type=_int, help="0 EDAC, 1 memory map, 2 result")
-    p.add_argument("address", type=_int)
-    p.add_argument("length", type=_int)
+    p.add_argument("space", type=U8, help="0 EDAC, 1 memory map, 2 result")
+    p.add_argument("address", type=U32)
+    p.add_argument("length", type=U32)
 
 
 def _a_go(p):
-    p.add_argument("code", type=_int, nargs="?", default=GO_OPERATIONAL, help="go code (default 0x0B)")
+    p.add_argument("code", type=U8, nargs="?", default=GO_OPERATIONAL, help="go code (default 0x0B)")
     p.add_argument("--wait", action="store_true", help="poll until the result is ready and print it")
-    p.add_argument("--wait-timeout", type=float, default=30.0)
+    p.add_argument("--wait-timeout", type=SECONDS, default=30.0)
 
 
 def _a_result(p):
-    p.add_argument("--address", type=_int, default=0)
-    p.add_argument("--count", type=_int, help="raw bytes instead of the decoded summary")
+    p.add_argument("--address", type=U32, default=0)
+    p.add_argument("--count", type=ranged(int, 1, 1 << 20, "a byte count (1 to 1048576)"),
+                   help="raw bytes instead of the decoded summary")
 
 
 def _a_combination(p):
-    p.add_argument("go_code", type=_int)
-    p.add_argument("mask", type=_int, help="section mask, e.g. 0x0007")
-    p.add_argument("--wait-timeout", type=float, default=30.0)
+    p.add_argument("go_code", type=U8)
+    p.add_argument("mask", type=U16, help="section mask, e.g. 0x0007")
+    p.add_argument("--wait-timeout", type=SECONDS, default=30.0)
 
 
 def _a_dark(p):
     for name in ("buffer", "row", "col", "rows", "cols"):
-        p.add_argument(name, type=_int)
-    p.add_argument("values", type=_int, nargs="*", help="up to 8 dark values")
+        p.add_argument(name, type=U16)
+    p.add_argument("values", type=U16, nargs="*", help="up to 8 dark values")
 
 
 def _a_upload(p):
@@ -205,7 +207,7 @@ def _a_upload(p):
 
 
 def _a_send(p):
-    p.add_argument("code", type=_int, help="command code 0x00-0x1F")
+    p.add_argument("code", type=ranged(int, 0, 0x1F, "a command code (0x00-0x1F)"), help="command code 0x00-0x1F")
     p.add_argument("data", type=_hex, nargs="?", default=b"", help="data field as hex")
     p.add_argument("--silent", action="store_true", help="Poll = 0 (no reply expected)")
 

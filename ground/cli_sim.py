@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ground.cli_types import SEED, SENSOR_PX
+
 #: Seed 000 section 5.2 (table 3, fig. 9) for 1e6 poses.
 PAPER_COLOUR = {"poses": 1_000_000, "problem_orientations": 7078, "no_solution": 897, "poor_match": 1763,
                 "incorrect": 4418, "fraction_within_0.01deg": 0.90, "fraction_within_1deg": 0.993}
@@ -23,7 +25,7 @@ PAPER_FOURSTAR = {"observations": 2664, "fovs_fewer_than_4_stars": 2, "mean_star
 
 
 def _common(p) -> None:
-    p.add_argument("--seed", type=int, default=0, help="random seed (each pose has its own stream)")
+    p.add_argument("--seed", type=SEED, default=0, help="random seed (each pose has its own stream)")
     p.add_argument("--workers", type=int, default=None, help="local processes (default: all cores)")
     p.add_argument("--chunk", type=int, default=500, help="poses per task")
     p.add_argument("--scheduler", help="Dask scheduler address (tcp://host:8786) instead of local processes")
@@ -41,8 +43,8 @@ def register(subparsers) -> None:
     c.add_argument("--rolls", type=int, default=10, help="roll angles per boresight")
     c.add_argument("--m-thresh", type=float, default=5.0, help="limiting V magnitude")
     c.add_argument("--theta-fov", type=float, default=7.5, help="half FOV on the minor axis, deg")
-    c.add_argument("--width", type=int, default=2592)
-    c.add_argument("--height", type=int, default=1944)
+    c.add_argument("--width", type=SENSOR_PX, default=2592)
+    c.add_argument("--height", type=SENSOR_PX, default=1944)
     c.add_argument("--sigma-pix", type=float, default=0.2, help="centroid noise, px")
     c.add_argument("--sigma-colour", type=float, default=0.05, help="colour-ratio noise")
     c.add_argument("--false-stars", type=float, default=0.0, help="mean false detections per frame")

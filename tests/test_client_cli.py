@@ -71,3 +71,19 @@ def test_debug_shows_the_traceback():
     with pytest.raises(SerialException):
         main(["--debug", "--port", "/dev/no-such-port", "ping"])
 
+
+
+@pytest.mark.parametrize("argv", [
+    ["read-edac", "-1", "4"], ["go", "999"], ["--baud", "-5", "ping"], ["--timeout", "-1", "ping"],
+    ["--timeout", "nan", "ping"], ["frame", "render", "--random", "-5", "-o", "x.dng"],
+    ["frame", "render", "--width", "100000", "-o", "x.dng"], ["frame", "render", "--exposure", "-1", "-o", "x.dng"],
+    ["frame", "render", "--dec", "200", "-o", "x.dng"], ["send", "0x20"], ["combination", "11", "0x10000"],
+])
+def test_out_of_range_values_are_refused_before_any_work(argv, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        main(["--port", "/dev/no-such-port", *argv])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "error: argument" in err[-1] and "must be" in err[-1], err
+    assert not list(tmp_path.iterdir())  # nothing rendered, no port opened

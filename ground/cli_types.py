@@ -1,0 +1,37 @@
+"""Argument types for the command lines that refuse out-of-range values before any work starts
+(argparse turns the refusal into one usage line and exit code 2)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def ranged(kind, lo=None, hi=None, what: str = "value"):
+    """An argparse type: ``kind(text)`` (ints also as 0x.. / 0o.. / 0b..) within [lo, hi]."""
+
+    def parse(text: str):
+        try:
+            value = int(text, 0) if kind is int else kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} must be {'an integer' if kind is int else 'a number'}, "
+                                             f"got {text!r}") from None
+        if value != value or (lo is not None and value < lo) or (hi is not None and value > hi):  # NaN too
+            bounds = f"from {lo} to {hi}" if lo is not None and hi is not None else (
+                f"at least {lo}" if lo is not None else f"at most {hi}")
+            raise argparse.ArgumentTypeError(f"{what} must be {bounds}, got {text}")
+        return value
+
+    parse.__name__ = what  # argparse names the type in its messages
+    return parse
+
+
+U8 = ranged(int, 0, 0xFF, "a byte")
+U16 = ranged(int, 0, 0xFFFF, "a 16-bit value")
+U32 = ranged(int, 0, 0xFFFFFFFF, "a 32-bit address")
+#: Sensor sizes (px): a full-frame camera is ~10 000 px across; larger would only exhaust memory.
+SENSOR_PX = ranged(int, 2, 16384, "a sensor size in px")
+SECONDS = ranged(float, 1e-6, 86400.0, "a time in seconds")
+SEED = ranged(int, 0, 2**63 - 1, "a seed")
+RA_DEG = ranged(float, 0.0, 360.0, "RA in degrees")
+DEC_DEG = ranged(float, -90.0, 90.0, "Dec in degrees")
+ANGLE_DEG = ranged(float, -360.0, 360.0, "an angle in degrees")
