@@ -45,10 +45,12 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="exit codes:\n" + "\n".join(f"  {code:>3}  {text}" for code, text in EXIT_CODES.items()))
     parser.add_argument("--debug", action="store_true", help="show the traceback of a failure")
     parser.add_argument("--port", help="pyserial URL of the device: pty path, /dev/tty*, socket://host:port, loop://")
-    parser.add_argument("--baud", type=ranged(int, 50, 16_000_000, "a baud rate"), default=115200, help="baud rate for real serial ports")
+    parser.add_argument("--baud", type=ranged(int, 50, 16_000_000, "a baud rate"), default=115200,
+                        help="baud rate for real serial ports")
     parser.add_argument("--device-address", type=U8, default=0x0E, help="NSP address of the tracker")
     parser.add_argument("--host-address", type=U8, default=0x11, help="our NSP address")
-    parser.add_argument("--timeout", type=ranged(float, 0.001, 3600.0, "a reply timeout in s"), default=1.0, help="reply timeout in seconds")
+    parser.add_argument("--timeout", type=ranged(float, 0.001, 3600.0, "a reply timeout in s"), default=1.0,
+                        help="reply timeout in seconds")
     parser.add_argument("--json", action="store_true", help="machine-readable output")
     parser.add_argument("--log", help="append every exchange to this JSONL file")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

@@ -45,7 +45,8 @@ def register(sub) -> None:
     sky.add_argument("--ra", type=RA_DEG, default=83.8, help="boresight RA, deg")
     sky.add_argument("--dec", type=DEC_DEG, default=-5.4, help="boresight Dec, deg")
     sky.add_argument("--roll", type=ANGLE_DEG, default=0.0, help="roll, deg")
-    sky.add_argument("--random", type=ranged(int, 0, 100_000, "a star count"), default=20, help="synthetic stars when no --catalog is given")
+    sky.add_argument("--random", type=ranged(int, 0, 100_000, "a star count"), default=20,
+                     help="synthetic stars when no --catalog is given")
     sky.add_argument("--mag-range", type=float, nargs=2, default=(2.0, 6.0), metavar=("BRIGHT", "FAINT"))
     cam = p.add_argument_group("camera (default: seed 000 reference design)")
     cam.add_argument("--camera", help="CameraModel JSON (to_dict keys)")
