@@ -39,20 +39,37 @@ EXIT_CODES = {
 }
 
 
+def _global_options(parser: argparse.ArgumentParser, defaults: bool = True) -> None:
+    """The options every subcommand shares; on subcommands (``defaults=False``) they are accepted
+    after the subcommand's name too, and only override what was given before it when present."""
+    kw = (lambda value: {"default": value}) if defaults else (lambda value: {"default": argparse.SUPPRESS})
+    parser.add_argument("--debug", action="store_true", help="show the traceback of a failure", **kw(False))
+    parser.add_argument("--port", help="pyserial URL of the device: pty path, /dev/tty*, socket://host:port, loop://",
+                        **kw(None))
+    parser.add_argument("--baud", type=ranged(int, 50, 16_000_000, "a baud rate"), help="baud rate for real serial ports",
+                        **kw(115200))
+    parser.add_argument("--device-address", type=U8, help="NSP address of the tracker", **kw(0x0E))
+    parser.add_argument("--host-address", type=U8, help="our NSP address", **kw(0x11))
+    parser.add_argument("--timeout", type=ranged(float, 0.001, 3600.0, "a reply timeout in s"),
+                        help="reply timeout in seconds", **kw(1.0))
+    parser.add_argument("--json", action="store_true", help="machine-readable output", **kw(False))
+    parser.add_argument("--log", help="append every exchange to this JSONL file", **kw(None))
+
+
+def _leaf_parsers(parser: argparse.ArgumentParser):
+    """Every parser below ``parser`` that runs a command (subcommands of subcommands included)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in dict.fromkeys(action.choices.values()):  # aliases share a parser
+                yield child
+                yield from _leaf_parsers(child)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="st16-ground", description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="exit codes:\n" + "\n".join(f"  {code:>3}  {text}" for code, text in EXIT_CODES.items()))
-    parser.add_argument("--debug", action="store_true", help="show the traceback of a failure")
-    parser.add_argument("--port", help="pyserial URL of the device: pty path, /dev/tty*, socket://host:port, loop://")
-    parser.add_argument("--baud", type=ranged(int, 50, 16_000_000, "a baud rate"), default=115200,
-                        help="baud rate for real serial ports")
-    parser.add_argument("--device-address", type=U8, default=0x0E, help="NSP address of the tracker")
-    parser.add_argument("--host-address", type=U8, default=0x11, help="our NSP address")
-    parser.add_argument("--timeout", type=ranged(float, 0.001, 3600.0, "a reply timeout in s"), default=1.0,
-                        help="reply timeout in seconds")
-    parser.add_argument("--json", action="store_true", help="machine-readable output")
-    parser.add_argument("--log", help="append every exchange to this JSONL file")
+    _global_options(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in COMMAND_MODULES:
@@ -63,6 +80,9 @@ def build_parser() -> argparse.ArgumentParser:
                 raise
             continue  # feature not installed in this build
         module.register(sub)
+    for child in _leaf_parsers(parser):
+        group = child.add_argument_group("global options (also accepted before the command)")
+        _global_options(group, defaults=False)
     return parser
 
 

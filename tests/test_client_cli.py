@@ -87,3 +87,13 @@ def test_out_of_range_values_are_refused_before_any_work(argv, capsys, tmp_path,
     err = capsys.readouterr().err.strip().splitlines()
     assert "error: argument" in err[-1] and "must be" in err[-1], err
     assert not list(tmp_path.iterdir())  # nothing rendered, no port opened
+
+
+def test_global_options_are_accepted_after_the_command(port, capsys):
+    assert main(["ping", "--port", port, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["banner"].startswith("ST16-EMU")
+    assert main(["read-edac", "0x4C", "4", "--json", "--port", port]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["count"] == 4
+    assert main(["--port", "/dev/no-such-port", "ping", "--port", port]) == 0  # the later one wins
+    capsys.readouterr()
