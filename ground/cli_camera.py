@@ -7,11 +7,11 @@ camera, then the camera parameters (``--fit``) and one attitude per frame are fi
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
+from ground import json_text
 
 
 def _calibrate(args) -> int:
@@ -39,14 +39,14 @@ def _calibrate(args) -> int:
         print(f"st16-ground: {exc}", file=sys.stderr)
         return 1
     cam = cal.result.camera
-    Path(args.output).write_text(json.dumps({k: float(v) if isinstance(v, float) else v
+    Path(args.output).write_text(json_text.dumps({k: float(v) if isinstance(v, float) else v
                                              for k, v in cam.to_dict().items()}, indent=2))
     report = {"camera": args.output, "focal_scale_searched": cal.focal_scale,
               "residual_rms_px": cal.result.residual_rms_px, "stars": cal.result.n_observations,
               "sigmas": cal.result.sigmas, "frames_solved": int(sum(cal.solved)), "frames": len(frames),
               "fov_major_deg": float(2 * np.degrees(cam.fov_half_angle_major)),
               "fov_minor_deg": float(2 * np.degrees(cam.fov_half_angle_minor))}
-    print(json.dumps(report, indent=None if args.json else 2))
+    print(json_text.dumps(report, indent=None if args.json else 2))
     return 0
 
 

@@ -11,6 +11,7 @@ from ground.cli_types import SENSOR_PX
 from ground.catalog.design import CatalogDesign, DesignError
 from ground.catalog.sources import CatalogFormatError
 from protocol.catalog_image import CatalogImageError, crc32, parse_image
+from ground import json_text
 
 CATALOG_SLOT = 0
 
@@ -73,7 +74,7 @@ def _fail(message: str) -> int:
 
 def _print(out: dict, as_json: bool) -> None:
     if as_json:
-        print(json.dumps(out))
+        print(json_text.dumps(out))
     else:
         for k, v in out.items():
             print(f"{k:>22}: {v}")

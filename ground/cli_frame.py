@@ -25,6 +25,7 @@ from firmware_model.frame_io import FrameReadError, read_frame
 from firmware_model.frames import attitude_from_radec_roll
 from ground.cli_types import ANGLE_DEG, DEC_DEG, RA_DEG, SECONDS, SEED, SENSOR_PX, ranged
 from ground.frame_writer import truth_path_for, write_rendered
+from ground import json_text
 
 
 def _fail(message: str) -> int:
@@ -142,7 +143,7 @@ def cmd_render(args) -> int:
     summary = {"frame": str(out), "truth": str(truth_file), "stars_in_frame": len(res.truth["stars"]),
                "false_objects": len(objs), "pattern": res.frame.pattern,
                "size": [res.frame.width, res.frame.height]}
-    print(json.dumps(summary) if args.json else
+    print(json_text.dumps(summary) if args.json else
           f"wrote {out} ({res.frame.width} x {res.frame.height} {res.frame.pattern}, "
           f"{summary['stars_in_frame']} stars, {len(objs)} false objects) and {truth_file}")
     return 0
@@ -220,7 +221,7 @@ def cmd_inspect(args) -> int:
 
         report["plot"] = str(plot_detections(frame, stars, args.plot, truth))
     if args.json:
-        print(json.dumps(report, indent=1))
+        print(json_text.dumps(report, indent=1))
         return 0
     print(f"{args.frame}: {frame.width} x {frame.height} {frame.pattern}, {len(stars)} stars"
           + (f" ({stars.reason})" if stars.reason else ""))

@@ -18,6 +18,7 @@ from protocol.commands import GO_OPERATIONAL, DarkWindow
 
 from .cli_types import SECONDS, U8, U16, U32, ranged
 from .client import Client, LinkError, Nack
+from ground import json_text
 
 
 def _int(text: str) -> int:
@@ -250,7 +251,7 @@ def render(obj: dict) -> str:
         elif isinstance(value, int) and not isinstance(value, bool) and key in ("address", "crc32", "crc16"):
             value = f"0x{value:X}"
         elif isinstance(value, (dict, list)):
-            value = json.dumps(value)
+            value = json_text.dumps(value)
         lines.append(f"{key}: {value}")
     return "\n".join(lines)
 
@@ -260,7 +261,7 @@ def report_error(exc: LinkError, as_json: bool) -> None:
     if isinstance(exc, Nack):
         payload["reason"] = exc.reason
     if as_json:
-        print(json.dumps(payload))
+        print(json_text.dumps(payload))
     else:
         print(f"{payload['error']}: {payload['message']}\n  raw: {payload['raw']}", file=sys.stderr)
 
@@ -285,7 +286,7 @@ def _handler(run: Run):
             except LinkError as exc:
                 report_error(exc, args.json)
                 return 1
-        print(json.dumps(out) if args.json else render(out))
+        print(json_text.dumps(out) if args.json else render(out))
         return 0
 
     return handle

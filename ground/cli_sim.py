@@ -8,13 +8,13 @@ more tolerances. Both run on local cores (``--workers``) or a Dask cluster (``--
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from ground.cli_types import SEED, SENSOR_PX
+from ground import json_text
 
 #: Seed 000 section 5.2 (table 3, fig. 9) for 1e6 poses.
 PAPER_COLOUR = {"poses": 1_000_000, "problem_orientations": 7078, "no_solution": 897, "poor_match": 1763,
@@ -64,7 +64,7 @@ def register(subparsers) -> None:
 
 def _emit(args, payload: dict, text: str) -> None:
     if getattr(args, "json", False):
-        print(json.dumps(payload, indent=2, default=float))
+        print(json_text.dumps(payload, indent=2))
     else:
         print(text)
 
@@ -97,7 +97,7 @@ def run_colour(args) -> int:
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         np.save(args.out / "colour_rows.npy", rows)
-        (args.out / "colour_summary.json").write_text(json.dumps(summary, indent=2, default=float))
+        (args.out / "colour_summary.json").write_text(json_text.dumps(summary, indent=2))
         skysim.plot_error_cdf(rows, args.out / "error_cdf.png")
         skysim.plot_mollweide(rows, skysim.spiral_boresights(args.boresights), args.out / "problem_map.png")
     lines = [f"{n} poses ({args.boresights} boresights x {args.rolls} rolls), {catalog.n_stars} stars, "
@@ -152,6 +152,6 @@ def run_fourstar(args) -> int:
                      f"(paper 99.9%); FOVs < 4 stars {s['fovs_fewer_than_4_stars']} (paper 2); "
                      f"mean stars {s['mean_stars_per_fov']:.1f} (paper 17.5); {n / wall:.0f} FOV/s")
     if args.out:
-        (args.out / "fourstar_summary.json").write_text(json.dumps(results, indent=2, default=float))
+        (args.out / "fourstar_summary.json").write_text(json_text.dumps(results, indent=2))
     _emit(args, results, "\n".join(lines))
     return 0

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from ground import json_text
 
 DEFAULT_RESULTS = "st16-results"
 
@@ -43,7 +44,7 @@ def _optics_line(o: dict) -> str:
 
 def _print_record(rec: dict, as_json: bool) -> None:
     if as_json:
-        print(json.dumps(rec))
+        print(json_text.dumps(rec))
         return
     print(f"status {rec['status']}" + (f" ({rec['reason']})" if rec.get("reason") else "")
           + (f", method {rec['method']}" if rec.get("method") else ""))
@@ -156,7 +157,7 @@ def _replay(args) -> int:
         if isinstance(solver, LinkSolver):
             solver.close()
     summary["log"] = str(Path(args.out) / "results.jsonl")
-    print(json.dumps(summary, indent=None if args.json else 2))
+    print(json_text.dumps(summary, indent=None if args.json else 2))
     return 0
 
 
@@ -168,7 +169,7 @@ def _table5(args) -> int:
     out = table5(frame_files(args.directory), load_camera(args.camera), _load_catalog(args.catalog),
                  progress=not args.json)
     if args.json:
-        print(json.dumps(out))
+        print(json_text.dumps(out))
     else:
         print(f"{'corrections':<28}{'correct':>9}{'incorrect':>11}{'no match':>10}   ({out['frames']} frames)")
         for mode in TABLE5_MODES:
@@ -199,7 +200,7 @@ def _colour_fit(args) -> int:
         return 1
     fit.save(args.output)
     Path(args.output).with_suffix(".params.json").write_text(
-        json.dumps({"colour_correction": {"beta": [float(b) for b in fit.beta]}}, indent=2))
+        json_text.dumps({"colour_correction": {"beta": [float(b) for b in fit.beta]}}, indent=2))
     print(fit.to_json() if args.json else
           f"eq. 24 fit on {fit.n_used} stars ({fit.n_rejected} rejected): colour RMS {fit.rms_before:.3f} -> "
           f"{fit.rms_after:.3f}; wrote {args.output} and {Path(args.output).with_suffix('.params.json')}")
@@ -225,7 +226,7 @@ def _params_upload(args) -> int:
         except LinkError as exc:
             report_error(exc, args.json)
             return 1
-    print(json.dumps({"slot": 2, "active": info.active, "length": info.length, "crc32": f"0x{info.crc32:08X}"}))
+    print(json_text.dumps({"slot": 2, "active": info.active, "length": info.length, "crc32": f"0x{info.crc32:08X}"}))
     return 0
 
 

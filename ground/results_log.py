@@ -15,6 +15,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+from ground import json_text
 
 CSV_FIELDS = (
     "time_utc", "frame", "method", "status", "outcome", "ra_deg", "dec_deg", "roll_deg",
@@ -37,7 +38,7 @@ class ResultsLog:
 
     def append(self, record: dict) -> None:
         with open(self.jsonl_path, "a", encoding="utf-8") as fh:
-            fh.write(json.dumps(record, default=_json_default) + "\n")
+            fh.write(json_text.dumps(record) + "\n")
             fh.flush()
             os.fsync(fh.fileno())
         new = not self.csv_path.exists()
@@ -53,14 +54,6 @@ class ResultsLog:
         if not self.jsonl_path.exists():
             return []
         return [json.loads(line) for line in self.jsonl_path.read_text().splitlines() if line.strip()]
-
-
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
 def _csv_row(record: dict) -> dict:

@@ -42,7 +42,7 @@ def test_colour_frames_solve_through_the_cli_with_fov_only(colour_real, tmp_path
                               str(catalog), "--fov-deg", fov, "--out", str(tmp_path / "log")],
                              capture_output=True, text=True, timeout=300)
         assert run.returncode in (0, 1, 3), run.stderr  # 1: not high confidence, 3: no attitude
-        rec = json.loads(run.stdout)
+        rec = json.loads(run.stdout, parse_constant=lambda name: pytest.fail(f"bare {name} in --json output"))
         assert rec["status"] and (rec["status"] == "OK" or rec["reason"]), rec["status"]
         assert (run.returncode == 0) == (rec["status"] == "OK")
         if rec["status"] != "OK":
