@@ -149,7 +149,7 @@ def _replay(args) -> int:
             raise SystemExit("st16-ground: --port URL is required (or use --offline)")
         solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, **client_kwargs(args))
     try:
-        summary = replay(args.directory, solver, args.out, progress=not args.json)
+        summary = replay(args.directory, solver, args.out, progress=not args.json, resume=args.resume)
     except (ValueError, TimeoutError) as exc:
         print(f"st16-ground: {exc}", file=sys.stderr)
         return 1
@@ -260,6 +260,9 @@ def register(sub) -> None:
     p.add_argument("--pressure", type=float, default=1013.25, help="site pressure, hPa (with --site)")
     p.add_argument("--temperature", type=float, default=10.0, help="site temperature, deg C (with --site)")
     p.add_argument("--out", default=DEFAULT_RESULTS, help="output directory (log, summary, plots)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run logged in --out (its frames are skipped); without it a --out that "
+                        "holds results is refused")
     p.add_argument("--reconnect-timeout", type=float, default=120.0, help="wait this long for a silent device, s")
     p.set_defaults(func=_replay)
 

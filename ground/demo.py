@@ -66,6 +66,8 @@ def run_demo(out, n_frames: int = 6, seed: int = 2026) -> int:
     from ground.client import Client
 
     out = Path(out).resolve()
+    if out.exists() and any(out.iterdir()):  # a fresh folder per run: runs never mix
+        out = out / time.strftime("run-%Y%m%dT%H%M%SZ", time.gmtime())
     frames_dir = out / "frames"
     frames_dir.mkdir(parents=True, exist_ok=True)
     print(f"st16 demo: output folder {out}", flush=True)

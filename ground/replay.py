@@ -229,14 +229,22 @@ class LinkSolver:
                 self._wait_for_device(exc, say, deadline)
 
 
-def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool = True) -> dict:
-    """Solve every frame of ``directory`` with ``solver`` (Link/OfflineSolver); log and summarise."""
+def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool = True, resume: bool = False) -> dict:
+    """Solve every frame of ``directory`` with ``solver`` (Link/OfflineSolver); log and summarise.
+    Each record is on disk before the next frame starts, so an interrupted run keeps what it
+    solved; ``resume`` continues it (frames already logged in ``out_dir`` are skipped). Without
+    ``resume`` an ``out_dir`` that already holds results is refused (ValueError): runs never mix."""
     from ground.client import Nack
 
     paths = frame_files(directory)
     log = ResultsLog(out_dir)
+    done = {r.get("frame") for r in log.records()}
+    if done and not resume:
+        raise ValueError(f"{out_dir} already holds {len(done)} frame result(s): --resume continues that run, "
+                         f"or choose another --out")
     say = tqdm.write if progress else (lambda msg: print(msg, file=sys.stderr))
-    bar = tqdm(paths, desc="replay", unit="frame", disable=not progress)
+    bar = tqdm([p for p in paths if p.name not in done], desc="replay", unit="frame", disable=not progress,
+               initial=len(paths) - len([p for p in paths if p.name not in done]), total=len(paths))
     for path in bar:
         base = {"time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "frame": path.name}
         try:

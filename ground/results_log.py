@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -37,8 +38,13 @@ class ResultsLog:
         self.csv_path = self.directory / "results.csv"
 
     def append(self, record: dict) -> None:
+        cut = False
+        if self.jsonl_path.exists() and self.jsonl_path.stat().st_size:
+            with open(self.jsonl_path, "rb") as fh:
+                fh.seek(-1, os.SEEK_END)
+                cut = fh.read(1) != b"\n"
         with open(self.jsonl_path, "a", encoding="utf-8") as fh:
-            fh.write(json_text.dumps(record) + "\n")
+            fh.write(("\n" if cut else "") + json_text.dumps(record) + "\n")
             fh.flush()
             os.fsync(fh.fileno())
         new = not self.csv_path.exists()
@@ -51,9 +57,19 @@ class ResultsLog:
             os.fsync(fh.fileno())
 
     def records(self) -> list[dict]:
+        """The logged records; a line cut short (a crash or a full disk mid-write) is left out with a
+        warning (the next append after it starts on a line of its own)."""
         if not self.jsonl_path.exists():
             return []
-        return [json.loads(line) for line in self.jsonl_path.read_text().splitlines() if line.strip()]
+        lines = [line for line in self.jsonl_path.read_text(encoding="utf-8", errors="replace").splitlines()
+                 if line.strip()]
+        out = []
+        for k, line in enumerate(lines):
+            try:
+                out.append(json.loads(line))
+            except ValueError:
+                print(f"st16-ground: {self.jsonl_path}: line {k + 1} cut short; left out", file=sys.stderr)
+        return out
 
 
 def _csv_row(record: dict) -> dict:

@@ -218,3 +218,25 @@ def test_refused_frame_is_an_answer_not_silence(device, scene, tmp_path):
     log = [json.loads(line) for line in (tmp_path / "out" / "results.jsonl").read_text().splitlines()]
     assert log[0]["frame"] == "a_small.dng" and "NACKed" in log[0]["reason"]
     assert log[1]["frame"] == "b_good.dng" and log[1]["status"] == "OK"
+
+
+def test_replay_refuses_to_mix_runs_and_resumes_where_it_stopped(scene, tmp_path):
+    from firmware_model.camera import CameraModel
+    from firmware_model.catalog_image_io import catalog_from_image
+    from ground.replay import OfflineSolver
+
+    solver = OfflineSolver(CAMERA, catalog_from_image(scene["image"]))
+    frames = sorted(scene["frames"].glob("*.dng"))
+    out = tmp_path / "out"
+    first = tmp_path / "first"
+    first.mkdir()
+    for p in frames[:2]:  # the run that was interrupted after two frames
+        for f in (p, p.with_name(p.stem + ".truth.json")):
+            (first / f.name).symlink_to(f)
+    replay(first, solver, out, progress=False, make_plots=False)
+    with pytest.raises(ValueError, match="--resume"):
+        replay(scene["frames"], solver, out, progress=False, make_plots=False)
+    summary = replay(scene["frames"], solver, out, progress=False, make_plots=False, resume=True)
+    log = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    assert sorted(r["frame"] for r in log) == sorted(p.name for p in frames)  # each frame once
+    assert summary["counts"] == {"correct": len(frames)}

@@ -24,3 +24,16 @@ def test_log_appends_jsonl_and_csv_and_summarizes(tmp_path):
     paths = plot_summary(recs, tmp_path / "plots")
     assert {p.name for p in paths} == {"error_cdf.png", "residuals.png"}
     assert all(p.stat().st_size > 1000 for p in paths)
+
+
+def test_a_log_cut_mid_line_keeps_its_records_and_goes_on(tmp_path, capsys):
+    from ground.results_log import ResultsLog
+
+    log = ResultsLog(tmp_path)
+    log.append({"frame": "a.dng", "outcome": "correct"})
+    with open(log.jsonl_path, "a") as fh:
+        fh.write('{"frame": "b.dng", "outc')  # a crash or a full disk mid-write
+    assert [r["frame"] for r in log.records()] == ["a.dng"]
+    assert "cut short" in capsys.readouterr().err
+    log.append({"frame": "c.dng", "outcome": "correct"})
+    assert [r["frame"] for r in log.records()] == ["a.dng", "c.dng"]
