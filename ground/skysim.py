@@ -14,16 +14,18 @@ that ``|theta' - theta| < eps`` holds at three sigma; each star of the 4-star pr
 identified, unidentified or misidentified.
 
 Runs are split in chunks of poses and evaluated in parallel: local processes
-(``concurrent.futures.ProcessPoolExecutor``) with a tqdm progress bar, or a Dask cluster
+(``multiprocessing.Pool``, terminated at once on Ctrl-C) with a tqdm progress bar, or a Dask cluster
 (``scheduler="tcp://host:8786"``) for sweeps too big for one machine. Every pose has its own
 seeded random stream, so results do not depend on the chunking or the executor.
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import signal
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from functools import partial
 from dataclasses import dataclass
 
 import numpy as np
@@ -281,6 +283,7 @@ _WORKER: dict = {}
 
 
 def _init_worker(payload):
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it ends the pool at once
     _WORKER["payload"] = payload
 
 
@@ -322,11 +325,9 @@ def execute(kind: str, catalog: OnboardCatalog, camera: CameraModel | None, cfg,
             parts.append(part)
             bar.update(len(part))
     else:
-        with ProcessPoolExecutor(max_workers=workers or os.cpu_count(), initializer=_init_worker,
-                                 initargs=(payload,)) as pool:
-            futures = [pool.submit(_run_chunk, kind, ids) for ids in chunks]
-            for fut in as_completed(futures):
-                part = fut.result()
+        # leaving the with block terminates the workers: after the last chunk, or at once on Ctrl-C
+        with multiprocessing.get_context().Pool(workers or os.cpu_count(), _init_worker, (payload,)) as pool:
+            for part in pool.imap_unordered(partial(_run_chunk, kind), chunks):
                 parts.append(part)
                 bar.update(len(part))
     bar.close()

@@ -167,3 +167,36 @@ def test_cause_of_a_frame_without_true_stars(colour_catalog):
     assert len(sc.truth) >= 3
     assert skysim.CAUSES[skysim.no_solution_cause(sc, "time budget exhausted", colour_catalog, params, True)] == "time_budget"
     assert skysim.CAUSES[skysim.no_solution_cause(sc, "", colour_catalog, params, True)] == "matcher_missed"
+
+
+def test_ctrl_c_ends_a_parallel_run_at_once_and_leaves_no_worker(tmp_path):
+    """It used to need three Ctrl-C and ~80 s, with the workers left running."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    marker = str(tmp_path / "sim-out")
+    run = subprocess.Popen([sys.executable, "-m", "ground.cli", "sim", "colour", "--boresights", "50000", "--rolls",
+                            "4", "--workers", "2", "--out", marker], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           text=True)
+    try:
+        time.sleep(6)  # imports, catalog, workers started and solving
+        t0 = time.monotonic()
+        run.send_signal(signal.SIGINT)
+        _, err = run.communicate(timeout=20)
+        assert time.monotonic() - t0 < 5
+    finally:
+        if run.poll() is None:
+            run.kill()
+    assert run.returncode == 130 and "interrupted" in err and "Traceback" not in err
+    time.sleep(0.5)
+    left = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            if marker.encode() in open(f"/proc/{pid}/cmdline", "rb").read():
+                left.append(pid)
+        except OSError:
+            pass
+    assert not left, f"workers left running: {left}"
