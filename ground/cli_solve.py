@@ -107,7 +107,9 @@ def _solve_on_device(args, frame):
     from ground.cli_link import client_kwargs
     from ground.replay import LinkSolver
 
-    solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, **client_kwargs(args))
+    bar = frame is not None and not args.json and sys.stderr.isatty()  # a 10 MB frame is 15 min at 115 200 baud
+    solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, upload_progress=bar,
+                        **client_kwargs(args))
     try:  # a NACK (exit 5) or a device that does not come back (exit 4) ends in ground.cli.main
         return solver.solve(frame, say=lambda m: print(m, file=sys.stderr))
     finally:

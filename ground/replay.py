@@ -166,8 +166,10 @@ class OfflineSolver:
 class LinkSolver:
     """Solves on a device over the serial link (``replay`` / ``solve``), surviving link loss."""
 
-    def __init__(self, url: str, reconnect_timeout: float = 120.0, go_timeout: float = 60.0, log=None, **client_kw):
+    def __init__(self, url: str, reconnect_timeout: float = 120.0, go_timeout: float = 60.0, log=None,
+                 upload_progress: bool = False, **client_kw):
         self.url = url
+        self.upload_progress = upload_progress  #: a progress bar while the frame uploads (minutes at 115 200 baud)
         self.reconnect_timeout = reconnect_timeout
         self.go_timeout = go_timeout
         self.log = log
@@ -219,7 +221,7 @@ class LinkSolver:
                 if self.client is None:
                     self._connect()
                 if data is not None:
-                    self.client.upload(FRAME_SLOT, data, progress=False)
+                    self.client.upload(FRAME_SLOT, data, progress=self.upload_progress)
                 return solve_record(self.client.go_and_wait(timeout=self.go_timeout))
             except Nack:
                 raise

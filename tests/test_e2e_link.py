@@ -240,3 +240,18 @@ def test_replay_refuses_to_mix_runs_and_resumes_where_it_stopped(scene, tmp_path
     log = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
     assert sorted(r["frame"] for r in log) == sorted(p.name for p in frames)  # each frame once
     assert summary["counts"] == {"correct": len(frames)}
+
+
+def test_frame_upload_can_show_its_progress(device, scene, capsys):
+    from firmware_model.frame_io import read_frame
+
+    _upload_catalog(device, scene["image"])
+    frame = read_frame(sorted(scene["frames"].glob("*rggb.dng"))[0])
+    for shown in (False, True):
+        solver = LinkSolver(device, upload_progress=shown)
+        try:
+            rec = solver.solve(frame)
+        finally:
+            solver.close()
+        assert rec["status"] == "OK"
+        assert ("slot 1" in capsys.readouterr().err) == shown
