@@ -448,7 +448,8 @@ def _fit_all(frame, det, params, gain, out):
     # a failed fit that shrank the PSF far below the optics' is not a star either, when the candidate
     # was bright enough for its fit to mean something (a faint star's failed fit wanders anywhere)
     bright = np.asarray(det.snr, float)[idx[fit]] >= params.sharp_fail_min_snr
-    sharp_fail = started & bright & (abs_s < max(params.sigma_range_px[0], params.sharp_sigma_fraction * params.psf_sigma_px))
+    too_narrow = abs_s < max(params.sigma_range_px[0], params.sharp_sigma_fraction * params.psf_sigma_px)
+    sharp_fail = started & bright & too_narrow
     for j in np.flatnonzero(~ok):
         i, k = idx[fit[j]], fit[j]
         out.sharp[i] = sharp_fail[j]

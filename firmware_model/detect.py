@@ -10,8 +10,8 @@ Steps (vectorised; Python loops only over candidates of multi-peak regions):
 2. Cosmetic cleaning per phase: a column whose median departs from its neighbours' (stuck,
    dead or offset columns) is shifted to their level and left out of the fit; a pixel above
    ``k_sigma`` whose four same-colour neighbours (adjacent pixels on a mono frame) hold far
-   less than the PSF predicts is a hot pixel or cosmic-ray hit; it is replaced for detection and listed in
-   ``bad_pixels`` for the fit.
+   less than the PSF predicts is a hot pixel or cosmic-ray hit; it is replaced for detection
+   and listed in ``bad_pixels`` for the fit.
 3. The four background-subtracted phases are summed into 2x2 super-pixels (each holds
    R, G, G, B: colour-blind) and filtered with a [1 2 1] x [1 2 1] kernel (a matched
    filter for a PSF of ~1 px sigma). A super-pixel is significant above ``k_sigma`` times
@@ -246,7 +246,8 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     area = np.bincount(lab, minlength=nb)
     elongated = np.zeros(nb, bool)
     for wgt in (np.maximum(filt[mr_, mc_], 0).astype(float), np.ones(len(lab))):
-        elongated |= (area >= params.min_streak_area) & (_axis_ratio(lab, mr_, mc_, wgt, nb) > params.max_elongation)
+        elongated |= _axis_ratio(lab, mr_, mc_, wgt, nb) > params.max_elongation
+    elongated &= area >= params.min_streak_area
     is_streak = elongated[plabel]
     n_streak = int(np.count_nonzero(is_streak))
     pr, pc, plabel = pr[~is_streak], pc[~is_streak], plabel[~is_streak]

@@ -199,13 +199,13 @@ def extract_stars(frame: Frame, camera: CameraModel | None = None, params: Extra
     current, passes = one_pass(sigma), 1
     source, measured = "setting", float("nan")
     if params.psf_sigma_px is None:
-        if failed_fit_fraction(*current[:2]) > PSF_FAIL_FRACTION and passes < params.psf_max_passes:
+        failed = failed_fit_fraction(*current[:2])
+        if failed > PSF_FAIL_FRACTION and passes < params.psf_max_passes:
             # most fits failed: either the guess is far too narrow for the PSF, or the few
             # converged fits are right that it is narrower; a wide pass tells which
             m = measure_psf_sigma(*current[:2])
             wide, passes = one_pass(PSF_WIDEN_FACTOR * max(sigma, m if np.isfinite(m) else 0.0)), passes + 1
-            if (failed_fit_fraction(*wide[:2]) < failed_fit_fraction(*current[:2])
-                    and len(wide[0].x) >= 0.5 * len(current[0].x)):
+            if failed_fit_fraction(*wide[:2]) < failed and len(wide[0].x) >= 0.5 * len(current[0].x):
                 current = wide
         while True:
             measured = measure_psf_sigma(*current[:2])

@@ -364,7 +364,8 @@ def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
         seen = _with_camera(stars, fitted)
         # the fitted optics leave residuals no centroid covariance knows about (coma, an unmodelled
         # distortion): per axis, they set the floor of the noise the identification assumes
-        tight = replace(params, optics=None, centroid_floor_px=max(params.centroid_floor_px, rms_px / np.sqrt(2.0)))
+        floor = max(params.centroid_floor_px, rms_px / np.sqrt(2.0))
+        tight = replace(params, optics=None, centroid_floor_px=floor)
         out = _identify(seen, fitted, catalog, tight, timings)
         if out.status is not Status.OK:
             out = _verify_pattern(seen, fitted, rows, cat, catalog, tight, timings) or out

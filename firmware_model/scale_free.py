@@ -8,11 +8,11 @@ few hundred pixels. Catalog patterns (the module constants say which 4-sets) are
 (catalog, field) and kept in a KD-tree (L-infinity ball queries).
 
 ``hypotheses`` matches the frame's patterns (every 4-combination of its brightest detections no
-wider than the widest catalog pattern, directions taken through the nominal camera) and turns each key match into a focal length (ratio of the
-catalog's largest edge to the frame's) and an attitude (the four stars, best of the 24
-assignments). ``refine`` then predicts every catalog star in the field, matches detections
-within a shrinking radius and fits focal length (and k1) with the attitude
-(``firmware_model.camera_fit``). The caller identifies the frame again from scratch with the
+wider than the widest catalog pattern, directions taken through the nominal camera) and turns
+each key match into a focal length (ratio of the catalog's largest edge to the frame's) and an
+attitude (the four stars, best of the 24 assignments). ``refine`` then predicts every catalog
+star in the field, matches detections within a shrinking radius and fits focal length (and k1)
+with the attitude (``firmware_model.camera_fit``). The caller identifies the frame again from scratch with the
 fitted camera: a pattern match is only a seed.
 
 Units: radians for angles, pixels for image positions (docs/CONVENTIONS.md).
@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from firmware_model.camera import CameraModel
 from firmware_model.camera_fit import StarObservations, fit_frame
-from firmware_model.onboard_catalog import OnboardCatalog, angle_between
+from firmware_model.onboard_catalog import OnboardCatalog, angle_between, chord_of_angle
 
 #: Catalog patterns of two kinds, both scale free: (1) for each region of the sky the size of the
 #: field (circles of the minor half-field on a Fibonacci lattice spaced REGION_SPACING of that
@@ -67,22 +67,20 @@ def _keys(vectors: np.ndarray, groups: np.ndarray):
         return edges[:, :-1] / top[:, None], top
 
 
-def _groups(vectors: np.ndarray, brightness_rank: np.ndarray, radius: float, centres: np.ndarray,
-            neighbours: int) -> np.ndarray:
-    """4-star groups: each centre with three of its ``neighbours`` brightest neighbours within ``radius``."""
-    tree = cKDTree(vectors)
-    chord = 2.0 * np.sin(radius / 2.0)
+def _groups(near: list, brightness_rank: np.ndarray, centres: np.ndarray, neighbours: int) -> np.ndarray:
+    """4-star groups: each centre with three of its ``neighbours`` brightest neighbours (``near[c]``:
+    the stars within the pattern radius of star ``c``)."""
     out = []
-    for c, near in zip(centres, tree.query_ball_point(vectors[centres], chord)):
-        near = np.array([j for j in near if j != c], dtype=np.int64)
-        if len(near) < 3:
+    for c in centres:
+        near_c = np.array([j for j in near[c] if j != c], dtype=np.int64)
+        if len(near_c) < 3:
             continue
-        near = near[np.argsort(brightness_rank[near])][:neighbours]
-        out.extend((c, *trio) for trio in combinations(near.tolist(), 3))
+        near_c = near_c[np.argsort(brightness_rank[near_c])][:neighbours]
+        out.extend((c, *trio) for trio in combinations(near_c.tolist(), 3))
     return np.array(out, dtype=np.int64).reshape(-1, 4)
 
 
-def _region_groups(vectors: np.ndarray, mag: np.ndarray, field_radius: float) -> np.ndarray:
+def _region_groups(tree: cKDTree, mag: np.ndarray, field_radius: float) -> np.ndarray:
     """Every 4-combination of the :data:`REGION_STARS` brightest stars of each field-sized region."""
     spacing = REGION_SPACING * field_radius
     n = int(np.ceil(4.0 * np.pi / spacing ** 2))
@@ -91,7 +89,7 @@ def _region_groups(vectors: np.ndarray, mag: np.ndarray, field_radius: float) ->
     phi = np.pi * (1.0 + np.sqrt(5.0)) * i
     points = np.column_stack([np.sqrt(1.0 - z * z) * np.cos(phi), np.sqrt(1.0 - z * z) * np.sin(phi), z])
     out = [np.zeros((0, 4), np.int64)]
-    for near in cKDTree(vectors).query_ball_point(points, 2.0 * np.sin(field_radius / 2.0)):
+    for near in tree.query_ball_point(points, chord_of_angle(field_radius)):
         near = np.asarray(near, np.int64)
         near = np.sort(near[np.argsort(mag[near], kind="stable")][:REGION_STARS])
         if len(near) >= 4:
@@ -108,11 +106,11 @@ def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
         field = mrad / 1000.0
         radius = PATTERN_RADIUS_FACTOR * field
         rank = np.argsort(np.argsort(catalog.mag, kind="stable"), kind="stable")
-        near = cKDTree(catalog.vec).query_ball_point(catalog.vec, 2.0 * np.sin(radius / 2.0))
+        near = catalog._tree.query_ball_point(catalog.vec, chord_of_angle(radius))  # one query serves both uses
         brighter = np.array([np.count_nonzero(rank[n] < rank[i]) for i, n in enumerate(near)])
         centres = np.flatnonzero(brighter < PATTERN_STARS_PER_CAP)
-        groups = np.concatenate([_groups(catalog.vec, rank, radius, centres, CATALOG_NEIGHBOURS),
-                                 _region_groups(catalog.vec, catalog.mag, field)])
+        groups = np.concatenate([_groups(near, rank, centres, CATALOG_NEIGHBOURS),
+                                 _region_groups(catalog._tree, catalog.mag, field)])
         groups = np.unique(np.sort(groups, axis=1), axis=0)  # a 4-set found several ways once
         keys, top = _keys(catalog.vec, groups)
         ok = np.isfinite(keys).all(axis=1) & (top > 0)
@@ -120,8 +118,8 @@ def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
     return cache[mrad]
 
 
-def hypotheses(x: np.ndarray, y: np.ndarray, camera: CameraModel, catalog: OnboardCatalog, n_bright: int = 12,
-               tolerance: float = 0.015, focal_range: float = 0.1, max_hypotheses: int = 64) -> list[Hypothesis]:
+def hypotheses(x: np.ndarray, y: np.ndarray, camera: CameraModel, catalog: OnboardCatalog, n_bright: int,
+               tolerance: float, focal_range: float, max_hypotheses: int = 64) -> list[Hypothesis]:
     """Pattern matches of the ``n_bright`` brightest detections (rows of ``x, y``, brightest first)
     with key distance below ``tolerance`` and focal length within ``focal_range`` (relative) of
     the nominal camera's, best key distance first."""

@@ -46,8 +46,8 @@ def _global_options(parser: argparse.ArgumentParser, defaults: bool = True) -> N
     parser.add_argument("--debug", action="store_true", help="show the traceback of a failure", **kw(False))
     parser.add_argument("--port", help="pyserial URL of the device: pty path, /dev/tty*, socket://host:port, loop://",
                         **kw(None))
-    parser.add_argument("--baud", type=ranged(int, 50, 16_000_000, "a baud rate"), help="baud rate for real serial ports",
-                        **kw(115200))
+    parser.add_argument("--baud", type=ranged(int, 50, 16_000_000, "a baud rate"),
+                        help="baud rate for real serial ports", **kw(115200))
     parser.add_argument("--device-address", type=U8, help="NSP address of the tracker", **kw(0x0E))
     parser.add_argument("--host-address", type=U8, help="our NSP address", **kw(0x11))
     parser.add_argument("--timeout", type=ranged(float, 0.001, 3600.0, "a reply timeout in s"),

@@ -6,12 +6,12 @@ import json
 import sys
 from pathlib import Path
 
+from ground import json_text
 from ground.catalog.colour import ColourDataError
 from ground.cli_types import SENSOR_PX
 from ground.catalog.design import CatalogDesign, DesignError
 from ground.catalog.sources import CatalogFormatError
 from protocol.catalog_image import CatalogImageError, crc32, parse_image
-from ground import json_text
 
 CATALOG_SLOT = 0
 

@@ -23,9 +23,9 @@ from firmware_model.detect import DetectParams
 from firmware_model.extract import PSF_SIGMA_RANGE_PX, extract_stars
 from firmware_model.frame_io import FrameReadError, read_frame
 from firmware_model.frames import attitude_from_radec_roll
+from ground import json_text
 from ground.cli_types import ANGLE_DEG, DEC_DEG, RA_DEG, SECONDS, SEED, SENSOR_PX, ranged
 from ground.frame_writer import truth_path_for, write_rendered
-from ground import json_text
 
 
 def _fail(message: str) -> int:

@@ -16,9 +16,9 @@ from pathlib import Path
 from protocol import result
 from protocol.commands import GO_OPERATIONAL, DarkWindow
 
+from . import json_text
 from .cli_types import SECONDS, U8, U16, U32, ranged
 from .client import Client, LinkError, Nack
-from ground import json_text
 
 
 def _int(text: str) -> int:

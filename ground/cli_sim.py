@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ground.cli_types import SEED, SENSOR_PX
 from ground import json_text
+from ground.cli_types import SEED, SENSOR_PX
 
 #: Seed 000 section 5.2 (table 3, fig. 9) for 1e6 poses.
 PAPER_COLOUR = {"poses": 1_000_000, "problem_orientations": 7078, "no_solution": 897, "poor_match": 1763,

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from ground import json_text
 
 DEFAULT_RESULTS = "st16-results"

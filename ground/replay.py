@@ -245,8 +245,9 @@ def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool =
         raise ValueError(f"{out_dir} already holds {len(done)} frame result(s): --resume continues that run, "
                          f"or choose another --out")
     say = tqdm.write if progress else (lambda msg: print(msg, file=sys.stderr))
-    bar = tqdm([p for p in paths if p.name not in done], desc="replay", unit="frame", disable=not progress,
-               initial=len(paths) - len([p for p in paths if p.name not in done]), total=len(paths))
+    todo = [p for p in paths if p.name not in done]
+    bar = tqdm(todo, desc="replay", unit="frame", disable=not progress, initial=len(paths) - len(todo),
+               total=len(paths))
     for path in bar:
         base = {"time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "frame": path.name}
         try:

@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
 from ground import json_text
 
 CSV_FIELDS = (

@@ -81,8 +81,9 @@ class ConsensusParams:
         at least this fraction of the predicted stars is high confidence even below ``eta``
         (false detections do not make an answer that explains the sky less certain).
     chance_stars, chance_alpha: so is a set of at least ``chance_stars`` stars whose stars
-        beyond the first two would line up by chance with probability below ``chance_alpha`` (``verify.chance_alignment``: a sparse field among
-        clutter, where a few stars matched to a fraction of a pixel are all the evidence there is).
+        beyond the first two would line up by chance with probability below ``chance_alpha``
+        (``verify.chance_alignment``: a sparse field among clutter, where a few stars matched to a
+        fraction of a pixel are all the evidence there is).
     last_resort: in rich scenes, up to this many two-star sets skipped by ``min_consensus_rich``
         are verified (the pairs with fewest catalog neighbours first, i.e. the sparsest sky, then
         by seed ``Delta``) when no larger set verified: a frame
@@ -403,7 +404,7 @@ def confident(best, params: ConsensusParams) -> bool:
     """The tests beyond eta: a large set covering the predicted stars, or one of at least
     ``chance_stars`` whose alignment by chance is negligible (its missed stars passed
     verification's miss-rate test) (``ConsensusParams``)."""
-    if best.n >= params.chance_stars and getattr(best, "chance", 1.0) <= params.chance_alpha:
+    if best.n >= params.chance_stars and best.chance <= params.chance_alpha:
         return True
     cov = best.coverage if np.isfinite(best.coverage) else 0.0
     return best.n >= params.confident_stars and cov >= params.confident_coverage

@@ -294,7 +294,7 @@ def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray
     if not coverage_ok(n_pred, matched_inside, params):
         return None, (f"coverage {matched_inside}/{n_pred} predicted stars below {params.min_coverage} "
                       f"and not explained by a {params.miss_rate:g} miss rate")
-    chance = chance_alignment(max(len(vectors), params.frame_detections), n_pred, len(det), params.residual_sigmas * float(np.median(sigma[det])),
-                              fov.solid_angle)
+    gate = params.residual_sigmas * float(np.median(sigma[det]))
+    chance = chance_alignment(max(len(vectors), params.frame_detections), n_pred, len(det), gate, fov.solid_angle)
     return VerifiedMatch(det, cat, sol, float(coverage), n_pred, n_consensus,
                          low_coverage=bool(n_pred and coverage < params.min_coverage), chance=chance), ""
