@@ -10,7 +10,8 @@ reference_pointing.json). Ours: ``run_pipeline`` with ``PipelineParams()`` and a
 from reading the image to the solution, single-threaded, interleaved over ``--rounds`` rounds
 (median per file). Pointing: the solved direction of the image-centre pixel against the
 reference (astrometry.net for colour-real; for tetra3 the reference in
-fixtures/tetra3_cedar_reference.json, an earlier cedar-solve run: agreement, not truth), in pixels.
+fixtures/tetra3_cedar_reference.json, an earlier cedar-solve run: agreement, not truth), in pixels;
+and ours against today's cedar-solve answer on the same file (``ours-cedar px``).
 
     python3 -m venv .venv-peers && .venv-peers/bin/pip install --no-deps cedar-solve "numpy<2" scipy pillow
     .venv/bin/python bench/bench_realframes.py [--rounds 3]
@@ -89,6 +90,7 @@ def ours(job, catalogs) -> dict:
         v = quat_to_matrix(rec["q_icrs_to_sensor"]).T @ out.camera.pixel_to_vector((w - 1) / 2, (h - 1) / 2)[0]
         ra, dec = np.degrees(vec_to_radec(v))
         row["sep_px"] = separation_px(ra, dec, job)
+        row["ra"], row["dec"] = float(ra), float(dec)
     return row
 
 
@@ -133,7 +135,7 @@ def main() -> int:
             for k, v in cedar(jobs).items():
                 runs_cedar[k].append(v)
     print(f"\n{'frame':<34}{'ours':<15}{'method':<10}{'stars':>6}{'sep px':>8}{'ms':>8}"
-          f"{'cedar':>8}{'sep px':>8}{'ms':>8}{'ratio':>7}")
+          f"{'cedar':>8}{'sep px':>8}{'ms':>8}{'ratio':>7}{'ours-cedar px':>14}")
     summary = {}
     for j in jobs:
         key = str(j["path"])
@@ -143,13 +145,18 @@ def main() -> int:
         c_ok = bool(c) and c[-1]["ra"] is not None
         c_ms = 1e3 * float(np.median([r["wall_s"] for r in c])) if c else float("nan")
         c_sep = separation_px(c[-1]["ra"], c[-1]["dec"], j) if c_ok else None
+        # ours against today's cedar-solve on the same file (the tetra3 reference is an older cedar run)
+        vs_cedar = (separation_px(mine["ra"], mine["dec"], {**j, "ref": (c[-1]["ra"], c[-1]["dec"])})
+                    if c_ok and mine["sep_px"] is not None else None)
         s = summary.setdefault(j["set"], {"n": 0, "ours": 0, "ours_1px": 0, "cedar": 0, "cedar_1px": 0,
-                                          "ours_ms": [], "cedar_ms": [], "ratio": []})
+                                          "both": 0, "agree_1px": 0, "ours_ms": [], "cedar_ms": [], "ratio": []})
         s["n"] += 1
         s["ours"] += mine["status"] == "OK"
         s["ours_1px"] += mine["status"] == "OK" and mine["sep_px"] is not None and mine["sep_px"] <= 1.0
         s["cedar"] += c_ok
         s["cedar_1px"] += c_ok and c_sep <= 1.0
+        s["both"] += mine["status"] == "OK" and vs_cedar is not None
+        s["agree_1px"] += mine["status"] == "OK" and vs_cedar is not None and vs_cedar <= 1.0
         s["ours_ms"].append(my_ms)
         if c:
             s["cedar_ms"].append(c_ms)
@@ -158,7 +165,7 @@ def main() -> int:
         print(f"{j['path'].name[:33]:<34}{mine['status']:<15}{mine['method'] or '-':<10}{mine['matched']:>6}{sep:>8}"
               f"{my_ms:>8.0f}{('OK' if c_ok else ('fail' if c else '-')):>8}"
               f"{('-' if c_sep is None else f'{c_sep:.2f}'):>8}{c_ms:>8.0f}"
-              f"{(f'{c_ms / my_ms:.2f}' if c else '-'):>7}")
+              f"{(f'{c_ms / my_ms:.2f}' if c else '-'):>7}{('-' if vs_cedar is None else f'{vs_cedar:.2f}'):>14}")
         if mine["status"] != "OK":
             print(f"{'':<34}reason: {mine['reason']}")
     print()
@@ -167,7 +174,8 @@ def main() -> int:
                 f"median {np.median(s['ours_ms']):.0f} ms")
         if s["cedar_ms"]:
             line += (f"; cedar-solve {s['cedar']}/{s['n']} ({s['cedar_1px']} within 1 px), median "
-                     f"{np.median(s['cedar_ms']):.0f} ms; time ratio cedar/ours median {np.median(s['ratio']):.2f}")
+                     f"{np.median(s['cedar_ms']):.0f} ms; time ratio cedar/ours median {np.median(s['ratio']):.2f}; "
+                     f"both high confidence on {s['both']}, ours within 1 px of cedar-solve's on {s['agree_1px']}")
         print(line)
     return 0
 

@@ -225,7 +225,7 @@ def identify_stars(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
     if params.optics is not None and out.status is not Status.TOO_FEW_STARS:
         if out.status is not Status.OK:
             found = _search_optics(stars, camera, catalog, params, timings, t0)
-            if found is not None:
+            if found is not None and (found.status is Status.OK or _rank(found) > _rank(out)):
                 out = found
         elif (refined := _refine_optics(out, stars, camera, catalog, params, timings)) is not None:
             out = refined
@@ -342,13 +342,15 @@ def _refine_optics(out: PipelineOutput, stars: StarList, camera: CameraModel, ca
 
 def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams,
                    timings: dict, t0: float) -> PipelineOutput | None:
-    """The scale-free search of :class:`OpticsSearch`; None when no pattern match leads to a
-    high-confidence answer with the fitted camera."""
+    """The scale-free search of :class:`OpticsSearch`: the first pattern match that leads to a
+    high-confidence answer with the fitted camera, else the low-confidence answer of a pattern
+    match that explains the most stars (None when no pattern match verifies)."""
     search = params.optics
     t1 = time.perf_counter()
     scale_free.catalog_patterns(catalog, camera)  # once per catalog: not this frame's budget
     t0 += time.perf_counter() - t1
     tried: list[np.ndarray] = []
+    best = None
     for hyp in _pattern_seeds(stars, camera, catalog, search, timings):
         if time.perf_counter() - t0 > search.budget_s:
             break
@@ -368,13 +370,23 @@ def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
         tight = replace(params, optics=None, centroid_floor_px=floor)
         out = _identify(seen, fitted, catalog, tight, timings)
         if out.status is not Status.OK:
-            out = _verify_pattern(seen, fitted, rows, cat, catalog, tight, timings) or out
-        if out.status is Status.OK:
+            pattern = _verify_pattern(seen, fitted, rows, cat, catalog, tight, timings)
+            out = pattern if pattern is not None and (pattern.status is Status.OK or _rank(pattern) > _rank(out)) else out
+        if out.solution is not None:
             out.optics = _fit_optics(out, catalog, search)
             if out.optics is not None:
                 out.optics.focal_scale = hyp.f / camera.f
+        if out.status is Status.OK:
             return out
-    return None
+        if out.solution is not None and _rank(out) > _rank(best):
+            best = out
+    return best
+
+
+def _rank(out: PipelineOutput | None) -> tuple[int, float]:
+    """Preference between low-confidence answers: stars matched, then the solution's confidence
+    (coverage of the predicted stars times the share of detections explained); (0, 0) for none."""
+    return (0, 0.0) if out is None or out.solution is None else (len(out.solution.matched_det), out.solution.confidence)
 
 
 def _pattern_seeds(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, search: OpticsSearch,
@@ -397,18 +409,26 @@ def _pattern_seeds(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
 def _verify_pattern(stars: StarList, camera: CameraModel, rows, cat, catalog: OnboardCatalog, params: PipelineParams,
                     timings: dict) -> PipelineOutput | None:
     """The refined pattern match itself (detection ``rows`` on catalog stars ``cat``), verified over
-    every usable detection with the fitted camera and the tight noise model; high confidence only
-    as the solver grants a large set (at least ``confident_stars`` matched covering at least
-    ``confident_coverage`` of the predicted stars), else None. Method "pattern"."""
+    every usable detection with the fitted camera and the tight noise model (method "pattern"),
+    or None when verification refuses it. High confidence only as the solver grants a large set
+    (at least ``confident_stars`` matched covering at least ``confident_coverage`` of the
+    predicted stars); else low confidence: the pattern was chosen by a search among thousands of
+    4-sets, so its own stars do not count as the independent evidence the chance-alignment rule
+    needs."""
     used = _usable(stars)
     rows, cat = np.asarray(rows), np.asarray(cat)
     inside = np.isin(rows, used)
     match, _, sp = _verify_over(used, rows[inside], cat[inside], stars, camera, catalog, params, timings)
-    cp = sp.consensus
-    if match is None or match.n < cp.confident_stars or not match.coverage >= cp.confident_coverage:
+    if match is None:
         return None
-    sol = solution_from_match(match, Outcome.HIGH_CONFIDENCE, "", np.arange(len(used)), catalog, "pattern", len(used))
-    return PipelineOutput(Status.OK, "", stars, used, sol, colour_beta=params.colour_beta, camera=camera)
+    cp = sp.consensus
+    confident = match.n >= cp.confident_stars and match.coverage >= cp.confident_coverage
+    outcome, status = (Outcome.HIGH_CONFIDENCE, Status.OK) if confident else (Outcome.LOW_CONFIDENCE, Status.LOW_CONFIDENCE)
+    reason = "" if confident else (f"pattern match of {match.n} stars (coverage {match.coverage:.2f}) "
+                                   f"below the {cp.confident_stars} stars and {cp.confident_coverage:g} coverage "
+                                   "a search-chosen pattern needs")
+    sol = solution_from_match(match, outcome, reason, np.arange(len(used)), catalog, "pattern", len(used))
+    return PipelineOutput(status, reason, stars, used, sol, colour_beta=params.colour_beta, camera=camera)
 
 
 #: Detections left out of the pattern search's brightest stars (saturated stars stay: they are real).

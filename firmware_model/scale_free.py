@@ -34,15 +34,16 @@ from firmware_model.onboard_catalog import OnboardCatalog, angle_between, chord_
 #: Catalog patterns of two kinds, both scale free: (1) for each region of the sky the size of the
 #: field (circles of the minor half-field on a Fibonacci lattice spaced REGION_SPACING of that
 #: radius), every 4-combination of its REGION_STARS brightest stars, as tetra3 builds its database
-#: (a frame's brightest stars are its region's brightest); (2) for each star with fewer than
-#: PATTERN_STARS_PER_CAP brighter stars within the pattern radius, three of its
-#: CATALOG_NEIGHBOURS brightest neighbours there (sparse fields whose stars sit far apart).
+#: (a frame's brightest stars are its region's brightest); (2) for each pattern radius and each
+#: star with fewer than PATTERN_STARS_PER_CAP brighter stars within it, three of its
+#: CATALOG_NEIGHBOURS brightest neighbours there (sparse fields whose stars sit far apart; the
+#: wider radius reaches the frame's opposite corners, the narrower keeps the centres it loses).
 REGION_STARS = 10
 REGION_SPACING = 1.0
 CATALOG_NEIGHBOURS = 10
 PATTERN_STARS_PER_CAP = 12
-#: Pattern radius over the minor half-field (kind 2, and the frame's widest pattern: twice it).
-PATTERN_RADIUS_FACTOR = 1.5
+#: Pattern radii over the minor half-field (kind 2; the frame's widest pattern: twice the largest).
+PATTERN_RADIUS_FACTORS = (1.5, 2.0)
 _PAIRS = list(combinations(range(4), 2))
 _PERMS = np.array(list(permutations(range(4))))
 
@@ -104,13 +105,13 @@ def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
     mrad = int(round(camera.fov_half_angle_minor * 1000.0))
     if mrad not in cache:
         field = mrad / 1000.0
-        radius = PATTERN_RADIUS_FACTOR * field
         rank = np.argsort(np.argsort(catalog.mag, kind="stable"), kind="stable")
-        near = catalog._tree.query_ball_point(catalog.vec, chord_of_angle(radius))  # one query serves both uses
-        brighter = np.array([np.count_nonzero(rank[n] < rank[i]) for i, n in enumerate(near)])
-        centres = np.flatnonzero(brighter < PATTERN_STARS_PER_CAP)
-        groups = np.concatenate([_groups(near, rank, centres, CATALOG_NEIGHBOURS),
-                                 _region_groups(catalog._tree, catalog.mag, field)])
+        groups = [_region_groups(catalog._tree, catalog.mag, field)]
+        for factor in PATTERN_RADIUS_FACTORS:
+            near = catalog._tree.query_ball_point(catalog.vec, chord_of_angle(factor * field))
+            brighter = np.array([np.count_nonzero(rank[n] < rank[i]) for i, n in enumerate(near)])
+            groups.append(_groups(near, rank, np.flatnonzero(brighter < PATTERN_STARS_PER_CAP), CATALOG_NEIGHBOURS))
+        groups = np.concatenate(groups)
         groups = np.unique(np.sort(groups, axis=1), axis=0)  # a 4-set found several ways once
         keys, top = _keys(catalog.vec, groups)
         ok = np.isfinite(keys).all(axis=1) & (top > 0)
@@ -130,7 +131,7 @@ def hypotheses(x: np.ndarray, y: np.ndarray, camera: CameraModel, catalog: Onboa
     v = camera.pixel_to_vector(x[:n], y[:n])
     groups = np.array(list(combinations(range(n), 4)), np.int64)
     keys, top = _keys(v, groups)
-    wide = top <= 2.0 * PATTERN_RADIUS_FACTOR * camera.fov_half_angle_minor * (1 + focal_range)
+    wide = top <= 2.0 * max(PATTERN_RADIUS_FACTORS) * camera.fov_half_angle_minor * (1 + focal_range)
     groups, keys, top = groups[wide], keys[wide], top[wide]
     if len(groups) == 0:
         return []

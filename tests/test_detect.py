@@ -2,9 +2,10 @@
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from firmware_model.camera import CameraModel
-from firmware_model.detect import DetectParams, detect_stars
+from firmware_model.detect import _K121, DetectParams, detect_stars, matched_kernel
 from firmware_model.extract import extract_stars
 from firmware_model.frame import Frame
 from firmware_model.frames import attitude_from_radec_roll
@@ -129,3 +130,30 @@ def test_column_defects_are_not_detected_and_do_not_hide_a_trail_crossing_them(k
     assert det.n_rejected_streak >= 1
     if kind != "dead":  # stuck and offset columns are found and left out of the fit
         assert 321 in np.unique(det.bad_pixels % frame.width)
+
+
+def test_wide_psf_is_detected_through_a_kernel_matched_to_it():
+    """A defocused star (sigma 3 px) spreads beyond the 3x3 super-pixel kernel: with the measured
+    width the matched kernel finds faint stars the narrow one misses, and nothing false."""
+    stars = random_star_field(CAM, ATT, 20, vmag_range=(6.0, 6.5), seed=7, min_separation_px=30)
+    res = render_frame(stars, ATT, CAM, DetectorModel(pattern="MONO", psf_sigma_px=3.0), seed=3)
+    found_narrow, _ = _match(detect_stars(res.frame, DetectParams(psf_sigma_px=1.0)), res.truth, tol=3.0)
+    found_wide, false_wide = _match(detect_stars(res.frame, DetectParams(psf_sigma_px=3.0)), res.truth, tol=3.0)
+    assert found_wide.sum() >= found_narrow.sum() + 2
+    assert not false_wide.any()
+
+
+def test_wide_kernel_takes_its_noise_from_the_filtered_background():
+    """Background structure a few pixels wide (here 6 DN rms against 10 DN white noise) adds up
+    under a wide kernel far beyond what white noise predicts: no detection on such a frame."""
+    rng = np.random.default_rng(1)
+    structure = ndimage.gaussian_filter(rng.normal(0.0, 1.0, (480, 640)), 4.0)
+    pixels = 200.0 + rng.normal(0.0, 10.0, (480, 640)) + 6.0 * structure / structure.std()
+    frame = Frame(np.clip(np.round(pixels), 0, 4095).astype(np.uint16), "MONO", black_level=100, white_level=4095)
+    assert len(detect_stars(frame, DetectParams(psf_sigma_px=3.0))) == 0
+
+
+def test_matched_kernel_is_the_3x3_one_for_sharp_psfs_and_widens_with_the_psf():
+    assert matched_kernel(1.0) is _K121
+    wide = matched_kernel(3.0)
+    assert len(wide) > 3 and np.isclose(wide.sum(), 4.0) and np.argmax(wide) == len(wide) // 2
