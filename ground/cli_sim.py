@@ -49,7 +49,7 @@ def register(subparsers) -> None:
     c.add_argument("--sigma-colour", type=float, default=0.05, help="colour-ratio noise")
     c.add_argument("--false-stars", type=float, default=0.0, help="mean false detections per frame")
     c.add_argument("--drop", type=float, default=0.0, help="probability of missing a true star")
-    c.add_argument("--mono", action="store_true", help="no colour: geometric (4-star) matching")
+    c.add_argument("--mono", action="store_true", help="mono frames, solved as the device does: geometric (4-star, triangle) matching, then consensus on geometry alone")
     _common(c)
     c.set_defaults(func=run_colour)
     f = sub.add_parser("fourstar", help="seed 001 4-star matching test on a 5 deg grid")

@@ -26,7 +26,7 @@ import os
 import signal
 import time
 from functools import partial
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -166,7 +166,10 @@ def _field_radius(camera: CameraModel) -> float:
 # ------------------------------------------------------------------ seed 000 whole-sky run
 @dataclass(frozen=True)
 class ColourSimConfig:
-    """A whole-sky colour run: ``n_boresights`` spiral directions x ``n_roll`` rolls."""
+    """A whole-sky colour run: ``n_boresights`` spiral directions x ``n_roll`` rolls.
+    ``colour`` False: a mono frame, solved as the device solves one: geometric (4-star, triangle)
+    matching and, when that finds nothing and ``geometric_fallback`` is set, the consensus matcher
+    on geometry alone (``PipelineParams.geometric_fallback``)."""
 
     n_boresights: int = 10000
     n_roll: int = 10
@@ -174,6 +177,7 @@ class ColourSimConfig:
     model: ErrorModel = ErrorModel()
     solve: SolveParams | None = None  # None: derived from the camera and model
     colour: bool = True
+    geometric_fallback: bool = True
 
 
 def _solve_params(camera: CameraModel, cfg: ColourSimConfig) -> SolveParams:
@@ -198,6 +202,8 @@ def run_poses(catalog: OnboardCatalog, camera: CameraModel, cfg: ColourSimConfig
         scene = observe(catalog, a, camera, cfg.model, rng, colour=cfg.colour)
         t = time.perf_counter()
         res = solve(scene.vectors, scene.rg, scene.bg, catalog, params)
+        if not cfg.colour and cfg.geometric_fallback and res.status is Outcome.NO_MATCH and catalog.has_colour:
+            res = solve(scene.vectors, scene.rg, scene.bg, catalog, replace(params, mode="colour"))  # rg, bg: NaN
         dt = time.perf_counter() - t
         rec = out[row]
         rec["boresight"], rec["roll"], rec["n_visible"], rec["n_det"] = b_idx, roll, scene.n_visible, len(scene.truth)

@@ -200,3 +200,15 @@ def test_ctrl_c_ends_a_parallel_run_at_once_and_leaves_no_worker(tmp_path):
         except OSError:
             pass
     assert not left, f"workers left running: {left}"
+
+
+def test_mono_frames_are_solved_as_the_device_solves_them(colour_catalog):
+    """Poses of the impaired mono run (3 false stars, 10 % dropped) with 8-18 true stars where
+    4-star and triangle matching find nothing: the device's consensus fallback on geometry alone
+    solves them, so the simulation must run it too."""
+    kw = dict(n_boresights=5000, n_roll=2, seed=0, colour=False, model=skysim.ErrorModel(0.2, 0.05, 3.0, 0.1))
+    poses = np.array([658, 1057, 3362, 6656, 8801])
+    raw = skysim.run_poses(colour_catalog, CAM, skysim.ColourSimConfig(geometric_fallback=False, **kw), poses)
+    assert np.all(raw["status"] == 0) and np.all(raw["n_true"] >= 8)
+    rows = skysim.run_poses(colour_catalog, CAM, skysim.ColourSimConfig(**kw), poses)
+    assert np.all(rows["status"] == 2) and np.all(rows["n_wrong"] == 0) and np.all(rows["err_deg"] < 0.01)
