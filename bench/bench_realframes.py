@@ -9,12 +9,13 @@ reference_pointing.json). Ours: ``run_pipeline`` with ``PipelineParams()`` and a
 ``solve_from_image(image, fov_estimate=F)`` with its bundled database, warm. Both timed per file
 from reading the image to the solution, single-threaded, interleaved over ``--rounds`` rounds
 (median per file). Pointing: the solved direction of the image-centre pixel against the
-reference (astrometry.net for colour-real; for tetra3 the reference in
-fixtures/tetra3_cedar_reference.json, an earlier cedar-solve run: agreement, not truth), in pixels;
-and ours against today's cedar-solve answer on the same file (``ours-cedar px``).
+reference (astrometry.net for colour-real; for tetra3 fixtures/tetra3_cedar_reference.json, a
+cedar-solve run written by ``--write-tetra3-reference``: agreement, not truth), in pixels; and ours
+against this run's cedar-solve answer on the same file (``ours-cedar px``).
 
     python3 -m venv .venv-peers && .venv-peers/bin/pip install --no-deps cedar-solve "numpy<2" scipy pillow
     .venv/bin/python bench/bench_realframes.py [--rounds 3]
+    .venv/bin/python bench/bench_realframes.py --write-tetra3-reference
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "frames"
 PEER_PYTHON = ROOT / ".venv-peers" / "bin" / "python"
+REFERENCE = ROOT / "fixtures" / "tetra3_cedar_reference.json"
 TETRA3_FOV = float(np.degrees(2 * np.arctan(1024 * 6.9e-3 / 2 / 35.0)))  # datasheet: 11.53 deg
 
 
@@ -43,7 +45,7 @@ def frames() -> list[dict]:
     jobs = []
     t3 = DATA / "tetra3-mono"
     if t3.is_dir():
-        ref = json.loads((ROOT / "fixtures" / "tetra3_cedar_reference.json").read_text())["frames"]
+        ref = json.loads(REFERENCE.read_text())["frames"]
         scale = 3600 * np.degrees(6.9e-3 / 35.0)
         for p in sorted(t3.glob("*.tiff")):
             ra, dec, _ = ref[p.name]
@@ -103,10 +105,37 @@ def cedar(jobs) -> dict:
         return json.loads(out.read_text())
 
 
+def write_tetra3_reference() -> int:
+    """The tetra3 frames' reference pointing: cedar-solve's recommended use (``cedar_runner.py``:
+    a field-of-view estimate, default settings), with its RMSE per frame."""
+    jobs = [j for j in frames() if j["set"] == "tetra3"]
+    if not jobs or not PEER_PYTHON.exists():
+        print(f"need the tetra3 frames under {DATA} and cedar-solve in {PEER_PYTHON.parent.parent}", file=sys.stderr)
+        return 1
+    res = cedar(jobs)
+    rows = {j["path"].name: [round(res[str(j["path"])]["ra"], 5), round(res[str(j["path"])]["dec"], 5),
+                             round(res[str(j["path"])]["rmse"], 2)] for j in jobs}
+    REFERENCE.write_text(json.dumps({
+        "what": "boresight (image-centre) RA/Dec in degrees of the 8 tetra3 test frames as solved by cedar-solve "
+                f"0.5.1 (solve_from_image(image, fov_estimate={TETRA3_FOV:.2f}), bundled database, default settings), an "
+                "independent reference for our solutions (agreement, not truth)",
+        "how": "bench/bench_realframes.py --write-tetra3-reference (runs cedar-solve in the benchmark venv .venv-peers)",
+        "frames": rows, "columns": ["ra_deg", "dec_deg", "cedar_rmse_arcsec"]}, indent=2).replace(",\n      ", ", ")
+        .replace("[\n      ", "[").replace("\n    ]", "]") + "\n")  # one line per frame
+    for name, r in rows.items():
+        print(f"{name}: RA {r[0]:.5f} Dec {r[1]:.5f} RMSE {r[2]:.2f} arcsec")
+    print(f"written {REFERENCE}")
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--write-tetra3-reference", action="store_true",
+                    help=f"solve the tetra3 frames once with cedar-solve and write {REFERENCE.relative_to(ROOT)}")
     args = ap.parse_args()
+    if args.write_tetra3_reference:
+        return write_tetra3_reference()
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
     from firmware_model.frame_io import read_frame
