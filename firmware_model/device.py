@@ -4,7 +4,9 @@
 command counters), a bounded PEEK/POKE memory map, the result structure, the transfer slots and
 the GO sequence. It does no I/O of its own: a transport (``firmware_model.link``) feeds received
 bytes to :meth:`Device.receive` and writes back the frames it returns. A GO sequence runs the
-pluggable ``solver`` in a worker thread; the device keeps answering meanwhile.
+pluggable ``solver`` in a worker thread; the device keeps answering meanwhile. A COMBINATION that
+waits for its sequence answers through :attr:`Device.late_reply` when the transport sets it (the
+link keeps being served meanwhile), else the call returns only when the sequence is done.
 """
 
 from __future__ import annotations
@@ -117,6 +119,14 @@ class SolveContext:
 Solver = Callable[[SolveContext], Mapping[str, Any]]
 
 
+@dataclass(frozen=True)
+class _Pending:
+    """A command's reply that is ready only later: ``wait()`` returns its payload parts (with the
+    device lock held; it may wait on the sequence condition, which releases the lock)."""
+
+    wait: Callable[[], list[bytes]]
+
+
 class _Nack(Exception):
     def __init__(self, reason: int, text: str):
         super().__init__(text)
@@ -180,6 +190,9 @@ class Device:
         self._dark: dict[int, list[DarkWindow]] = {0: [], 1: []}
         self._objects: dict[int, Any] = {}
         self._frame_pending = False
+        #: ``late_reply(frames)``: how a transport takes replies produced after :meth:`receive`
+        #: returned (a COMBINATION's, once its sequence is done); None answers synchronously
+        self.late_reply: Callable[[list[bytes]], None] | None = None
         for slot in self.store.active_slots():
             data = self.store.active(slot)
             try:
@@ -239,32 +252,56 @@ class Device:
         with self._lock:
             self.counters.accepted += 1
             self.counters.per_code[msg.code] += 1
-            try:
-                parts = self._dispatch(msg)
-                replies = [nsp.reply_to(msg, data, ack=True, final=(i == len(parts) - 1))
-                           for i, data in enumerate(parts)]
-            except (_Nack, PayloadError) as exc:
-                self.counters.nacked += 1
-                reason = exc.reason
-                text = exc.text if isinstance(exc, _Nack) else exc.message
-                replies = [nsp.reply_to(msg, NackInfo(reason, text).pack(), ack=False)]
-            except Exception as exc:  # never crash the link on a bug: NACK and report
-                traceback.print_exc(file=sys.stderr)
-                self.counters.nacked += 1
-                replies = [nsp.reply_to(msg, NackInfo(NackReason.INTERNAL, repr(exc)).pack(), ack=False)]
-            if not msg.poll:
-                self.counters.silent += 1
-                return []
-            self.counters.replies += len(replies)
-            return replies
+            replies = self._replies(msg, lambda: self._dispatch(msg))
+            if isinstance(replies, _Pending):
+                if self.late_reply is None:  # no transport to answer later: wait here
+                    replies = self._replies(msg, replies.wait)
+                else:
+                    threading.Thread(target=self._answer_late, args=(msg, replies), daemon=True,
+                                     name=f"reply-{msg.code:02X}").start()
+                    return []
+            return self._count_replies(msg, replies)
 
-    def _dispatch(self, msg: nsp.Message) -> list[bytes]:
+    def _replies(self, msg: nsp.Message, run: Callable[[], Any]):
+        """Reply messages to ``msg`` from ``run()`` (its payload parts), a NACK for an expected
+        refusal or a bug, or the :class:`_Pending` that ``run`` returned."""
+        try:
+            parts = run()
+            if isinstance(parts, _Pending):
+                return parts
+            return [nsp.reply_to(msg, data, ack=True, final=(i == len(parts) - 1)) for i, data in enumerate(parts)]
+        except (_Nack, PayloadError) as exc:
+            self.counters.nacked += 1
+            reason = exc.reason
+            text = exc.text if isinstance(exc, _Nack) else exc.message
+            return [nsp.reply_to(msg, NackInfo(reason, text).pack(), ack=False)]
+        except Exception as exc:  # never crash the link on a bug: NACK and report
+            traceback.print_exc(file=sys.stderr)
+            self.counters.nacked += 1
+            return [nsp.reply_to(msg, NackInfo(NackReason.INTERNAL, repr(exc)).pack(), ack=False)]
+
+    def _count_replies(self, msg: nsp.Message, replies: list[nsp.Message]) -> list[nsp.Message]:
+        if not msg.poll:
+            self.counters.silent += 1
+            return []
+        self.counters.replies += len(replies)
+        return replies
+
+    def _answer_late(self, msg: nsp.Message, pending: "_Pending") -> None:
+        """Wait for ``pending`` (the lock is released while waiting) and hand its replies to
+        :attr:`late_reply`."""
+        with self._lock:
+            replies = self._count_replies(msg, self._replies(msg, pending.wait))
+        if replies and self.late_reply is not None:
+            self.late_reply([m.frame() for m in replies])
+
+    def _dispatch(self, msg: nsp.Message) -> "list[bytes] | _Pending":
         code = msg.code
         if code in UNASSIGNED:
             raise _Nack(NackReason.UNKNOWN_COMMAND, f"command code 0x{code:02X} is not assigned")
         handler = getattr(self, f"_cmd_{Code(code).name.lower()}")
         parts = handler(msg.data)
-        return parts if isinstance(parts, list) else [parts]
+        return parts if isinstance(parts, (list, _Pending)) else [parts]
 
     def _require_app(self, what: str) -> None:
         if not self.app_mode:
@@ -443,7 +480,7 @@ class Device:
         self._dark[win.buffer].append(win)
         return data
 
-    def _cmd_combination(self, data: bytes) -> list[bytes]:
+    def _cmd_combination(self, data: bytes) -> "list[bytes] | _Pending":
         req = Combination.unpack(data)
         if req.mask & result.SELF_TEST_SECTION:
             raise _Nack(NackReason.NOT_SUPPORTED, "the self-test result section (0x0800) is not emulated")
@@ -452,13 +489,18 @@ class Device:
             raise _Nack(NackReason.BAD_PARAMETER, f"unknown section bits 0x{unknown:X}")
         self._go(req.go_code)
         if req.go_code & GoBits.COMMAND:
-            deadline = time.monotonic() + COMBINATION_TIMEOUT
-            while self.busy:
-                if not self._done.wait(timeout=max(0.0, deadline - time.monotonic())):
-                    raise _Nack(NackReason.BUSY, "sequence did not complete in time")
+            return _Pending(lambda: self._combination_parts(req.mask, time.monotonic() + COMBINATION_TIMEOUT))
+        return self._combination_parts(req.mask, None)
+
+    def _combination_parts(self, mask: int, deadline: float | None) -> list[bytes]:
+        """The result sections of ``mask``, once the running sequence is done (by ``deadline``,
+        monotonic s; None: at once). Call with the lock held."""
+        while deadline is not None and self.busy:
+            if not self._done.wait(timeout=max(0.0, deadline - time.monotonic())):
+                raise _Nack(NackReason.BUSY, "sequence did not complete in time")
         parts: list[bytes] = []
         for bit, (address, length) in sorted(result.SECTIONS.items()):
-            if req.mask & bit:
+            if mask & bit:
                 parts.extend(self._result_parts(address, length))
         return parts or [b""]
 

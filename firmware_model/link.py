@@ -209,26 +209,44 @@ def _pieces(chunk: bytes):
 
 def serve(device, link, stop: threading.Event, *, baud: int | None = None, turnaround: float = 0.0,
           poll: float = 0.1) -> None:
-    """Serve ``device`` on ``link`` until ``stop`` is set; pace to ``baud`` if given."""
+    """Serve ``device`` on ``link`` until ``stop`` is set; pace to ``baud`` if given. Replies the
+    device produces later (a COMBINATION's, when its sequence ends) are written as they come,
+    while the loop goes on reading and answering."""
     pacer = Pacer(baud, turnaround) if baud else None
-    while not stop.is_set():
-        try:
-            chunk = link.read(poll)
-        except OSError as exc:
-            print(f"link: read failed: {exc}", file=sys.stderr)
-            time.sleep(poll)
-            continue
-        if not chunk:
-            continue
-        if pacer is None:
-            replies = device.receive(chunk)
-            if replies:
-                if turnaround > 0:
-                    time.sleep(turnaround)
-                link.write(b"".join(replies))
-            continue
-        for piece in _pieces(chunk):
-            done = pacer.arrived(len(piece))
-            _sleep_until(done)
-            for frame in device.receive(piece):
-                pacer.send(link, frame, done + pacer.turnaround)
+    write_lock = threading.Lock()
+
+    def late(frames: list[bytes]) -> None:
+        with write_lock:
+            if pacer is None:
+                link.write(b"".join(frames))
+            else:
+                for frame in frames:
+                    pacer.send(link, frame, time.monotonic() + pacer.turnaround)
+
+    device.late_reply = late
+    try:
+        while not stop.is_set():
+            try:
+                chunk = link.read(poll)
+            except OSError as exc:
+                print(f"link: read failed: {exc}", file=sys.stderr)
+                time.sleep(poll)
+                continue
+            if not chunk:
+                continue
+            if pacer is None:
+                replies = device.receive(chunk)
+                if replies:
+                    if turnaround > 0:
+                        time.sleep(turnaround)
+                    with write_lock:
+                        link.write(b"".join(replies))
+                continue
+            for piece in _pieces(chunk):
+                done = pacer.arrived(len(piece))
+                _sleep_until(done)
+                for frame in device.receive(piece):
+                    with write_lock:
+                        pacer.send(link, frame, done + pacer.turnaround)
+    finally:
+        device.late_reply = None

@@ -219,3 +219,44 @@ def test_serial_port_transport():
         assert dev.stop() == 0
         os.close(master)
         os.close(slave)
+
+
+def test_link_is_served_while_a_combination_waits_for_its_sequence():
+    """COMBINATION with GO waits for its sequence (here a capture that blocks): meanwhile the
+    link answers other commands, and the COMBINATION reply follows when the sequence ends.
+    In-process device on a real pty (the capture is held by the test)."""
+    import threading
+
+    from firmware_model.device import Device
+    from firmware_model.link import PtyLink, serve
+    from protocol.commands import AddressedBytes, Combination
+
+    release = threading.Event()
+
+    def capture(ctx):
+        release.wait(10.0)
+        return None  # "no more frames": the sequence ends with NO_FRAME
+
+    dev = Device(frame_source=capture)
+    link, stop = PtyLink(), threading.Event()
+    server = threading.Thread(target=serve, args=(dev, link, stop), daemon=True)
+    server.start()
+    try:
+        with Client(link.path, timeout=2.0, retries=0) as c:
+            c.upload(0, _small_catalog_image(), progress=False)
+            c.init()
+            c.write_raw(nsp.command(c.device_address, c.host_address, Code.COMBINATION,
+                                    Combination(0x0B, 0x0007).pack()).frame())
+            assert "APPLICATION" in c.ping() and dev.busy  # answered while the sequence runs
+            assert c.read_edac(0x0100, 4) == bytes(4)
+            release.set()
+            raw = c.read_raw(2.0)
+            replies = [nsp.decode(f.data) for f in slip.Decoder(nsp.MAX_MESSAGE).feed(raw)]
+            assert [m.code for m in replies] == [Code.COMBINATION] * 3 and all(m.ack for m in replies)
+            parts = {p.address: p.data for p in (AddressedBytes.unpack(m.data) for m in replies)}
+            assert result.status_of(struct.unpack("<I", parts[0x004])[0]) == result.Status.NO_FRAME
+    finally:
+        release.set()
+        stop.set()
+        server.join(5.0)
+        link.close()
