@@ -14,7 +14,7 @@ import importlib
 import os
 import sys
 
-from ground.cli_types import U8, ranged
+from ground.cli_types import U8, output_file, ranged
 
 #: Modules that add subcommands, in help order. Each defines ``register(subparsers)``.
 COMMAND_MODULES = (
@@ -53,7 +53,7 @@ def _global_options(parser: argparse.ArgumentParser, defaults: bool = True) -> N
     parser.add_argument("--timeout", type=ranged(float, 0.001, 3600.0, "a reply timeout in s"),
                         help="reply timeout in seconds", **kw(1.0))
     parser.add_argument("--json", action="store_true", help="machine-readable output", **kw(False))
-    parser.add_argument("--log", help="append every exchange to this JSONL file", **kw(None))
+    parser.add_argument("--log", type=output_file, help="append every exchange to this JSONL file", **kw(None))
 
 
 def _leaf_parsers(parser: argparse.ArgumentParser):

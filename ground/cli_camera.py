@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from ground import json_text
+from ground.atomic_write import write_text
+from ground.cli_types import output_file
 
 
 def _calibrate(args) -> int:
@@ -40,7 +42,7 @@ def _calibrate(args) -> int:
         print(f"st16-ground: {exc}", file=sys.stderr)
         return 1
     cam = cal.result.camera
-    Path(args.output).write_text(json_text.dumps({k: float(v) if isinstance(v, float) else v
+    write_text(args.output, json_text.dumps({k: float(v) if isinstance(v, float) else v
                                              for k, v in cam.to_dict().items()}, indent=2))
     report = {"camera": args.output, "focal_scale_searched": cal.focal_scale,
               "residual_rms_px": cal.result.residual_rms_px, "stars": cal.result.n_observations,
@@ -64,5 +66,5 @@ def register(sub) -> None:
     p.add_argument("--psf-sigma", type=float, help="PSF Gaussian sigma, px (an override: measured per frame by default)")
     p.add_argument("--fit", default="f,k1", help="parameters to fit: any of f,cx,cy,k1,k2,k3,p1,p2")
     p.add_argument("--focal-search", type=float, default=0.05, help="relative focal-length search half-range")
-    p.add_argument("-o", "--output", default="camera.json")
+    p.add_argument("-o", "--output", type=output_file, default="camera.json", help="camera model JSON to write")
     p.set_defaults(func=_calibrate)

@@ -6,9 +6,9 @@ import json
 import sys
 from pathlib import Path
 
-from ground import json_text
+from ground import atomic_write, json_text
 from ground.catalog.colour import ColourDataError
-from ground.cli_types import SENSOR_PX
+from ground.cli_types import SENSOR_PX, output_file
 from ground.catalog.design import CatalogDesign, DesignError
 from ground.catalog.sources import CatalogFormatError
 from protocol.catalog_image import CatalogImageError, crc32, parse_image
@@ -91,7 +91,7 @@ def _build(args) -> int:
         return _fail(str(exc))
     image = catalog_to_image(cat)
     try:
-        Path(args.output).write_bytes(image)
+        atomic_write.write_bytes(args.output, image)
     except OSError as exc:
         return _fail(f"{args.output}: {exc.strerror}")
     out = {**summary(cat), "image": args.output, "image_bytes": len(image), "image_crc32": f"0x{crc32(image):08X}"}
@@ -110,7 +110,7 @@ def _analyze(args) -> int:
     except (DesignError, CatalogFormatError, ColourDataError, ValueError) as exc:
         return _fail(str(exc))
     if args.json_out:
-        Path(args.json_out).write_text(res.to_json() + "\n")
+        atomic_write.write_text(args.json_out, res.to_json() + "\n")
     if args.plot:
         plot_views(args.plot, views, vc, vm, title=f"{res.source} V<={design.m_thresh} thetaFOV={design.theta_fov_deg} deg: bad views")
     if args.json:
@@ -195,20 +195,20 @@ def register(sub) -> None:
 
     p = csub.add_parser("build", help="build a catalog image from a design")
     _design_args(p)
-    p.add_argument("-o", "--output", default="catalog.st16cat", help="image file to write")
+    p.add_argument("-o", "--output", type=output_file, default="catalog.st16cat", help="image file to write")
     p.set_defaults(func=_build)
 
     p = csub.add_parser("analyze", help="seed-000 table 1: ambiguity and availability of a design")
     _design_args(p)
     p.add_argument("--views", type=int, default=100_000, help="boresights on the generalized spiral")
-    p.add_argument("--json-out", help="write the result as JSON")
-    p.add_argument("--plot", help="write a Mollweide PNG of bad/unresolvable views")
+    p.add_argument("--json-out", type=output_file, help="write the result as JSON")
+    p.add_argument("--plot", type=output_file, help="write a Mollweide PNG of bad/unresolvable views")
     p.set_defaults(func=_analyze)
 
     p = csub.add_parser("colours", help="plot colour ratios against spectral type (seed 000 fig. 7)")
     p.add_argument("--qe", help="QE CSV; default the shipped MT9P031-like model")
     p.add_argument("--pickles", help="directory of Pickles .sed spectra")
-    p.add_argument("--plot", default="colour_ratios.png")
+    p.add_argument("--plot", type=output_file, default="colour_ratios.png", help="PNG to write")
     p.set_defaults(func=_colours)
 
     p = csub.add_parser("upload", help="upload an image to the device (resumable), verify CRC-32, commit")

@@ -24,7 +24,7 @@ from firmware_model.extract import PSF_SIGMA_RANGE_PX, extract_stars
 from firmware_model.frame_io import FrameReadError, read_frame
 from firmware_model.frames import attitude_from_radec_roll
 from ground import json_text
-from ground.cli_types import ANGLE_DEG, DEC_DEG, RA_DEG, SECONDS, SEED, SENSOR_PX, ranged
+from ground.cli_types import ANGLE_DEG, DEC_DEG, RA_DEG, SECONDS, SEED, SENSOR_PX, output_file, ranged
 from ground.frame_writer import truth_path_for, write_rendered
 
 
@@ -40,7 +40,7 @@ def register(sub) -> None:
     fsub.required = True
 
     p = fsub.add_parser("render", help="render a raw frame with truth from a catalog or random stars")
-    p.add_argument("--out", required=True, help="output frame: .dng, .fits or .npy")
+    p.add_argument("--out", type=output_file, required=True, help="output frame: .dng, .fits or .npy")
     sky = p.add_argument_group("sky")
     sky.add_argument("--catalog", help="on-board catalog image (st16-ground catalog build)")
     sky.add_argument("--ra", type=RA_DEG, default=83.8, help="boresight RA, deg")

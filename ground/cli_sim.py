@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ground import json_text
+from ground.atomic_write import atomic_path, write_text
 from ground.cli_types import SEED, SENSOR_PX
 
 #: Seed 000 section 5.2 (table 3, fig. 9) for 1e6 poses.
@@ -96,8 +97,9 @@ def run_colour(args) -> int:
                    catalog_pairs=catalog.n_pairs, workers=args.workers, scheduler=args.scheduler)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
-        np.save(args.out / "colour_rows.npy", rows)
-        (args.out / "colour_summary.json").write_text(json_text.dumps(summary, indent=2))
+        with atomic_path(args.out / "colour_rows.npy") as tmp, open(tmp, "wb") as f:
+            np.save(f, rows)
+        write_text(args.out / "colour_summary.json", json_text.dumps(summary, indent=2))
         skysim.plot_error_cdf(rows, args.out / "error_cdf.png")
         skysim.plot_mollweide(rows, skysim.spiral_boresights(args.boresights), args.out / "problem_map.png")
     lines = [f"{n} poses ({args.boresights} boresights x {args.rolls} rolls), {catalog.n_stars} stars, "
@@ -145,13 +147,14 @@ def run_fourstar(args) -> int:
         results[str(eps)] = s
         if args.out:
             args.out.mkdir(parents=True, exist_ok=True)
-            np.save(args.out / f"fourstar_rows_eps{eps:g}.npy", rows)
+            with atomic_path(args.out / f"fourstar_rows_eps{eps:g}.npy") as tmp, open(tmp, "wb") as f:
+                np.save(f, rows)
         lines.append(f"eps {eps:g} deg: identified {s['identified']}, unidentified {s['unidentified']}, "
                      f"misidentified {s['misidentified']} (paper 0); FOVs with >= 2 identified "
                      f"{s['fovs_with_2plus_identified']}/{n} = {s['fraction_fovs_2plus_identified'] * 100:.2f}% "
                      f"(paper 99.9%); FOVs < 4 stars {s['fovs_fewer_than_4_stars']} (paper 2); "
                      f"mean stars {s['mean_stars_per_fov']:.1f} (paper 17.5); {n / wall:.0f} FOV/s")
     if args.out:
-        (args.out / "fourstar_summary.json").write_text(json_text.dumps(results, indent=2))
+        write_text(args.out / "fourstar_summary.json", json_text.dumps(results, indent=2))
     _emit(args, results, "\n".join(lines))
     return 0

@@ -20,6 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from ground import json_text
+from ground.atomic_write import write_text
+from ground.cli_types import output_file
 
 DEFAULT_RESULTS = "st16-results"
 
@@ -202,8 +204,8 @@ def _colour_fit(args) -> int:
         print(f"st16-ground: {exc}", file=sys.stderr)
         return 1
     fit.save(args.output)
-    Path(args.output).with_suffix(".params.json").write_text(
-        json_text.dumps({"colour_correction": {"beta": [float(b) for b in fit.beta]}}, indent=2))
+    write_text(Path(args.output).with_suffix(".params.json"),
+               json_text.dumps({"colour_correction": {"beta": [float(b) for b in fit.beta]}}, indent=2))
     print(fit.to_json() if args.json else
           f"eq. 24 fit on {fit.n_used} stars ({fit.n_rejected} rejected): colour RMS {fit.rms_before:.3f} -> "
           f"{fit.rms_after:.3f}; wrote {args.output} and {Path(args.output).with_suffix('.params.json')}")
@@ -281,7 +283,8 @@ def register(sub) -> None:
     p = csub.add_parser("fit", help="fit eq. 24 from the matched stars of a results log")
     p.add_argument("results", help="results.jsonl of a solve or replay run")
     p.add_argument("--catalog", required=True, help="catalog image the run used")
-    p.add_argument("-o", "--output", default="colour_correction.json")
+    p.add_argument("-o", "--output", type=output_file, default="colour_correction.json",
+                   help="colour correction JSON to write (and its .params.json for params upload)")
     p.set_defaults(func=_colour_fit)
 
     params = sub.add_parser("params", help="device parameter sets (slot 2)")

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 
 def ranged(kind, lo=None, hi=None, what: str = "value"):
@@ -23,6 +24,16 @@ def ranged(kind, lo=None, hi=None, what: str = "value"):
 
     parse.__name__ = what  # argparse names the type in its messages
     return parse
+
+
+def output_file(text: str) -> str:
+    """An argparse type: a file path whose directory exists (checked before any work is done)."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a directory, not a file")
+    if not path.parent.is_dir():
+        raise argparse.ArgumentTypeError(f"directory {path.parent} does not exist (for {text})")
+    return text
 
 
 U8 = ranged(int, 0, 0xFF, "a byte")

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from firmware_model.pipeline import apply_colour_correction
+from ground.atomic_write import write_text
 
 PARAMETER_KIND = "colour_correction"
 
@@ -120,7 +121,7 @@ class ColourCorrection:
 
     def save(self, path) -> Path:
         path = Path(path)
-        path.write_text(self.to_json())
+        write_text(path, self.to_json())
         return path
 
 

@@ -20,6 +20,7 @@ import numpy as np
 from firmware_model.camera import CameraModel
 from firmware_model.catalog_image_io import catalog_to_image
 from firmware_model.frames import attitude_from_radec_roll
+from ground.atomic_write import write_bytes
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
 from ground.frame_writer import write_rendered
@@ -75,7 +76,7 @@ def run_demo(out, n_frames: int = 6, seed: int = 2026) -> int:
     design = CatalogDesign()
     catalog = build_catalog(design)
     image = catalog_to_image(catalog)
-    (out / "catalog.st16cat").write_bytes(image)
+    write_bytes(out / "catalog.st16cat", image)
     print(f"catalog: Hipparcos V <= {design.m_thresh}, theta_FOV {design.theta_fov_deg} deg: {catalog.n_stars} stars, "
           f"{catalog.n_pairs} pairs, {len(image)} bytes, built in {time.perf_counter() - t0:.1f} s", flush=True)
 

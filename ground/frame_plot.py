@@ -14,6 +14,7 @@ import numpy as np
 
 from firmware_model.extract import StarList
 from firmware_model.frame import Frame
+from ground.atomic_write import save_figure
 
 
 def plot_detections(frame: Frame, stars: StarList, path, truth: dict | None = None, title: str = "") -> Path:
@@ -51,6 +52,6 @@ def plot_detections(frame: Frame, stars: StarList, path, truth: dict | None = No
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    save_figure(fig, path)
     plt.close(fig)
     return path

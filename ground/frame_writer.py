@@ -19,6 +19,7 @@ import numpy as np
 
 from firmware_model.frame import Frame
 from firmware_model.frame_io import FITS_CAMERA_KEYS
+from ground.atomic_write import atomic_path
 
 _CFA_CODES = {"R": 0, "G": 1, "B": 2}
 
@@ -71,13 +72,14 @@ def write_dng(frame: Frame, path) -> Path:
     if frame.exposure_s is not None:
         fr = Fraction(frame.exposure_s).limit_denominator(1_000_000)
         tags.append((33434, "2I", 1, (fr.numerator, fr.denominator), True))
-    tifffile.imwrite(
-        path, data, photometric="minisblack" if mono else 32803, extratags=tags,
-        description=_description(frame), metadata=None, subfiletype=0,
-    )
-    if mono:  # tifffile refuses LinearRaw with one sample; patch the tag in place
-        with tifffile.TiffFile(path, mode="r+b") as tif:
-            tif.pages[0].tags["PhotometricInterpretation"].overwrite(34892)
+    with atomic_path(path) as tmp:
+        tifffile.imwrite(
+            tmp, data, photometric="minisblack" if mono else 32803, extratags=tags,
+            description=_description(frame), metadata=None, subfiletype=0,
+        )
+        if mono:  # tifffile refuses LinearRaw with one sample; patch the tag in place
+            with tifffile.TiffFile(tmp, mode="r+b") as tif:
+                tif.pages[0].tags["PhotometricInterpretation"].overwrite(34892)
     return path
 
 
@@ -104,20 +106,23 @@ def write_fits(frame: Frame, path) -> Path:
         for k in FITS_CAMERA_KEYS:
             if k in frame.camera:
                 h[f"CAM_{k.upper()}"] = float(frame.camera[k])
-    hdu.writeto(path, overwrite=True)
+    with atomic_path(path) as tmp:
+        hdu.writeto(tmp, overwrite=True)
     return path
 
 
 def write_npy(frame: Frame, path) -> Path:
     """Write ``frame`` as ``path`` (.npy) plus the ``<stem>.json`` sidecar."""
     path = Path(path)
-    np.save(path, frame.pixels, allow_pickle=False)
     side = {
         "pattern": frame.pattern, "black_level": list(frame.black_level), "white_level": frame.white_level,
         "exposure_s": frame.exposure_s, "timestamp": frame.timestamp, "site": frame.site,
         "camera": frame.camera, "metadata": frame.metadata,
     }
-    path.with_suffix(".json").write_text(json.dumps(side, indent=1))
+    with atomic_path(path.with_suffix(".json")) as side_tmp:  # replaced after the pixels, not without them
+        side_tmp.write_text(json.dumps(side, indent=1))
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.save(f, frame.pixels, allow_pickle=False)
     return path
 
 
@@ -128,10 +133,11 @@ def truth_path_for(frame_path) -> Path:
 
 
 def write_rendered(rendered, path) -> Path:
-    """Write a ``sensor_sim.RenderResult``: the frame (by extension) and its truth beside it."""
-    out = write_frame(rendered.frame, path)
-    truth_path_for(out).write_text(json.dumps(rendered.truth, indent=1))
-    return out
+    """Write a ``sensor_sim.RenderResult``: the frame (by extension) and its truth beside it; the
+    truth replaces the previous one only once the frame has."""
+    with atomic_path(truth_path_for(path)) as tmp:
+        tmp.write_text(json.dumps(rendered.truth, indent=1))
+        return write_frame(rendered.frame, path)
 
 
 def write_frame(frame: Frame, path) -> Path:

@@ -35,6 +35,7 @@ from firmware_model.frame_io import frame_files, read_frame
 from firmware_model.frames import quat_to_matrix, rotation_angle
 from firmware_model.onboard_catalog import OnboardCatalog
 from firmware_model.pipeline import PipelineParams, identify_stars, run_pipeline
+from ground.atomic_write import write_text
 from ground.frame_writer import truth_path_for
 from ground.results_log import ResultsLog, plot_summary, summarize
 from ground.solve_report import matched_stars, record_from_output, solve_record
@@ -273,7 +274,7 @@ def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool =
     records = log.records()
     summary = summarize(records)
     summary["plots"] = [str(p) for p in plot_summary(records, out_dir)] if make_plots else []
-    (Path(out_dir) / "summary.json").write_text(json.dumps(summary, indent=2))
+    write_text(Path(out_dir) / "summary.json", json.dumps(summary, indent=2))
     return summary
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ground import json_text
+from ground.atomic_write import save_figure
 
 CSV_FIELDS = (
     "time_utc", "frame", "method", "status", "outcome", "ra_deg", "dec_deg", "roll_deg",
@@ -132,7 +133,7 @@ def plot_summary(records: list[dict], out_dir) -> list[Path]:
         ax.grid(True, which="both", alpha=0.3)
         path = out_dir / "error_cdf.png"
         fig.tight_layout()
-        fig.savefig(path, dpi=120)
+        save_figure(fig, path, dpi=120)
         plt.close(fig)
         written.append(path)
     residuals = [res for r in records for res in (r.get("residuals_arcsec") or [])]
@@ -144,7 +145,7 @@ def plot_summary(records: list[dict], out_dir) -> list[Path]:
         ax.set_title(f"Star residuals ({len(residuals)} stars)")
         path = out_dir / "residuals.png"
         fig.tight_layout()
-        fig.savefig(path, dpi=120)
+        save_figure(fig, path, dpi=120)
         plt.close(fig)
         written.append(path)
     return written

@@ -37,6 +37,7 @@ from firmware_model.ident.four_star import FourStarParams, match_four_star
 from firmware_model.ident.solver import SolveParams, check_hypothesis, solve
 from firmware_model.ident.verify import FieldOfView
 from firmware_model.onboard_catalog import OnboardCatalog
+from ground.atomic_write import save_figure
 
 STATUS_CODE = {Outcome.NO_MATCH: 0, Outcome.LOW_CONFIDENCE: 1, Outcome.HIGH_CONFIDENCE: 2}
 
@@ -429,7 +430,7 @@ def plot_error_cdf(rows: np.ndarray, path) -> None:
     ax.set_ylim(0, 1.01)
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
 
 
@@ -474,5 +475,5 @@ def plot_mollweide(rows: np.ndarray, boresights: np.ndarray, path) -> None:
     ax.grid(True, alpha=0.3)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.05), ncol=3, fontsize=8, markerscale=2)
     ax.set_title("Worst result per boresight (cf. seed 000 fig. 10)", pad=18)
-    fig.savefig(path, dpi=120, bbox_inches="tight")
+    save_figure(fig, path, dpi=120, bbox_inches="tight")
     plt.close(fig)

@@ -27,6 +27,7 @@ from tqdm import tqdm
 
 from firmware_model.frames import vec_to_radec
 from firmware_model.onboard_catalog import OnboardCatalog, chord_of_angle
+from ground.atomic_write import save_figure
 
 PAIR_CHUNK = 4096
 
@@ -227,5 +228,5 @@ def plot_views(path: str | Path, views: np.ndarray, colour: ViewStats, mono: Vie
     ax.legend(loc="lower right", fontsize=8, markerscale=4)
     ax.set_title(title or f"Bad views over {colour.n_views} spiral boresights")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)

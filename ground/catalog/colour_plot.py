@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ground.atomic_write import save_figure
 from ground.catalog.colour import ColourModel
 
 _LUM_STYLE = {1: ("I", "tab:purple", "v"), 2: ("II", "tab:brown", "<"), 3: ("III", "tab:red", "s"), 4: ("IV", "tab:green", ">"),
@@ -48,6 +49,6 @@ def plot_colour_ratios(model: ColourModel, path: str | Path) -> dict[str, tuple[
     ax2.legend(fontsize=8)
     ax2.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
     return ratios

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ground.atomic_write import write_text
 from ground.catalog.sources import HIPPARCOS_EPOCH, MAS, StarTable, hipparcos_path, load_hipparcos_columns, read_bsc5
 
 OUT = Path(__file__).with_name("data") / "hp_to_v.json"
@@ -75,7 +76,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
     record = fit(*matched_sample(args.bsc5))
-    args.out.write_text(json.dumps(record, indent=2) + "\n")
+    write_text(args.out, json.dumps(record, indent=2) + "\n")
     print(json.dumps(record, indent=2))
     return 0
 

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ground.atomic_write import write_text
 from ground.catalog.build import borrow_mk_types
 from ground.catalog.colour import ColourModel, default_qe, match_template, parse_mk, pickles_templates, photon_signals, \
     ratios_from_signals, read_sed
@@ -68,7 +69,7 @@ def main(argv=None) -> int:
         bv_text = f"{bv:.3f}" if nb >= MIN_STARS else ""
         vi_text = f"{vi:.3f}" if nv >= MIN_STARS else ""
         lines.append(f"{name},{bv_text},{nb},{vi_text},{nv},{rg:.6f},{bg:.6f}")
-    args.out.write_text("\n".join(lines) + "\n")
+    write_text(args.out, "\n".join(lines) + "\n")
     model = ColourModel(qe=qe, pickles_dir=args.pickles_dir)
     for lk in (model.bv_lookup, model.vi_lookup):
         print(f"{lk.index} lookup: range {lk.lo:.3f} .. {lk.hi:.3f}, rms ln(rg) {lk.rms_ln[0]:.4f}, ln(bg) {lk.rms_ln[1]:.4f}")

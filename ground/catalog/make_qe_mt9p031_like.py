@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ground.atomic_write import write_text
 from ground.catalog.colour import load_qe_csv
 
 OUT = Path(__file__).with_name("data") / "qe_mt9p031_like.csv"
@@ -66,7 +67,7 @@ def main(argv=None) -> int:
         "wavelength_nm,red,green,blue\n"
     )
     body = "\n".join(f"{w:.0f},{r:.5f},{g:.5f},{b:.5f}" for w, r, g, b in rows)
-    args.out.write_text(header + body + "\n")
+    write_text(args.out, header + body + "\n")
     print(f"wrote {args.out} ({len(rows)} rows)")
     return 0
 
