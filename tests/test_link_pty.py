@@ -1,27 +1,17 @@
 """End to end over a real pty between two processes: ``st16-device --pty`` and the ground Client."""
 
 import os
-import shutil
 import signal
 import struct
 import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
 from ground.client import Client, Nack, ReplyTimeout
+from ground.fuzz.device_proc import device_command as _device_command
 from protocol import nsp, result, slip
 from protocol.commands import Code, NackReason, XferState
 from protocol.crc import crc32
-
-
-def _device_command() -> list[str]:
-    script = Path(sys.executable).parent / "st16-device"
-    if script.exists():
-        return [str(script)]
-    found = shutil.which("st16-device")
-    return [found] if found else [sys.executable, "-m", "firmware_model.cli"]
 
 
 class DeviceProcess:
