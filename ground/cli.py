@@ -87,11 +87,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from serial import SerialException
+    args = build_parser().parse_args(argv)
+    from serial import SerialException  # after parsing: --help and usage errors stay fast
 
     from ground.client import LinkError, Nack
 
-    args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

@@ -12,13 +12,15 @@ import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from protocol import result
 from protocol.commands import GO_OPERATIONAL, DarkWindow
 
 from . import json_text
 from .cli_types import SECONDS, U8, U16, U32, ranged
-from .client import Client, LinkError, Nack
+
+if TYPE_CHECKING:  # the client imports numpy and pyserial: only when a command runs
+    from .client import Client, LinkError
 
 
 def _int(text: str) -> int:
@@ -96,21 +98,30 @@ def _run_crc(c, a):
     return {"space": a.space, "address": a.address, "length": a.length, "crc16": c.crc(a.space, a.address, a.length)}
 
 
+class _Decoded(dict):
+    """A decoded result (``ground.solve_report``), rendered by its ``format_record``."""
+
+
 def _run_go(c, a):
+    from .solve_report import result_record
+
     if a.wait:
-        return result.summary(c.go_and_wait(a.code, timeout=a.wait_timeout))
+        return _Decoded(result_record(c.go_and_wait(a.code, timeout=a.wait_timeout)))
     return {"go": c.go(a.code)}
 
 
 def _run_result(c, a):
+    from .solve_report import result_record
+
     if a.count is not None:
         return _bytes_out(a.address, c.read_result(a.address, a.count))
-    return result.summary(c.read_result_record())
+    return _Decoded(result_record(c.read_result_record()))
 
 
 def _run_combination(c, a):
-    parts = c.combination(a.go_code, a.mask, timeout=a.wait_timeout)
-    return {"parts": {f"0x{addr:04X}": data.hex() for addr, data in sorted(parts.items())}}
+    from .solve_report import combination_record
+
+    return _Decoded(combination_record(c.combination(a.go_code, a.mask, timeout=a.wait_timeout)))
 
 
 def _run_dark_window(c, a):
@@ -213,7 +224,7 @@ def _a_send(p):
     p.add_argument("--silent", action="store_true", help="Poll = 0 (no reply expected)")
 
 
-Run = Callable[[Client, argparse.Namespace], dict]
+Run = Callable[["Client", argparse.Namespace], dict]
 
 #: name -> (help, add_arguments, run)
 COMMANDS: dict[str, tuple[str, Callable, Run]] = {
@@ -242,6 +253,10 @@ COMMANDS: dict[str, tuple[str, Callable, Run]] = {
 
 def render(obj: dict) -> str:
     """Human-readable rendering of a command's output dict."""
+    if isinstance(obj, _Decoded):
+        from .solve_report import format_record
+
+        return format_record(obj)
     if set(obj) == {"banner"}:
         return obj["banner"]
     lines = []
@@ -257,6 +272,8 @@ def render(obj: dict) -> str:
 
 
 def report_error(exc: LinkError, as_json: bool) -> None:
+    from .client import Nack
+
     payload = {"error": type(exc).__name__, "message": str(exc), "raw": exc.raw.hex()}
     if isinstance(exc, Nack):
         payload["reason"] = exc.reason
@@ -273,6 +290,8 @@ def client_kwargs(args) -> dict:
 
 
 def open_client(args) -> Client:
+    from .client import Client
+
     if not args.port:
         raise SystemExit("st16-ground: --port URL is required for link commands")
     return Client(args.port, **client_kwargs(args))
@@ -280,6 +299,8 @@ def open_client(args) -> Client:
 
 def _handler(run: Run):
     def handle(args) -> int:
+        from .client import LinkError
+
         with open_client(args) as client:
             try:
                 out = run(client, args)

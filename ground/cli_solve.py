@@ -34,41 +34,10 @@ def _load_catalog(path):
 
 
 
-def _optics_line(o: dict) -> str:
-    psf = "PSF sigma " + ("-" if o["psf_sigma_px"] is None else
-                          f"{o['psf_sigma_px']:.2f} px ({'measured' if o['psf_measured'] else 'set'})")
-    if not o["fitted"]:
-        return f"optics: {psf}; focal {o['focal_px'] or float('nan'):.1f} px (nominal, not fitted)"
-    k1 = f"k1 {o['k1']:+.4f}" + (f" +- {o['k1_sigma']:.4f}" if o["k1_sigma"] is not None else " (held)")
-    found = f", found at focal scale {o['focal_scale']:.2f}" if o["searched"] else ""
-    return (f"optics: {psf}; focal {o['focal_px']:.1f} +- {o['focal_sigma_px']:.1f} px, {k1} "
-            f"(fitted over {o['fit_stars']} stars, RMS {o['fit_rms_px']:.3f} px{found})")
-
-
 def _print_record(rec: dict, as_json: bool) -> None:
-    if as_json:
-        print(json_text.dumps(rec))
-        return
-    print(f"status {rec['status']}" + (f" ({rec['reason']})" if rec.get("reason") else "")
-          + (f", method {rec['method']}" if rec.get("method") else ""))
-    if rec.get("q_icrs_to_sensor") is not None:
-        q = rec["q_icrs_to_sensor"]
-        print(f"q_icrs_to_sensor [w x y z] = [{q[0]:+.9f} {q[1]:+.9f} {q[2]:+.9f} {q[3]:+.9f}]")
-        print(f"boresight RA {rec['ra_deg']:.5f} deg, Dec {rec['dec_deg']:+.5f} deg, roll {rec['roll_deg']:.4f} deg; "
-              f"1-sigma x/y/z {', '.join(f'{s:.2f}' for s in rec['sigma_arcsec'])} arcsec")
-    print(f"detected {rec['n_detected']}, matched {rec['n_matched']}")
-    if rec.get("optics"):
-        print(_optics_line(rec["optics"]))
-    for s in rec["stars"]:
-        if s.get("body"):
-            print(f"  on {s['body']}: x {s['x']:8.2f}  y {s['y']:8.2f} (predicted at the frame's epoch; not used as a star)")
-    for s in rec["stars"]:
-        if s["catalog_id"] is not None:
-            colour = f" rg {s['rg']:.3f} bg {s['bg']:.3f}" if s["rg"] is not None else ""
-            print(f"  id {s['catalog_id']:>7}  x {s['x']:8.2f}  y {s['y']:8.2f}{colour}  residual {s['residual_arcsec']:.2f}\"")
-    print("time per stage (ms): " + ", ".join(f"{k} {v * 1e3:.1f}" for k, v in rec["timings_s"].items()))
-    if "attitude_error_deg" in rec:
-        print(f"attitude error vs truth: {rec['attitude_error_deg'] * 3600:.2f} arcsec ({rec['outcome']})")
+    from ground.solve_report import format_record
+
+    print(json_text.dumps(rec) if as_json else format_record(rec))
 
 
 def _solve(args) -> int:

@@ -5,9 +5,14 @@ quaternion ``q_icrs_to_sensor`` [w, x, y, z], boresight RA/Dec/roll in degrees
 (docs/CONVENTIONS.md), detected and matched counts, the matched stars (catalog id, pixel
 position, colour ratios, residual), attitude 1-sigma per sensor axis (arcsec), and the time per
 pipeline stage. The same function serves offline runs through :func:`record_from_output`.
+:func:`result_record` adds what READ RESULT carries besides (COSMOS bits, epoch, omega),
+:func:`combination_record` decodes the sections a COMBINATION returned, and
+:func:`format_record` renders any of these for people.
 """
 
 from __future__ import annotations
+
+from datetime import datetime, timezone
 
 import numpy as np
 
@@ -88,6 +93,122 @@ def record_from_output(out: PipelineOutput, sequence: int = 0) -> dict:
     fields = result_fields(out)
     fields["ext.reason"] = out.reason.encode()[: result.EXT_REASON_BYTES]
     return solve_record(result.parse(result.build(fields, sequence)))
+
+
+def utc_iso(epoch_s: float) -> str | None:
+    """ISO-8601 UTC time of POSIX seconds (ms resolution); None for 0 (not set) or out of range."""
+    if not (np.isfinite(epoch_s) and 0 < epoch_s < 253402300800):  # year 10000
+        return None
+    return datetime.fromtimestamp(epoch_s, timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+def _header(rec: np.ndarray) -> dict:
+    rc = int(rec["return_code"])
+    return {"bits": [b.name for b in result.ReturnBits if rc & b], "epoch": float(rec["epoch"]),
+            "epoch_utc": utc_iso(float(rec["epoch"])), "omega_rad_s": [float(v) for v in rec["omega"]]}
+
+
+def result_record(rec: np.ndarray) -> dict:
+    """:func:`solve_record` plus the COSMOS return bits, the epoch (POSIX s and ISO UTC) and omega (rad/s)."""
+    return {**solve_record(rec), **_header(rec)}
+
+
+#: Keys of :func:`result_record` decoded from each COMBINATION section (by its result address).
+_SECTION_KEYS = {
+    0x000: ("sequence",), 0x004: ("return_code", "status", "bits"), 0x028: ("omega_rad_s",),
+    0x040: ("epoch", "epoch_utc"),
+    result.EXT_OFFSET: ("reason", "method", "n_detected", "n_matched", "sigma_arcsec", "residual_rms_arcsec",
+                        "timings_s", "optics", "n_planets", "stars"),
+}
+
+
+def combination_record(parts: dict[int, bytes]) -> dict:
+    """Readable fields of the result sections a COMBINATION returned (result address -> bytes):
+    those of :func:`result_record` that the sections hold, the attitude from the quaternion section
+    (``q_icrs_to_sensor``, boresight RA/Dec/roll in degrees), the matching section's consensus, and
+    the hex of the sections not decoded (``raw``, by address)."""
+    buf = bytearray(result.TOTAL_LENGTH)
+    for address, data in parts.items():
+        buf[address:address + len(data)] = data
+    rec = result.parse(bytes(buf))
+    full = result_record(rec)
+    out: dict = {}
+    for address in sorted(parts):
+        if address in _SECTION_KEYS:
+            out.update({k: full[k] for k in _SECTION_KEYS[address]})
+        elif address == 0x008:
+            q = np.asarray(rec["quaternion"], dtype=float)
+            if np.isfinite(q).all() and abs(np.linalg.norm(q) - 1) < 1e-6:
+                ra, dec, roll = (float(np.degrees(v)) for v in radec_roll_from_attitude(quat_to_matrix(q)))
+                out.update(q_icrs_to_sensor=[float(v) for v in q], ra_deg=ra, dec_deg=dec, roll_deg=roll)
+            else:
+                out["q_icrs_to_sensor"] = None  # no attitude
+        elif address == 0x7E8:
+            m = rec["matching"][0]
+            out["matching"] = {"consensus_size": int(m["consensus_size"]), "confidence": _num(m["confidence"]),
+                               "matched_stars": [int(i) for i in m["matched_stars"] if i >= 0]}
+        else:
+            out.setdefault("raw", {})[f"0x{address:04X}"] = parts[address].hex()
+    return out
+
+
+def _optics_line(o: dict) -> str:
+    psf = "PSF sigma " + ("-" if o["psf_sigma_px"] is None else
+                          f"{o['psf_sigma_px']:.2f} px ({'measured' if o['psf_measured'] else 'set'})")
+    if not o["fitted"]:
+        return f"optics: {psf}; focal {o['focal_px'] or float('nan'):.1f} px (nominal, not fitted)"
+    k1 = f"k1 {o['k1']:+.4f}" + (f" +- {o['k1_sigma']:.4f}" if o["k1_sigma"] is not None else " (held)")
+    found = f", found at focal scale {o['focal_scale']:.2f}" if o["searched"] else ""
+    return (f"optics: {psf}; focal {o['focal_px']:.1f} +- {o['focal_sigma_px']:.1f} px, {k1} "
+            f"(fitted over {o['fit_stars']} stars, RMS {o['fit_rms_px']:.3f} px{found})")
+
+
+def format_record(rec: dict) -> str:
+    """Lines for people from a :func:`solve_record`, :func:`result_record` or :func:`combination_record`
+    (only the fields present are shown)."""
+    lines = []
+    if "status" in rec:
+        lines.append(f"status {rec['status']}" + (f" ({rec['reason']})" if rec.get("reason") else "")
+                     + (f", method {rec['method']}" if rec.get("method") else ""))
+    if "bits" in rec:
+        lines.append(f"return code 0x{rec['return_code']:04X}: {', '.join(rec['bits']) or 'no bits set'}")
+    if "sequence" in rec or "epoch" in rec:
+        lines.append(", ".join(([f"sequence {rec['sequence']}"] if "sequence" in rec else [])
+                               + ([f"epoch {rec['epoch_utc'] or 'not set'} UTC"] if "epoch" in rec else [])))
+    if rec.get("q_icrs_to_sensor") is not None:
+        q = rec["q_icrs_to_sensor"]
+        lines.append(f"q_icrs_to_sensor [w x y z] = [{q[0]:+.9f} {q[1]:+.9f} {q[2]:+.9f} {q[3]:+.9f}]")
+        sigma = rec.get("sigma_arcsec")
+        lines.append(f"boresight RA {rec['ra_deg']:.5f} deg, Dec {rec['dec_deg']:+.5f} deg, roll {rec['roll_deg']:.4f} deg"
+                     + (f"; 1-sigma x/y/z {', '.join(f'{s:.2f}' for s in sigma)} arcsec" if sigma else ""))
+    elif "q_icrs_to_sensor" in rec:
+        lines.append("no attitude")
+    if "omega_rad_s" in rec:
+        lines.append("omega [x y z] = [" + " ".join(f"{w:+.3e}" for w in rec["omega_rad_s"]) + "] rad/s")
+    if "n_detected" in rec:
+        lines.append(f"detected {rec['n_detected']}, matched {rec['n_matched']}")
+    if "matching" in rec:
+        m = rec["matching"]
+        lines.append(f"matching: consensus of {m['consensus_size']}, confidence {m['confidence']}, "
+                     f"catalog ids {m['matched_stars']}")
+    if rec.get("optics") and rec["optics"]["psf_sigma_px"] != 0:  # 0: a zeroed record, nothing measured
+        lines.append(_optics_line(rec["optics"]))
+    for s in rec.get("stars", []):
+        if s.get("body"):
+            lines.append(f"  on {s['body']}: x {s['x']:8.2f}  y {s['y']:8.2f} "
+                         "(predicted at the frame's epoch; not used as a star)")
+    for s in rec.get("stars", []):
+        if s["catalog_id"] is not None:
+            colour = f" rg {s['rg']:.3f} bg {s['bg']:.3f}" if s["rg"] is not None else ""
+            lines.append(f"  id {s['catalog_id']:>7}  x {s['x']:8.2f}  y {s['y']:8.2f}{colour}  "
+                         f"residual {s['residual_arcsec']:.2f}\"")
+    if "timings_s" in rec:
+        lines.append("time per stage (ms): " + ", ".join(f"{k} {v * 1e3:.1f}" for k, v in rec["timings_s"].items()))
+    for address, hex_ in rec.get("raw", {}).items():
+        lines.append(f"section at {address} ({len(hex_) // 2} bytes, not decoded): {hex_}")
+    if "attitude_error_deg" in rec:
+        lines.append(f"attitude error vs truth: {rec['attitude_error_deg'] * 3600:.2f} arcsec ({rec['outcome']})")
+    return "\n".join(lines)
 
 
 def matched_stars(record: dict) -> list[dict]:

@@ -97,3 +97,40 @@ def test_global_options_are_accepted_after_the_command(port, capsys):
     assert out["count"] == 4
     assert main(["--port", "/dev/no-such-port", "ping", "--port", port]) == 0  # the later one wins
     capsys.readouterr()
+
+
+def test_result_and_combination_print_decoded_fields(port, capsys):
+    from datetime import datetime, timezone
+
+    assert main(["--port", port, "go", "--wait"]) == 0
+    for argv in (["result"], ["combination", "0x0B", "0x1017"]):
+        assert main(["--port", port, *argv]) == 0
+        text = capsys.readouterr().out
+        assert "status NO_CATALOG (no catalog" in text and "no attitude" in text, text
+        assert " UTC" in text and "e+09" not in text and "{" not in text, text  # no epoch as 1.79e+09, no JSON
+        rc, out = run_json(port, capsys, *argv)
+        assert out["status"] == "NO_CATALOG" and out["n_matched"] == 0 and out["q_icrs_to_sensor"] is None
+        when = datetime.fromisoformat(out["epoch_utc"].replace("Z", "+00:00"))
+        assert abs(when.timestamp() - out["epoch"]) < 1e-3
+        assert abs((datetime.now(timezone.utc) - when).total_seconds()) < 120
+
+
+def test_combination_sections_decode_to_attitude_and_time():
+    import numpy as np
+
+    from firmware_model.frames import attitude_from_radec_roll, matrix_to_quat
+    from ground.solve_report import combination_record, format_record
+    from protocol import result
+
+    q = matrix_to_quat(attitude_from_radec_roll(*np.radians([83.8, -5.4, 10.0])))
+    data = result.build({"return_code": result.make_return_code(result.Status.OK, result.ReturnBits.IMAGE1_SUCCESS),
+                         "quaternion": q, "epoch": 1795495102.25, "ext.n_matched": 7, "ext.n_detected": 9}, sequence=4)
+    parts = {addr: data[addr:addr + n] for mask, (addr, n) in result.SECTIONS.items() if mask in (2, 4, 0x10, 0x20, 0x1000)}
+    out = combination_record(parts)
+    assert out["status"] == "OK" and out["bits"] == ["IMAGE1_SUCCESS"] and "sequence" not in out
+    assert out["ra_deg"] == pytest.approx(83.8) and out["dec_deg"] == pytest.approx(-5.4)
+    assert out["roll_deg"] == pytest.approx(10.0) and out["n_matched"] == 7
+    assert out["epoch_utc"] == "2026-11-24T04:38:22.250Z" and list(out["raw"]) == ["0x0048"]
+    text = format_record(out)
+    assert "RA 83.80000 deg, Dec -5.40000 deg, roll 10.0000 deg" in text and "detected 9, matched 7" in text
+    assert "epoch 2026-11-24T04:38:22.250Z UTC" in text and "section at 0x0048 (56 bytes" in text
