@@ -39,21 +39,35 @@ EXIT_CODES = {
 }
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Descriptions as written; an option's help ends with its default unless the default is
+    None, False or suppressed, or the help already says what it is."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if (any(action.default is v for v in (None, False, argparse.SUPPRESS)) or "default" in text
+                or not (action.option_strings or action.nargs in (argparse.OPTIONAL, argparse.ZERO_OR_MORE))):
+            return text
+        return text + " (default: %(default)s)"
+
+
 def _global_options(parser: argparse.ArgumentParser, defaults: bool = True) -> None:
     """The options every subcommand shares; on subcommands (``defaults=False``) they are accepted
     after the subcommand's name too, and only override what was given before it when present."""
-    kw = (lambda value: {"default": value}) if defaults else (lambda value: {"default": argparse.SUPPRESS})
-    parser.add_argument("--debug", action="store_true", help="show the traceback of a failure", **kw(False))
-    parser.add_argument("--port", help="pyserial URL of the device: pty path, /dev/tty*, socket://host:port, loop://",
-                        **kw(None))
-    parser.add_argument("--baud", type=ranged(int, 50, 16_000_000, "a baud rate"),
-                        help="baud rate for real serial ports", **kw(115200))
-    parser.add_argument("--device-address", type=U8, help="NSP address of the tracker", **kw(0x0E))
-    parser.add_argument("--host-address", type=U8, help="our NSP address", **kw(0x11))
-    parser.add_argument("--timeout", type=ranged(float, 0.001, 3600.0, "a reply timeout in s"),
-                        help="reply timeout in seconds", **kw(1.0))
-    parser.add_argument("--json", action="store_true", help="machine-readable output", **kw(False))
-    parser.add_argument("--log", type=output_file, help="append every exchange to this JSONL file", **kw(None))
+
+    def add(name: str, help_text: str, default, shown=None, **kw) -> None:
+        if default is not None and default is not False:
+            help_text += f" (default: {shown or default})"
+        parser.add_argument(name, help=help_text, default=default if defaults else argparse.SUPPRESS, **kw)
+
+    add("--debug", "show the traceback of a failure", False, action="store_true")
+    add("--port", "pyserial URL of the device: pty path, /dev/tty*, socket://host:port, loop://", None)
+    add("--baud", "baud rate for real serial ports", 115200, type=ranged(int, 50, 16_000_000, "a baud rate"))
+    add("--device-address", "NSP address of the tracker", 0x0E, "0x0E", type=U8)
+    add("--host-address", "our NSP address", 0x11, "0x11", type=U8)
+    add("--timeout", "reply timeout in seconds", 1.0, type=ranged(float, 0.001, 3600.0, "a reply timeout in s"))
+    add("--json", "machine-readable output", False, action="store_true")
+    add("--log", "append every exchange to this JSONL file", None, type=output_file)
 
 
 def _leaf_parsers(parser: argparse.ArgumentParser):
@@ -67,7 +81,7 @@ def _leaf_parsers(parser: argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="st16-ground", description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter,
+        prog="st16-ground", description=__doc__.splitlines()[0], formatter_class=HelpFormatter,
         epilog="exit codes:\n" + "\n".join(f"  {code:>3}  {text}" for code, text in EXIT_CODES.items()))
     _global_options(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -81,6 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
             continue  # feature not installed in this build
         module.register(sub)
     for child in _leaf_parsers(parser):
+        child.formatter_class = HelpFormatter
         group = child.add_argument_group("global options (also accepted before the command)")
         _global_options(group, defaults=False)
     return parser

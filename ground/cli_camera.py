@@ -10,14 +10,14 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from ground import json_text
 from ground.atomic_write import write_text
 from ground.cli_types import output_file
 
 
 def _calibrate(args) -> int:
+    import numpy as np
+
     from firmware_model.camera import CameraModel
     from firmware_model.catalog_image_io import catalog_from_image
     from firmware_model.cli import load_camera

@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import fields
 from pathlib import Path
 
 from ground import atomic_write, json_text
-from ground.catalog.colour import ColourDataError
-from ground.cli_types import SENSOR_PX, output_file
 from ground.catalog.design import CatalogDesign, DesignError
-from ground.catalog.sources import CatalogFormatError
-from protocol.catalog_image import CatalogImageError, crc32, parse_image
+from ground.cli_types import SENSOR_PX, output_file
 
 CATALOG_SLOT = 0
 
@@ -28,7 +26,7 @@ _DESIGN_FLAGS = {
 def _design_args(p) -> None:
     g = p.add_argument_group("design (flags override --design FILE.toml)")
     g.add_argument("--design", help="TOML design file (keys as in CatalogDesign, top level or [design])")
-    g.add_argument("--source", choices=("hipparcos", "bsc5"))
+    g.add_argument("--source", choices=("hipparcos", "bsc5"), help="source star catalog")
     g.add_argument("--source-path", help="catalog file (default: bundled hip2.dat / ../shared BSC5)")
     g.add_argument("--theta-fov", type=float, help="half-angle FOV along the minor axis, deg")
     g.add_argument("--fov-deg", type=float, help="horizontal field of view across --width, deg: sets theta-fov, "
@@ -37,9 +35,9 @@ def _design_args(p) -> None:
     g.add_argument("--height", type=SENSOR_PX, help="sensor height, px")
     g.add_argument("--m-thresh", type=float, help="limiting V magnitude")
     g.add_argument("--sigma-pix", type=float, help="centroid noise, px")
-    g.add_argument("--sigma-rg", type=float)
-    g.add_argument("--sigma-bg", type=float)
-    g.add_argument("--p-correct", type=float)
+    g.add_argument("--sigma-rg", type=float, help="colour-ratio noise, rg")
+    g.add_argument("--sigma-bg", type=float, help="colour-ratio noise, bg")
+    g.add_argument("--p-correct", type=float, help="probability that a true pair passes the match test")
     g.add_argument("--phi-min", type=float, help="deg (default theta_FOV/500)")
     g.add_argument("--phi-max", type=float, help="deg (default 2 theta_FOV)")
     g.add_argument("--n-h", type=int, help="hash index size")
@@ -49,10 +47,15 @@ def _design_args(p) -> None:
     g.add_argument("--mk-types", help="BSC5 catalog.dat lending MK types to Hipparcos stars (positional cross-match)")
     g.add_argument("--resolve", type=float, help="double-star merge angle, deg (default phi_min)")
     g.add_argument("--drop-variable", action="store_true", default=None, help="drop variable stars")
+    defaults = {f.name: f.default for f in fields(CatalogDesign)}
+    for action in g._group_actions:  # the flags default to None ("not given"): show the design's default
+        default = defaults.get(_DESIGN_FLAGS.get(action.dest))
+        if default is not None and "default" not in action.help:
+            action.help += f" (default: {default}, or the --design file's)"
 
 
 def design_from_args(args) -> CatalogDesign:
-    """TOML file (if any) updated with the flags given on the command line."""
+    """The ``CatalogDesign`` of a TOML file (if any) updated with the flags given on the command line."""
     base = CatalogDesign.from_toml(args.design).to_dict() if args.design else {}
     if getattr(args, "fov_deg", None) is not None:
         if not (args.width and args.height):
@@ -80,14 +83,23 @@ def _print(out: dict, as_json: bool) -> None:
             print(f"{k:>22}: {v}")
 
 
+def _design_errors() -> tuple[type[Exception], ...]:
+    """What a bad design, source catalog or colour data raises (imported with the catalog code)."""
+    from ground.catalog.colour import ColourDataError
+    from ground.catalog.sources import CatalogFormatError
+
+    return DesignError, CatalogFormatError, ColourDataError
+
+
 def _build(args) -> int:
     from firmware_model.catalog_image_io import catalog_to_image
     from ground.catalog.build import build_catalog, summary
+    from protocol.catalog_image import crc32
 
     try:
         design = design_from_args(args)
         cat = build_catalog(design)
-    except (DesignError, CatalogFormatError, ColourDataError) as exc:
+    except _design_errors() as exc:
         return _fail(str(exc))
     image = catalog_to_image(cat)
     try:
@@ -107,7 +119,7 @@ def _analyze(args) -> int:
         design = design_from_args(args)
         cat = build_catalog(design)
         res, views, vc, vm = analyze(cat, design, n_views=args.views, progress=not args.json, return_views=True)
-    except (DesignError, CatalogFormatError, ColourDataError, ValueError) as exc:
+    except (*_design_errors(), ValueError) as exc:
         return _fail(str(exc))
     if args.json_out:
         atomic_write.write_text(args.json_out, res.to_json() + "\n")
@@ -123,7 +135,7 @@ def _analyze(args) -> int:
 
 
 def _colours(args) -> int:
-    from ground.catalog.colour import ColourModel, default_qe, load_qe_csv
+    from ground.catalog.colour import ColourDataError, ColourModel, default_qe, load_qe_csv
     from ground.catalog.colour_plot import plot_colour_ratios
 
     try:
@@ -144,6 +156,7 @@ def _colours(args) -> int:
 def _upload(args) -> int:
     from ground.cli_link import open_client, report_error
     from ground.client import LinkError
+    from protocol.catalog_image import CatalogImageError, parse_image
 
     try:
         data = Path(args.file).read_bytes()
@@ -212,7 +225,7 @@ def register(sub) -> None:
     p.set_defaults(func=_colours)
 
     p = csub.add_parser("upload", help="upload an image to the device (resumable), verify CRC-32, commit")
-    p.add_argument("file")
+    p.add_argument("file", help="catalog image (catalog build -o)")
     p.set_defaults(func=_upload)
 
     p = csub.add_parser("info", help="what catalog the device holds")

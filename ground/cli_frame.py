@@ -15,17 +15,8 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
-from firmware_model.camera import CameraModel
-from firmware_model.centroid import FitParams
-from firmware_model.detect import DetectParams
-from firmware_model.extract import PSF_SIGMA_RANGE_PX, extract_stars
-from firmware_model.frame_io import FrameReadError, read_frame
-from firmware_model.frames import attitude_from_radec_roll
 from ground import json_text
 from ground.cli_types import ANGLE_DEG, DEC_DEG, RA_DEG, SECONDS, SEED, SENSOR_PX, output_file, ranged
-from ground.frame_writer import truth_path_for, write_rendered
 
 
 def _fail(message: str) -> int:
@@ -48,12 +39,13 @@ def register(sub) -> None:
     sky.add_argument("--roll", type=ANGLE_DEG, default=0.0, help="roll, deg")
     sky.add_argument("--random", type=ranged(int, 0, 100_000, "a star count"), default=20,
                      help="synthetic stars when no --catalog is given")
-    sky.add_argument("--mag-range", type=float, nargs=2, default=(2.0, 6.0), metavar=("BRIGHT", "FAINT"))
+    sky.add_argument("--mag-range", type=float, nargs=2, default=(2.0, 6.0), metavar=("BRIGHT", "FAINT"),
+                     help="V magnitudes of the random stars")
     cam = p.add_argument_group("camera (default: seed 000 reference design)")
     cam.add_argument("--camera", help="CameraModel JSON (to_dict keys)")
-    cam.add_argument("--width", type=SENSOR_PX)
-    cam.add_argument("--height", type=SENSOR_PX)
-    cam.add_argument("--fov", type=float, help="half field of view on the minor axis, deg")
+    cam.add_argument("--width", type=SENSOR_PX, help="sensor width, px (default: the reference design's)")
+    cam.add_argument("--height", type=SENSOR_PX, help="sensor height, px (default: the reference design's)")
+    cam.add_argument("--fov", type=float, help="half field of view on the minor axis, deg (default: 7.5)")
     det = p.add_argument_group("detector (defaults in docs/pipeline.md)")
     det.add_argument("--pattern", default="RGGB", help="RGGB, BGGR, GRBG, GBRG or MONO")
     det.add_argument("--exposure", type=SECONDS, default=0.1, help="s")
@@ -64,13 +56,13 @@ def register(sub) -> None:
     det.add_argument("--sky", type=float, default=10.0, help="sky background, e-/s per pixel")
     det.add_argument("--hot-fraction", type=float, default=2e-5, help="fraction of hot pixels")
     det.add_argument("--gain", type=float, default=1.6, help="e-/DN")
-    det.add_argument("--bits", type=int, default=12)
+    det.add_argument("--bits", type=int, default=12, help="ADC bit depth")
     det.add_argument("--black", type=float, default=64.0, help="black level, DN")
     det.add_argument("--sensor-seed", type=int, default=1, help="fixed-pattern noise seed")
     p.add_argument("--cosmics", type=int, default=0, help="number of cosmic-ray hits")
     p.add_argument("--satellite", action="store_true", help="add one satellite streak")
     p.add_argument("--planet", action="store_true", help="add one bright planet-like source")
-    p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--seed", type=SEED, default=0, help="noise and random-star seed")
     p.add_argument("--timestamp", help="UTC ISO-8601 time to record")
     p.set_defaults(func=cmd_render)
 
@@ -80,15 +72,18 @@ def register(sub) -> None:
     p.add_argument("--params", help="parameter set JSON, the schema of the device's slot 2 (params upload)")
     p.add_argument("--truth", help="truth JSON (default FRAME.truth.json when present)")
     p.add_argument("--plot", help="write an overlay PNG here")
-    p.add_argument("--k-sigma", type=float, default=DetectParams.k_sigma, help="detection threshold")
-    p.add_argument("--max-stars", type=int, default=DetectParams.max_candidates)
+    p.add_argument("--k-sigma", type=float, help="detection threshold (default: the --params set's, else the device's)")
+    p.add_argument("--max-stars", type=int, help="candidates kept, brightest first (default: the --params set's, "
+                                                 "else the device's)")
     p.add_argument("--psf-sigma", type=float, help="PSF Gaussian sigma, px (an override: measured on the frame "
                                                    "by default)")
-    p.add_argument("--gain", type=float, default=FitParams.gain_e_per_dn, help="e-/DN for fit weights")
+    p.add_argument("--gain", type=float, help="e-/DN for fit weights (default: the --params set's, else the device's)")
     p.set_defaults(func=cmd_inspect)
 
 
-def _camera_from_args(args) -> CameraModel:
+def _camera_from_args(args):
+    from firmware_model.camera import CameraModel
+
     if args.camera:
         return CameraModel.from_dict(json.loads(Path(args.camera).read_text()))
     ref = CameraModel.reference_design()
@@ -98,6 +93,10 @@ def _camera_from_args(args) -> CameraModel:
 
 
 def cmd_render(args) -> int:
+    import numpy as np
+
+    from firmware_model.frames import attitude_from_radec_roll
+    from ground.frame_writer import truth_path_for, write_rendered
     from ground.sensor_sim import DetectorModel, FalseObject, Stars, random_star_field, render_frame
 
     try:
@@ -150,6 +149,8 @@ def cmd_render(args) -> int:
 
 
 def _match_truth(stars, truth: dict) -> list[dict | None]:
+    import numpy as np
+
     ts = truth.get("stars", [])
     if not ts:
         return [None] * len(stars)
@@ -174,23 +175,35 @@ def _fmt(value, spec: str) -> str:
 
 
 def cmd_inspect(args) -> int:
+    from dataclasses import replace
+
+    import numpy as np
+
+    from firmware_model.camera import CameraModel
+    from firmware_model.extract import PSF_SIGMA_RANGE_PX, extract_stars
+    from firmware_model.frame_io import FrameReadError, read_frame
+    from ground.frame_writer import truth_path_for
+    from ground.offline_options import load_params
+
     try:
         frame = read_frame(args.frame)
         camera = CameraModel.from_dict(json.loads(Path(args.camera).read_text())) if args.camera else None
     except (FrameReadError, ValueError, OSError) as exc:
         return _fail(str(exc))
-    from dataclasses import replace
-
-    from ground.offline_options import load_params
 
     lo, hi = PSF_SIGMA_RANGE_PX
     if args.psf_sigma is not None and not lo <= args.psf_sigma < hi:
         return _fail(f"--psf-sigma must be in [{lo:g}, {hi:g}) px, got {args.psf_sigma}")
 
     base = load_params(args.params).extract
-    params = replace(base, detect=replace(base.detect, k_sigma=args.k_sigma, max_candidates=args.max_stars),
-                     fit=replace(base.fit, gain_e_per_dn=args.gain),
-                     psf_sigma_px=args.psf_sigma if args.psf_sigma is not None else base.psf_sigma_px)
+
+    def given(value, default):
+        return default if value is None else value
+
+    params = replace(base, detect=replace(base.detect, k_sigma=given(args.k_sigma, base.detect.k_sigma),
+                                          max_candidates=given(args.max_stars, base.detect.max_candidates)),
+                     fit=replace(base.fit, gain_e_per_dn=given(args.gain, base.fit.gain_e_per_dn)),
+                     psf_sigma_px=given(args.psf_sigma, base.psf_sigma_px))
     try:
         stars = extract_stars(frame, camera, params)
     except ValueError as exc:

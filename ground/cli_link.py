@@ -39,12 +39,12 @@ def _args_none(p: argparse.ArgumentParser) -> None:
 
 
 def _args_addr_count(p):
-    p.add_argument("address", type=U32)
-    p.add_argument("count", type=ranged(int, 1, 1 << 20, "a byte count (1 to 1048576)"))
+    p.add_argument("address", type=U32, help="start address (0x.. for hex)")
+    p.add_argument("count", type=ranged(int, 1, 1 << 20, "a byte count (1 to 1048576)"), help="bytes to read")
 
 
 def _args_addr_data(p):
-    p.add_argument("address", type=U32)
+    p.add_argument("address", type=U32, help="start address (0x.. for hex)")
     p.add_argument("data", type=_hex, help="hex bytes, e.g. 01020304")
 
 
@@ -167,7 +167,7 @@ def _run_send(c, a):
 
 
 def _a_init(p):
-    p.add_argument("--address", type=U32, default=0x2000, help="application start address (0x2000)")
+    p.add_argument("--address", type=U32, default=0x2000, help="application start address (default: 0x2000)")
 
 
 def _a_diag(p):
@@ -183,44 +183,44 @@ def _a_file(p, data: bool):
 
 def _a_crc(p):
     p.add_argument("space", type=U8, help="0 EDAC, 1 memory map, 2 result")
-    p.add_argument("address", type=U32)
-    p.add_argument("length", type=U32)
+    p.add_argument("address", type=U32, help="start address (0x.. for hex)")
+    p.add_argument("length", type=U32, help="bytes")
 
 
 def _a_go(p):
-    p.add_argument("code", type=U8, nargs="?", default=GO_OPERATIONAL, help="go code (default 0x0B)")
+    p.add_argument("code", type=U8, nargs="?", default=GO_OPERATIONAL, help="go code (default: 0x0B, routine attitude)")
     p.add_argument("--wait", action="store_true", help="poll until the result is ready and print it")
-    p.add_argument("--wait-timeout", type=SECONDS, default=30.0)
+    p.add_argument("--wait-timeout", type=SECONDS, default=30.0, help="give up waiting for the result after, s")
 
 
 def _a_result(p):
-    p.add_argument("--address", type=U32, default=0)
+    p.add_argument("--address", type=U32, default=0, help="result offset of the raw bytes (with --count)")
     p.add_argument("--count", type=ranged(int, 1, 1 << 20, "a byte count (1 to 1048576)"),
                    help="raw bytes instead of the decoded summary")
 
 
 def _a_combination(p):
-    p.add_argument("go_code", type=U8)
-    p.add_argument("mask", type=U16, help="section mask, e.g. 0x0007")
-    p.add_argument("--wait-timeout", type=SECONDS, default=30.0)
+    p.add_argument("go_code", type=U8, help="go code of the sequence, e.g. 0x0B")
+    p.add_argument("mask", type=U16, help="section mask, e.g. 0x0007 (protocol.result.SECTIONS; 0x1000 ours)")
+    p.add_argument("--wait-timeout", type=SECONDS, default=30.0, help="give up waiting for the sequence after, s")
 
 
 def _a_dark(p):
     for name in ("buffer", "row", "col", "rows", "cols"):
-        p.add_argument(name, type=U16)
+        p.add_argument(name, type=U16, help="window " + name)
     p.add_argument("values", type=U16, nargs="*", help="up to 8 dark values")
 
 
 def _a_upload(p):
     _args_slot(p)
     p.add_argument("file", help="image to upload")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--no-commit", action="store_true", help="leave the transfer pending")
 
 
 def _a_send(p):
     p.add_argument("code", type=ranged(int, 0, 0x1F, "a command code (0x00-0x1F)"), help="command code 0x00-0x1F")
-    p.add_argument("data", type=_hex, nargs="?", default=b"", help="data field as hex")
+    p.add_argument("data", type=_hex, nargs="?", default=b"", help="data field as hex (default: empty)")
     p.add_argument("--silent", action="store_true", help="Poll = 0 (no reply expected)")
 
 

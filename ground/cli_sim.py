@@ -11,8 +11,6 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from ground import json_text
 from ground.atomic_write import atomic_path, write_text
 from ground.cli_types import SEED, SENSOR_PX
@@ -44,8 +42,8 @@ def register(subparsers) -> None:
     c.add_argument("--rolls", type=int, default=10, help="roll angles per boresight")
     c.add_argument("--m-thresh", type=float, default=5.0, help="limiting V magnitude")
     c.add_argument("--theta-fov", type=float, default=7.5, help="half FOV on the minor axis, deg")
-    c.add_argument("--width", type=SENSOR_PX, default=2592)
-    c.add_argument("--height", type=SENSOR_PX, default=1944)
+    c.add_argument("--width", type=SENSOR_PX, default=2592, help="sensor width, px")
+    c.add_argument("--height", type=SENSOR_PX, default=1944, help="sensor height, px")
     c.add_argument("--sigma-pix", type=float, default=0.2, help="centroid noise, px")
     c.add_argument("--sigma-colour", type=float, default=0.05, help="colour-ratio noise")
     c.add_argument("--false-stars", type=float, default=0.0, help="mean false detections per frame")
@@ -56,7 +54,7 @@ def register(subparsers) -> None:
     f = sub.add_parser("fourstar", help="seed 001 4-star matching test on a 5 deg grid")
     f.add_argument("--step", type=float, default=5.0, help="grid step, deg")
     f.add_argument("--radius", type=float, default=12.25, help="FOV radius, deg")
-    f.add_argument("--m-thresh", type=float, default=5.0)
+    f.add_argument("--m-thresh", type=float, default=5.0, help="limiting V magnitude")
     f.add_argument("--epsilon", type=float, nargs="+", default=[0.005, 0.01], help="tolerance(s), deg")
     f.add_argument("--paper", action="store_true", help="the paper's procedure without the consistency check")
     _common(f)
@@ -71,6 +69,8 @@ def _emit(args, payload: dict, text: str) -> None:
 
 
 def run_colour(args) -> int:
+    import numpy as np
+
     from firmware_model.camera import CameraModel
     from ground import skysim
     from ground.catalog.build import build_catalog
@@ -122,6 +122,8 @@ def run_colour(args) -> int:
 
 
 def run_fourstar(args) -> int:
+    import numpy as np
+
     from ground import skysim
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign, DesignError

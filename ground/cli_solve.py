@@ -17,8 +17,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 from ground import json_text
 from ground.atomic_write import write_text
 from ground.cli_types import output_file
@@ -153,6 +151,8 @@ def _table5(args) -> int:
 
 
 def _colour_fit(args) -> int:
+    import numpy as np
+
     from ground.corrections import ColourCorrection
 
     cat = _load_catalog(args.catalog)
@@ -225,7 +225,7 @@ def register(sub) -> None:
     p.set_defaults(func=_solve)
 
     p = sub.add_parser("replay", help="solve every frame of a directory and score against truth")
-    p.add_argument("directory")
+    p.add_argument("directory", help="frames (any supported format), with NAME.truth.json beside them to score")
     p.add_argument("--offline", action="store_true", help="run the pipeline in-process instead of over the link")
     p.add_argument("--catalog", help="catalog image for --offline")
     add_camera_options(p)
@@ -241,9 +241,9 @@ def register(sub) -> None:
     p.set_defaults(func=_replay)
 
     p = sub.add_parser("table5", help="seed 000 table 5 on frames with truth (offline)")
-    p.add_argument("directory")
+    p.add_argument("directory", help="frames with NAME.truth.json beside them")
     p.add_argument("--catalog", required=True, help="catalog image")
-    p.add_argument("--camera", help="camera model JSON (default: reference design)")
+    p.add_argument("--camera", help="camera model JSON (default: the reference design)")
     p.set_defaults(func=_table5)
 
     colour = sub.add_parser("colour", help="field colour calibration (seed 000 eq. 24)")
@@ -260,11 +260,11 @@ def register(sub) -> None:
     psub = params.add_subparsers(dest="params_command", metavar="ACTION")
     psub.required = True
     p = psub.add_parser("upload", help="validate and upload a JSON parameter set")
-    p.add_argument("file")
+    p.add_argument("file", help="parameter set JSON (e.g. colour fit's .params.json)")
     p.set_defaults(func=_params_upload)
 
     p = sub.add_parser("demo", help="end-to-end demo: device on a pty, catalog upload, solves over the link")
     p.add_argument("--out", default="st16-demo", help="output folder for logs, frames and plots")
     p.add_argument("--frames", type=int, default=6, help="frames to render and solve")
-    p.add_argument("--seed", type=int, default=2026)
+    p.add_argument("--seed", type=int, default=2026, help="render seed")
     p.set_defaults(func=_demo)

@@ -12,11 +12,12 @@ Bad values fail before any work with a one-line ``SystemExit`` message.
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
-from firmware_model.camera import CameraModel
-from firmware_model.frame import Frame
-from firmware_model.pipeline import PipelineParams
+if TYPE_CHECKING:  # the pipeline imports scipy: only when a command runs
+    from firmware_model.camera import CameraModel
+    from firmware_model.frame import Frame
+    from firmware_model.pipeline import PipelineParams
 
 
 def add_camera_options(parser) -> None:
@@ -32,6 +33,7 @@ def add_params_option(parser) -> None:
 
 def load_params(path: str | None) -> PipelineParams:
     """Pipeline parameters from a slot-2 parameter file (defaults without one)."""
+    from firmware_model.pipeline import PipelineParams
     from firmware_model.sensor_input import DeviceParams
 
     if path is None:
@@ -44,6 +46,7 @@ def load_params(path: str | None) -> PipelineParams:
 
 def camera_for_frames(args) -> Callable[[Frame], CameraModel]:
     """Frame -> camera model from ``--camera`` / ``--fov-deg`` (checked here, before any work)."""
+    from firmware_model.camera import CameraModel
     from firmware_model.cli import load_camera
 
     fov = getattr(args, "fov_deg", None)

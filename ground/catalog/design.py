@@ -13,8 +13,6 @@ import tomllib
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-from scipy.special import erfinv
-
 SOURCES = ("hipparcos", "bsc5")
 
 
@@ -103,6 +101,8 @@ class CatalogDesign:
     @property
     def delta_star(self) -> float:
         """Critical Mahalanobis distance, seed 000 eq. 7 (4.65 for P_correct = 0.99)."""
+        from scipy.special import erfinv  # here: the command line reads this module's defaults at start-up
+
         return float(-2.0 * math.sqrt(2.0) * erfinv(1.0 - 2.0 * self.p_correct))
 
     @property
