@@ -2,10 +2,14 @@
 
 Every transaction toggles the B bit and only accepts a reply that carries the same B bit, the
 device as source, us as destination and the command's code, so a late reply to an earlier
-command is never taken for the current one (input left over from earlier exchanges is also
-flushed before each command). Idempotent reads are retried on timeouts and malformed replies.
-NACKs, timeouts and malformed replies raise :class:`Nack`, :class:`ReplyTimeout` and
-:class:`MalformedReply`, each with the raw bytes received attached.
+command is never taken for the current one. Before its first command a client drains the line
+until it has been quiet for :data:`SYNC_QUIET` s (a reply still on its way to a previous,
+killed client is dropped there), and before every command it drops what is waiting; both drains
+are bounded (:data:`SYNC_BOUND`, :data:`READ_SLICE`), whatever the peer sends. Line noise, damaged frames and replies to
+other commands are read past: the exchange goes on until its own reply or its deadline, and
+only then reports the damage seen (:class:`MalformedReply`) or the silence (:class:`ReplyTimeout`).
+Idempotent reads are retried on timeouts and malformed replies. NACKs raise :class:`Nack`. Each
+error carries the raw bytes received (the first :data:`MAX_RAW` of them).
 """
 
 from __future__ import annotations
@@ -37,6 +41,9 @@ except ImportError:  # pragma: no cover - not POSIX
 EDAC_RESULT_LENGTH = 0x004C
 _PORT_ERRORS = (serial.SerialException, OSError, _TermiosError)
 READ_SLICE = 0.02  #: seconds one port read may block
+SYNC_QUIET = 0.05  #: seconds of silence that end the drain before a client's first command
+SYNC_BOUND = 0.25  #: seconds that drain may last at most (a peer that never stops sending)
+MAX_RAW = 65536  #: received bytes kept per exchange for error reports
 
 
 class LinkError(Exception):
@@ -95,7 +102,9 @@ class Client:
         self._own_log = isinstance(log, (str, Path))
         self.log = ExchangeLog(log) if self._own_log else log
         self._b = False
+        self._synced = False  #: the line has been drained once (before the first command)
         self.stale_replies = 0  #: replies discarded because their B bit belonged to an earlier command
+        self.discarded = 0  #: bytes dropped by the drains before commands
         self.last_exchange: tuple[bytes, bytes] = (b"", b"")  #: (sent frame, bytes received) of the last command
 
     def close(self) -> None:
@@ -147,10 +156,29 @@ class Client:
         except _PORT_ERRORS as exc:
             raise LinkDown(f"{code_name(code)}: port {self.url} failed: {exc}", self.last_exchange[1]) from exc
 
+    def _discard(self, quiet: float, bound: float) -> None:
+        """Drop input until none has arrived for ``quiet`` s (0: just what is waiting now), for
+        at most ``bound`` s. Bounded, unlike pyserial's ``socket://`` flush, which reads as long
+        as the peer sends."""
+        start = last = time.monotonic()
+        while True:
+            now = time.monotonic()
+            if now - start >= bound or (now - last >= quiet and not self._ser.in_waiting):
+                return
+            chunk = self._ser.read(self._ser.in_waiting) if self._ser.in_waiting else (
+                self._ser.read(1) if quiet > 0 else b"")
+            if chunk:
+                self.discarded += len(chunk)
+                last = time.monotonic()
+
     def _exchange_once(self, code: int, data: bytes, poll: bool, timeout: float) -> list[nsp.Message]:
+        if not self._synced:
+            self._discard(SYNC_QUIET, min(max(timeout, SYNC_QUIET), SYNC_BOUND))
+            self._synced = True
+        else:
+            self._discard(0.0, READ_SLICE)
         self._b = not self._b
         msg = nsp.command(self.device_address, self.host_address, code, data, poll=poll, b=self._b)
-        self._ser.reset_input_buffer()
         self._ser.write(msg.frame())
         self.last_exchange = (msg.frame(), b"")
         if self.log:
@@ -160,48 +188,62 @@ class Client:
         decoder = slip.Decoder(nsp.MAX_MESSAGE)
         received = bytearray()
         parts: list[nsp.Message] = []
+        damage: list[str] = []  # what was read past: noise, damaged frames, replies to other commands
         deadline = time.monotonic() + timeout
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 got = f"; {len(parts)} part(s) received before the Final one" if parts else ""
+                if damage:
+                    raise MalformedReply(f"{code_name(code)}: no valid reply within {timeout:.3f} s{got}; "
+                                         f"read past {len(damage)} bad frame(s), first: {damage[0]}", bytes(received))
                 raise ReplyTimeout(f"{code_name(code)}: no reply within {timeout:.3f} s{got}", bytes(received))
             chunk = self._ser.read(max(1, self._ser.in_waiting))
             if not chunk:
                 continue
-            received += chunk
+            if len(received) < MAX_RAW:
+                received += chunk[:MAX_RAW - len(received)]
             self.last_exchange = (self.last_exchange[0], bytes(received))
             for event in decoder.feed(chunk):
-                reply = self._accept(event, code, received)
+                reply = self._accept(event, code, damage)
                 if reply is None:
                     continue
                 if not reply.ack:
                     raise Nack(code, NackInfo.unpack(reply.data), bytes(received))
+                if parts and damage:  # a part of this reply may be among the damaged frames
+                    raise MalformedReply(f"{code_name(code)}: a frame was damaged inside the multi-part reply: "
+                                         f"{damage[-1]}", bytes(received))
                 parts.append(reply)
                 if reply.final:
                     return parts
 
-    def _accept(self, event, code: int, received: bytearray) -> nsp.Message | None:
+    def _accept(self, event, code: int, damage: list[str]) -> nsp.Message | None:
+        """The reply ``event`` holds if it is this command's; else None, noting damage in ``damage``."""
         if isinstance(event, (slip.FramingError, slip.Oversize)):
-            what = event.reason if isinstance(event, slip.FramingError) else "oversize frame"
-            raise MalformedReply(f"{code_name(code)}: {what}", bytes(received))
+            damage.append(event.reason if isinstance(event, slip.FramingError) else "oversize frame")
+            return None
         try:
             reply = nsp.decode(event.data)
         except nsp.MessageError as exc:
             if event.data[:1] == bytes([self.host_address]):
                 if self.log:
                     self.log.record("rx", event.data)
-                raise MalformedReply(f"{code_name(code)}: {exc}", bytes(received)) from None
+            damage.append(str(exc))
             return None
         if reply.dst != self.host_address or reply.src != self.device_address:
             return None  # another node's traffic (or our own echo on loop://)
+        stale = reply.b != self._b
+        other = not stale and reply.code != code
         if self.log:
-            self.log.record("rx", event.data, None if reply.b == self._b else "stale: B bit of an earlier command")
-        if reply.b != self._b:
+            note = ("stale: B bit of an earlier command" if stale
+                    else f"ignored: a reply to code 0x{reply.code:02X}" if other else None)
+            self.log.record("rx", event.data, note)
+        if stale:
             self.stale_replies += 1
             return None
-        if reply.code != code:
-            raise MalformedReply(f"{code_name(code)}: reply carries code 0x{reply.code:02X}", bytes(received))
+        if other:
+            damage.append(f"reply carries code 0x{reply.code:02X}")
+            return None
         return reply
 
     def _single(self, code: int, data: bytes = b"", **kw) -> bytes:

@@ -1,0 +1,106 @@
+"""The ground client against ports that answer garbage, slowly, never, or nonstop; replies meant
+for other commands or for a killed client are never taken (fixed seeds; long run in bench/)."""
+
+import time
+
+import pytest
+
+from ground.cli import main as cli_main
+from ground.client import Client, Nack, ReplyTimeout
+from ground.fuzz import port_faults
+from ground.fuzz.port_faults import FakePort
+from protocol import nsp
+from protocol.commands import Code, NackInfo, NackReason
+
+
+@pytest.mark.parametrize("tcp", [False, True], ids=["pty", "socket"])
+def test_every_misbehaviour_is_answered_or_a_link_error_in_time(tcp):
+    tally = port_faults.run(seed=5, trials=len(port_faults.BEHAVIOURS), timeout=0.25, tcp=tcp)
+    assert tally.failures == 0, tally.notes
+    assert tally.messages == 9 and tally.faults == 8
+
+
+@pytest.mark.parametrize("tcp", [False, True], ids=["pty", "socket"])
+def test_a_peer_that_never_stops_sending_does_not_defeat_the_timeout(tcp):
+    tally = port_faults.run_flood(seed=6, calls=3, timeout=0.2, tcp=tcp)
+    assert tally.failures == 0, tally.notes
+
+
+def test_noise_before_an_intact_reply_is_read_past():
+    port = FakePort(seed=1, timeout=0.5)
+    port.behaviour = "noise_then_good"
+    try:
+        with Client(port.url, timeout=0.5, retries=0) as c:
+            assert c.ping() == f"ST16-EMU fake {port.nonces[-1]}"
+    finally:
+        port.close()
+
+
+def test_a_late_reply_to_a_killed_client_is_not_taken_by_the_next_one(tmp_path):
+    """The previous client sent GO and went away; its ACK arrives after the next client opened
+    the port. The next client's GO (same first B bit) gets the device's BUSY NACK, not that ACK."""
+    from firmware_model.link import PtyLink
+    import threading
+
+    from protocol import slip
+
+    link, stop, seen = PtyLink(), threading.Event(), []
+
+    def device():
+        dec = slip.Decoder()
+        while not stop.is_set():
+            for event in dec.feed(link.read(0.01)):
+                msg = nsp.decode(event.data)
+                seen.append(msg)
+                if len(seen) == 1:
+                    time.sleep(0.03)  # the first GO is acknowledged late
+                    link.write(nsp.reply_to(msg, b"\x0b").frame())
+                else:
+                    link.write(nsp.reply_to(msg, NackInfo(NackReason.BUSY, "sequence 1 still running").pack(),
+                                            ack=False).frame())
+
+    thread = threading.Thread(target=device, daemon=True)
+    thread.start()
+    try:
+        first = Client(link.path, timeout=1.0)
+        first._synced = True  # the killed client's command leaves at once
+        first.write_raw(nsp.command(0x0E, 0x11, Code.GO, b"\x0b", b=True).frame())
+        first.close()  # killed before the reply
+        with Client(link.path, timeout=1.0) as second:
+            with pytest.raises(Nack) as exc:
+                second.go(0x0B)
+        assert exc.value.reason == NackReason.BUSY and len(seen) == 2 and seen[0].b == seen[1].b
+    finally:
+        stop.set()
+        thread.join(2)
+        link.close()
+
+
+@pytest.mark.parametrize("behaviour", ["garbage", "too_slow", "silent"])
+def test_ground_cli_names_the_failure_without_a_traceback_within_its_timeout(behaviour, capsys):
+    port = FakePort(seed=2, timeout=0.2)
+    port.behaviour = behaviour
+    try:
+        t0 = time.monotonic()
+        rc = cli_main(["--port", port.url, "--timeout", "0.2", "ping"])
+        elapsed = time.monotonic() - t0
+    finally:
+        port.close()
+    err = capsys.readouterr().err
+    first = err.splitlines()[0]
+    assert rc != 0 and "PING: no" in first and "reply within 0.200 s" in first, err
+    assert "Traceback" not in err
+    assert elapsed < 3 * 0.2 + 2.0  # three attempts of 0.2 s (PING is retried) and start-up
+
+
+def test_replies_to_other_commands_and_stale_b_bits_alone_are_malformed_not_taken():
+    port = FakePort(seed=3, timeout=0.3)
+    port.behaviour = "others_only"
+    try:
+        with Client(port.url, timeout=0.3, retries=0) as c:
+            with pytest.raises(Exception) as exc:
+                c.ping()
+            assert "code 0x01" in str(exc.value) and not isinstance(exc.value, ReplyTimeout)
+            assert c.stale_replies == 1
+    finally:
+        port.close()
