@@ -316,8 +316,12 @@ def _handler(run: Run):
 def _console(args) -> int:
     from .console import Console
 
-    with open_client(args) as client:
-        Console(client, as_json=args.json).run()
+    console = Console(open_client(args), as_json=args.json, reopen=lambda: open_client(args))
+    try:
+        console.run()
+    finally:
+        if console.client is not None:
+            console.client.close()
     return 0
 
 

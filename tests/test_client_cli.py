@@ -134,3 +134,62 @@ def test_combination_sections_decode_to_attitude_and_time():
     text = format_record(out)
     assert "RA 83.80000 deg, Dec -5.40000 deg, roll 10.0000 deg" in text and "detected 9, matched 7" in text
     assert "epoch 2026-11-24T04:38:22.250Z UTC" in text and "section at 0x0048 (56 bytes" in text
+
+
+def _console(port, script: str, **kw) -> Console:
+    console = Console(Client(port), stdin=io.StringIO(script), stdout=io.StringIO(), **kw)
+    console.use_rawinput = False
+    return console
+
+
+def test_console_reopens_the_link(port, capsys):
+    opened = []
+
+    def reopen():
+        opened.append(Client(port))
+        return opened[-1]
+
+    first = Client(port, device_address=0x33, timeout=0.1)  # a link the device does not answer on
+    console = Console(first, stdin=io.StringIO("ping\nreopen\nping\nquit\n"), stdout=io.StringIO(), reopen=reopen)
+    console.use_rawinput = False
+    console.cmdloop()
+    out = capsys.readouterr()
+    assert "ReplyTimeout" in out.err and f"reopened {port}" in out.out
+    assert out.out.count("ST16-EMU BOOTLOADER") == 1  # the second ping, on the new link
+    assert console.client is opened[0] and not first._ser.is_open
+
+    def refuse():
+        raise OSError(2, "No such file or directory", port)
+
+    console.reopen = refuse
+    console.cmdqueue = ["reopen", "ping", "quit"]
+    console.cmdloop()
+    out = capsys.readouterr().out
+    assert "reopen failed: [Errno 2]" in out and "no link: 'reopen'" in out and not opened[0]._ser.is_open
+
+
+def test_console_history_survives_sessions_and_bad_files(port, capsys, tmp_path, monkeypatch):
+    import readline
+    import sys
+
+    from ground.console import history_path
+
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path))
+    history = history_path()
+    assert history == tmp_path / "st16-ground" / "history"
+    history.parent.mkdir()
+    history.write_text("peek 0x20000000 2\n")
+    readline.clear_history()
+    console = _console(port, "quit\n")
+    console.preloop = lambda: readline.add_history("diag --clear")  # what a typed command leaves
+    console.run()
+    assert history.read_text().split("\n")[:2] == ["peek 0x20000000 2", "diag --clear"]
+
+    monkeypatch.setenv("XDG_STATE_HOME", str(history))  # a file where the directory should be
+    _console(port, "quit\n").run()
+    assert "history not saved" in capsys.readouterr().err
+
+    monkeypatch.setitem(sys.modules, "readline", None)  # a Python without readline
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "none"))
+    _console(port, "ping\nquit\n").run()
+    assert not (tmp_path / "none").exists()
