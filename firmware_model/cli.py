@@ -27,7 +27,7 @@ from protocol import nsp
 from .camera import CameraModel
 from .catalog_image_io import catalog_slot_handler
 from .device import FRAME_SLOT, Device
-from .link import PtyLink, SerialLink, TcpLink, parse_tcp, serve
+from .link import DEFAULT_IDLE_TIMEOUT, PtyLink, SerialLink, TcpLink, parse_tcp, serve
 from .pipeline import PipelineParams
 from .sensor_input import (DeviceParams, FileFrames, PipelineSolver, frame_slot_handler, load_frame_source,
                            params_slot_handler)
@@ -41,11 +41,14 @@ def build_parser() -> argparse.ArgumentParser:
     where = parser.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", action="store_true", help="create a pseudo-terminal and print its path")
     where.add_argument("--port", help="serve on this serial device (pyserial URL or path)")
-    where.add_argument("--tcp", metavar="HOST:PORT", help="serve on TCP (host defaults to 127.0.0.1)")
+    where.add_argument("--tcp", metavar="HOST:PORT", help="serve on TCP (host defaults to 127.0.0.1); one client at "
+                                                         "a time, a new connection takes over (docs/bad_input.md)")
     parser.add_argument("--address", type=lambda s: int(s, 0), default=nsp.DEVICE_ADDRESS,
                         help="NSP address of the device (default 0x0E)")
     parser.add_argument("--state", help="directory for persistent state (slots); in memory if absent")
     parser.add_argument("--baud", type=int, default=115200, help="line rate for --port and for --pace")
+    parser.add_argument("--tcp-idle", type=float, default=DEFAULT_IDLE_TIMEOUT, metavar="SECONDS",
+                        help=f"with --tcp, close a client silent this long (default {DEFAULT_IDLE_TIMEOUT:g})")
     parser.add_argument("--pace", action="store_true", help="model UART timing at --baud (10 bits per byte)")
     parser.add_argument("--turnaround-ms", type=float, default=None,
                         help=f"delay from a command's last byte to its reply (default 0, "
@@ -94,7 +97,7 @@ def build_link(args: argparse.Namespace):
     if args.port:
         return SerialLink(args.port, args.baud)
     host, port = parse_tcp(args.tcp)
-    return TcpLink(host, port)
+    return TcpLink(host, port, idle_timeout=args.tcp_idle)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -107,6 +110,8 @@ def main(argv: list[str] | None = None) -> int:
         turnaround_ms = DEFAULT_PACED_TURNAROUND_MS if args.pace else 0.0
     if turnaround_ms < 0:
         parser.error("--turnaround-ms must be >= 0")
+    if not args.tcp_idle > 0:
+        parser.error("--tcp-idle must be > 0")
     try:
         device = build_device(args)
         link = build_link(args)

@@ -21,6 +21,10 @@ import tty
 import serial
 
 WRITE_TIMEOUT = 2.0  #: seconds a reply may wait for the peer to drain; then it is dropped
+DEFAULT_IDLE_TIMEOUT = 60.0  #: seconds of silence after which a TCP client is closed
+LISTEN_BACKLOG = 128  #: TCP connections the kernel holds until the device accepts them
+MAX_ACCEPT = 64  #: TCP connections accepted per read (a flood cannot starve the active client)
+FEND = b"\xc0"  #: SLIP frame end, handed to the device when a TCP client goes
 PACE_SLICE = 64  #: bytes written per paced slice
 
 
@@ -97,41 +101,93 @@ class SerialLink:
 
 
 class TcpLink:
-    """A TCP server serving one client at a time (reach it with pyserial ``socket://host:port``)."""
+    """A TCP server for one client at a time (reach it with pyserial ``socket://host:port``).
 
-    def __init__(self, host: str, port: int):
+    Policy, as a serial line with one peer would behave (docs/bad_input.md):
+
+    - one active client; a new connection **takes over**: the previous client is closed, after
+      one more read of what it had already sent (answered to it), so a forgotten, hung or
+      chattering session can never lock the device;
+    - a client silent for ``idle_timeout`` s (None: never) is closed;
+    - when a client goes (disconnect, takeover, idle), a FEND is handed to the device so a frame it
+      left half sent is ended there (counted as a damaged frame), never joined to the next
+      client's bytes;
+    - a connection flood is accepted and closed as fast as it arrives, at most
+      :data:`MAX_ACCEPT` per read, the newest connection staying active;
+    - a reply the client does not read within :data:`WRITE_TIMEOUT` s closes the connection.
+    """
+
+    def __init__(self, host: str, port: int, idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT):
+        if idle_timeout is not None and not idle_timeout > 0:
+            raise ValueError(f"TCP idle timeout must be > 0 s, got {idle_timeout}")
+        self.idle_timeout = idle_timeout
         self._server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self._server.bind((host, port))
-        self._server.listen(1)
+        self._server.listen(LISTEN_BACKLOG)
+        self._server.setblocking(False)
         self._conn: socket.socket | None = None
+        self._newcomer_waited = False  #: a connection waited while the active client's bytes were read
+        self._last = 0.0  #: monotonic time of the active client's last byte (or its connection)
+        self.taken_over = self.idle_closed = 0  #: connections closed by the policy, per reason
         host, port = self._server.getsockname()[:2]
         self.path = f"socket://{host}:{port}"
 
     def read(self, timeout: float) -> bytes:
-        if self._conn is None:
-            ready, _, _ = select.select([self._server], [], [], timeout)
-            if not ready:
-                return b""
-            self._conn, _ = self._server.accept()
-            self._conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            self._conn.settimeout(WRITE_TIMEOUT)
+        """Bytes of the active client; a lone FEND when a client went; ``b""`` when nothing came."""
+        if self._conn is not None and self.idle_timeout is not None:
+            left = self._last + self.idle_timeout - time.monotonic()
+            if left <= 0:
+                self.idle_closed += 1
+                return self._drop()
+            timeout = min(timeout, left)
+        watch = [self._server] if self._conn is None else [self._server, self._conn]
+        ready, _, _ = select.select(watch, [], [], timeout)
+        if self._server in ready and (self._conn not in ready or self._newcomer_waited):
+            self._newcomer_waited = False
+            return self._accept_newcomers()
+        if self._conn is None or self._conn not in ready:
             return b""
-        ready, _, _ = select.select([self._conn], [], [], timeout)
-        if not ready:
-            return b""
+        # The active client's bytes first (a command it sent before a newcomer arrived is served
+        # and answered to it), but only once: a client that never stops sending cannot hold on.
+        self._newcomer_waited = self._server in ready
         try:
             data = self._conn.recv(65536)
         except OSError:
             data = b""
         if not data:
-            self._drop()
+            return self._drop()
+        self._last = time.monotonic()
         return data
 
-    def _drop(self) -> None:
-        if self._conn is not None:
+    def _accept_newcomers(self) -> bytes:
+        """Accept waiting connections (at most MAX_ACCEPT); the newest becomes the active client."""
+        went = b""
+        for _ in range(MAX_ACCEPT):
+            try:
+                conn, _ = self._server.accept()
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError as exc:  # e.g. out of file descriptors: refuse this one, keep serving
+                print(f"link: accept failed: {exc}", file=sys.stderr)
+                break
+            if self._conn is not None:
+                self.taken_over += 1
+                went = self._drop()
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            conn.settimeout(WRITE_TIMEOUT)
+            self._conn, self._last = conn, time.monotonic()
+        return went
+
+    def _drop(self) -> bytes:
+        """Close the active client; the FEND that ends whatever frame it left unfinished."""
+        if self._conn is None:
+            return b""
+        try:
             self._conn.close()
+        finally:
             self._conn = None
+        return FEND
 
     def write(self, data: bytes) -> bool:
         if self._conn is None:
