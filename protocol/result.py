@@ -212,27 +212,3 @@ def parse(data: bytes) -> np.ndarray:
     buf = bytes(data) + bytes(TOTAL_LENGTH - len(data))
     return np.frombuffer(buf, dtype=RESULT)[0].copy()
 
-
-def summary(rec: np.ndarray) -> dict:
-    """Plain-Python headline fields of a parsed result (for CLI / JSON output)."""
-    rc = int(rec["return_code"])
-    ext = rec["ext"]
-    st = status_of(rc)
-    out = {
-        "sequence": int(rec["sequence"]),
-        "return_code": rc,
-        "status": st.name if isinstance(st, Status) else st,
-        "bits": [b.name for b in ReturnBits if rc & b],
-        "quaternion": [float(v) for v in rec["quaternion"]],
-        "omega": [float(v) for v in rec["omega"]],
-        "epoch": float(rec["epoch"]),
-    }
-    if int(ext["magic"]) == EXT_MAGIC:
-        n = int(ext["n_reported"])
-        out["ext"] = {
-            "n_detected": int(ext["n_detected"]), "n_matched": int(ext["n_matched"]),
-            "solve_time": float(ext["solve_time"]), "sigma": [float(v) for v in ext["sigma"]],
-            "stars": [{k: (float(s[k]) if s.dtype[k].kind == "f" else int(s[k])) for k in EXT_STAR.names}
-                      for s in ext["stars"][:n]],
-        }
-    return out

@@ -79,10 +79,10 @@ def test_result_build_parse_paths():
     assert len(data) == result.TOTAL_LENGTH
     assert data[0x008:0x010] == np.float64(0.5).tobytes()
     rec = result.parse(data)
-    s = result.summary(rec)
-    assert s["sequence"] == 3 and s["status"] == "OK" and "CONSISTENT_SOLUTION" in s["bits"]
+    assert rec["sequence"] == 3 and result.status_of(int(rec["return_code"])) is result.Status.OK
+    assert int(rec["return_code"]) & result.ReturnBits.CONSISTENT_SOLUTION
     assert rec["centroid"][1]["good_stars"] == 7
-    assert s["ext"]["stars"][0]["rg"] == pytest.approx(0.8)
+    assert rec["ext"]["stars"][0]["rg"] == pytest.approx(0.8)
     assert result.parse(data[:2616])["ext"]["magic"] == 0
     with pytest.raises(KeyError):
         result.build({"no_such_field": 1})
