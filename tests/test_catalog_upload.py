@@ -1,32 +1,20 @@
 """``st16-ground catalog upload/info`` over a pty: interruption, device restart, corrupt images."""
 
 import json
-import struct
 import threading
 from contextlib import contextmanager
 
-import numpy as np
 import pytest
 
-from firmware_model.catalog_image_io import catalog_slot_handler, catalog_to_image
+from firmware_model.catalog_image_io import catalog_slot_handler
 from firmware_model.device import Device
-from firmware_model.frames import radec_to_vec
 from firmware_model.link import PtyLink, serve
-from firmware_model.onboard_catalog import OnboardCatalog
 from firmware_model.state import SlotStore
 from ground.cli import main as cli_main
 from ground.client import Client, Nack
-from protocol.catalog_image import HEADER_SIZE, Reason
+from ground.fuzz.upload_faults import catalog_image as _image, wrong_version
+from protocol.catalog_image import Reason
 from protocol.crc import crc32
-
-
-def _image(seed: int, n: int = 300) -> bytes:
-    rng = np.random.default_rng(seed)
-    vec = radec_to_vec(rng.uniform(0, 2 * np.pi, n), np.arcsin(rng.uniform(-1, 1, n)))
-    cat = OnboardCatalog.build(np.arange(1, n + 1), vec, rng.uniform(0, 5, n), rng.uniform(0.7, 1.3, n),
-                               rng.uniform(0.6, 1.1, n), phi_min=1e-3, phi_max=0.35, n_h=128,
-                               meta={"epoch": 2025.0, "source": "hipparcos", "colour_source": np.full(n, 2)})
-    return catalog_to_image(cat, created_unix=1_700_000_000 + seed)
 
 
 @contextmanager
@@ -71,11 +59,9 @@ def test_upload_survives_interruption_restart_and_corrupt_images(tmp_path, capsy
 
         bad = bytearray(first)
         bad[len(bad) // 2] ^= 0x04  # bit flip inside the pair table
-        v2 = bytearray(first)
-        v2[8:10] = struct.pack("<H", 2)  # a future version, header re-signed
-        v2[HEADER_SIZE - 4:HEADER_SIZE] = struct.pack("<I", crc32(bytes(v2[:HEADER_SIZE - 4])))
+        v2 = wrong_version(first, 2)  # a future version, header re-signed
         for corrupt, reason in ((bytes(bad), Reason.SECTION_CRC), (first[:-16], Reason.TRUNCATED),
-                                (bytes(v2), Reason.BAD_VERSION)):
+                                (v2, Reason.BAD_VERSION)):
             with Client(port) as c:
                 with pytest.raises(Nack) as exc:
                     c.upload(0, corrupt, progress=False)
