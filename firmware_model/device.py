@@ -195,10 +195,14 @@ class Device:
         self.late_reply: Callable[[list[bytes]], None] | None = None
         for slot in self.store.active_slots():
             data = self.store.active(slot)
+            if slot not in self.slots:
+                print(f"device: slot {slot} in the state directory is not a slot of this device; ignored",
+                      file=sys.stderr)
+                continue
             try:
                 self._install(slot, data)
             except Exception as exc:  # a persisted image the current validator refuses
-                print(f"device: slot {slot} image not activated at start: {exc}", file=sys.stderr)
+                print(f"device: slot {slot} image not activated at start: {' '.join(str(exc).split())}", file=sys.stderr)
 
     # ------------------------------------------------------------------ identity
 
@@ -635,7 +639,10 @@ class Device:
             raise _Nack(NackReason.NO_TRANSFER, f"no transfer in progress for slot {req.slot}")
         if not tr.complete:
             raise _Nack(NackReason.INCOMPLETE, f"{tr.length - tr.received} of {tr.length} bytes missing")
-        image = self.store.transfer_bytes(req.slot)
+        try:
+            image = self.store.transfer_bytes(req.slot)
+        except OSError as exc:
+            raise _Nack(NackReason.STORAGE_ERROR, str(exc)) from None
         if len(image) != tr.length or crc32(image) != tr.crc32:
             self.store.drop_transfer(req.slot)
             raise _Nack(NackReason.CRC_MISMATCH,

@@ -190,13 +190,15 @@ class TcpLink:
         return FEND
 
     def write(self, data: bytes) -> bool:
-        if self._conn is None:
+        conn = self._conn  # a late reply is written from another thread: the client may change meanwhile
+        if conn is None:
             return False
         try:
-            self._conn.sendall(data)
+            conn.sendall(data)
             return True
         except OSError:
-            self._drop()
+            if self._conn is conn:
+                self._drop()
             return False
 
     def close(self) -> None:

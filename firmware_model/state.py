@@ -21,6 +21,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from protocol.commands import MAX_SLOT_BYTES
 from protocol.crc import crc32
 
 
@@ -80,6 +81,45 @@ def _merge(ranges: list[list[int]], start: int, end: int) -> list[list[int]]:
     return out
 
 
+def _warn(text: str) -> None:
+    print(f"state: {' '.join(text.split())}", file=sys.stderr)  # one line, whatever the text held
+
+
+def _remove(path: Path) -> None:
+    try:
+        path.unlink()
+    except OSError as exc:
+        _warn(f"could not remove {path}: {exc}")
+
+
+def _slot_number(name: str) -> int | None:
+    digits = name[4:]
+    if not digits.isdigit() or len(digits) > 3 or int(digits) > 255:
+        return None
+    return int(digits)
+
+
+def _transfer_from_meta(slot: int, meta) -> "Transfer":
+    """A Transfer from ``partial.json``'s content; ValueError for anything but
+    ``{"length": 1..MAX_SLOT_BYTES, "crc32": u32, "ranges": [[a, b], ...] within the length}``."""
+    if not isinstance(meta, dict):
+        raise ValueError("partial.json is not a JSON object")
+    length, crc, ranges = meta.get("length"), meta.get("crc32"), meta.get("ranges")
+    if type(length) is not int or not 1 <= length <= MAX_SLOT_BYTES:
+        raise ValueError(f"transfer length {length!r} outside 1..{MAX_SLOT_BYTES}")
+    if type(crc) is not int or not 0 <= crc <= 0xFFFFFFFF:
+        raise ValueError(f"transfer CRC-32 {crc!r} is not a u32")
+    if not isinstance(ranges, list) or len(ranges) > length:
+        raise ValueError("received ranges are not a list of [start, end] pairs")
+    merged: list[list[int]] = []
+    for pair in ranges:
+        if (not isinstance(pair, list) or len(pair) != 2 or any(type(v) is not int for v in pair)
+                or not 0 <= pair[0] < pair[1] <= length):
+            raise ValueError(f"received range {pair!r} is not [start, end] within 0..{length}")
+        merged = _merge(merged, pair[0], pair[1])
+    return Transfer(slot, length, crc, merged)
+
+
 @dataclass
 class Transfer:
     """A transfer in progress: total ``length``, expected ``crc32``, received ``ranges`` [a, b)."""
@@ -136,39 +176,60 @@ class SlotStore:
         return path
 
     def _load(self) -> None:
-        for sub in sorted(self.root.glob("slot*")):
-            try:
-                slot = int(sub.name[4:])
-            except ValueError:
+        """Read every slot directory; damage is reported as one ``state:`` line on stderr and the
+        damaged part ignored (never an exception: a device with bad state still starts)."""
+        for sub in sorted(self.root.iterdir()):
+            if not sub.name.startswith("slot"):
+                continue
+            slot = _slot_number(sub.name)
+            if slot is None or not sub.is_dir():
+                _warn(f"ignoring {sub}: not a slot directory (slot<N>/, N = 0..255)")
                 continue
             if slot in self.volatile:
                 continue
-            try:
-                self._load_slot(slot, sub)
-            except (OSError, ValueError, KeyError, TypeError) as exc:
-                print(f"state: ignoring unreadable {sub}: {exc}", file=sys.stderr)
+            for name in ("active.img.tmp", "partial.json.tmp"):  # a write cut by a crash: never committed
+                if (sub / name).exists():
+                    _warn(f"slot {slot}: removing {name}, a write that did not finish")
+                    _remove(sub / name)
+            for part in (self._load_active, self._load_partial):
+                try:
+                    part(slot, sub)
+                except Exception as exc:  # noqa: BLE001 - any damage: report it, keep starting
+                    _warn(f"slot {slot}: {part.__doc__} unreadable ({type(exc).__name__}: {exc}); ignored")
 
-    def _load_slot(self, slot: int, sub: Path) -> None:
-        meta_path, bin_path = sub / "active.json", sub / "active.bin"
-        if (sub / "active.img").exists():
+    def _load_active(self, slot: int, sub: Path) -> None:
+        """committed image"""
+        meta_path, bin_path, img = sub / "active.json", sub / "active.bin", sub / "active.img"
+        if img.exists() or img.is_symlink():
             try:
-                self._active[slot] = unpack_image((sub / "active.img").read_bytes())
+                self._active[slot] = unpack_image(img.read_bytes())
             except ValueError as exc:
-                print(f"state: slot {slot}: {exc}; ignored", file=sys.stderr)
-        elif meta_path.exists() and bin_path.exists():  # a state directory from before active.img
+                _warn(f"slot {slot}: active.img: {exc}; ignored, the slot has no image")
+        elif meta_path.exists() or bin_path.exists():  # a state directory from before active.img
+            if not (meta_path.exists() and bin_path.exists()):
+                _warn(f"slot {slot}: {meta_path.name if meta_path.exists() else bin_path.name} without its pair; ignored")
+                return
             meta = json.loads(meta_path.read_text())
             data = bin_path.read_bytes()
             if len(data) == meta["length"] and crc32(data) == meta["crc32"]:
                 self._active[slot] = data
             else:
-                print(f"state: slot {slot} image fails its length/CRC-32 check; ignored", file=sys.stderr)
+                _warn(f"slot {slot}: active.bin fails its length/CRC-32 check; ignored")
+
+    def _load_partial(self, slot: int, sub: Path) -> None:
+        """partial transfer"""
         pmeta, pbin = sub / "partial.json", sub / "partial.bin"
-        if pmeta.exists() and pbin.exists():
-            meta = json.loads(pmeta.read_text())
-            length = int(meta["length"])
-            ranges = [[int(a), int(b)] for a, b in meta["ranges"]]
-            if pbin.stat().st_size == length and all(0 <= a < b <= length for a, b in ranges):
-                self._transfers[slot] = Transfer(slot, length, int(meta["crc32"]), ranges)
+        if not (pmeta.exists() or pbin.exists()):
+            return
+        if not (pmeta.exists() and pbin.exists()):
+            _warn(f"slot {slot}: {pmeta.name if pmeta.exists() else pbin.name} without its pair; transfer dropped")
+            return
+        tr = _transfer_from_meta(slot, json.loads(pmeta.read_text()))
+        size = pbin.stat().st_size
+        if size != tr.length:
+            _warn(f"slot {slot}: partial.bin holds {size} bytes, its transfer {tr.length}; transfer dropped")
+            return
+        self._transfers[slot] = tr
 
     # ------------------------------------------------------------------ committed images
 
@@ -235,7 +296,8 @@ class SlotStore:
         if self._persistent(slot):
             d = self.root / f"slot{slot}"
             for name in ("partial.json", "partial.bin"):
-                (d / name).unlink(missing_ok=True)
+                if (d / name).exists():
+                    _remove(d / name)
 
     def _save_meta(self, tr: Transfer) -> None:
         meta = {"length": tr.length, "crc32": tr.crc32, "ranges": tr.ranges}
