@@ -113,7 +113,8 @@ class TcpLink:
       left half sent is ended there (counted as a damaged frame), never joined to the next
       client's bytes;
     - a connection flood is accepted and closed as fast as it arrives, at most
-      :data:`MAX_ACCEPT` per read, the newest connection staying active;
+      :data:`MAX_ACCEPT` per read, the newest connection staying active (one superseded before
+      the device read from it is closed unread);
     - a reply the client does not read within :data:`WRITE_TIMEOUT` s closes the connection.
     """
 

@@ -54,6 +54,9 @@ def test_a_frame_cut_by_a_disconnect_is_ended_and_counted(tcp_device):
     link, device = tcp_device
     with socket.create_connection(link.path[len("socket://"):].rsplit(":", 1)) as cut:
         cut.sendall(b"\x0e\x11\x80")  # no end: the client vanishes mid-message
+        deadline = time.monotonic() + 2.0
+        while device._decoder.pending < 3 and time.monotonic() < deadline:  # once the device holds them
+            time.sleep(0.01)
     with Client(link.path, timeout=1.0, retries=0) as c:
         assert c.ping().startswith("ST16-EMU")
         assert c.diagnostic().runt == 1  # ended by the link when the client went, not joined to PING
