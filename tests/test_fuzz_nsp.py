@@ -31,3 +31,20 @@ def test_fuzzed_device_answers_a_ping_after_every_burst():
     assert tally.failures == 0, tally.notes
     assert tally.messages > 300 and tally.faults > 100
     assert all(seen[name] > 0 for name in nsp_fuzz.ERROR_COUNTERS), seen  # each fault class reached it
+
+
+def test_every_code_is_answered_when_polled_and_silent_when_not():
+    from firmware_model.device import Device
+
+    dev, rng = Device(), random.Random(4)
+    for _ in range(10):
+        for code in range(32):
+            for poll in (True, False):
+                frame = traffic.command_frame(rng, code, poll=poll)
+                cmd = nsp.decode(slip.Decoder(nsp.MAX_MESSAGE).feed(frame)[0].data)
+                out = dev.receive(frame)
+                dev.wait_idle(5)
+                assert bool(out) == poll, (code, poll)
+                replies = [nsp.decode(e.data) for f in out for e in slip.Decoder(nsp.MAX_MESSAGE).feed(f)]
+                assert all((r.code, r.b, r.dst) == (code, cmd.b, nsp.HOST_ADDRESS) for r in replies)
+                assert [r.final for r in replies] == ([False] * (len(replies) - 1) + [True] if poll else [])
