@@ -120,8 +120,9 @@ def image_info(img: CatalogImage) -> dict:
     }
 
 
-def catalog_slot_handler():
-    """The device's slot-0 handler: validate (NACK with the image reason code), activate, info."""
+def catalog_slot_handler(prepare=None):
+    """The device's slot-0 handler: validate (NACK with the image reason code), activate (then
+    ``prepare(catalog)`` if given: work the solver does once per catalog), info."""
     from firmware_model.device import SlotHandler
     from protocol.commands import SlotRejected
 
@@ -134,4 +135,10 @@ def catalog_slot_handler():
     def info(data: bytes, cat: OnboardCatalog) -> bytes:
         return json.dumps(image_info(parse_image(data))).encode()
 
-    return SlotHandler(validate, catalog_from_image, info)
+    def activate(data: bytes) -> OnboardCatalog:
+        cat = catalog_from_image(data)
+        if prepare is not None:
+            prepare(cat)
+        return cat
+
+    return SlotHandler(validate, activate, info)

@@ -85,9 +85,10 @@ def build_device(args: argparse.Namespace) -> Device:
     elif args.sky:
         source = load_frame_source("sky", args.sky, camera)
     store = SlotStore(args.state, volatile={FRAME_SLOT}) if args.state else None
-    slots = {0: catalog_slot_handler(), 1: frame_slot_handler(camera), 2: params_slot_handler()}
     params = DeviceParams.load(args.params).apply(PipelineParams()) if args.params else PipelineParams()
-    return Device(args.address, store=store, slots=slots, solver=PipelineSolver(camera, params), frame_source=source,
+    solver = PipelineSolver(camera, params)
+    slots = {0: catalog_slot_handler(prepare=solver.prepare), 1: frame_slot_handler(camera), 2: params_slot_handler()}
+    return Device(args.address, store=store, slots=slots, solver=solver, frame_source=source,
                   sensor_shape=(camera.height, camera.width))
 
 

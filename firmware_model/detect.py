@@ -109,6 +109,9 @@ def matched_kernel(psf_sigma_px: float) -> np.ndarray:
 #: Significant regions examined at most, as a multiple of ``max_candidates`` (the brightest by
 #: filtered peak); beyond it detection work would grow with clutter, not with stars.
 REGION_CAP_FACTOR = 8
+#: Peaks farther apart than this many detection-kernel widths (super-pixels) are not tested for a
+#: dip between them: separate stars (a star's noise bumps lie within its PSF).
+MERGE_RADIUS_KERNELS = 3
 
 
 def frame_problem(frame: Frame, params: DetectParams) -> str:
@@ -258,7 +261,8 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
         mask = labels > 0
     mr_, mc_ = np.nonzero(mask)
     pr, pc = _local_maxima(filt, mr_, mc_, params.peak_separation // 2)
-    pr, pc = _merge_without_dip(filt, snr_map, labels, pr, pc)
+    pr, pc, n_over = _merge_without_dip(filt, snr_map, labels, pr, pc, MERGE_RADIUS_KERNELS * len(kernel),
+                                        REGION_CAP_FACTOR * params.max_candidates)
     plabel = labels[pr, pc]
     peaks_per_region = np.bincount(plabel, minlength=n_regions + 1)
 
@@ -283,7 +287,7 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
 
     flux = filt[pr, pc].astype(float)
     order = np.argsort(-flux)
-    n_drop = max(len(order) - params.max_candidates, 0)
+    n_drop = max(len(order) - params.max_candidates, 0) + n_over
     order = order[: params.max_candidates]
     pr, pc, plabel, flux = pr[order], pc[order], plabel[order], flux[order]
     # refine the super-pixel peak with the filtered image's 3x3 centre of mass
@@ -460,33 +464,42 @@ def _raw_neighbours(rows, cols, pixels, black, py, px):
                  for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)))
 
 
-def _merge_without_dip(filt, snr_map, labels, pr, pc):
+def _merge_without_dip(filt, snr_map, labels, pr, pc, radius: int, limit: int):
     """Drop a weaker peak when the filtered image does not dip by 3 sigma between it and a
-    brighter peak of the same region (noise bumps on one star are not blends)."""
+    brighter kept peak of the same region within ``radius`` super-pixels (noise bumps on one star
+    are not blends; farther peaks are separate stars). Peaks are taken brightest first and at
+    most ``limit`` are kept: the work is bounded whatever the clutter (kept peaks are looked up on
+    a grid of ``radius`` cells). Returns the kept rows, columns and the number left over."""
     plabel = labels[pr, pc]
     counts = np.bincount(plabel)
-    multi = np.flatnonzero(counts > 1)
-    if len(multi) == 0:
-        return pr, pc
-    keep = np.ones(len(pr), bool)
-    for lab in multi:
-        idx = np.flatnonzero(plabel == lab)
-        idx = idx[np.argsort(-filt[pr[idx], pc[idx]])]
-        kept = [idx[0]]
-        for j in idx[1:]:
-            vj = filt[pr[j], pc[j]]
-            noise_j = vj / snr_map[pr[j], pc[j]]
-            separate = True
-            for q in kept:
-                n = int(max(abs(pr[q] - pr[j]), abs(pc[q] - pc[j]))) * 2 + 1
-                t = np.linspace(0.0, 1.0, n)
-                rr = np.round(pr[j] + t * (pr[q] - pr[j])).astype(int)
-                cc = np.round(pc[j] + t * (pc[q] - pc[j])).astype(int)
-                if vj - filt[rr, cc].min() < 3.0 * noise_j:
-                    separate = False
-                    break
-            if separate:
-                kept.append(j)
-            else:
-                keep[j] = False
-    return pr[keep], pc[keep]
+    keep = np.zeros(len(pr), bool)
+    cells: dict[tuple[int, int, int], list[int]] = {}
+    n_kept, n_over = 0, 0
+    order = np.argsort(-filt[pr, pc], kind="stable")
+    for i, j in enumerate(order):
+        if n_kept == limit:
+            n_over = len(order) - i
+            break
+        rj, cj, lab = int(pr[j]), int(pc[j]), int(plabel[j])
+        if counts[lab] == 1:  # alone in its region
+            keep[j], n_kept = True, n_kept + 1
+            continue
+        vj = filt[rj, cj]
+        noise_j = vj / snr_map[rj, cj]
+        gy, gx = rj // radius, cj // radius
+        separate = True
+        for q in (q for dy in (-1, 0, 1) for dx in (-1, 0, 1) for q in cells.get((lab, gy + dy, gx + dx), ())):
+            dr, dc = int(pr[q]) - rj, int(pc[q]) - cj
+            n = max(abs(dr), abs(dc))
+            if n > radius:
+                continue
+            t = np.arange(2 * n + 1) / (2.0 * n) if n else np.zeros(1)
+            rr = np.round(rj + t * dr).astype(int)
+            cc = np.round(cj + t * dc).astype(int)
+            if vj - filt[rr, cc].min() < 3.0 * noise_j:
+                separate = False
+                break
+        if separate:
+            cells.setdefault((lab, gy, gx), []).append(j)
+            keep[j], n_kept = True, n_kept + 1
+    return pr[keep], pc[keep], n_over

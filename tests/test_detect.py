@@ -157,3 +157,23 @@ def test_matched_kernel_is_the_3x3_one_for_sharp_psfs_and_widens_with_the_psf():
     assert matched_kernel(1.0) is _K121
     wide = matched_kernel(3.0)
     assert len(wide) > 3 and np.isclose(wide.sum(), 4.0) and np.argmax(wide) == len(wide) // 2
+
+
+def test_dense_clutter_is_bounded_work_with_a_clear_note():
+    """20 000 overlapping blobs on a 640 x 480 frame form a few huge regions of thousands of peaks:
+    the dip test between peaks keeps at most REGION_CAP_FACTOR x max_candidates of them (the
+    brightest) and counts the rest as dropped; it used to compare every pair of a region's peaks."""
+    from firmware_model.detect import REGION_CAP_FACTOR
+
+    rng = np.random.default_rng(0)
+    img = rng.normal(200.0, 5.0, (480, 640))
+    ys, xs = rng.integers(3, 477, 20_000), rng.integers(3, 637, 20_000)
+    amp = rng.uniform(200.0, 3000.0, 20_000)
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            np.add.at(img, (ys + dy, xs + dx), amp * np.exp(-(dx * dx + dy * dy) / 2.0))
+    frame = Frame(np.clip(img, 0, 4095).astype(np.uint16), "RGGB", black_level=64, white_level=4095)
+    det = detect_stars(frame, DetectParams(max_candidates=16))
+    assert len(det) == 16 and det.n_dropped_cap > REGION_CAP_FACTOR * 16
+    assert "dropped by the cap" in det.reason
+    assert np.all(np.diff(det.flux) <= 0)
