@@ -71,6 +71,9 @@ FITS_CAMERA_KEYS = ("f", "cx", "cy", "k1", "k2", "k3", "p1", "p2")
 #: File suffixes taken for frames when a directory is listed (sidecars and truth files are not).
 FRAME_SUFFIXES = RAW_EXTENSIONS | {".fits", ".fit", ".fts", ".tif", ".tiff", ".npy", ".png", ".jpg", ".jpeg"}
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: Largest frame read (pixels): 16 x a 16-megapixel sensor; a header claiming more is refused
+#: before anything is allocated (a damaged TIFF asked for 464 GiB).
+MAX_FRAME_PIXELS = 1 << 28
 JPEG_SIGNATURE = b"\xff\xd8\xff"
 
 
@@ -104,6 +107,8 @@ def read_frame(path) -> Frame:
         raise
     except (ValueError, OSError, KeyError, TypeError) as exc:
         raise FrameReadError(f"{path}: {exc}") from exc
+    except Exception as exc:  # a damaged file can make an imaging library fail in any way
+        raise FrameReadError(f"{path}: damaged or unsupported file ({type(exc).__name__}: {exc})") from exc
     raise FrameReadError(f"{path}: not a recognised frame file (DNG/raw, FITS, TIFF, PNG, JPEG, .npy, frame blob)")
 
 
@@ -188,7 +193,10 @@ def read_tiff(path) -> Frame:
 
     path = Path(path)
     with tifffile.TiffFile(path) as tif:
+        if not tif.pages:
+            raise FrameReadError(f"{path}: TIFF file holds no image")
         page = tif.pages[0]
+        _check_size(path, page.shape, page.dtype.itemsize, compressed=page.compression != 1)
         data = page.asarray()
         exp_tag = page.tags.get(33434)
         exif = page.tags.get(34665)
@@ -204,6 +212,18 @@ def read_tiff(path) -> Frame:
     return Frame(pixels=data, pattern="MONO", black_level=0.0, white_level=white, exposure_s=exposure)
 
 
+def _check_size(path: Path, shape, itemsize: int, compressed: bool = False) -> None:
+    """Refuse an image whose header claims more than :data:`MAX_FRAME_PIXELS` pixels, or (stored
+    uncompressed) more bytes than the file holds, before anything is allocated."""
+    n = int(np.prod(np.asarray(shape, dtype=np.float64))) if len(shape) else 0
+    if n > MAX_FRAME_PIXELS:
+        raise FrameReadError(f"{path}: header claims a {' x '.join(map(str, shape))} image "
+                             f"(over {MAX_FRAME_PIXELS} pixels): damaged file?")
+    if not compressed and n * itemsize > path.stat().st_size:
+        raise FrameReadError(f"{path}: header claims {n * itemsize} bytes of pixels, the file holds "
+                             f"{path.stat().st_size}: truncated or damaged")
+
+
 def read_fits(path) -> Frame:
     """FITS through astropy with the keywords in the module docstring."""
     from astropy.io import fits
@@ -216,6 +236,9 @@ def read_fits(path) -> Frame:
         except Exception as exc:
             raise FrameReadError(f"{path}: not a readable FITS file ({exc})") from None
         with hdul:
+            for h in hdul:
+                shape = tuple(int(h.header.get(f"NAXIS{i}", 0)) for i in range(int(h.header.get("NAXIS", 0)), 0, -1))
+                _check_size(path, shape, abs(int(h.header.get("BITPIX", 8))) // 8)
             hdu = next((h for h in hdul if h.data is not None and getattr(h.data, "ndim", 0) == 2), None)
             if hdu is None:
                 raise FrameReadError(f"{path}: FITS file has no 2-D image")

@@ -135,6 +135,59 @@ def test_bad_files(tmp_path):
             read_frame(tmp_path / name)
 
 
+def test_a_header_claiming_a_huge_image_is_refused_before_allocating(tmp_path):
+    """A damaged TIFF whose width reads 2**20 (a 464 GiB request before) and a FITS header whose
+    NAXIS promise more bytes than the file holds: refused from the header alone."""
+    import struct
+
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "big.tiff", np.zeros((48, 64), np.uint16))
+    data = bytearray((tmp_path / "big.tiff").read_bytes())
+    ifd = struct.unpack_from("<I", data, 4)[0]
+    for k in range(struct.unpack_from("<H", data, ifd)[0]):
+        entry = ifd + 2 + 12 * k
+        if struct.unpack_from("<H", data, entry)[0] in (256, 257):  # ImageWidth, ImageLength
+            struct.pack_into("<I", data, entry + 8, 1 << 20)
+    (tmp_path / "big.tiff").write_bytes(bytes(data))
+    with pytest.raises(FrameReadError, match="header claims"):
+        read_frame(tmp_path / "big.tiff")
+    good = write_frame(_frame(), tmp_path / "g.fits").read_bytes()
+    (tmp_path / "cut.fits").write_bytes(good[: len(good) // 2])
+    with pytest.raises(FrameReadError):
+        read_frame(tmp_path / "cut.fits")
+
+
+@pytest.mark.parametrize("suffix", [".dng", ".fits", ".npy"])
+def test_damaged_frame_files_raise_only_frame_read_error(tmp_path, suffix):
+    """Seeded damage (cuts, header bytes, scattered bytes, large numbers in the header) of each
+    format: every read ends in FrameReadError or a frame, never another exception."""
+    import random
+    import struct
+
+    good = write_frame(_frame(), tmp_path / f"g{suffix}").read_bytes()
+    rng = random.Random(suffix)
+    for trial in range(120):
+        d = bytearray(good)
+        if trial % 4 == 0:
+            d = d[: rng.randrange(1, len(d))]
+        elif trial % 4 == 1:
+            for _ in range(rng.randrange(1, 8)):
+                d[rng.randrange(min(len(d), 512))] = rng.randrange(256)
+        elif trial % 4 == 2:
+            for _ in range(rng.randrange(1, 20)):
+                d[rng.randrange(len(d))] = rng.randrange(256)
+        else:
+            for _ in range(3):
+                i = rng.randrange(min(len(d) - 4, 400))
+                d[i:i + 4] = struct.pack("<I", rng.choice([0xFFFFFFFF, 100_000, 1 << 20]))
+        (tmp_path / f"f{suffix}").write_bytes(bytes(d))
+        try:
+            read_frame(tmp_path / f"f{suffix}")
+        except FrameReadError:
+            pass
+
+
 # ------------------------------------------------------------------ PNG / JPEG (Pillow)
 def _rgb_planes(h, w):
     """An (h, w, 3) uint8 image whose R, G, B planes differ everywhere (R = 10+r, G = 100+c, B = 200+r+c)."""
