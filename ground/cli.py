@@ -67,6 +67,8 @@ def _global_options(parser: argparse.ArgumentParser, defaults: bool = True) -> N
     add("--host-address", "our NSP address", 0x11, "0x11", type=U8)
     add("--timeout", "reply timeout in seconds", 1.0, type=ranged(float, 0.001, 3600.0, "a reply timeout in s"))
     add("--json", "machine-readable output", False, action="store_true")
+    add("--no-progress", "no progress bars (also off with --json or when stderr is not a terminal)", False,
+        action="store_true")
     add("--log", "append every exchange to this JSONL file", None, type=output_file)
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from ground import json_text
 from ground.atomic_write import write_text
-from ground.cli_types import output_file
+from ground.cli_types import output_file, progress_on
 
 
 def _calibrate(args) -> int:
@@ -37,7 +37,7 @@ def _calibrate(args) -> int:
     catalog = catalog_from_image(Path(args.catalog).read_bytes())
     try:
         cal = calibrate_from_frames(frames, catalog, initial, params, fit=tuple(args.fit.split(",")),
-                                    focal_search=args.focal_search, progress=not args.json)
+                                    focal_search=args.focal_search, progress=progress_on(args))
     except ValueError as exc:
         print(f"st16-ground: {exc}", file=sys.stderr)
         return 1

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ground import atomic_write, json_text
 from ground.catalog.design import CatalogDesign, DesignError
-from ground.cli_types import SENSOR_PX, output_file
+from ground.cli_types import SENSOR_PX, output_file, progress_on
 
 CATALOG_SLOT = 0
 
@@ -118,7 +118,7 @@ def _analyze(args) -> int:
     try:
         design = design_from_args(args)
         cat = build_catalog(design)
-        res, views, vc, vm = analyze(cat, design, n_views=args.views, progress=not args.json, return_views=True)
+        res, views, vc, vm = analyze(cat, design, n_views=args.views, progress=progress_on(args), return_views=True)
     except (*_design_errors(), ValueError) as exc:
         return _fail(str(exc))
     if args.json_out:
@@ -168,7 +168,7 @@ def _upload(args) -> int:
         return _fail(f"{args.file}: {exc}")
     with open_client(args) as client:
         try:
-            report = client.upload(CATALOG_SLOT, data, progress=not args.json)
+            report = client.upload(CATALOG_SLOT, data, progress=progress_on(args))
             info = client.slot_info(CATALOG_SLOT)
         except LinkError as exc:
             report_error(exc, args.json)

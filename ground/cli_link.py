@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 from protocol.commands import GO_OPERATIONAL, DarkWindow
 
 from . import json_text
-from .cli_types import SECONDS, U8, U16, U32, ranged
+from .cli_types import SECONDS, U8, U16, U32, progress_on, ranged
 
 if TYPE_CHECKING:  # the client imports numpy and pyserial: only when a command runs
     from .client import Client, LinkError
@@ -132,7 +132,7 @@ def _run_dark_window(c, a):
 
 def _run_upload(c, a):
     data = Path(a.file).read_bytes()
-    report = c.upload(a.slot, data, progress=not a.no_progress, commit=not a.no_commit)
+    report = c.upload(a.slot, data, progress=progress_on(a), commit=not a.no_commit)
     seconds = max(report.seconds, 1e-9)
     return {**report.__dict__, "bytes_per_second": report.sent / seconds}
 
@@ -214,7 +214,6 @@ def _a_dark(p):
 def _a_upload(p):
     _args_slot(p)
     p.add_argument("file", help="image to upload")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--no-commit", action="store_true", help="leave the transfer pending")
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ground import json_text
 from ground.atomic_write import atomic_path, write_text
-from ground.cli_types import SEED, SENSOR_PX
+from ground.cli_types import SEED, SENSOR_PX, progress_on
 
 #: Seed 000 section 5.2 (table 3, fig. 9) for 1e6 poses.
 PAPER_COLOUR = {"poses": 1_000_000, "problem_orientations": 7078, "no_solution": 897, "poor_match": 1763,
@@ -30,7 +30,6 @@ def _common(p) -> None:
     p.add_argument("--scheduler", help="Dask scheduler address (tcp://host:8786) instead of local processes")
     p.add_argument("--out", type=Path, help="directory for rows, summary and plots")
     p.add_argument("--source", choices=("hipparcos", "bsc5"), default="hipparcos", help="source catalog")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def register(subparsers) -> None:
@@ -91,7 +90,7 @@ def run_colour(args) -> int:
                                  model=skysim.ErrorModel(args.sigma_pix, args.sigma_colour, args.false_stars, args.drop))
     n = args.boresights * args.rolls
     rows, wall = skysim.execute("colour", catalog, camera, cfg, n, workers=args.workers, chunk=args.chunk,
-                                scheduler=args.scheduler, progress=not args.no_progress)
+                                scheduler=args.scheduler, progress=progress_on(args))
     summary = skysim.colour_summary(rows)
     summary.update(poses_per_second=n / wall, wall_seconds=wall, catalog_stars=catalog.n_stars,
                    catalog_pairs=catalog.n_pairs, workers=args.workers, scheduler=args.scheduler)
@@ -143,7 +142,7 @@ def run_fourstar(args) -> int:
         cfg = skysim.FourStarSimConfig(step_deg=args.step, radius_deg=args.radius, epsilon_deg=eps, seed=args.seed,
                                        check_consistency=not args.paper)
         rows, wall = skysim.execute("fourstar", catalog, None, cfg, n, workers=args.workers, chunk=args.chunk,
-                                    scheduler=args.scheduler, progress=not args.no_progress)
+                                    scheduler=args.scheduler, progress=progress_on(args))
         s = skysim.fourstar_summary(rows)
         s.update(epsilon_deg=eps, wall_seconds=wall, fovs_per_second=n / wall)
         results[str(eps)] = s

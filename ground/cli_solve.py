@@ -19,7 +19,7 @@ from pathlib import Path
 
 from ground import json_text
 from ground.atomic_write import write_text
-from ground.cli_types import output_file
+from ground.cli_types import output_file, progress_on
 
 DEFAULT_RESULTS = "st16-results"
 
@@ -77,7 +77,7 @@ def _solve_on_device(args, frame):
     from ground.cli_link import client_kwargs
     from ground.replay import LinkSolver
 
-    bar = frame is not None and not args.json and sys.stderr.isatty()  # a 10 MB frame is 15 min at 115 200 baud
+    bar = frame is not None and progress_on(args)  # a 10 MB frame is 15 min at 115 200 baud
     solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, upload_progress=bar,
                         **client_kwargs(args))
     try:  # a NACK (exit 5) or a device that does not come back (exit 4) ends in ground.cli.main
@@ -121,7 +121,7 @@ def _replay(args) -> int:
             raise SystemExit("st16-ground: --port URL is required (or use --offline)")
         solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, **client_kwargs(args))
     try:
-        summary = replay(args.directory, solver, args.out, progress=not args.json, resume=args.resume)
+        summary = replay(args.directory, solver, args.out, progress=progress_on(args), resume=args.resume)
     except (ValueError, TimeoutError) as exc:
         print(f"st16-ground: {exc}", file=sys.stderr)
         return 1
@@ -139,7 +139,7 @@ def _table5(args) -> int:
     from ground.replay import TABLE5_MODES, table5
 
     out = table5(frame_files(args.directory), load_camera(args.camera), _load_catalog(args.catalog),
-                 progress=not args.json)
+                 progress=progress_on(args))
     if args.json:
         print(json_text.dumps(out))
     else:
@@ -195,7 +195,7 @@ def _params_upload(args) -> int:
         return 2
     with open_client(args) as client:
         try:
-            client.upload(2, data, progress=not args.json)
+            client.upload(2, data, progress=progress_on(args))
             info = client.slot_info(2)
         except LinkError as exc:
             report_error(exc, args.json)
@@ -207,7 +207,7 @@ def _params_upload(args) -> int:
 def _demo(args) -> int:
     from ground.demo import run_demo
 
-    return run_demo(args.out, n_frames=args.frames, seed=args.seed)
+    return run_demo(args.out, n_frames=args.frames, seed=args.seed, progress=progress_on(args))
 
 
 def register(sub) -> None:

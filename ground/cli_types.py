@@ -46,3 +46,11 @@ SEED = ranged(int, 0, 2**63 - 1, "a seed")
 RA_DEG = ranged(float, 0.0, 360.0, "RA in degrees")
 DEC_DEG = ranged(float, -90.0, 90.0, "Dec in degrees")
 ANGLE_DEG = ranged(float, -360.0, 360.0, "an angle in degrees")
+
+
+def progress_on(args) -> bool:
+    """Whether a command shows progress bars: not with ``--no-progress`` or ``--json``, and only
+    when stderr is a terminal (bars in a log file or a pipe are noise)."""
+    import sys
+
+    return not (getattr(args, "no_progress", False) or getattr(args, "json", False)) and sys.stderr.isatty()

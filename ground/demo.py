@@ -63,7 +63,7 @@ def stop_device(proc: subprocess.Popen) -> int:
     return rc
 
 
-def run_demo(out, n_frames: int = 6, seed: int = 2026) -> int:
+def run_demo(out, n_frames: int = 6, seed: int = 2026, progress: bool = True) -> int:
     from ground.client import Client
 
     out = Path(out).resolve()
@@ -100,7 +100,7 @@ def run_demo(out, n_frames: int = 6, seed: int = 2026) -> int:
                 print(f"  {client.ping()}", flush=True)
                 client.init()
                 print(f"  {client.ping()}", flush=True)
-                report = client.upload(0, image, progress=True)
+                report = client.upload(0, image, progress=progress)
                 info = client.slot_info(0)
                 print(f"catalog uploaded: {report.sent} bytes, device CRC-32 0x{info.crc32:08X} "
                       f"({'verified' if info.active else 'NOT ACTIVE'})", flush=True)

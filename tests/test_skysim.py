@@ -212,3 +212,24 @@ def test_mono_frames_are_solved_as_the_device_solves_them(colour_catalog):
     assert np.all(raw["status"] == 0) and np.all(raw["n_true"] >= 8)
     rows = skysim.run_poses(colour_catalog, CAM, skysim.ColourSimConfig(**kw), poses)
     assert np.all(rows["status"] == 2) and np.all(rows["n_wrong"] == 0) and np.all(rows["err_deg"] < 0.01)
+
+
+def test_progress_bars_only_on_a_terminal_and_without_no_progress(tmp_path):
+    """A bar in a pipe or a log is noise: off when stderr is not a terminal, and --no-progress (a
+    global option, before or after the command) turns it off on a terminal."""
+    import argparse
+    import subprocess
+    import sys as _sys
+
+    from ground.cli_types import progress_on
+
+    cmd = [_sys.executable, "-m", "ground.cli", "sim", "colour", "--boresights", "20", "--rolls", "1", "--workers",
+           "1", "--out", str(tmp_path)]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and "pose" not in run.stderr  # tqdm's unit: no bar into the pipe
+    assert not progress_on(argparse.Namespace(no_progress=True, json=False))
+    assert not progress_on(argparse.Namespace(no_progress=False, json=True))
+    from ground.cli import build_parser
+
+    for argv in (["--no-progress", "sim", "colour"], ["sim", "colour", "--no-progress"]):
+        assert build_parser().parse_args(argv).no_progress is True
