@@ -10,6 +10,7 @@ from __future__ import annotations
 import random
 
 from protocol import nsp, slip
+from protocol.crc import crc16_mcrf4xx
 from protocol.commands import (
     Combination, CrcRequest, DarkWindow, Go, Init, Peek, Poke, ReadFile, ReadRange, WriteEdac, WriteFile,
     XferBegin, XferData,
@@ -60,6 +61,14 @@ def command_frame(rng: random.Random, code: int | None = None, *, poll: bool | N
     return nsp.command(dst, HOST, code, data, poll=poll, b=rng.random() < 0.5).frame()
 
 
+def _damaged_cut(rng: random.Random, raw: bytes, shortest: int) -> bytes:
+    """``raw`` cut to a random shorter length whose last two bytes are not by chance a valid CRC."""
+    cut = raw[:rng.randrange(shortest, len(raw))]
+    if len(cut) >= nsp.MIN_MESSAGE and crc16_mcrf4xx(cut) == 0:  # 1 in 65 536: damage its last byte
+        cut = cut[:-1] + bytes([cut[-1] ^ 0x01])
+    return cut
+
+
 def fault_frame(rng: random.Random, kind: str, *, dst: int = nsp.DEVICE_ADDRESS) -> bytes:
     """One damaged frame of ``kind`` (see :data:`FAULTS`); its trailing FEND ends it on the wire
     except for ``no_end``, which the next frame's leading FEND ends."""
@@ -81,7 +90,7 @@ def fault_frame(rng: random.Random, kind: str, *, dst: int = nsp.DEVICE_ADDRESS)
         other = rng.choice([a for a in range(256) if a != dst])
         return nsp.command(other, HOST, rng.randrange(32), b"", poll=True).frame()
     if kind == "truncated":
-        return slip.encode(raw[:rng.randrange(nsp.MIN_MESSAGE, len(raw))])
+        return slip.encode(_damaged_cut(rng, raw, nsp.MIN_MESSAGE))
     if kind == "bit_flip":
         buf = bytearray(raw)
         buf[rng.randrange(len(buf))] ^= 1 << rng.randrange(8)
@@ -89,7 +98,7 @@ def fault_frame(rng: random.Random, kind: str, *, dst: int = nsp.DEVICE_ADDRESS)
     if kind == "garbage":
         return rng.randbytes(rng.randrange(1, 200))
     if kind == "no_end":
-        return bytes([slip.FEND]) + slip.escape(raw)[: rng.randrange(1, len(raw))]
+        return bytes([slip.FEND]) + slip.escape(_damaged_cut(rng, raw, 1))
     raise ValueError(f"unknown fault kind {kind!r}")
 
 
