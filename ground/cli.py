@@ -14,7 +14,7 @@ import importlib
 import os
 import sys
 
-from ground.cli_types import U8, output_file, ranged
+from ground.cli_types import U8, InputError, output_file, ranged
 
 #: Modules that add subcommands, in help order. Each defines ``register(subparsers)``.
 COMMAND_MODULES = (
@@ -116,6 +116,11 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print("st16-ground: interrupted", file=sys.stderr)
         return 130
+    except InputError as exc:
+        if args.debug:
+            raise
+        print(f"st16-ground: {exc}", file=sys.stderr)
+        return 2
     except BrokenPipeError:  # the reader went away (| head): no traceback, no second error at exit
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 1

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from ground import json_text
 from ground.atomic_write import write_text
-from ground.cli_types import output_file, progress_on
+from ground.cli_types import InputError, output_file, progress_on
 
 
 def _calibrate(args) -> int:
@@ -31,7 +31,7 @@ def _calibrate(args) -> int:
         first = read_frame(args.frames[0])
         initial = CameraModel.from_focal(first.width, first.height, args.focal_mm, args.pixel_um)
     else:
-        raise SystemExit("st16-ground: give --camera JSON or both --focal-mm and --pixel-um")
+        raise InputError("give --camera JSON or both --focal-mm and --pixel-um")
     frames = [read_frame(p) for p in args.frames]
     params = PipelineParams() if args.psf_sigma is None else with_psf_sigma(PipelineParams(), args.psf_sigma)
     catalog = catalog_from_image(Path(args.catalog).read_bytes())

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 from protocol.commands import GO_OPERATIONAL, DarkWindow
 
 from . import json_text
-from .cli_types import SECONDS, U8, U16, U32, progress_on, ranged
+from .cli_types import SECONDS, U8, U16, U32, InputError, progress_on, ranged
 
 if TYPE_CHECKING:  # the client imports numpy and pyserial: only when a command runs
     from .client import Client, LinkError
@@ -292,7 +292,7 @@ def open_client(args) -> Client:
     from .client import Client
 
     if not args.port:
-        raise SystemExit("st16-ground: --port URL is required for link commands")
+        raise InputError("--port URL is required for link commands")
     return Client(args.port, **client_kwargs(args))
 
 

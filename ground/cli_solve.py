@@ -19,7 +19,7 @@ from pathlib import Path
 
 from ground import json_text
 from ground.atomic_write import write_text
-from ground.cli_types import output_file, progress_on
+from ground.cli_types import InputError, output_file, progress_on
 
 DEFAULT_RESULTS = "st16-results"
 
@@ -44,9 +44,9 @@ def _solve(args) -> int:
     from ground.results_log import ResultsLog
 
     if args.offline and not (args.catalog and args.frame):
-        raise SystemExit("st16-ground: solve --offline needs --frame FILE and --catalog IMAGE")
+        raise InputError("solve --offline needs --frame FILE and --catalog IMAGE")
     if not args.offline and not args.port:
-        raise SystemExit("st16-ground: --port URL is required for solve (or use --offline)")
+        raise InputError("--port URL is required for solve (or use --offline)")
     solver = _offline_solver(args) if args.offline else None
     frame = None
     if args.frame:
@@ -92,7 +92,7 @@ def _offline_solver(args):
     from ground.replay import OfflineSolver
 
     if not args.catalog:
-        raise SystemExit("st16-ground: the offline solver needs --catalog IMAGE")
+        raise InputError("the offline solver needs --catalog IMAGE")
     camera, params = camera_for_frames(args), load_params(args.params)
     site = None
     if getattr(args, "site", None):
@@ -102,11 +102,11 @@ def _offline_solver(args):
             parts = [float(v) for v in args.site.split(",")]
             site = Site(*parts[:3], pressure_hpa=args.pressure, temperature_c=args.temperature)
         except (ValueError, TypeError):
-            raise SystemExit(f"st16-ground: --site wants LAT,LON[,HEIGHT_M] in degrees/metres, got {args.site!r}")
+            raise InputError(f"--site wants LAT,LON[,HEIGHT_M] in degrees/metres, got {args.site!r}")
     try:
         catalog = _load_catalog(args.catalog)
     except (OSError, ValueError) as exc:
-        raise SystemExit(f"st16-ground: --catalog {args.catalog}: {exc}") from None
+        raise InputError(f"--catalog {args.catalog}: {exc}") from None
     return OfflineSolver(camera, catalog, params, site)
 
 
@@ -118,7 +118,7 @@ def _replay(args) -> int:
         solver = _offline_solver(args)
     else:
         if not args.port:
-            raise SystemExit("st16-ground: --port URL is required (or use --offline)")
+            raise InputError("--port URL is required (or use --offline)")
         solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, **client_kwargs(args))
     try:
         summary = replay(args.directory, solver, args.out, progress=progress_on(args), resume=args.resume)

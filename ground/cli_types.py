@@ -54,3 +54,8 @@ def progress_on(args) -> bool:
     import sys
 
     return not (getattr(args, "no_progress", False) or getattr(args, "json", False)) and sys.stderr.isatty()
+
+
+class InputError(Exception):
+    """A bad value or input file found after parsing (a missing companion option, an unreadable
+    catalog or camera file): ``st16-ground`` prints the message on one line and exits 2."""

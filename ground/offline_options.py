@@ -7,12 +7,14 @@
 * ``--params FILE``: the device's slot-2 parameter set (``firmware_model.sensor_input.DeviceParams``,
   the file ``params upload`` sends), so an offline run and the device solve with the same settings.
 
-Bad values fail before any work with a one-line ``SystemExit`` message.
+Bad values fail before any work with an :class:`~ground.cli_types.InputError` (one line, exit 2).
 """
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Callable
+
+from ground.cli_types import InputError
 
 if TYPE_CHECKING:  # the pipeline imports scipy: only when a command runs
     from firmware_model.camera import CameraModel
@@ -41,7 +43,7 @@ def load_params(path: str | None) -> PipelineParams:
     try:
         return DeviceParams.load(path).apply(PipelineParams())
     except ValueError as exc:
-        raise SystemExit(f"st16-ground: {exc}") from None
+        raise InputError(str(exc)) from None
 
 
 def camera_for_frames(args) -> Callable[[Frame], CameraModel]:
@@ -52,10 +54,10 @@ def camera_for_frames(args) -> Callable[[Frame], CameraModel]:
     fov = getattr(args, "fov_deg", None)
     if fov is not None:
         if not 0.0 < fov < 180.0:
-            raise SystemExit(f"st16-ground: --fov-deg must be in (0, 180) deg, got {fov}")
+            raise InputError(f"--fov-deg must be in (0, 180) deg, got {fov}")
         return lambda frame: CameraModel.from_horizontal_fov(frame.width, frame.height, fov)
     try:
         camera = load_camera(args.camera)
     except ValueError as exc:
-        raise SystemExit(f"st16-ground: {exc}") from None
+        raise InputError(str(exc)) from None
     return lambda frame: camera
