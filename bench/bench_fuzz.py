@@ -1,6 +1,7 @@
 """Long run of the fuzz and fault suite (ground/fuzz); prints a table of counts per campaign.
 
-Campaigns: NSP traffic (random and damaged frames, PING after each burst), client against
+Campaigns: NSP traffic (random and damaged frames, PING after each burst; on a pty, and paced
+on TCP), client against
 misbehaving ports (pty and socket://, garbage / slow / silent / flooding), transfer faults on a
 device holding a catalog, damaged state directories (in process and as processes), TCP link
 policy (takeover, silent, cut, chattering clients, idle timeout, connection flood) and SIGKILL
@@ -24,6 +25,8 @@ def campaigns(n: int, seed: int) -> dict:
     """name -> callable returning a Tally, sized so the run sends about ``n`` messages."""
     return {
         "nsp": lambda: nsp_fuzz.run(seed, bursts=max(10, n // 25))[0],
+        "nsp_paced_tcp": lambda: nsp_fuzz.run(seed + 1, bursts=max(10, n // 100),
+                                              device_args=("--tcp", "127.0.0.1:0", "--pace", "--baud", "921600"))[0],
         "client_ports": lambda: port_faults.run(seed, trials=max(9, n // 200), timeout=0.2).add(
             port_faults.run(seed + 1, trials=max(9, n // 200), timeout=0.2, tcp=True)).add(
             port_faults.run_flood(seed, calls=5, tcp=True)).add(port_faults.run_flood(seed, calls=5, tcp=False)),
