@@ -189,6 +189,7 @@ class Client:
         received = bytearray()
         parts: list[nsp.Message] = []
         damage: list[str] = []  # what was read past: noise, damaged frames, replies to other commands
+        damage_before = 0  # len(damage) when the first part arrived
         deadline = time.monotonic() + timeout
         while True:
             remaining = deadline - time.monotonic()
@@ -210,9 +211,11 @@ class Client:
                     continue
                 if not reply.ack:
                     raise Nack(code, NackInfo.unpack(reply.data), bytes(received))
-                if parts and damage:  # a part of this reply may be among the damaged frames
+                if parts and len(damage) > damage_before:  # a part of this reply may be among them
                     raise MalformedReply(f"{code_name(code)}: a frame was damaged inside the multi-part reply: "
                                          f"{damage[-1]}", bytes(received))
+                if not parts:
+                    damage_before = len(damage)  # noise before the first part is harmless
                 parts.append(reply)
                 if reply.final:
                     return parts

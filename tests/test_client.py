@@ -164,3 +164,19 @@ def test_dead_port_raises_link_down():
         for _ in range(3):
             c.ping()
     c.close()
+
+
+def test_noise_before_a_multipart_reply_is_harmless_but_a_damaged_part_is_not(responder):
+    def script(msg):
+        first, last = nsp.reply_to(msg, b"\x00\x00ab", final=False), nsp.reply_to(msg, b"\x02\x00cd")
+        if msg.b:
+            return b"\xc0\xdb\x01\xc0" + first.frame() + last.frame()  # a bad escape, then both parts
+        damaged = bytearray(first.encode())
+        damaged[-1] ^= 1
+        return slip.encode(bytes(damaged)) + last.frame()
+
+    r = responder(script)
+    with Client(r.link.path, timeout=0.3, retries=0) as c:
+        assert c.read_result(0, 4) == b"abcd"  # first command: B set
+        with pytest.raises(MalformedReply):
+            c.read_result(0, 4)
