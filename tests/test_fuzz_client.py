@@ -1,15 +1,17 @@
 """The ground client against ports that answer garbage, slowly, never, or nonstop; replies meant
 for other commands or for a killed client are never taken (fixed seeds; long run in bench/)."""
 
+import threading
 import time
 
 import pytest
 
+from firmware_model.link import PtyLink
 from ground.cli import main as cli_main
 from ground.client import Client, Nack, ReplyTimeout
 from ground.fuzz import port_faults
 from ground.fuzz.port_faults import FakePort
-from protocol import nsp
+from protocol import nsp, slip
 from protocol.commands import Code, NackInfo, NackReason
 
 
@@ -39,11 +41,6 @@ def test_noise_before_an_intact_reply_is_read_past():
 def test_a_late_reply_to_a_killed_client_is_not_taken_by_the_next_one(tmp_path):
     """The previous client sent GO and went away; its ACK arrives after the next client opened
     the port. The next client's GO (same first B bit) gets the device's BUSY NACK, not that ACK."""
-    from firmware_model.link import PtyLink
-    import threading
-
-    from protocol import slip
-
     link, stop, seen = PtyLink(), threading.Event(), []
 
     def device():
