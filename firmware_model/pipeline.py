@@ -232,8 +232,8 @@ def identify_stars(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
             out = refined
         elif out.optics is None:  # too few stars matched to check the optics: a search may match more
             found = _search_optics(stars, camera, catalog, params, timings, t0 - stars.timings.get("total_s", 0.0))
-            if found is not None and len(found.solution.matched_det) > len(out.solution.matched_det):
-                out = found
+            if found is not None and found.status is Status.OK and _rank(found) > _rank(out):
+                out = found  # a high-confidence answer only: the search may now return a low one
     out.timings = timings
     timings["total"] = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
     return out
