@@ -18,8 +18,10 @@ Steps (vectorised; Python loops only over candidates of multi-peak regions):
    a defocused star spread over 8 px loses a third of its SNR to the narrow kernel). A
    super-pixel is significant above ``k_sigma`` times the filtered noise.
 4. Connected significant regions are labelled; every local maximum (over
-   ``peak_separation`` super-pixels) that is separated from brighter peaks of its region
-   by a 3-sigma dip is a candidate, flagged BLEND when its region keeps more than one.
+   ``peak_separation`` super-pixels) that is separated from the brighter kept peaks of its
+   region within :data:`MERGE_RADIUS_KERNELS` kernel widths by a 3-sigma dip is a candidate,
+   flagged BLEND when its region keeps more than one (brightest first, at most
+   :data:`REGION_CAP_FACTOR` x ``max_candidates`` kept: bounded work in any clutter).
    Elongated regions (satellite streaks, cosmic-ray tracks) are rejected, and so are
    candidates whose brightest raw pixel holds more of the 6x6 window's signal than a PSF
    can (hot pixels the per-pixel cleaning missed). Candidates are ranked by filtered flux
