@@ -108,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     from serial import SerialException  # after parsing: --help and usage errors stay fast
 
     from ground.client import LinkError, Nack
+    from ground.exchange_log import LogWriteError
 
     try:
         return int(args.func(args) or 0)
@@ -116,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print("st16-ground: interrupted", file=sys.stderr)
         return 130
-    except InputError as exc:
+    except (InputError, LogWriteError) as exc:  # a bad value or file, or a --log that cannot be written
         if args.debug:
             raise
         print(f"st16-ground: {exc}", file=sys.stderr)

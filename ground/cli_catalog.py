@@ -171,8 +171,7 @@ def _upload(args) -> int:
             report = client.upload(CATALOG_SLOT, data, progress=progress_on(args))
             info = client.slot_info(CATALOG_SLOT)
         except LinkError as exc:
-            report_error(exc, args.json)
-            return 1
+            return report_error(exc, args.json)
     if not info.active or info.crc32 != report.crc32 or info.length != len(data):
         return _fail(f"device holds length {info.length} CRC-32 0x{info.crc32:08X}, sent {len(data)} 0x{report.crc32:08X}")
     out = {"slot": CATALOG_SLOT, "bytes": len(data), "crc32": f"0x{report.crc32:08X}", "resumed_from": report.resumed_from,
@@ -189,8 +188,7 @@ def _info(args) -> int:
         try:
             info = client.slot_info(CATALOG_SLOT)
         except LinkError as exc:
-            report_error(exc, args.json)
-            return 1
+            return report_error(exc, args.json)
     out = {"active": info.active, "bytes": info.length, "crc32": f"0x{info.crc32:08X}"}
     if info.info:
         try:

@@ -270,7 +270,10 @@ def render(obj: dict) -> str:
     return "\n".join(lines)
 
 
-def report_error(exc: LinkError, as_json: bool) -> None:
+def report_error(exc: LinkError, as_json: bool) -> int:
+    """Report a failed exchange (one line on stderr, or a JSON object on stdout with every byte
+    received) and return its exit code: 5 when the device refused (NACK), 4 for the link (no
+    reply, a garbled one, a port gone)."""
     from .client import Nack
 
     payload = {"error": type(exc).__name__, "message": str(exc), "raw": exc.raw.hex()}
@@ -279,7 +282,10 @@ def report_error(exc: LinkError, as_json: bool) -> None:
     if as_json:
         print(json_text.dumps(payload))
     else:
-        print(f"{payload['error']}: {payload['message']}\n  raw: {payload['raw']}", file=sys.stderr)
+        raw = payload["raw"]
+        seen = f" (received {len(exc.raw)} B: {raw[:64]}{'...' if len(raw) > 64 else ''})" if raw else ""
+        print(f"st16-ground: {payload['error']}: {payload['message']}{seen}", file=sys.stderr)
+    return 5 if isinstance(exc, Nack) else 4
 
 
 def client_kwargs(args) -> dict:
@@ -304,8 +310,7 @@ def _handler(run: Run):
             try:
                 out = run(client, args)
             except LinkError as exc:
-                report_error(exc, args.json)
-                return 1
+                return report_error(exc, args.json)
         print(json_text.dumps(out) if args.json else render(out))
         return 0
 

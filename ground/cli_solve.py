@@ -198,8 +198,7 @@ def _params_upload(args) -> int:
             client.upload(2, data, progress=progress_on(args))
             info = client.slot_info(2)
         except LinkError as exc:
-            report_error(exc, args.json)
-            return 1
+            return report_error(exc, args.json)
     print(json_text.dumps({"slot": 2, "active": info.active, "length": info.length, "crc32": f"0x{info.crc32:08X}"}))
     return 0
 

@@ -97,10 +97,16 @@ class Client:
         self.host_address = host_address
         self.timeout = timeout
         self.retries = retries
-        # Reads wait at most READ_SLICE so the reply deadline is checked without reconfiguring the port.
-        self._ser = serial.serial_for_url(url, baudrate=baudrate, timeout=READ_SLICE, write_timeout=max(timeout, 5.0))
         self._own_log = isinstance(log, (str, Path))
-        self.log = ExchangeLog(log) if self._own_log else log
+        self.log = ExchangeLog(log) if self._own_log else log  # first: a log that fails leaves no port open
+        # Reads wait at most READ_SLICE so the reply deadline is checked without reconfiguring the port.
+        try:
+            self._ser = serial.serial_for_url(url, baudrate=baudrate, timeout=READ_SLICE,
+                                              write_timeout=max(timeout, 5.0))
+        except BaseException:
+            if self._own_log and self.log is not None:
+                self.log.close()
+            raise
         self._b = False
         self._synced = False  #: the line has been drained once (before the first command)
         self.stale_replies = 0  #: replies discarded because their B bit belonged to an earlier command
@@ -151,6 +157,8 @@ class Client:
         self._exchange(code, data, False, 0.0)
 
     def _exchange(self, code: int, data: bytes, poll: bool, timeout: float) -> list[nsp.Message]:
+        if not self._ser.is_open:  # pyserial would fail with a TypeError on the closed descriptor
+            raise LinkDown(f"{code_name(code)}: port {self.url} is closed")
         try:
             return self._exchange_once(code, data, poll, timeout)
         except _PORT_ERRORS as exc:

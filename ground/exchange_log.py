@@ -33,12 +33,20 @@ def describe(raw: bytes) -> dict:
             "poll_final": msg.poll, "b": msg.b, "ack": msg.ack, "data": msg.data.hex()}
 
 
+class LogWriteError(Exception):
+    """The exchange log could not be opened or written (a full disk, a vanished directory): not a
+    link failure, whatever the exchange was doing."""
+
+
 class ExchangeLog:
-    """Append-only JSONL writer (thread-safe, line-buffered)."""
+    """Append-only JSONL writer (thread-safe, line-buffered); raises :class:`LogWriteError`."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
-        self._fh = open(self.path, "a", encoding="utf-8", buffering=1)
+        try:
+            self._fh = open(self.path, "a", encoding="utf-8", buffering=1)
+        except OSError as exc:
+            raise LogWriteError(f"exchange log {self.path}: {exc}") from exc
         self._lock = threading.Lock()
 
     def record(self, direction: str, raw: bytes, note: str | None = None) -> None:
@@ -47,7 +55,10 @@ class ExchangeLog:
         if note:
             entry["note"] = note
         with self._lock:
-            self._fh.write(json.dumps(entry) + "\n")
+            try:
+                self._fh.write(json.dumps(entry) + "\n")
+            except OSError as exc:
+                raise LogWriteError(f"exchange log {self.path}: {exc}") from exc
 
     def close(self) -> None:
         self._fh.close()

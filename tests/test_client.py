@@ -180,3 +180,36 @@ def test_noise_before_a_multipart_reply_is_harmless_but_a_damaged_part_is_not(re
         assert c.read_result(0, 4) == b"abcd"  # first command: B set
         with pytest.raises(MalformedReply):
             c.read_result(0, 4)
+
+
+def test_a_closed_client_and_a_failing_log_are_named_for_what_they_are(tmp_path, monkeypatch):
+    """Using a closed client is LinkDown (pyserial raised TypeError); an exchange log that cannot
+    be written is LogWriteError, not a link failure, and a log that cannot be opened leaves no
+    port open."""
+    import serial
+
+    from ground.client import Client, LinkDown
+    from ground.exchange_log import LogWriteError
+
+    c = Client("loop://", timeout=0.05, retries=0)
+    c.close()
+    with pytest.raises(LinkDown, match="is closed"):
+        c.ping()
+    opened = []
+    real = serial.serial_for_url
+    monkeypatch.setattr(serial, "serial_for_url", lambda *a, **k: opened.append(real(*a, **k)) or opened[-1])
+    (tmp_path / "log_dir").mkdir()
+    with pytest.raises(LogWriteError):
+        Client("loop://", log=tmp_path / "log_dir")  # a directory: cannot be opened for appending
+    assert not opened
+    with Client("loop://", timeout=0.05, retries=0, log=tmp_path / "x.jsonl") as c:
+        class FullDisk:
+            def write(self, text):
+                raise OSError(28, "No space left on device")
+
+            def close(self):
+                pass
+
+        c.log._fh = FullDisk()
+        with pytest.raises(LogWriteError):
+            c.ping()

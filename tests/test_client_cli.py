@@ -26,7 +26,7 @@ def test_cli_commands_json(port, capsys, tmp_path):
     assert run_json(port, capsys, "write-edac", "0x100", "dead")[1]["written"] == 2
     assert run_json(port, capsys, "read-edac", "0x100", "2")[1]["hex"] == "dead"
     rc, out = run_json(port, capsys, "write-edac", "0x10", "00")
-    assert rc == 1 and out["error"] == "Nack" and out["reason"] == 4 and out["raw"].startswith("c0110e")
+    assert rc == 5 and out["error"] == "Nack" and out["reason"] == 4 and out["raw"].startswith("c0110e")
     assert run_json(port, capsys, "go", "--wait")[1]["status"] == "NO_CATALOG"
     image = tmp_path / "params.json"
     image.write_text('{"fov_deg": 20}')
@@ -34,7 +34,7 @@ def test_cli_commands_json(port, capsys, tmp_path):
     assert run_json(port, capsys, "slot-info", "2")[1]["info"] == {"keys": ["fov_deg"]}
     assert run_json(port, capsys, "diag")[1]["nacked"] == 1
     rc, out = run_json(port, capsys, "send", "0x1f")
-    assert rc == 1 and out["reason"] == 1
+    assert rc == 5 and out["reason"] == 1  # refused by the device: exit 5
 
 
 def test_cli_log_file(port, capsys, tmp_path):

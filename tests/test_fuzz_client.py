@@ -84,8 +84,9 @@ def test_ground_cli_names_the_failure_without_a_traceback_within_its_timeout(beh
     finally:
         port.close()
     err = capsys.readouterr().err
-    first = err.splitlines()[0]
-    assert rc != 0 and "PING: no" in first and "reply within 0.200 s" in first, err
+    lines = err.splitlines()
+    assert rc == 4 and len(lines) == 1, err  # the link's exit code, one line
+    assert lines[0].startswith("st16-ground: ") and "PING: no" in lines[0] and "reply within 0.200 s" in lines[0], err
     assert "Traceback" not in err
     assert elapsed < 3 * 0.2 + 2.0  # three attempts of 0.2 s (PING is retried) and start-up
 
