@@ -4,6 +4,7 @@ import os
 import signal
 import struct
 import subprocess
+import sys
 
 import pytest
 
@@ -90,18 +91,18 @@ def test_combination_and_go_over_the_link(device):
         assert int(rec["sequence"]) == 2
 
 
-def _small_catalog_image() -> bytes:
-    """A valid catalog image of a random 300-star sky (the device validates slot 0)."""
+def _small_catalog_image(n: int = 300) -> bytes:
+    """A valid catalog image of a random ``n``-star sky (the device validates slot 0)."""
     import numpy as np
 
     from firmware_model.catalog_image_io import catalog_to_image
     from firmware_model.onboard_catalog import OnboardCatalog
 
     rng = np.random.default_rng(7)
-    v = rng.normal(size=(300, 3))
+    v = rng.normal(size=(n, 3))
     v /= np.linalg.norm(v, axis=1)[:, None]
-    cat = OnboardCatalog.build(np.arange(1, 301), v, rng.uniform(1, 5, 300), rng.uniform(0.3, 1.5, 300),
-                               rng.uniform(0.2, 1.4, 300), phi_min=0.002, phi_max=np.radians(15.0),
+    cat = OnboardCatalog.build(np.arange(1, n + 1), v, rng.uniform(1, 5, n), rng.uniform(0.3, 1.5, n),
+                               rng.uniform(0.2, 1.4, n), phi_min=0.002, phi_max=np.radians(15.0),
                                meta={"epoch": 2025.0})
     return catalog_to_image(cat, created_unix=0)
 
@@ -250,3 +251,34 @@ def test_link_is_served_while_a_combination_waits_for_its_sequence():
         stop.set()
         server.join(5.0)
         link.close()
+
+
+def test_ctrl_c_during_an_upload_keeps_what_was_sent_and_the_next_upload_resumes(tmp_path):
+    """``st16-ground upload`` interrupted half-way over a paced line: exit 130 with one line, the
+    device keeps the bytes received, and the next upload sends only the rest."""
+    import time
+
+    import json
+
+    image = _small_catalog_image(600)
+    (tmp_path / "cat.img").write_bytes(image)
+    partial = tmp_path / "state" / "slot0" / "partial.json"
+    dev = DeviceProcess("--pty", "--pace", "--baud", "115200", "--state", str(tmp_path / "state"))
+    try:
+        cmd = [sys.executable, "-m", "ground.cli", "--port", dev.path, "--timeout", "2", "upload", "0",
+               str(tmp_path / "cat.img")]
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 30
+        while not (partial.exists() and json.loads(partial.read_text() or "{}").get("ranges")):
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)  # the first chunk is in, most of the image is not
+        _, err = proc.communicate(timeout=30)
+        assert proc.returncode == 130 and err.strip().splitlines()[-1] == "st16-ground: interrupted", err
+        with Client(dev.path, timeout=2.0) as c:
+            st = c.xfer_status(0)
+            assert st.state == XferState.RECEIVING and 0 < st.contiguous < len(image)
+            report = c.upload(0, image, progress=False)
+            assert report.resumed_from == st.contiguous and c.slot_info(0).crc32 == crc32(image)
+    finally:
+        assert dev.stop() == 0
