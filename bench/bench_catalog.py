@@ -52,13 +52,16 @@ PAPER_TABLE1 = [
 
 
 def seed001(epoch: float = 2000.0) -> None:
-    print("\n== Seed 001: V <= 5.0 guide stars, pairs 0.05 deg <= theta <= 24.5 deg (paper: 1631 stars, 65 890 pairs) ==")
+    print(
+        "\n== Seed 001: V <= 5.0 guide stars, pairs 0.05 deg <= theta <= 24.5 deg (paper: 1631 stars, 65 890 pairs) =="
+    )
     for source in ("hipparcos", "bsc5"):
         if source == "bsc5" and not DEFAULT_BSC5.is_file():
             print("bsc5: ../shared/data/bsc5 absent, skipped")
             continue
-        design = CatalogDesign(source=source, m_thresh=5.0, theta_fov_deg=12.25, phi_min_deg=0.05, resolve_deg=0.05,
-                               epoch=epoch)
+        design = CatalogDesign(
+            source=source, m_thresh=5.0, theta_fov_deg=12.25, phi_min_deg=0.05, resolve_deg=0.05, epoch=epoch
+        )
         cat = build_catalog(design)
         # brute-force count with the paper's closed interval, independent of the pair table
         v = np.asarray(cat.vec)
@@ -67,9 +70,11 @@ def seed001(epoch: float = 2000.0) -> None:
         n_closed = int(((theta >= 0.05) & (theta <= 24.5)).sum())
         sel = cat.meta["selection"]
         before = cat.n_stars + sel["merged_doubles"]
-        print(f"{source:>9}: {before} stars with V <= 5.0 ({before - 1631:+d} vs 1631), {cat.n_stars} after merging "
-              f"{sel['merged_doubles']} doubles < 0.05 deg, {cat.n_pairs} pairs in the table, {n_closed} by brute force "
-              f"({n_closed - 65890:+d}, {100 * (n_closed / 65890 - 1):+.1f} % vs 65 890)")
+        print(
+            f"{source:>9}: {before} stars with V <= 5.0 ({before - 1631:+d} vs 1631), {cat.n_stars} after merging "
+            f"{sel['merged_doubles']} doubles < 0.05 deg, {cat.n_pairs} pairs in the table, {n_closed} by brute force "
+            f"({n_closed - 65890:+d}, {100 * (n_closed / 65890 - 1):+.1f} % vs 65 890)"
+        )
 
 
 def table1(n_views: int, out: Path) -> None:
@@ -81,8 +86,9 @@ def table1(n_views: int, out: Path) -> None:
         print(TABLE_HEADER + "   || paper: pairs e3, bad %, amb %, unres, mono amb %, mono unres")
         for row in tqdm(PAPER_TABLE1, desc=f"table 1 ({source})", leave=False):
             m, th, sp, sc = row[:4]
-            design = CatalogDesign(source=source, m_thresh=m, theta_fov_deg=th, sigma_pix=sp, sigma_rg=sc, sigma_bg=sc,
-                                   epoch=2000.0)
+            design = CatalogDesign(
+                source=source, m_thresh=m, theta_fov_deg=th, sigma_pix=sp, sigma_rg=sc, sigma_bg=sc, epoch=2000.0
+            )
             cat = build_catalog(design, source=table)
             res, views, vc, vm = analyze(cat, design, n_views=n_views, return_views=True)
             p = row[4:]
@@ -123,8 +129,10 @@ def colour_fallbacks() -> None:
     print(f"{typed.sum()} stars; rms relative difference to the template ratios, rg / bg:")
     for label, mask in (("B-V < 1.0", typed & (sel.bv < 1.0)), ("B-V >= 1.0", typed & (sel.bv >= 1.0)), ("all", typed)):
         e = lambda a, b: 100 * np.sqrt(np.mean((a[mask] / b[mask] - 1) ** 2))
-        print(f"  {label:>10} (n={mask.sum():4d}): chosen lookup {e(frg, rg):5.2f} / {e(fbg, bg):5.2f} %   "
-              f"Ballesteros blackbody {e(trg, rg):5.2f} / {e(tbg, bg):5.2f} %")
+        print(
+            f"  {label:>10} (n={mask.sum():4d}): chosen lookup {e(frg, rg):5.2f} / {e(fbg, bg):5.2f} %   "
+            f"Ballesteros blackbody {e(trg, rg):5.2f} / {e(tbg, bg):5.2f} %"
+        )
     print("  sources chosen: " + ", ".join(f"{s.name} {int((fsrc[typed] == s).sum())}" for s in ColourSource))
 
 
@@ -144,8 +152,10 @@ def build_times() -> None:
         t = time.perf_counter()
         cat = build_catalog(design)
         dt = time.perf_counter() - t
-        print(f"{label}: {dt:.2f} s for {cat.n_stars} stars / {cat.n_pairs} pairs "
-              f"({dt / t_read:.2f} x the read baseline; target < 10 s)")
+        print(
+            f"{label}: {dt:.2f} s for {cat.n_stars} stars / {cat.n_pairs} pairs "
+            f"({dt / t_read:.2f} x the read baseline; target < 10 s)"
+        )
 
 
 def upload_time() -> None:
@@ -166,8 +176,10 @@ def upload_time() -> None:
         thread.join(2)
         link.close()
     minimum = len(image) * 10 / 115200
-    print(f"image {len(image)} bytes, CRC-32 verified {info.crc32 == report.crc32}: {dt:.1f} s, line-rate minimum "
-          f"{minimum:.1f} s -> {dt / minimum:.3f} x the minimum ({100 * minimum / dt:.1f} % of the line rate)")
+    print(
+        f"image {len(image)} bytes, CRC-32 verified {info.crc32 == report.crc32}: {dt:.1f} s, line-rate minimum "
+        f"{minimum:.1f} s -> {dt / minimum:.3f} x the minimum ({100 * minimum / dt:.1f} % of the line rate)"
+    )
 
 
 def main() -> int:

@@ -47,11 +47,22 @@ def _one(args):
     out = run_pipeline(r.frame, cam, cat)
     wall = time.perf_counter() - t0
     rec = record_from_output(out)
-    truth = Truth(matrix_to_quat(a), np.array([s["id"] for s in r.truth["stars"]], dtype=np.int64),
-                  np.array([s["x"] for s in r.truth["stars"]]), np.array([s["y"] for s in r.truth["stars"]]))
+    truth = Truth(
+        matrix_to_quat(a),
+        np.array([s["id"] for s in r.truth["stars"]], dtype=np.int64),
+        np.array([s["x"] for s in r.truth["stars"]]),
+        np.array([s["y"] for s in r.truth["stars"]]),
+    )
     n_cat = sum(1 for s in r.truth["stars"] if s["vmag"] <= 5.0)
-    return {"pattern": pattern, "status": rec["status"], "method": rec["method"], "wall_s": wall,
-            "timings": rec["timings_s"], "n_catalog_in_view": n_cat, **score(rec, truth)}
+    return {
+        "pattern": pattern,
+        "status": rec["status"],
+        "method": rec["method"],
+        "wall_s": wall,
+        "timings": rec["timings_s"],
+        "n_catalog_in_view": n_cat,
+        **score(rec, truth),
+    }
 
 
 _CAT = None
@@ -73,8 +84,10 @@ def part_a(n: int, workers: int, seed: int, out: Path) -> None:
         rows = list(tqdm(ex.map(_one, jobs, chunksize=4), total=len(jobs), desc="render+solve"))
     (out / "part_a.json").write_text(json.dumps(rows))
     print(f"\nA. {n} random attitudes per pattern, reference design, real sky to V 6.5, catalog Hipparcos V <= 5.0")
-    print(f"{'frames':<8}{'method(s)':<30}{'correct':>9}{'wrong':>7}{'wrong&OK':>10}{'no att.':>9}"
-          f"{'OK':>6}{'LOW':>6}{'err p50 (as)':>14}{'p90':>8}{'<=0.01deg':>11}")
+    print(
+        f"{'frames':<8}{'method(s)':<30}{'correct':>9}{'wrong':>7}{'wrong&OK':>10}{'no att.':>9}"
+        f"{'OK':>6}{'LOW':>6}{'err p50 (as)':>14}{'p90':>8}{'<=0.01deg':>11}"
+    )
     for pattern in ("RGGB", "MONO"):
         rs = [r for r in rows if r["pattern"] == pattern]
         methods = sorted({r["method"] for r in rs if r["method"]})
@@ -83,17 +96,23 @@ def part_a(n: int, workers: int, seed: int, out: Path) -> None:
         wrong_ok = sum(r["status"] == "OK" for r in wrong)
         errs = np.array([r["attitude_error_deg"] for r in rs if r["outcome"] == "correct"]) * 3600
         within = np.mean([r["outcome"] == "correct" and r["attitude_error_deg"] <= 0.01 for r in rs])
-        print(f"{pattern:<8}{','.join(methods):<30}{correct / n:>9.1%}{len(wrong) / n:>7.1%}{wrong_ok:>10}"
-              f"{sum(r['outcome'] == 'no_match' for r in rs) / n:>9.1%}{sum(r['status'] == 'OK' for r in rs):>6}"
-              f"{sum(r['status'] == 'LOW_CONFIDENCE' for r in rs):>6}"
-              f"{np.median(errs):>14.2f}{np.percentile(errs, 90):>8.2f}{within:>11.1%}")
+        print(
+            f"{pattern:<8}{','.join(methods):<30}{correct / n:>9.1%}{len(wrong) / n:>7.1%}{wrong_ok:>10}"
+            f"{sum(r['outcome'] == 'no_match' for r in rs) / n:>9.1%}{sum(r['status'] == 'OK' for r in rs):>6}"
+            f"{sum(r['status'] == 'LOW_CONFIDENCE' for r in rs):>6}"
+            f"{np.median(errs):>14.2f}{np.percentile(errs, 90):>8.2f}{within:>11.1%}"
+        )
         few = [r for r in rs if r["outcome"] == "no_match"]
         if few:
-            print(f"        no attitude: median {np.median([r['n_catalog_in_view'] for r in few]):.0f} catalog stars "
-                  f"in view (all frames: {np.median([r['n_catalog_in_view'] for r in rs]):.0f})")
+            print(
+                f"        no attitude: median {np.median([r['n_catalog_in_view'] for r in few]):.0f} catalog stars "
+                f"in view (all frames: {np.median([r['n_catalog_in_view'] for r in rs]):.0f})"
+            )
         for stage in ("detect", "fit", "identify", "attitude", "total"):
             t = np.array([r["timings"][stage] for r in rs]) * 1e3
-            print(f"        {stage:<9} median {np.median(t):7.1f} ms   p95 {np.percentile(t, 95):7.1f} ms   max {t.max():7.1f} ms")
+            print(
+                f"        {stage:<9} median {np.median(t):7.1f} ms   p95 {np.percentile(t, 95):7.1f} ms   max {t.max():7.1f} ms"
+            )
 
 
 def part_b(n: int, out: Path) -> None:
@@ -115,7 +134,9 @@ def part_b(n: int, out: Path) -> None:
     for k, a in enumerate(atts):
         r = render_frame(sky_stars(), a, CameraModel.reference_design(), DetectorModel(), seed=k)
         write_frame(r.frame, frames / f"g{k:03d}.dng")
-    print(f"\nB. GO to result on the device (st16-device --pty --frames: {n} full-size RGGB DNG frames read by the device)")
+    print(
+        f"\nB. GO to result on the device (st16-device --pty --frames: {n} full-size RGGB DNG frames read by the device)"
+    )
     with tempfile.TemporaryDirectory() as state:
         for paced in (False, True):
             extra = ["--frames", str(frames)] + (["--baud", "115200", "--pace"] if paced else [])
@@ -142,18 +163,24 @@ def part_b(n: int, out: Path) -> None:
                 stop_device(proc)
             go_to_ready, exchange = np.array(go_to_ready) * 1e3, np.array(exchange) * 1e3
             label = "paced 115200 baud" if paced else "unpaced pty"
-            print(f"  {label}: GO -> result ready median {np.median(go_to_ready):.0f} ms (p95 "
-                  f"{np.percentile(go_to_ready, 95):.0f}); whole exchange incl. READ RESULT of {result.TOTAL_LENGTH} B "
-                  f"median {np.median(exchange):.0f} ms (p95 {np.percentile(exchange, 95):.0f})")
+            print(
+                f"  {label}: GO -> result ready median {np.median(go_to_ready):.0f} ms (p95 "
+                f"{np.percentile(go_to_ready, 95):.0f}); whole exchange incl. READ RESULT of {result.TOTAL_LENGTH} B "
+                f"median {np.median(exchange):.0f} ms (p95 {np.percentile(exchange, 95):.0f})"
+            )
             if paced:
                 line_min = result.TOTAL_LENGTH * 10 / 115200 * 1e3
-                print(f"    baseline: READ RESULT payload alone at line rate {line_min:.0f} ms; "
-                      f"exchange / (device total + line minimum) = "
-                      f"{np.median(exchange) / (np.median([s['total'] for s in stages]) * 1e3 + line_min):.2f}")
+                print(
+                    f"    baseline: READ RESULT payload alone at line rate {line_min:.0f} ms; "
+                    f"exchange / (device total + line minimum) = "
+                    f"{np.median(exchange) / (np.median([s['total'] for s in stages]) * 1e3 + line_min):.2f}"
+                )
             else:
                 for stage in ("detect", "fit", "vectors", "identify", "attitude", "total"):
                     t = np.array([s[stage] for s in stages]) * 1e3
-                    print(f"    device stage {stage:<9} median {np.median(t):7.1f} ms  p95 {np.percentile(t, 95):7.1f} ms")
+                    print(
+                        f"    device stage {stage:<9} median {np.median(t):7.1f} ms  p95 {np.percentile(t, 95):7.1f} ms"
+                    )
                 print("    (GO -> ready adds reading the DNG file: the capture)")
 
 

@@ -51,8 +51,8 @@ MATCH_PX = 2.0
 def star_snr(t: dict, det: DetectorModel) -> float:
     e = t["electrons"]
     n = e["mono"] if "mono" in e else (e["r"] + 2 * e["g"] + e["b"]) / 4.0
-    var_pix = det.read_noise_e ** 2 + (det.dark_e_per_s + det.sky_e_per_s) * det.exposure_s
-    return n / np.sqrt(n + 4 * np.pi * det.psf_sigma_px ** 2 * var_pix)
+    var_pix = det.read_noise_e**2 + (det.dark_e_per_s + det.sky_e_per_s) * det.exposure_s
+    return n / np.sqrt(n + 4 * np.pi * det.psf_sigma_px**2 * var_pix)
 
 
 def run_accuracy(det: DetectorModel, cam: CameraModel, n_frames: int, label: str, seed0: int):
@@ -70,15 +70,29 @@ def run_accuracy(det: DetectorModel, cam: CameraModel, n_frames: int, label: str
         cog = fit_stars(res.frame, d, FitParams(psf_sigma_px=det.psf_sigma_px, method="cog"))
         tx = np.array([t["x"] for t in res.truth["stars"]])
         ty = np.array([t["y"] for t in res.truth["stars"]])
-        dist = np.hypot(tx[:, None] - lm.x[None, :], ty[:, None] - lm.y[None, :]) if len(lm.x) else np.full((len(tx), 0), np.inf)
+        dist = (
+            np.hypot(tx[:, None] - lm.x[None, :], ty[:, None] - lm.y[None, :])
+            if len(lm.x)
+            else np.full((len(tx), 0), np.inf)
+        )
         for i, t in enumerate(res.truth["stars"]):
             j = int(np.argmin(dist[i])) if dist.shape[1] else -1
             found = j >= 0 and dist[i, j] < MATCH_PX
             r = [t["vmag"], star_snr(t, det), found]
             if found:
-                r += [lm.x[j] - t["x"], lm.y[j] - t["y"], lm.rg[j] - t["rg"], lm.bg[j] - t["bg"],
-                      np.sqrt(lm.cov_xy[j, 0, 0] + lm.cov_xy[j, 1, 1]), np.sqrt(lm.cov_colour[j, 0, 0]),
-                      cog.x[j] - t["x"], cog.y[j] - t["y"], cog.rg[j] - t["rg"], cog.bg[j] - t["bg"], lm.flags[j]]
+                r += [
+                    lm.x[j] - t["x"],
+                    lm.y[j] - t["y"],
+                    lm.rg[j] - t["rg"],
+                    lm.bg[j] - t["bg"],
+                    np.sqrt(lm.cov_xy[j, 0, 0] + lm.cov_xy[j, 1, 1]),
+                    np.sqrt(lm.cov_colour[j, 0, 0]),
+                    cog.x[j] - t["x"],
+                    cog.y[j] - t["y"],
+                    cog.rg[j] - t["rg"],
+                    cog.bg[j] - t["bg"],
+                    lm.flags[j],
+                ]
             else:
                 r += [np.nan] * 10 + [-1]
             rows.append(r)
@@ -90,7 +104,7 @@ def run_accuracy(det: DetectorModel, cam: CameraModel, n_frames: int, label: str
 
 def rms(a):
     a = a[np.isfinite(a)]
-    return float(np.sqrt(np.mean(a ** 2))) if len(a) else float("nan")
+    return float(np.sqrt(np.mean(a**2))) if len(a) else float("nan")
 
 
 def table(rows: np.ndarray, key: str, bins, colour: bool, n_frames: int, false_v=None):
@@ -105,14 +119,23 @@ def table(rows: np.ndarray, key: str, bins, colour: bool, n_frames: int, false_v
         f = b[b[:, 2] == 1]
         rec = {
             "bin": f"{lo:.1f}-{hi:.1f}" if key == "mag" else (f">{lo:.0f}" if np.isinf(hi) else f"{lo:.0f}-{hi:.0f}"),
-            "n": int(m.sum()), "completeness": float(f.shape[0] / m.sum()),
+            "n": int(m.sum()),
+            "completeness": float(f.shape[0] / m.sum()),
             "snr_median": float(np.median(b[:, 1])),
-            "centroid_rms": rms(np.hypot(f[:, 3], f[:, 4])), "centroid_pred": rms(f[:, 7]),
+            "centroid_rms": rms(np.hypot(f[:, 3], f[:, 4])),
+            "centroid_pred": rms(f[:, 7]),
             "cog_centroid_rms": rms(np.hypot(f[:, 9], f[:, 10])),
         }
         if colour:
-            rec.update({"rg_rms": rms(f[:, 5]), "bg_rms": rms(f[:, 6]), "rg_pred": rms(f[:, 8]),
-                        "cog_rg_rms": rms(f[:, 11]), "cog_bg_rms": rms(f[:, 12])})
+            rec.update(
+                {
+                    "rg_rms": rms(f[:, 5]),
+                    "bg_rms": rms(f[:, 6]),
+                    "rg_pred": rms(f[:, 8]),
+                    "cog_rg_rms": rms(f[:, 11]),
+                    "cog_bg_rms": rms(f[:, 12]),
+                }
+            )
         if false_v is not None:
             rec["false_per_frame"] = float(np.count_nonzero((false_v >= lo) & (false_v < hi)) / n_frames)
         out.append(rec)
@@ -128,8 +151,10 @@ def print_table(title: str, recs: list, colour: bool):
         head += f" {'false/fr':>8}"
     print(head)
     for r in recs:
-        line = (f"{r['bin']:>9} {r['n']:>4} {r['completeness']:6.3f} {r['snr_median']:7.1f} {r['centroid_rms']:6.3f} "
-                f"{r['centroid_pred']:6.3f} {r['cog_centroid_rms']:6.3f}")
+        line = (
+            f"{r['bin']:>9} {r['n']:>4} {r['completeness']:6.3f} {r['snr_median']:7.1f} {r['centroid_rms']:6.3f} "
+            f"{r['centroid_pred']:6.3f} {r['cog_centroid_rms']:6.3f}"
+        )
         if colour:
             line += f" {r['rg_rms']:6.3f} {r['bg_rms']:6.3f} {r['rg_pred']:6.3f} {r['cog_rg_rms']:6.3f}"
         if "false_per_frame" in r:
@@ -161,7 +186,12 @@ def run_speed(cam: CameraModel, n_frames: int, repeats: int):
         jac_ratio.append((t2 - t1) / (t1 - t0))
     med = {k: float(np.median(v)) for k, v in stages.items()}
     med["cpu_total_s"] = float(np.median(cpu))
-    return med, {k: float(np.percentile(v, 90)) for k, v in stages.items()}, float(np.median(jac_ratio)), float(np.mean(n_stars))
+    return (
+        med,
+        {k: float(np.percentile(v, 90)) for k, v in stages.items()},
+        float(np.median(jac_ratio)),
+        float(np.mean(n_stars)),
+    )
 
 
 def plot(results: dict, out: Path):
@@ -177,7 +207,9 @@ def plot(results: dict, out: Path):
         axes[0, 0].semilogy(mid, [r["centroid_rms"] for r in recs], style, label=f"{name} PSF fit")
         axes[0, 0].semilogy(mid, [r["cog_centroid_rms"] for r in recs], style, alpha=0.4, label=f"{name} CoG")
         axes[1, 0].plot(mid, [r["completeness"] for r in recs], style, label=f"{name} completeness")
-        axes[1, 0].plot(mid, [r.get("false_per_frame", 0) for r in recs], style, alpha=0.5, label=f"{name} false / frame")
+        axes[1, 0].plot(
+            mid, [r.get("false_per_frame", 0) for r in recs], style, alpha=0.5, label=f"{name} false / frame"
+        )
     recs = results["colour"]["by_mag"]
     mid = [float(r["bin"].split("-")[0]) + 0.25 for r in recs]
     axes[0, 1].semilogy(mid, [r["rg_rms"] for r in recs], "o-", label="rg RMS")
@@ -223,10 +255,19 @@ def main(argv=None) -> int:
         colour = name == "colour"
         by_mag = table(rows, "mag", mag_bins, colour, args.frames, false_v)
         by_snr = table(rows, "snr", SNR_BANDS, colour, args.frames)
-        results[name] = {"by_mag": by_mag, "by_snr": by_snr, "n_true": int(len(rows)),
-                         "false_total": int(len(false_v)), "frames": args.frames}
-        print_table(f"[{name}] accuracy and detection vs V magnitude ({args.frames} frames, {len(rows)} true stars, "
-                    f"{len(false_v)} false detections)", by_mag, colour)
+        results[name] = {
+            "by_mag": by_mag,
+            "by_snr": by_snr,
+            "n_true": int(len(rows)),
+            "false_total": int(len(false_v)),
+            "frames": args.frames,
+        }
+        print_table(
+            f"[{name}] accuracy and detection vs V magnitude ({args.frames} frames, {len(rows)} true stars, "
+            f"{len(false_v)} false detections)",
+            by_mag,
+            colour,
+        )
         print_table(f"[{name}] accuracy vs SNR", by_snr, colour)
         hi = rows[(rows[:, 1] > 50) & (rows[:, 2] == 1)]
         summary = {"centroid_rms": rms(np.hypot(hi[:, 3], hi[:, 4])), "n": int(len(hi))}
@@ -236,16 +277,27 @@ def main(argv=None) -> int:
         if colour:
             summary.update({"rg_rms_snr100": rms(hi100[:, 5]), "bg_rms_snr100": rms(hi100[:, 6])})
         results[name]["snr_above_50"] = summary
-        print(f"[{name}] SNR > 50: " + ", ".join(f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in summary.items()))
+        print(
+            f"[{name}] SNR > 50: "
+            + ", ".join(f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in summary.items())
+        )
     med, p90, jac_ratio, n_det = run_speed(cam, args.speed_frames, args.repeats)
-    results["speed"] = {"median_ms": {k.replace("_s", "_ms"): v * 1e3 for k, v in med.items()},
-                        "p90_ms": {k.replace("_s", "_ms"): v * 1e3 for k, v in p90.items()},
-                        "finite_difference_over_analytic_jacobian": jac_ratio, "mean_detections": n_det}
+    results["speed"] = {
+        "median_ms": {k.replace("_s", "_ms"): v * 1e3 for k, v in med.items()},
+        "p90_ms": {k.replace("_s", "_ms"): v * 1e3 for k, v in p90.items()},
+        "finite_difference_over_analytic_jacobian": jac_ratio,
+        "mean_detections": n_det,
+    }
     results["speed"]["load_average_1min"] = os.getloadavg()[0]
-    print(f"\nspeed, 2592 x 1944 RGGB, {n_det:.1f} stars/frame, {args.speed_frames} frames x {args.repeats} "
-          f"(1-min load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores): "
-          + ", ".join(f"{k} median {v:.1f} ms" + (f" (p90 {results['speed']['p90_ms'][k]:.1f})" if k in results['speed']['p90_ms'] else "")
-                      for k, v in results["speed"]["median_ms"].items()))
+    print(
+        f"\nspeed, 2592 x 1944 RGGB, {n_det:.1f} stars/frame, {args.speed_frames} frames x {args.repeats} "
+        f"(1-min load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores): "
+        + ", ".join(
+            f"{k} median {v:.1f} ms"
+            + (f" (p90 {results['speed']['p90_ms'][k]:.1f})" if k in results["speed"]["p90_ms"] else "")
+            for k, v in results["speed"]["median_ms"].items()
+        )
+    )
     print(f"fit time, finite-difference / analytic Jacobian (baseline ratio): {jac_ratio:.2f}x")
     (out / "extract_results.json").write_text(json.dumps(results, indent=1))
     print(f"plot: {plot(results, out)}; numbers: {out / 'extract_results.json'}")

@@ -28,8 +28,12 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-PAPER_TABLE5 = {"basic": (35, 35), "ideal colour": (40, 30), "chromatic correction": (58, 12),
-                "ideal colour + chromatic": (65, 5)}
+PAPER_TABLE5 = {
+    "basic": (35, 35),
+    "ideal colour": (40, 30),
+    "chromatic correction": (58, 12),
+    "ideal colour + chromatic": (65, 5),
+}
 ATMOSPHERE = (np.array([[0.88, 0.0], [0.04, 0.78]]), np.array([0.0, -0.02]))  # observed = B c + b
 SCINTILLATION = 0.04  # per-channel, per-star, per-frame relative flux jitter
 CHROMATIC_PX_PER_BG = 3.0  # radial displacement per unit of (bg - 1)
@@ -63,8 +67,11 @@ def main(argv=None) -> int:
     near = np.flatnonzero(sky.vectors @ centre > np.cos(np.radians(15)))
     rng = np.random.default_rng(2013)
     for k in tqdm(range(args.frames), desc="render"):
-        a = attitude_from_radec_roll(np.radians(84.05 + rng.normal(0, 0.3)), np.radians(-1.2 + rng.normal(0, 0.3)),
-                                     np.radians(rng.uniform(0, 360)))
+        a = attitude_from_radec_roll(
+            np.radians(84.05 + rng.normal(0, 0.3)),
+            np.radians(-1.2 + rng.normal(0, 0.3)),
+            np.radians(rng.uniform(0, 360)),
+        )
         c = np.column_stack([sky.rg[near], sky.bg[near]])
         obs = c @ ATMOSPHERE[0].T + ATMOSPHERE[1]
         obs *= 1 + SCINTILLATION * rng.standard_normal(obs.shape)
@@ -84,8 +91,10 @@ def main(argv=None) -> int:
         write_rendered(r, frames_dir / f"orion_{k:03d}.dng")
 
     paths = frame_files(frames_dir)
-    print(f"\n{len(paths)} frames of Orion's belt, reference design; atmosphere B = {ATMOSPHERE[0].tolist()}, "
-          f"c = {ATMOSPHERE[1].tolist()}, scintillation {SCINTILLATION:.0%}, chromatic {CHROMATIC_PX_PER_BG} px per unit bg")
+    print(
+        f"\n{len(paths)} frames of Orion's belt, reference design; atmosphere B = {ATMOSPHERE[0].tolist()}, "
+        f"c = {ATMOSPHERE[1].tolist()}, scintillation {SCINTILLATION:.0%}, chromatic {CHROMATIC_PX_PER_BG} px per unit bg"
+    )
     shutil.rmtree(out / "run", ignore_errors=True)  # the results log appends
     summary = replay(frames_dir, OfflineSolver(camera, catalog), out / "run", progress=True)
     index = {int(s): k for k, s in enumerate(catalog.star_id)}
@@ -97,17 +106,23 @@ def main(argv=None) -> int:
                 obs.append((s["rg"], s["bg"]))
                 ref.append((float(catalog.rg[k]), float(catalog.bg[k])))
     fit = ColourCorrection.fit(np.array(obs), np.array(ref))
-    print(f"eq. 24 colour correction from {fit.n_used} matched stars ({fit.n_rejected} rejected): RMS "
-          f"{fit.rms_before:.3f} -> {fit.rms_after:.3f} (paper 0.43 -> 0.10)")
+    print(
+        f"eq. 24 colour correction from {fit.n_used} matched stars ({fit.n_rejected} rejected): RMS "
+        f"{fit.rms_before:.3f} -> {fit.rms_after:.3f} (paper 0.43 -> 0.10)"
+    )
     print(f"replay (auto method, geometric fallback): {summary['counts']}")
-    for label, params in (("uncorrected", PipelineParams()),
-                          ("with the fitted eq. 24 correction", PipelineParams(colour_beta=tuple(fit.beta)))):
+    for label, params in (
+        ("uncorrected", PipelineParams()),
+        ("with the fitted eq. 24 correction", PipelineParams(colour_beta=tuple(fit.beta))),
+    ):
         t = table5(paths, camera, catalog, params, progress=False)
         print(f"\ntable 5, {label} ({t['frames']} frames)")
         print(f"{'corrections':<28}{'correct':>9}{'incorrect':>11}{'no match':>10}   paper correct/incorrect")
         for mode in TABLE5_MODES:
             c = t["table"][mode]
-            print(f"{mode:<28}{c['correct']:>9}{c['incorrect']:>11}{c['no_match']:>10}   {PAPER_TABLE5[mode][0]}/{PAPER_TABLE5[mode][1]}")
+            print(
+                f"{mode:<28}{c['correct']:>9}{c['incorrect']:>11}{c['no_match']:>10}   {PAPER_TABLE5[mode][0]}/{PAPER_TABLE5[mode][1]}"
+            )
     colour_only = replace(PipelineParams(), colour_fallback=False)
     t = table5(paths, camera, catalog, colour_only, progress=False)
     print("\ncolour matching alone (no geometric fallback), uncorrected:")

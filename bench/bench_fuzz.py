@@ -25,14 +25,19 @@ def campaigns(n: int, seed: int) -> dict:
     """name -> callable returning a Tally, sized so the run sends about ``n`` messages."""
     return {
         "nsp": lambda: nsp_fuzz.run(seed, bursts=max(10, n // 25))[0],
-        "nsp_paced_tcp": lambda: nsp_fuzz.run(seed + 1, bursts=max(10, n // 100),
-                                              device_args=("--tcp", "127.0.0.1:0", "--pace", "--baud", "921600"))[0],
-        "client_ports": lambda: port_faults.run(seed, trials=max(9, n // 200), timeout=0.2).add(
-            port_faults.run(seed + 1, trials=max(9, n // 200), timeout=0.2, tcp=True)).add(
-            port_faults.run_flood(seed, calls=5, tcp=True)).add(port_faults.run_flood(seed, calls=5, tcp=False)),
+        "nsp_paced_tcp": lambda: nsp_fuzz.run(
+            seed + 1, bursts=max(10, n // 100), device_args=("--tcp", "127.0.0.1:0", "--pace", "--baud", "921600")
+        )[0],
+        "client_ports": lambda: (
+            port_faults.run(seed, trials=max(9, n // 200), timeout=0.2)
+            .add(port_faults.run(seed + 1, trials=max(9, n // 200), timeout=0.2, tcp=True))
+            .add(port_faults.run_flood(seed, calls=5, tcp=True))
+            .add(port_faults.run_flood(seed, calls=5, tcp=False))
+        ),
         "upload": lambda: upload_faults.run(seed, scenarios=max(11, n // 400), restarts=max(1, n // 5000)),
         "state": lambda: state_faults.run(seed, trials=max(17, n // 50), process=False).add(
-            state_faults.run(seed + 1, trials=max(3, n // 2000), process=True)),
+            state_faults.run(seed + 1, trials=max(3, n // 2000), process=True)
+        ),
         "tcp": lambda: tcp_faults.run(seed, rounds=max(5, n // 500), connections=200),
         "commit_kill": lambda: commit_kill.run(seed, kills=max(3, n // 2000))[0],
     }

@@ -103,10 +103,13 @@ def bench_ping(n: int) -> None:
         stop(echo)
     med, p99 = percentiles(times)
     bmed, bp99 = percentiles(base)
-    print(f"PING round trip over pty, unpaced ({n} samples): median {med:.3f} ms, p99 {p99:.3f} ms "
-          f"(target median < 1 ms)")
-    print(f"  baseline bare pty echo of the same frame: median {bmed:.3f} ms, p99 {bp99:.3f} ms; "
-          f"ratio median {med / bmed:.2f}x")
+    print(
+        f"PING round trip over pty, unpaced ({n} samples): median {med:.3f} ms, p99 {p99:.3f} ms (target median < 1 ms)"
+    )
+    print(
+        f"  baseline bare pty echo of the same frame: median {bmed:.3f} ms, p99 {bp99:.3f} ms; "
+        f"ratio median {med / bmed:.2f}x"
+    )
 
 
 def bench_upload(kib: int, baud: int = 115200) -> None:
@@ -134,9 +137,11 @@ def bench_upload(kib: int, baud: int = 115200) -> None:
     line_bytes = baud / 10
     frac = len(data) / report.seconds / line_bytes
     wire = len(slip.escape(data)) + (len(data) // 4096 + 1) * 12
-    print(f"paced upload at {baud} baud: {len(data)} B payload in {report.seconds:.2f} s = "
-          f"{len(data) / report.seconds:.0f} B/s; line rate {line_bytes:.0f} B/s; fraction {frac:.3f} "
-          f"(target >= 0.90); committed CRC-32 0x{info.crc32:08X} active={info.active}")
+    print(
+        f"paced upload at {baud} baud: {len(data)} B payload in {report.seconds:.2f} s = "
+        f"{len(data) / report.seconds:.0f} B/s; line rate {line_bytes:.0f} B/s; fraction {frac:.3f} "
+        f"(target >= 0.90); committed CRC-32 0x{info.crc32:08X} active={info.active}"
+    )
     print(f"  framing-only bound for this payload (escaping + 12 B/message): {len(data) / wire:.3f}")
 
 
@@ -164,22 +169,22 @@ def bench_soak(n: int) -> None:
                     elif kind == "read_edac":
                         a = rng.randrange(0x100, 0x1F0)
                         k = rng.randrange(1, 0x200 - a)
-                        ok = c.read_edac(a, k) == scratch[a - 0x100:a - 0x100 + k]
+                        ok = c.read_edac(a, k) == scratch[a - 0x100 : a - 0x100 + k]
                     elif kind == "write_edac":
                         a = rng.randrange(0x100, 0x1F0)
                         v = rng.randbytes(rng.randrange(1, 0x200 - a))
                         ok = c.write_edac(a, v) == len(v)
-                        scratch[a - 0x100:a - 0x100 + len(v)] = v
+                        scratch[a - 0x100 : a - 0x100 + len(v)] = v
                     elif kind == "diag":
                         ok = c.diagnostic().accepted > 0
                     elif kind == "peek":
                         a = rng.randrange(0, 4000)
-                        ok = c.peek(0x20000000 + a, 64) == ram[a:a + 64]
+                        ok = c.peek(0x20000000 + a, 64) == ram[a : a + 64]
                     elif kind == "poke":
                         a = rng.randrange(0, 4000)
                         v = rng.randbytes(64)
                         ok = c.poke(0x20000000 + a, v) == 64
-                        ram[a:a + 64] = v
+                        ram[a : a + 64] = v
                     elif kind == "result":
                         ok = len(c.read_result(0, 2616)) == 2616
                     elif kind == "status":
@@ -196,7 +201,7 @@ def bench_soak(n: int) -> None:
                         a = rng.randrange(0x100, 0x1F0)
                         v = rng.randbytes(8)
                         c.send_silent(Code.WRITE_EDAC, struct.pack("<H", a) + v)
-                        scratch[a - 0x100:a - 0x100 + 8] = v
+                        scratch[a - 0x100 : a - 0x100 + 8] = v
                         ok = True
                     if not ok:
                         misattributed += 1
@@ -211,12 +216,18 @@ def bench_soak(n: int) -> None:
         stop(proc)
     seconds = time.perf_counter() - t0
     growth = (rss_end - rss_warm) / rss_warm
-    print(f"soak: {n} mixed commands in {seconds:.1f} s ({n / seconds:.0f}/s): lost {lost}, misattributed "
-          f"{misattributed}, stale replies discarded {stale}, NACKs {nacks_seen}/{nacks_expected} as expected")
-    print(f"  device RSS after warm-up ({n // 10} commands) {rss_warm} KiB, at end {rss_end} KiB: growth "
-          f"{100 * growth:+.2f} % (limit 10 %)")
-    print(f"  device counters: accepted {diag.accepted}, nacked {diag.nacked}, silent {diag.silent}, "
-          f"errors framing/runt/oversize/badcrc {diag.framing}/{diag.runt}/{diag.oversize}/{diag.bad_crc}")
+    print(
+        f"soak: {n} mixed commands in {seconds:.1f} s ({n / seconds:.0f}/s): lost {lost}, misattributed "
+        f"{misattributed}, stale replies discarded {stale}, NACKs {nacks_seen}/{nacks_expected} as expected"
+    )
+    print(
+        f"  device RSS after warm-up ({n // 10} commands) {rss_warm} KiB, at end {rss_end} KiB: growth "
+        f"{100 * growth:+.2f} % (limit 10 %)"
+    )
+    print(
+        f"  device counters: accepted {diag.accepted}, nacked {diag.nacked}, silent {diag.silent}, "
+        f"errors framing/runt/oversize/badcrc {diag.framing}/{diag.runt}/{diag.oversize}/{diag.bad_crc}"
+    )
     print(f"  mix: {counts}")
 
 

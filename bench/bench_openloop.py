@@ -52,14 +52,22 @@ CELLS = {
     "scintillation": "per-star log-normal flux jitter sigma 0.2",
     "geometry": "f U[-3, 3] % + distortion (division or equisolid, corner shift U[-5, 5] px) + pp offset U[0, 20] px",
     "all_but_geometry": "PSF one of Moffat/donut/coma + defects, sky gradient, streaks, planets and false stars, "
-                        "missed stars, blackbody colours, channel gains, scintillation",
+    "missed stars, blackbody colours, channel gains, scintillation",
     "all": "geometry + all_but_geometry at once",
 }
 
 #: Axes of the combined cells (the single cells are their own axis); the PSF model is drawn per frame.
 GEOMETRY_AXES = {"f_any", "distortion_any", "pp_offset"}
-SCENE_AXES = {"defects", "sky_gradient", "streaks", "planets_false", "missed_stars", "colour_blackbody",
-              "channel_gain", "scintillation"}
+SCENE_AXES = {
+    "defects",
+    "sky_gradient",
+    "streaks",
+    "planets_false",
+    "missed_stars",
+    "colour_blackbody",
+    "channel_gain",
+    "scintillation",
+}
 
 
 def _axes(cell: str, rng: np.random.Generator) -> set:
@@ -69,6 +77,7 @@ def _axes(cell: str, rng: np.random.Generator) -> set:
     if cell != "geometry":
         axes |= SCENE_AXES | {str(rng.choice(["moffat", "donut", "coma"]))}
     return axes
+
 
 CATALOG_V = 5.0
 
@@ -149,14 +158,37 @@ def build_scene(cell: str, pattern: str, rng: np.random.Generator, nominal, det_
         false.append(ol.streak(x, y, x + length * np.cos(ang), y + length * np.sin(ang), rng.uniform(30, 500)))
         x, y = rng.uniform(50, w - 50), rng.uniform(50, h - 50)
         ang, length = rng.uniform(0, 2 * np.pi), rng.uniform(20, 60)
-        false.append(ol.streak(x, y, x + length * np.cos(ang), y + length * np.sin(ang), rng.uniform(500, 3000),
-                               rng.uniform(0.6, 1.4), rng.uniform(0.4, 1.2)))
+        false.append(
+            ol.streak(
+                x,
+                y,
+                x + length * np.cos(ang),
+                y + length * np.sin(ang),
+                rng.uniform(500, 3000),
+                rng.uniform(0.6, 1.4),
+                rng.uniform(0.4, 1.2),
+            )
+        )
     if "planets_false" in axes:
-        false.append(ol.planet(rng.uniform(20, w - 20), rng.uniform(20, h - 20), det_electrons(rng.uniform(-2.5, 1.5)),
-                               rng.uniform(0.8, 1.6), rng.uniform(0.4, 1.0)))
+        false.append(
+            ol.planet(
+                rng.uniform(20, w - 20),
+                rng.uniform(20, h - 20),
+                det_electrons(rng.uniform(-2.5, 1.5)),
+                rng.uniform(0.8, 1.6),
+                rng.uniform(0.4, 1.0),
+            )
+        )
         for _ in range(5):
-            false.append(ol.false_star(rng.uniform(20, w - 20), rng.uniform(20, h - 20), det_electrons(rng.uniform(3, 6)),
-                                       rng.uniform(0.3, 1.6), rng.uniform(0.2, 1.4)))
+            false.append(
+                ol.false_star(
+                    rng.uniform(20, w - 20),
+                    rng.uniform(20, h - 20),
+                    det_electrons(rng.uniform(3, 6)),
+                    rng.uniform(0.3, 1.6),
+                    rng.uniform(0.2, 1.4),
+                )
+            )
     if false:
         kw["false_objects"] = false
         p["false_objects"] = [{k: v for k, v in vars(o).items() if v is not None} for o in false]
@@ -164,9 +196,11 @@ def build_scene(cell: str, pattern: str, rng: np.random.Generator, nominal, det_
         g = tuple(float(1.0 + 0.05 * rng.choice([-1, 1])) for _ in range(3))
         kw["channel_gain"] = g
         p["channel_gain"] = list(g)
-    stars_tf = {"drop": float(rng.uniform(0.10, 0.20)) if "missed_stars" in axes else 0.0,
-                "scint": 0.2 if "scintillation" in axes else 0.0,
-                "blackbody": "colour_blackbody" in axes}
+    stars_tf = {
+        "drop": float(rng.uniform(0.10, 0.20)) if "missed_stars" in axes else 0.0,
+        "scint": 0.2 if "scintillation" in axes else 0.0,
+        "blackbody": "colour_blackbody" in axes,
+    }
     p.update({k: v for k, v in stars_tf.items() if v})
     kw["detector"] = det
     kw["camera"] = cam
@@ -199,7 +233,7 @@ def _one(job):
     if tf["scint"]:
         stars = ol.scintillate(stars, tf["scint"], rng)
     t0 = time.perf_counter()
-    r = render_frame(stars, a, seed=int(rng.integers(2 ** 31)), **kw)
+    r = render_frame(stars, a, seed=int(rng.integers(2**31)), **kw)
     frame = r.frame
     if columns:
         frame = ol.apply_bad_columns(frame, columns)
@@ -229,17 +263,28 @@ def _one(job):
                     rgerr.append(float(st.rg[j] / cat.rg[c] - 1.0))
     sol = out.solution
     return {
-        "cell": cell, "k": k, "pattern": pattern, "status": rec["status"], "method": rec["method"],
+        "cell": cell,
+        "k": k,
+        "pattern": pattern,
+        "status": rec["status"],
+        "method": rec["method"],
         "reason": out.reason or (sol.reason if sol is not None else ""),
-        "n_catalog_in_view": int(in_cat.sum()), "n_catalog_detected": n_cat_det,
-        "n_detected": rec["n_detected"], "n_matched": rec["n_matched"],
+        "n_catalog_in_view": int(in_cat.sum()),
+        "n_catalog_detected": n_cat_det,
+        "n_detected": rec["n_detected"],
+        "n_matched": rec["n_matched"],
         "centroid_err_px_median": float(np.median(cerr)) if cerr else None,
         "rg_rel_err_median": float(np.median(np.abs(rgerr))) if rgerr else None,
         "psf_sigma_used_px": float(getattr(st, "psf_sigma_px", np.nan)) if st is not None else None,
-        "render_s": t1 - t0, "solve_s": t2 - t1, "params": params,
+        "render_s": t1 - t0,
+        "solve_s": t2 - t1,
+        "params": params,
         "camera_bias_deg": float(np.degrees(rotation_angle(a_ref, a))),
-        "attitude_error_truth_deg": (float(np.degrees(rotation_angle(quat_to_matrix(rec["q_icrs_to_sensor"]), a)))
-                                     if rec["q_icrs_to_sensor"] is not None else None),
+        "attitude_error_truth_deg": (
+            float(np.degrees(rotation_angle(quat_to_matrix(rec["q_icrs_to_sensor"]), a)))
+            if rec["q_icrs_to_sensor"] is not None
+            else None
+        ),
         **score(rec, truth),
     }
 
@@ -300,18 +345,24 @@ def summarise(rows: list[dict], cells: list[str]) -> list[dict]:
             errs = np.array([r["attitude_error_truth_deg"] for r in rs if r["outcome"] == "correct"]) * 3600
             eref = np.array([r["attitude_error_deg"] for r in rs if r["outcome"] == "correct"]) * 3600
             hc = [r for r in rs if r["status"] == "OK"]
-            out.append({
-                "cell": cell, "pattern": pattern, "frames": len(rs), "eligible": len(elig),
-                "correct": sum(r["outcome"] == "correct" for r in rs),
-                "wrong": sum(r["outcome"] == "wrong" for r in rs),
-                "no_solution": sum(r["outcome"] == "no_match" for r in rs),
-                "eligible_solved": sum(r["outcome"] == "correct" for r in elig),
-                "high_conf": len(hc), "high_conf_wrong": sum(r["outcome"] == "wrong" for r in hc),
-                "err_p50_arcsec": float(np.median(errs)) if len(errs) else None,
-                "err_p90_arcsec": float(np.percentile(errs, 90)) if len(errs) else None,
-                "err_vs_nominal_p50_arcsec": float(np.median(eref)) if len(eref) else None,
-                "camera_bias_p50_arcsec": float(np.median([r["camera_bias_deg"] for r in rs]) * 3600),
-            })
+            out.append(
+                {
+                    "cell": cell,
+                    "pattern": pattern,
+                    "frames": len(rs),
+                    "eligible": len(elig),
+                    "correct": sum(r["outcome"] == "correct" for r in rs),
+                    "wrong": sum(r["outcome"] == "wrong" for r in rs),
+                    "no_solution": sum(r["outcome"] == "no_match" for r in rs),
+                    "eligible_solved": sum(r["outcome"] == "correct" for r in elig),
+                    "high_conf": len(hc),
+                    "high_conf_wrong": sum(r["outcome"] == "wrong" for r in hc),
+                    "err_p50_arcsec": float(np.median(errs)) if len(errs) else None,
+                    "err_p90_arcsec": float(np.percentile(errs, 90)) if len(errs) else None,
+                    "err_vs_nominal_p50_arcsec": float(np.median(eref)) if len(eref) else None,
+                    "camera_bias_p50_arcsec": float(np.median([r["camera_bias_deg"] for r in rs]) * 3600),
+                }
+            )
     return out
 
 
@@ -321,9 +372,11 @@ def _fmt(v, spec=".1f") -> str:
 
 def print_table(summary: list[dict], file=sys.stdout) -> None:
     """Rows per (cell, pattern); the target column judges the cell over both patterns."""
-    print(f"{'cell':<17}{'pat':<5}{'frames':>7}{'>=4cat':>7}{'correct':>8}{'wrong':>6}{'no sol':>7}"
-          f"{'solved/>=4':>11}{'HC':>4}{'HC wrong':>9}{'err p50':>9}{'p90':>8}{'vs nom':>8}{'bias':>7}  target",
-          file=file)
+    print(
+        f"{'cell':<17}{'pat':<5}{'frames':>7}{'>=4cat':>7}{'correct':>8}{'wrong':>6}{'no sol':>7}"
+        f"{'solved/>=4':>11}{'HC':>4}{'HC wrong':>9}{'err p50':>9}{'p90':>8}{'vs nom':>8}{'bias':>7}  target",
+        file=file,
+    )
     for s in summary:
         if s["pattern"] == "both":
             continue
@@ -331,13 +384,18 @@ def print_table(summary: list[dict], file=sys.stdout) -> None:
         both = next(b for b in summary if b["cell"] == s["cell"] and b["pattern"] == "both")
         brate = both["eligible_solved"] / both["eligible"] if both["eligible"] else 1.0
         met = ("met" if brate >= 0.99 and both["high_conf_wrong"] == 0 else "MISSED") if s["pattern"] == "RGGB" else ""
-        print(f"{s['cell']:<17}{s['pattern']:<5}{s['frames']:>7}{s['eligible']:>7}{s['correct']:>8}{s['wrong']:>6}"
-              f"{s['no_solution']:>7}{rate:>11.0%}{s['high_conf']:>4}{s['high_conf_wrong']:>9}"
-              f"{_fmt(s['err_p50_arcsec']):>9}{_fmt(s['err_p90_arcsec']):>8}{_fmt(s['err_vs_nominal_p50_arcsec']):>8}"
-              f"{_fmt(s['camera_bias_p50_arcsec'], '.0f'):>7}  {met}", file=file)
-    print("errors in arcsec over correct solves: 'err p50/p90' from the true attitude, 'vs nom' from the best "
-          "attitude the nominal camera allows ('bias' = median angle between the two: the principal-point offset seen as a boresight tilt)",
-          file=file)
+        print(
+            f"{s['cell']:<17}{s['pattern']:<5}{s['frames']:>7}{s['eligible']:>7}{s['correct']:>8}{s['wrong']:>6}"
+            f"{s['no_solution']:>7}{rate:>11.0%}{s['high_conf']:>4}{s['high_conf_wrong']:>9}"
+            f"{_fmt(s['err_p50_arcsec']):>9}{_fmt(s['err_p90_arcsec']):>8}{_fmt(s['err_vs_nominal_p50_arcsec']):>8}"
+            f"{_fmt(s['camera_bias_p50_arcsec'], '.0f'):>7}  {met}",
+            file=file,
+        )
+    print(
+        "errors in arcsec over correct solves: 'err p50/p90' from the true attitude, 'vs nom' from the best "
+        "attitude the nominal camera allows ('bias' = median angle between the two: the principal-point offset seen as a boresight tilt)",
+        file=file,
+    )
 
 
 def plot(summary: list[dict], path: Path) -> None:
@@ -361,7 +419,9 @@ def plot(summary: list[dict], path: Path) -> None:
         p90 = [s["err_p90_arcsec"] if s and s["err_p90_arcsec"] is not None else np.nan for s in rs]
         ax2.plot(xs + off, p50, "o", color=colour, label=f"{pattern} p50")
         ax2.plot(xs + off, p90, "^", color=colour, mfc="none", label=f"{pattern} p90")
-        nom = [s["err_vs_nominal_p50_arcsec"] if s and s["err_vs_nominal_p50_arcsec"] is not None else np.nan for s in rs]
+        nom = [
+            s["err_vs_nominal_p50_arcsec"] if s and s["err_vs_nominal_p50_arcsec"] is not None else np.nan for s in rs
+        ]
         ax2.plot(xs + off, nom, "x", color=colour, label=f"{pattern} p50 vs nominal-pp attitude")
     ax1.axhline(99, color="k", lw=0.8, ls="--")
     ax1.set_ylim(0, 105)
@@ -383,8 +443,16 @@ def _code_version() -> str:
     import subprocess
 
     try:
-        return subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True,
-                              cwd=Path(__file__).resolve().parents[1], timeout=10).stdout.strip() or "unknown"
+        return (
+            subprocess.run(
+                ["git", "describe", "--always", "--dirty"],
+                capture_output=True,
+                text=True,
+                cwd=Path(__file__).resolve().parents[1],
+                timeout=10,
+            ).stdout.strip()
+            or "unknown"
+        )
     except (OSError, subprocess.SubprocessError):
         return "unknown"
 
@@ -394,7 +462,9 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=20, help="frames per cell (alternating RGGB / MONO)")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--seed", type=int, default=9300)
-    ap.add_argument("--cells", default=",".join(CELLS), help="comma-separated subset of: " + ", ".join(CELLS).replace("%", "%%"))
+    ap.add_argument(
+        "--cells", default=",".join(CELLS), help="comma-separated subset of: " + ", ".join(CELLS).replace("%", "%%")
+    )
     ap.add_argument("--out", default="out/bench_openloop")
     ap.add_argument("--figure", default="docs/figures/openloop.png", help="plot path ('' for none)")
     ap.add_argument("--from-json", help="reprint the table and redraw the figure from a rows.json; no run")
@@ -423,14 +493,19 @@ def main(argv=None) -> int:
         with ProcessPoolExecutor(args.workers) as ex:
             rows = list(ex.map(_one, jobs, chunksize=2))
     summary = summarise(rows, cells)
-    (out / "rows.json").write_text(json.dumps({"args": vars(args), "code": _code_version(), "frames": rows,
-                                               "summary": summary}, indent=1))
-    print(f"Open-loop bench: {args.frames} frames per cell (even RGGB, odd MONO), seed {args.seed}; solver = "
-          f"run_pipeline(frame, reference_design(), catalog V <= {CATALOG_V:g}) with default PipelineParams; "
-          f"code {_code_version()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
+    (out / "rows.json").write_text(
+        json.dumps({"args": vars(args), "code": _code_version(), "frames": rows, "summary": summary}, indent=1)
+    )
+    print(
+        f"Open-loop bench: {args.frames} frames per cell (even RGGB, odd MONO), seed {args.seed}; solver = "
+        f"run_pipeline(frame, reference_design(), catalog V <= {CATALOG_V:g}) with default PipelineParams; "
+        f"code {_code_version()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}"
+    )
     print_table(summary)
-    print("target per cell (both patterns): >= 99 % of frames with >= 4 catalog stars solved correctly and 0 "
-          "high-confidence (HC) wrong")
+    print(
+        "target per cell (both patterns): >= 99 % of frames with >= 4 catalog stars solved correctly and 0 "
+        "high-confidence (HC) wrong"
+    )
     print(f"wall {time.perf_counter() - t0:.0f} s; rows in {out / 'rows.json'}")
     if args.figure:
         plot(summary, Path(args.figure))

@@ -52,11 +52,15 @@ def make_frames(catalog, camera, n, seed, sigma_pix, n_false, p_drop):
     rng = np.random.default_rng(seed)
     frames = []
     for _ in range(n):
-        a = attitude_from_radec_roll(rng.uniform(0, 2 * np.pi), np.arcsin(rng.uniform(-1, 1)), rng.uniform(0, 2 * np.pi))
+        a = attitude_from_radec_roll(
+            rng.uniform(0, 2 * np.pi), np.arcsin(rng.uniform(-1, 1)), rng.uniform(0, 2 * np.pi)
+        )
         sc = skysim.observe(catalog, a, camera, skysim.ErrorModel(sigma_pix, 0.05, 0.0, p_drop), rng)
         v, rg, bg, truth = sc.vectors, sc.rg, sc.bg, sc.truth
         if n_false:
-            fake = camera.pixel_to_vector(rng.uniform(0, camera.width - 1, n_false), rng.uniform(0, camera.height - 1, n_false))
+            fake = camera.pixel_to_vector(
+                rng.uniform(0, camera.width - 1, n_false), rng.uniform(0, camera.height - 1, n_false)
+            )
             pick = rng.integers(0, catalog.n_stars, n_false)
             pos = np.sort(rng.integers(0, len(truth) + 1, n_false))  # random brightness ranks
             v = np.insert(v, pos, fake, axis=0)
@@ -92,10 +96,20 @@ def run_peer(peer, frames, camera, fov_deg):
     ty = camera.cy + np.array([0.0, 0.0, 300.0])
     with tempfile.TemporaryDirectory() as tmp:
         inp, out = Path(tmp) / "in.npz", Path(tmp) / "out.npz"
-        np.savez(inp, x=np.concatenate(xs), y=np.concatenate(ys), offsets=np.array(off),
-                 size=np.array([camera.height, camera.width]), fov_deg=fov_deg, targets=np.stack([tx, ty], axis=1))
-        subprocess.run([str(PEER_PYTHON), str(ROOT / "bench" / "peer_runner.py"), peer, str(inp), str(out)],
-                       check=True, stderr=subprocess.DEVNULL)
+        np.savez(
+            inp,
+            x=np.concatenate(xs),
+            y=np.concatenate(ys),
+            offsets=np.array(off),
+            size=np.array([camera.height, camera.width]),
+            fov_deg=fov_deg,
+            targets=np.stack([tx, ty], axis=1),
+        )
+        subprocess.run(
+            [str(PEER_PYTHON), str(ROOT / "bench" / "peer_runner.py"), peer, str(inp), str(out)],
+            check=True,
+            stderr=subprocess.DEVNULL,
+        )
         res = dict(np.load(out))
     b = camera.pixel_to_vector(tx, ty)
     err = np.full(len(frames), np.nan)
@@ -108,9 +122,14 @@ def run_peer(peer, frames, camera, fov_deg):
 
 def metrics(solved, err, wrong_id, t):
     e = np.where(solved, err, np.inf)
-    return {"success": np.mean(e < 0.1), "false_id": np.mean(solved & ((e > 1.0) | wrong_id)),
-            "no_solve": np.mean(~solved), "p50": np.percentile(t, 50) * 1e3, "p95": np.percentile(t, 95) * 1e3,
-            "max": t.max() * 1e3}
+    return {
+        "success": np.mean(e < 0.1),
+        "false_id": np.mean(solved & ((e > 1.0) | wrong_id)),
+        "no_solve": np.mean(~solved),
+        "p50": np.percentile(t, 50) * 1e3,
+        "p95": np.percentile(t, 95) * 1e3,
+        "max": t.max() * 1e3,
+    }
 
 
 def main(argv=None) -> int:
@@ -124,17 +143,30 @@ def main(argv=None) -> int:
     if not PEER_PYTHON.exists():
         print(f"cedar-solve venv missing: {PEER_PYTHON} (see the module docstring)", file=sys.stderr)
         return 2
-    print(f"{'cell':34s}{'solver':18s}{'success':>8s}{'falseID':>8s}{'noSolve':>8s}{'p50 ms':>9s}{'p95 ms':>9s}"
-          f"{'max ms':>9s}{'p50 ratio':>10s}")
+    print(
+        f"{'cell':34s}{'solver':18s}{'success':>8s}{'falseID':>8s}{'noSolve':>8s}{'p50 ms':>9s}{'p95 ms':>9s}"
+        f"{'max ms':>9s}{'p50 ratio':>10s}"
+    )
     for fov in args.fov:
         camera = CameraModel.from_fov(1024, 1024, fov / 2)
-        catalog = build_catalog(CatalogDesign(theta_fov_deg=fov / 2, sensor_width_px=1024, sensor_height_px=1024,
-                                              m_thresh=args.mag, sigma_rg=0.05, sigma_bg=0.05))
+        catalog = build_catalog(
+            CatalogDesign(
+                theta_fov_deg=fov / 2,
+                sensor_width_px=1024,
+                sensor_height_px=1024,
+                m_thresh=args.mag,
+                sigma_rg=0.05,
+                sigma_bg=0.05,
+            )
+        )
         for name, (sigma_pix, n_false, p_drop) in SCENARIOS.items():
             frames = make_frames(catalog, camera, args.frames, args.seed, sigma_pix, n_false, p_drop)
             # frames are cut to the 30 brightest: coverage counts stars down to the faintest match
-            params = SolveParams(sigma_vec=sigma_pix / camera.f, fov=FieldOfView.from_camera(camera, 0.0),
-                                 verify=VerifyParams(coverage_limit="matched"))
+            params = SolveParams(
+                sigma_vec=sigma_pix / camera.f,
+                fov=FieldOfView.from_camera(camera, 0.0),
+                verify=VerifyParams(coverage_limit="matched"),
+            )
             solve(frames[0][1], frames[0][2], frames[0][3], catalog, params)  # builds the neighbour table
             rows = {"cedar-solve 0.5.1": metrics(*run_peer("cedar", frames, camera, fov))}
             if "tetra3rs" in args.peers:
@@ -143,9 +175,11 @@ def main(argv=None) -> int:
             rows["ours colour"] = metrics(*run_ours(catalog, frames, params, True))
             base = rows["cedar-solve 0.5.1"]["p50"]
             for solver, m in rows.items():
-                print(f"{f'FOV {fov:g} deg, {name}':34s}{solver:18s}{m['success'] * 100:7.1f}%{m['false_id'] * 100:7.2f}%"
-                      f"{m['no_solve'] * 100:7.1f}%{m['p50']:9.3f}{m['p95']:9.3f}{m['max']:9.3f}"
-                      f"{base / m['p50']:9.1f}x")
+                print(
+                    f"{f'FOV {fov:g} deg, {name}':34s}{solver:18s}{m['success'] * 100:7.1f}%{m['false_id'] * 100:7.2f}%"
+                    f"{m['no_solve'] * 100:7.1f}%{m['p50']:9.3f}{m['p95']:9.3f}{m['max']:9.3f}"
+                    f"{base / m['p50']:9.1f}x"
+                )
     print("p50 ratio = cedar p50 / solver p50 (higher: faster than cedar)")
     return 0
 

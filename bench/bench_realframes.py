@@ -49,15 +49,30 @@ def frames() -> list[dict]:
         scale = 3600 * np.degrees(6.9e-3 / 35.0)
         for p in sorted(t3.glob("*.tiff")):
             ra, dec, _ = ref[p.name]
-            jobs.append({"path": p, "set": "tetra3", "fov": TETRA3_FOV, "ref": (ra, dec), "scale": scale,
-                         "datasheet": (35.0, 6.9)})
+            jobs.append(
+                {
+                    "path": p,
+                    "set": "tetra3",
+                    "fov": TETRA3_FOV,
+                    "ref": (ra, dec),
+                    "scale": scale,
+                    "datasheet": (35.0, 6.9),
+                }
+            )
     cr = DATA / "colour-real"
     if cr.is_dir():
         ref = json.loads((cr / "reference_pointing.json").read_text())
         for name, r in ref.items():
-            jobs.append({"path": cr / name, "set": "colour", "fov": r["fov_deg"][0],
-                         "ref": (r["centre_ra_deg"], r["centre_dec_deg"]), "scale": r["plate_scale_arcsec_per_px"],
-                         "size": r["size_px"]})
+            jobs.append(
+                {
+                    "path": cr / name,
+                    "set": "colour",
+                    "fov": r["fov_deg"][0],
+                    "ref": (r["centre_ra_deg"], r["centre_dec_deg"]),
+                    "scale": r["plate_scale_arcsec_per_px"],
+                    "size": r["size_px"],
+                }
+            )
     return jobs
 
 
@@ -85,8 +100,16 @@ def ours(job, catalogs) -> dict:
     out = run_pipeline(frame, camera, catalogs[(frame.width, frame.height, job["fov"])])
     wall = time.perf_counter() - t0
     rec = record_from_output(out)
-    row = {"status": rec["status"], "method": rec["method"], "matched": rec["n_matched"], "reason": rec["reason"],
-           "wall_s": wall, "sep_px": None, "focal_px": rec["optics"]["focal_px"], "searched": rec["optics"]["searched"]}
+    row = {
+        "status": rec["status"],
+        "method": rec["method"],
+        "matched": rec["n_matched"],
+        "reason": rec["reason"],
+        "wall_s": wall,
+        "sep_px": None,
+        "focal_px": rec["optics"]["focal_px"],
+        "searched": rec["optics"]["searched"],
+    }
     if rec["q_icrs_to_sensor"] is not None:
         w, h = job.get("size", (frame.width, frame.height))  # centre of the original image (before any crop)
         v = quat_to_matrix(rec["q_icrs_to_sensor"]).T @ out.camera.pixel_to_vector((w - 1) / 2, (h - 1) / 2)[0]
@@ -100,8 +123,11 @@ def cedar(jobs) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         spec, out = Path(tmp) / "jobs.json", Path(tmp) / "out.json"
         spec.write_text(json.dumps([[str(j["path"]), j["fov"]] for j in jobs]))
-        subprocess.run([str(PEER_PYTHON), str(ROOT / "bench" / "cedar_runner.py"), str(spec), str(out)],
-                       check=True, stderr=subprocess.DEVNULL)
+        subprocess.run(
+            [str(PEER_PYTHON), str(ROOT / "bench" / "cedar_runner.py"), str(spec), str(out)],
+            check=True,
+            stderr=subprocess.DEVNULL,
+        )
         return json.loads(out.read_text())
 
 
@@ -113,15 +139,31 @@ def write_tetra3_reference() -> int:
         print(f"need the tetra3 frames under {DATA} and cedar-solve in {PEER_PYTHON.parent.parent}", file=sys.stderr)
         return 1
     res = cedar(jobs)
-    rows = {j["path"].name: [round(res[str(j["path"])]["ra"], 5), round(res[str(j["path"])]["dec"], 5),
-                             round(res[str(j["path"])]["rmse"], 2)] for j in jobs}
-    REFERENCE.write_text(json.dumps({
-        "what": "boresight (image-centre) RA/Dec in degrees of the 8 tetra3 test frames as solved by cedar-solve "
+    rows = {
+        j["path"].name: [
+            round(res[str(j["path"])]["ra"], 5),
+            round(res[str(j["path"])]["dec"], 5),
+            round(res[str(j["path"])]["rmse"], 2),
+        ]
+        for j in jobs
+    }
+    REFERENCE.write_text(
+        json.dumps(
+            {
+                "what": "boresight (image-centre) RA/Dec in degrees of the 8 tetra3 test frames as solved by cedar-solve "
                 f"0.5.1 (solve_from_image(image, fov_estimate={TETRA3_FOV:.2f}), bundled database, default settings), an "
                 "independent reference for our solutions (agreement, not truth)",
-        "how": "bench/bench_realframes.py --write-tetra3-reference (runs cedar-solve in the benchmark venv .venv-peers)",
-        "frames": rows, "columns": ["ra_deg", "dec_deg", "cedar_rmse_arcsec"]}, indent=2).replace(",\n      ", ", ")
-        .replace("[\n      ", "[").replace("\n    ]", "]") + "\n")  # one line per frame
+                "how": "bench/bench_realframes.py --write-tetra3-reference (runs cedar-solve in the benchmark venv .venv-peers)",
+                "frames": rows,
+                "columns": ["ra_deg", "dec_deg", "cedar_rmse_arcsec"],
+            },
+            indent=2,
+        )
+        .replace(",\n      ", ", ")
+        .replace("[\n      ", "[")
+        .replace("\n    ]", "]")
+        + "\n"
+    )  # one line per frame
     for name, r in rows.items():
         print(f"{name}: RA {r[0]:.5f} Dec {r[1]:.5f} RMSE {r[2]:.2f} arcsec")
     print(f"written {REFERENCE}")
@@ -131,8 +173,11 @@ def write_tetra3_reference() -> int:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--write-tetra3-reference", action="store_true",
-                    help=f"solve the tetra3 frames once with cedar-solve and write {REFERENCE.relative_to(ROOT)}")
+    ap.add_argument(
+        "--write-tetra3-reference",
+        action="store_true",
+        help=f"solve the tetra3 frames once with cedar-solve and write {REFERENCE.relative_to(ROOT)}",
+    )
     args = ap.parse_args()
     if args.write_tetra3_reference:
         return write_tetra3_reference()
@@ -149,8 +194,9 @@ def main() -> int:
         fr = read_frame(j["path"])
         key = (fr.width, fr.height, j["fov"])
         if key not in catalogs:
-            catalogs[key] = build_catalog(CatalogDesign.for_field(fr.width, fr.height, j["fov"],
-                                                                  epoch=2019.6 if j["set"] == "tetra3" else 2025.0))
+            catalogs[key] = build_catalog(
+                CatalogDesign.for_field(fr.width, fr.height, j["fov"], epoch=2019.6 if j["set"] == "tetra3" else 2025.0)
+            )
     have_cedar = PEER_PYTHON.exists()
     if not have_cedar:
         print(f"(cedar-solve not installed in {PEER_PYTHON.parent.parent}; see the module docstring)")
@@ -163,8 +209,10 @@ def main() -> int:
         if have_cedar:
             for k, v in cedar(jobs).items():
                 runs_cedar[k].append(v)
-    print(f"\n{'frame':<34}{'ours':<15}{'method':<10}{'stars':>6}{'sep px':>8}{'ms':>8}"
-          f"{'cedar':>8}{'sep px':>8}{'ms':>8}{'ratio':>7}{'ours-cedar px':>14}")
+    print(
+        f"\n{'frame':<34}{'ours':<15}{'method':<10}{'stars':>6}{'sep px':>8}{'ms':>8}"
+        f"{'cedar':>8}{'sep px':>8}{'ms':>8}{'ratio':>7}{'ours-cedar px':>14}"
+    )
     summary = {}
     for j in jobs:
         key = str(j["path"])
@@ -175,10 +223,26 @@ def main() -> int:
         c_ms = 1e3 * float(np.median([r["wall_s"] for r in c])) if c else float("nan")
         c_sep = separation_px(c[-1]["ra"], c[-1]["dec"], j) if c_ok else None
         # ours against today's cedar-solve on the same file (the tetra3 reference is an older cedar run)
-        vs_cedar = (separation_px(mine["ra"], mine["dec"], {**j, "ref": (c[-1]["ra"], c[-1]["dec"])})
-                    if c_ok and mine["sep_px"] is not None else None)
-        s = summary.setdefault(j["set"], {"n": 0, "ours": 0, "ours_1px": 0, "cedar": 0, "cedar_1px": 0,
-                                          "both": 0, "agree_1px": 0, "ours_ms": [], "cedar_ms": [], "ratio": []})
+        vs_cedar = (
+            separation_px(mine["ra"], mine["dec"], {**j, "ref": (c[-1]["ra"], c[-1]["dec"])})
+            if c_ok and mine["sep_px"] is not None
+            else None
+        )
+        s = summary.setdefault(
+            j["set"],
+            {
+                "n": 0,
+                "ours": 0,
+                "ours_1px": 0,
+                "cedar": 0,
+                "cedar_1px": 0,
+                "both": 0,
+                "agree_1px": 0,
+                "ours_ms": [],
+                "cedar_ms": [],
+                "ratio": [],
+            },
+        )
         s["n"] += 1
         s["ours"] += mine["status"] == "OK"
         s["ours_1px"] += mine["status"] == "OK" and mine["sep_px"] is not None and mine["sep_px"] <= 1.0
@@ -191,20 +255,26 @@ def main() -> int:
             s["cedar_ms"].append(c_ms)
             s["ratio"].append(c_ms / my_ms)
         sep = "-" if mine["sep_px"] is None else f"{mine['sep_px']:.2f}"
-        print(f"{j['path'].name[:33]:<34}{mine['status']:<15}{mine['method'] or '-':<10}{mine['matched']:>6}{sep:>8}"
-              f"{my_ms:>8.0f}{('OK' if c_ok else ('fail' if c else '-')):>8}"
-              f"{('-' if c_sep is None else f'{c_sep:.2f}'):>8}{c_ms:>8.0f}"
-              f"{(f'{c_ms / my_ms:.2f}' if c else '-'):>7}{('-' if vs_cedar is None else f'{vs_cedar:.2f}'):>14}")
+        print(
+            f"{j['path'].name[:33]:<34}{mine['status']:<15}{mine['method'] or '-':<10}{mine['matched']:>6}{sep:>8}"
+            f"{my_ms:>8.0f}{('OK' if c_ok else ('fail' if c else '-')):>8}"
+            f"{('-' if c_sep is None else f'{c_sep:.2f}'):>8}{c_ms:>8.0f}"
+            f"{(f'{c_ms / my_ms:.2f}' if c else '-'):>7}{('-' if vs_cedar is None else f'{vs_cedar:.2f}'):>14}"
+        )
         if mine["status"] != "OK":
             print(f"{'':<34}reason: {mine['reason']}")
     print()
     for name, s in summary.items():
-        line = (f"{name}: ours {s['ours']}/{s['n']} high confidence ({s['ours_1px']} within 1 px of the reference), "
-                f"median {np.median(s['ours_ms']):.0f} ms")
+        line = (
+            f"{name}: ours {s['ours']}/{s['n']} high confidence ({s['ours_1px']} within 1 px of the reference), "
+            f"median {np.median(s['ours_ms']):.0f} ms"
+        )
         if s["cedar_ms"]:
-            line += (f"; cedar-solve {s['cedar']}/{s['n']} ({s['cedar_1px']} within 1 px), median "
-                     f"{np.median(s['cedar_ms']):.0f} ms; time ratio cedar/ours median {np.median(s['ratio']):.2f}; "
-                     f"both high confidence on {s['both']}, ours within 1 px of cedar-solve's on {s['agree_1px']}")
+            line += (
+                f"; cedar-solve {s['cedar']}/{s['n']} ({s['cedar_1px']} within 1 px), median "
+                f"{np.median(s['cedar_ms']):.0f} ms; time ratio cedar/ours median {np.median(s['ratio']):.2f}; "
+                f"both high confidence on {s['both']}, ours within 1 px of cedar-solve's on {s['agree_1px']}"
+            )
         print(line)
     return 0
 

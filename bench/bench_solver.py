@@ -32,7 +32,9 @@ def scenes(catalog, camera, n, seed, model):
     rng = np.random.default_rng(seed)
     out = []
     for _ in range(n):
-        a = attitude_from_radec_roll(rng.uniform(0, 2 * np.pi), np.arcsin(rng.uniform(-1, 1)), rng.uniform(0, 2 * np.pi))
+        a = attitude_from_radec_roll(
+            rng.uniform(0, 2 * np.pi), np.arcsin(rng.uniform(-1, 1)), rng.uniform(0, 2 * np.pi)
+        )
         out.append(skysim.observe(catalog, a, camera, model, rng))
     return out
 
@@ -43,15 +45,24 @@ def stress_scenes(catalog, camera, n, seed):
     rng = np.random.default_rng(seed)
     out = []
     for k in range(n):
-        a = attitude_from_radec_roll(rng.uniform(0, 2 * np.pi), np.arcsin(rng.uniform(-1, 1)), rng.uniform(0, 2 * np.pi))
+        a = attitude_from_radec_roll(
+            rng.uniform(0, 2 * np.pi), np.arcsin(rng.uniform(-1, 1)), rng.uniform(0, 2 * np.pi)
+        )
         m = 300 if k % 2 == 0 else 30
         fake = camera.pixel_to_vector(rng.uniform(0, camera.width, m), rng.uniform(0, camera.height, m))
         pick = rng.integers(0, catalog.n_stars, m)
         fr, fb = catalog.rg[pick] + rng.normal(0, 0.05, m), catalog.bg[pick] + rng.normal(0, 0.05, m)
         if k % 2 == 0:
             sc = skysim.observe(catalog, a, camera, skysim.ErrorModel(), rng)
-            out.append(skysim.Scene(np.vstack([sc.vectors, fake]), np.concatenate([sc.rg, fr]),
-                                    np.concatenate([sc.bg, fb]), np.concatenate([sc.truth, np.full(m, -1)]), sc.n_visible))
+            out.append(
+                skysim.Scene(
+                    np.vstack([sc.vectors, fake]),
+                    np.concatenate([sc.rg, fr]),
+                    np.concatenate([sc.bg, fb]),
+                    np.concatenate([sc.truth, np.full(m, -1)]),
+                    sc.n_visible,
+                )
+            )
         else:
             out.append(skysim.Scene(fake, fr, fb, np.full(m, -1), 0))
     return out
@@ -92,9 +103,13 @@ def main(argv=None) -> int:
     scs = scenes(catalog, camera, args.scenes, args.seed, skysim.ErrorModel())
     stress = stress_scenes(catalog, camera, max(args.scenes // 10, 20), args.seed + 1)
     solve(scs[0].vectors, scs[0].rg, scs[0].bg, catalog, ours)  # warm caches (neighbour table, KD-tree)
-    print(f"catalog {catalog.n_stars} stars, {catalog.n_pairs} pairs; {len(scs)} reference scenes "
-          f"(mean {np.mean([len(s.truth) for s in scs]):.1f} stars), {len(stress)} stress scenes")
-    print(f"{'solve time per frame (ms)':44s}{'p50':>9s}{'p99':>9s}{'max':>9s} {'p50/base':>7s}  {'HIGH':>6s} {'wrong':>5s}")
+    print(
+        f"catalog {catalog.n_stars} stars, {catalog.n_pairs} pairs; {len(scs)} reference scenes "
+        f"(mean {np.mean([len(s.truth) for s in scs]):.1f} stars), {len(stress)} stress scenes"
+    )
+    print(
+        f"{'solve time per frame (ms)':44s}{'p50':>9s}{'p99':>9s}{'max':>9s} {'p50/base':>7s}  {'HIGH':>6s} {'wrong':>5s}"
+    )
     t_paper, h, w = time_solver(catalog, scs, paper)
     row("baseline: paper consensus (k=1, no verify)", t_paper, None, h, w)
     t_ours, h, w = time_solver(catalog, scs, ours)
@@ -103,16 +118,19 @@ def main(argv=None) -> int:
     row("geometric: 4-star + verification", t_geo, t_paper, h, w)
     t_st, h, w = time_solver(catalog, stress, ours)
     row("stress: 300 false + stars / 30 false only", t_st, t_paper, h, w)
-    print(f"hard bound: time_budget_s = {ours.time_budget_s * 1e3:.0f} ms checked between attempts; "
-          f"at most {ours.consensus.max_attempts} attempts x {ours.consensus.k_best} growths, "
-          f"{ours.consensus.max_stars} stars matched")
-    cfg = skysim.ColourSimConfig(n_boresights=args.poses // 4, n_roll=4, seed=args.seed,
-                                 solve=replace(ours, fov=fov))
+    print(
+        f"hard bound: time_budget_s = {ours.time_budget_s * 1e3:.0f} ms checked between attempts; "
+        f"at most {ours.consensus.max_attempts} attempts x {ours.consensus.k_best} growths, "
+        f"{ours.consensus.max_stars} stars matched"
+    )
+    cfg = skysim.ColourSimConfig(n_boresights=args.poses // 4, n_roll=4, seed=args.seed, solve=replace(ours, fov=fov))
     _, wall1 = skysim.execute("colour", catalog, camera, cfg, args.poses, workers=1, progress=False)
     cores = os.cpu_count() or 1
     _, wall_n = skysim.execute("colour", catalog, camera, cfg, args.poses, workers=cores, progress=False)
-    print(f"whole-sky throughput: 1 process {args.poses / wall1:.0f} poses/s, {cores} processes "
-          f"{args.poses / wall_n:.0f} poses/s (speed-up {wall1 / wall_n:.2f}x)")
+    print(
+        f"whole-sky throughput: 1 process {args.poses / wall1:.0f} poses/s, {cores} processes "
+        f"{args.poses / wall_n:.0f} poses/s (speed-up {wall1 / wall_n:.2f}x)"
+    )
     return 0
 
 

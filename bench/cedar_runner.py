@@ -26,8 +26,13 @@ def main() -> None:
     for path, fov in jobs:
         t0 = time.perf_counter()
         sol = t3.solve_from_image(open_image(path), fov_estimate=fov)
-        rows[path] = {"ra": sol.get("RA"), "dec": sol.get("Dec"), "fov": sol.get("FOV"), "rmse": sol.get("RMSE"),
-                      "wall_s": time.perf_counter() - t0}
+        rows[path] = {
+            "ra": sol.get("RA"),
+            "dec": sol.get("Dec"),
+            "fov": sol.get("FOV"),
+            "rmse": sol.get("RMSE"),
+            "wall_s": time.perf_counter() - t0,
+        }
     with open(out, "w") as fh:
         json.dump(rows, fh)
 

@@ -39,8 +39,12 @@ REAL = ROOT.parent / "shared/data/frames/tetra3-mono/2019-07-29T204726_Alt40_Azi
 
 
 def load_old(rev: str):
-    src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:firmware_model/centroid.py"],
-                         check=True, capture_output=True, text=True).stdout
+    src = subprocess.run(
+        ["git", "-C", str(ROOT), "show", f"{rev}:firmware_model/centroid.py"],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
     path = Path(tempfile.mkdtemp()) / "centroid_old.py"
     path.write_text(src)
     spec = importlib.util.spec_from_file_location("centroid_old", path)
@@ -66,15 +70,17 @@ def agreement(a, b):
     drg = np.abs(a.rg - b.rg)
     drg = drg[np.isfinite(drg)]
     failed = lambda r: int(np.count_nonzero(r.flags & int(StarFlag.FIT_FAILED)))  # noqa: E731
-    return (f"max |centre diff| {d.max() if len(d) else float('nan'):.2e} px, max |rg diff| "
-            f"{drg.max() if len(drg) else float('nan'):.2e}, flags differ on {int(np.count_nonzero(a.flags != b.flags))}, "
-            f"sharp differ on {int(np.count_nonzero(a.sharp != b.sharp))}, FIT_FAILED old/new {failed(a)}/{failed(b)}")
+    return (
+        f"max |centre diff| {d.max() if len(d) else float('nan'):.2e} px, max |rg diff| "
+        f"{drg.max() if len(drg) else float('nan'):.2e}, flags differ on {int(np.count_nonzero(a.flags != b.flags))}, "
+        f"sharp differ on {int(np.count_nonzero(a.sharp != b.sharp))}, FIT_FAILED old/new {failed(a)}/{failed(b)}"
+    )
 
 
 def rms(v):
     v = np.asarray(v)
     v = v[np.isfinite(v)]
-    return float(np.sqrt(np.mean(v ** 2))) if len(v) else float("nan")
+    return float(np.sqrt(np.mean(v**2))) if len(v) else float("nan")
 
 
 def main(argv=None) -> int:
@@ -96,15 +102,19 @@ def main(argv=None) -> int:
         d = detect_stars(frame)
         a, ta = timed(old, frame, d, 1.0, args.repeats)
         b, tb = timed(new, frame, d, 1.0, args.repeats)
-        print(f"  rendered 2592x1944 #{k}: {len(d)} stars: old {1e3 * ta:.1f} ms, new {1e3 * tb:.1f} ms "
-              f"({ta / tb:.1f}x); {agreement(a, b)}")
+        print(
+            f"  rendered 2592x1944 #{k}: {len(d)} stars: old {1e3 * ta:.1f} ms, new {1e3 * tb:.1f} ms "
+            f"({ta / tb:.1f}x); {agreement(a, b)}"
+        )
     if REAL.exists():
         frame = read_frame(REAL)
         d = detect_stars(frame, DetectParams(psf_sigma_px=0.6))
         a, ta = timed(old, frame, d, 0.6, args.repeats)
         b, tb = timed(new, frame, d, 0.6, args.repeats)
-        print(f"  real {REAL.name} (psf 0.6): {len(d)} stars: old {1e3 * ta:.1f} ms, new {1e3 * tb:.1f} ms "
-              f"({ta / tb:.1f}x); {agreement(a, b)}")
+        print(
+            f"  real {REAL.name} (psf 0.6): {len(d)} stars: old {1e3 * ta:.1f} ms, new {1e3 * tb:.1f} ms "
+            f"({ta / tb:.1f}x); {agreement(a, b)}"
+        )
 
     for name, dm, seed0 in (("colour", DetectorModel(pattern="RGGB"), 0), ("mono", DetectorModel(pattern="MONO"), 50)):
         errs = {"old": [], "new": []}
@@ -120,16 +130,27 @@ def main(argv=None) -> int:
                     dist = np.hypot(f.x - t["x"], f.y - t["y"])
                     if len(dist) and dist.min() < 2.0:
                         j = int(np.argmin(dist))
-                        errs[label].append((dist[j], f.rg[j] - t["rg"], f.bg[j] - t["bg"], t["vmag"],
-                                            bool(f.flags[j] & int(StarFlag.FIT_FAILED))))
+                        errs[label].append(
+                            (
+                                dist[j],
+                                f.rg[j] - t["rg"],
+                                f.bg[j] - t["bg"],
+                                t["vmag"],
+                                bool(f.flags[j] & int(StarFlag.FIT_FAILED)),
+                            )
+                        )
         for label in ("old", "new"):
             e = np.array(errs[label], float)
             bright = e[:, 3] < 4.5
-            line = (f"[{name}] {label}: {len(e)} matched, FIT_FAILED {int(e[:, 4].sum())}; centroid RMS all "
-                    f"{rms(e[:, 0]):.4f} px, V<4.5 {rms(e[bright, 0]):.4f} px")
+            line = (
+                f"[{name}] {label}: {len(e)} matched, FIT_FAILED {int(e[:, 4].sum())}; centroid RMS all "
+                f"{rms(e[:, 0]):.4f} px, V<4.5 {rms(e[bright, 0]):.4f} px"
+            )
             if name == "colour":
-                line += (f"; rg RMS all {rms(e[:, 1]):.4f}, V<4.5 {rms(e[bright, 1]):.4f}; "
-                         f"bg RMS all {rms(e[:, 2]):.4f}, V<4.5 {rms(e[bright, 2]):.4f}")
+                line += (
+                    f"; rg RMS all {rms(e[:, 1]):.4f}, V<4.5 {rms(e[bright, 1]):.4f}; "
+                    f"bg RMS all {rms(e[:, 2]):.4f}, V<4.5 {rms(e[bright, 2]):.4f}"
+                )
             print(line)
     return 0
 

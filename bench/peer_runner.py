@@ -25,9 +25,14 @@ def cedar_solver(size, fov):
     t3 = tetra3.Tetra3()  # bundled database (10-30 deg)
 
     def run(x, y, tx, ty):
-        r = t3.solve_from_centroids(np.stack([y + 0.5, x + 0.5], axis=1), size, fov_estimate=fov,
-                                    fov_max_error=0.01 * fov, distortion=0,
-                                    target_pixel=np.stack([ty + 0.5, tx + 0.5], axis=1))
+        r = t3.solve_from_centroids(
+            np.stack([y + 0.5, x + 0.5], axis=1),
+            size,
+            fov_estimate=fov,
+            fov_max_error=0.01 * fov,
+            distortion=0,
+            target_pixel=np.stack([ty + 0.5, tx + 0.5], axis=1),
+        )
         if r.get("RA") is None:
             return None
         return np.array(r["RA_target"]), np.array(r["Dec_target"]), int(r["Matches"])
@@ -48,8 +53,14 @@ def tetra3rs_solver(size, fov):
     cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
 
     def run(x, y, tx, ty):
-        r = db.solve_from_centroids(np.stack([x - cx, y - cy], axis=1), fov_estimate_deg=fov, image_width=w,
-                                    image_height=h, fov_max_error_deg=0.01 * fov, match_max_error=0.002)
+        r = db.solve_from_centroids(
+            np.stack([x - cx, y - cy], axis=1),
+            fov_estimate_deg=fov,
+            image_width=w,
+            image_height=h,
+            fov_max_error_deg=0.01 * fov,
+            match_max_error=0.002,
+        )
         if not r:
             return None
         ra, dec = r.pixel_to_world(tx - cx, ty - cy)

@@ -82,8 +82,10 @@ def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_
     def unpack(p):
         vals = {k: (p[i] * scale[i]) for i, k in enumerate(fit)}
         cam = replace(initial, **vals)
-        atts = [Rotation.from_rotvec(p[len(fit) + 3 * j : len(fit) + 3 * j + 3]).as_matrix() @ a0[j]
-                for j in range(len(frames))]
+        atts = [
+            Rotation.from_rotvec(p[len(fit) + 3 * j : len(fit) + 3 * j + 3]).as_matrix() @ a0[j]
+            for j in range(len(frames))
+        ]
         return cam, atts
 
     def residuals(p):
@@ -101,8 +103,17 @@ def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_
         sparsity[row : row + 2 * len(fr.x), len(fit) + 3 * j : len(fit) + 3 * j + 3] = 1
         row += 2 * len(fr.x)
     p0 = np.concatenate([[getattr(initial, k) / s for k, s in zip(fit, scale)], np.zeros(3 * len(frames))])
-    res = least_squares(residuals, p0, jac_sparsity=sparsity, method="trf", x_scale="jac",
-                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+    res = least_squares(
+        residuals,
+        p0,
+        jac_sparsity=sparsity,
+        method="trf",
+        x_scale="jac",
+        xtol=1e-12,
+        ftol=1e-12,
+        gtol=1e-12,
+        max_nfev=200,
+    )
     cam, atts = unpack(res.x)
     r = res.fun
     dof = max(len(r) - n_par, 1)
@@ -118,9 +129,14 @@ def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_
         per_frame.append(-r[row : row + 2 * len(fr.x)].reshape(-1, 2))  # measured - predicted
         row += 2 * len(fr.x)
     return CalibrationResult(
-        camera=cam, attitudes=atts, residual_rms_px=float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2)),
-        residuals=per_frame, sigmas=dict(zip(fit, (float(s) for s in sig))), n_observations=n_obs,
-        success=bool(res.success), message=str(res.message),
+        camera=cam,
+        attitudes=atts,
+        residual_rms_px=float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2)),
+        residuals=per_frame,
+        sigmas=dict(zip(fit, (float(s) for s in sig))),
+        n_observations=n_obs,
+        success=bool(res.success),
+        message=str(res.message),
     )
 
 

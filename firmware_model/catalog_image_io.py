@@ -14,7 +14,14 @@ import numpy as np
 
 from firmware_model.onboard_catalog import OnboardCatalog
 from protocol.catalog_image import (
-    FLAG_COLOUR, PAIR_DTYPE, STAR_DTYPE, STAR_FLAG_VARIABLE, CatalogImage, CatalogImageError, ImageParams, pack_image,
+    FLAG_COLOUR,
+    PAIR_DTYPE,
+    STAR_DTYPE,
+    STAR_FLAG_VARIABLE,
+    CatalogImage,
+    CatalogImageError,
+    ImageParams,
+    pack_image,
     parse_image,
 )
 
@@ -54,7 +61,9 @@ def catalog_to_image(cat: OnboardCatalog, created_unix: int | None = None) -> by
         sigma_bg=float(design.get("sigma_bg", nan)),
         source_id=SOURCE_IDS.get(cat.meta.get("source"), 0),
         flags=FLAG_COLOUR if cat.has_colour else 0,
-        created_unix=int(os.environ.get("SOURCE_DATE_EPOCH", time.time())) if created_unix is None else int(created_unix),
+        created_unix=int(os.environ.get("SOURCE_DATE_EPOCH", time.time()))
+        if created_unix is None
+        else int(created_unix),
     )
     kvector = cat.kvector if cat.kvector is not None else np.empty(0, np.uint32)
     return pack_image(params, stars, pairs, cat.hash_index, kvector)

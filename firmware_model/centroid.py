@@ -86,7 +86,7 @@ def pixel_gaussian_1d(coords: np.ndarray, centre: float, sigma: float):
     gu = np.exp(-0.5 * (up / sigma) ** 2)
     gl = np.exp(-0.5 * (lo / sigma) ** 2)
     d_centre = -_INV_SQRT2PI / sigma * (gu - gl)
-    d_sigma = -_INV_SQRT2PI / sigma ** 2 * (up * gu - lo * gl)
+    d_sigma = -_INV_SQRT2PI / sigma**2 * (up * gu - lo * gl)
     return e, d_centre, d_sigma
 
 
@@ -135,10 +135,19 @@ def fit_stars(frame: Frame, det: Detections, params: FitParams = FitParams()) ->
     """Fit every candidate of ``det`` in ``frame`` (module docstring), all windows together."""
     n = len(det)
     out = FitResults(
-        x=np.full(n, np.nan), y=np.full(n, np.nan), sigma=np.full(n, np.nan), amp=np.full((n, 3), np.nan),
-        background=np.full((n, 3), np.nan), cov_xy=np.full((n, 2, 2), np.nan), rg=np.full(n, np.nan),
-        bg=np.full(n, np.nan), cov_colour=np.full((n, 2, 2), np.nan), reduced_chi2=np.full(n, np.nan),
-        n_pixels=np.zeros(n, int), flags=np.asarray(det.flags, dtype=np.int32).copy(), sharp=np.zeros(n, bool),
+        x=np.full(n, np.nan),
+        y=np.full(n, np.nan),
+        sigma=np.full(n, np.nan),
+        amp=np.full((n, 3), np.nan),
+        background=np.full((n, 3), np.nan),
+        cov_xy=np.full((n, 2, 2), np.nan),
+        rg=np.full(n, np.nan),
+        bg=np.full(n, np.nan),
+        cov_colour=np.full((n, 2, 2), np.nan),
+        reduced_chi2=np.full(n, np.nan),
+        n_pixels=np.zeros(n, int),
+        flags=np.asarray(det.flags, dtype=np.int32).copy(),
+        sharp=np.zeros(n, bool),
     )
     if params.method not in ("lm", "cog"):
         raise ValueError(f"unknown fit method {params.method!r}; expected 'lm' or 'cog'")
@@ -159,7 +168,7 @@ def _pixel_gaussian_rows(coords, centre, sigma):
     ug = edges * gs
     e = 0.5 * (erfs[:, 1:] - erfs[:, :-1])
     d_centre = -_INV_SQRT2PI / sig * (gs[:, 1:] - gs[:, :-1])
-    d_sigma = -_INV_SQRT2PI / sig ** 2 * (ug[:, 1:] - ug[:, :-1])
+    d_sigma = -_INV_SQRT2PI / sig**2 * (ug[:, 1:] - ug[:, :-1])
     return e, d_centre, d_sigma
 
 
@@ -266,14 +275,14 @@ class _Windows:
         shape: per channel a 2 x 2 normal system (amplitude and background of one channel do
         not couple to the others); degenerate windows are solved with lstsq as before."""
         psf = self.psf(x0, y0, s)
-        w2 = w ** 2
+        w2 = w**2
         woh = self.onehot * w2[:, :, None]
         s11 = woh.sum(axis=1)
         sp1 = np.einsum("np,npk->nk", psf, woh)
-        spp = np.einsum("np,npk->nk", psf ** 2, woh)
+        spp = np.einsum("np,npk->nk", psf**2, woh)
         spd = np.einsum("np,npk->nk", psf * self.data, woh)
         s1d = np.einsum("np,npk->nk", self.data, woh)
-        det = spp * s11 - sp1 ** 2
+        det = spp * s11 - sp1**2
         with np.errstate(divide="ignore", invalid="ignore"):
             amp = (s11 * spd - sp1 * s1d) / det
             bkg = (spp * s1d - sp1 * spd) / det
@@ -321,7 +330,7 @@ def _levenberg_marquardt(win, p0, w, params):
     n, m = p0.shape
     p = p0.copy()
     r = win.residuals(p, w)
-    cost = 0.5 * np.sum(r ** 2, axis=1)
+    cost = 0.5 * np.sum(r**2, axis=1)
     started = np.isfinite(cost)
     conv = np.zeros(n, bool)
     lam = np.full(n, 1e-3)
@@ -369,7 +378,7 @@ def _levenberg_marquardt(win, p0, w, params):
         p_new = p[work] + step
         r_new = sel(work).residuals(p_new, w[work])
         nfev += 1
-        cost_new = 0.5 * np.sum(r_new ** 2, axis=1)
+        cost_new = 0.5 * np.sum(r_new**2, axis=1)
         actual = cost[work] - cost_new
         pred = -np.einsum("nm,nm->n", g[work], step) - 0.5 * np.einsum("nm,nmk,nk->n", step, a[work], step)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -380,7 +389,7 @@ def _levenberg_marquardt(win, p0, w, params):
         f_done = (np.abs(actual) <= _TOL * cost[work]) & (pred <= _TOL * cost[work]) & (rho <= 2.0)
         f_done &= np.isfinite(cost_new)
         # xtol: the (scaled) step is tiny against the (scaled) parameters
-        x_done = np.sqrt(np.sum(step_s ** 2, axis=1)) <= _TOL * np.sqrt(np.sum((d * p[work]) ** 2, axis=1))
+        x_done = np.sqrt(np.sum(step_s**2, axis=1)) <= _TOL * np.sqrt(np.sum((d * p[work]) ** 2, axis=1))
         ia = work[acc]
         p[ia], r[ia], cost[ia] = p_new[acc], r_new[acc], cost_new[acc]
         need[ia] = True
@@ -421,11 +430,12 @@ def _fit_all(frame, det, params, gain, out):
     x_start, y_start = np.where(has_cog, x_cog, dx), np.where(has_cog, y_cog, dy)
     if has_cog.any():
         lin[has_cog] = win.select(np.flatnonzero(has_cog)).linear_solve(
-            x_start[has_cog], y_start[has_cog], sig0[has_cog], w0[has_cog])
+            x_start[has_cog], y_start[has_cog], sig0[has_cog], w0[has_cog]
+        )
     # shot-noise weights from the starting model, then held fixed through the fit
     p0 = np.column_stack([x_start, y_start, sig0, lin])
     star = np.maximum(win.model(p0) - np.take_along_axis(lin[:, nchan:], win.chan, axis=1), 0.0)
-    w = np.where(win.valid, 1.0 / np.sqrt(win.noise ** 2 + star / gain), 0.0)
+    w = np.where(win.valid, 1.0 / np.sqrt(win.noise**2 + star / gain), 0.0)
     p0[:, 3:] = win.linear_solve(x_start, y_start, sig0, w)
     out.n_pixels[idx] = win.n_valid
     green = 3 + slots.index(GREEN) if nchan == 3 else 3
@@ -443,8 +453,14 @@ def _fit_all(frame, det, params, gain, out):
     p, r, conv, started = _levenberg_marquardt(fwin, p0[fit], w[fit], params)
     shift = np.hypot(p[:, 0] - x_start[fit], p[:, 1] - y_start[fit])
     abs_s = np.abs(p[:, 2])
-    ok = (started & conv & (shift <= params.max_shift_px) & (params.sigma_range_px[0] <= abs_s)
-          & (abs_s <= params.sigma_range_px[1]) & (p[:, green] > 0))
+    ok = (
+        started
+        & conv
+        & (shift <= params.max_shift_px)
+        & (params.sigma_range_px[0] <= abs_s)
+        & (abs_s <= params.sigma_range_px[1])
+        & (p[:, green] > 0)
+    )
     # a failed fit that shrank the PSF far below the optics' is not a star either, when the candidate
     # was bright enough for its fit to mean something (a faint star's failed fit wanders anywhere)
     bright = np.asarray(det.snr, float)[idx[fit]] >= params.sharp_fail_min_snr
@@ -471,7 +487,9 @@ def _fit_all(frame, det, params, gain, out):
     # covariance from the Jacobian at the solution (the one the fit used: analytic or differences)
     jac = (gwin.jacobian if params.analytic_jacobian else gwin.jacobian_fd)(p[good], w[fit][good])
     cov = _inverse_normal(np.matmul(jac.transpose(0, 2, 1), jac)) * np.maximum(chi2r, 1.0)[:, None, None]
-    sharp_ok = pg[:, 2] + 3.0 * np.sqrt(np.maximum(cov[:, 2, 2], 0.0)) < params.sharp_sigma_fraction * params.psf_sigma_px
+    sharp_ok = (
+        pg[:, 2] + 3.0 * np.sqrt(np.maximum(cov[:, 2, 2], 0.0)) < params.sharp_sigma_fraction * params.psf_sigma_px
+    )
     for j, g_ in enumerate(good):
         i = idx[fit[g_]]
         q = pg[j]
@@ -482,7 +500,7 @@ def _fit_all(frame, det, params, gain, out):
         _store_amplitudes(out, i, q[3:], slots, nchan)
         if nchan == 3:
             a_r, a_g, a_b = q[3], q[4], q[5]
-            gm = np.array([[1.0 / a_g, -a_r / a_g ** 2, 0.0], [0.0, -a_b / a_g ** 2, 1.0 / a_g]])
+            gm = np.array([[1.0 / a_g, -a_r / a_g**2, 0.0], [0.0, -a_b / a_g**2, 1.0 / a_g]])
             out.rg[i], out.bg[i] = a_r / a_g, a_b / a_g
             out.cov_colour[i] = gm @ cov[j, 3:6, 3:6] @ gm.T
         if chi2r[j] > params.max_reduced_chi2:

@@ -29,8 +29,14 @@ from .catalog_image_io import catalog_slot_handler
 from .device import FRAME_SLOT, Device
 from .link import DEFAULT_IDLE_TIMEOUT, PtyLink, SerialLink, TcpLink, parse_tcp, serve
 from .pipeline import PipelineParams
-from .sensor_input import (DeviceParams, FileFrames, PipelineSolver, frame_slot_handler, load_frame_source,
-                           params_slot_handler)
+from .sensor_input import (
+    DeviceParams,
+    FileFrames,
+    PipelineSolver,
+    frame_slot_handler,
+    load_frame_source,
+    params_slot_handler,
+)
 from .state import SlotStore
 
 DEFAULT_PACED_TURNAROUND_MS = 1.0  #: ours; the research documents no turnaround
@@ -41,24 +47,46 @@ def build_parser() -> argparse.ArgumentParser:
     where = parser.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", action="store_true", help="create a pseudo-terminal and print its path")
     where.add_argument("--port", help="serve on this serial device (pyserial URL or path)")
-    where.add_argument("--tcp", metavar="HOST:PORT", help="serve on TCP (host defaults to 127.0.0.1); one client at "
-                                                         "a time, a new connection takes over (docs/bad_input.md)")
-    parser.add_argument("--address", type=lambda s: int(s, 0), default=nsp.DEVICE_ADDRESS,
-                        help="NSP address of the device (default 0x0E)")
+    where.add_argument(
+        "--tcp",
+        metavar="HOST:PORT",
+        help="serve on TCP (host defaults to 127.0.0.1); one client at "
+        "a time, a new connection takes over (docs/bad_input.md)",
+    )
+    parser.add_argument(
+        "--address",
+        type=lambda s: int(s, 0),
+        default=nsp.DEVICE_ADDRESS,
+        help="NSP address of the device (default 0x0E)",
+    )
     parser.add_argument("--state", help="directory for persistent state (slots); in memory if absent")
     parser.add_argument("--baud", type=int, default=115200, help="line rate for --port and for --pace")
-    parser.add_argument("--tcp-idle", type=float, default=DEFAULT_IDLE_TIMEOUT, metavar="SECONDS",
-                        help=f"with --tcp, close a client silent this long (default {DEFAULT_IDLE_TIMEOUT:g})")
+    parser.add_argument(
+        "--tcp-idle",
+        type=float,
+        default=DEFAULT_IDLE_TIMEOUT,
+        metavar="SECONDS",
+        help=f"with --tcp, close a client silent this long (default {DEFAULT_IDLE_TIMEOUT:g})",
+    )
     parser.add_argument("--pace", action="store_true", help="model UART timing at --baud (10 bits per byte)")
-    parser.add_argument("--turnaround-ms", type=float, default=None,
-                        help=f"delay from a command's last byte to its reply (default 0, "
-                             f"{DEFAULT_PACED_TURNAROUND_MS} with --pace)")
-    parser.add_argument("--camera", help="camera model JSON (CameraModel.to_dict); default: the seed 000 "
-                                         "reference design, 2592 x 1944 at f = 7383 px")
+    parser.add_argument(
+        "--turnaround-ms",
+        type=float,
+        default=None,
+        help=f"delay from a command's last byte to its reply (default 0, {DEFAULT_PACED_TURNAROUND_MS} with --pace)",
+    )
+    parser.add_argument(
+        "--camera",
+        help="camera model JSON (CameraModel.to_dict); default: the seed 000 "
+        "reference design, 2592 x 1944 at f = 7383 px",
+    )
     capture = parser.add_mutually_exclusive_group()
     capture.add_argument("--frames", metavar="DIR|GLOB", help="capture source: replay these frame files in order")
-    capture.add_argument("--sky", metavar="SCHEDULE", help="capture source: render each exposure with the sensor "
-                                                          "simulator at the attitudes of this schedule file")
+    capture.add_argument(
+        "--sky",
+        metavar="SCHEDULE",
+        help="capture source: render each exposure with the sensor simulator at the attitudes of this schedule file",
+    )
     parser.add_argument("--loop", action="store_true", help="with --frames, start again after the last file")
     parser.add_argument("--params", help="default parameter set JSON (the slot-2 schema); an uploaded set wins")
     return parser
@@ -88,8 +116,14 @@ def build_device(args: argparse.Namespace) -> Device:
     params = DeviceParams.load(args.params).apply(PipelineParams()) if args.params else PipelineParams()
     solver = PipelineSolver(camera, params)
     slots = {0: catalog_slot_handler(prepare=solver.prepare), 1: frame_slot_handler(camera), 2: params_slot_handler()}
-    return Device(args.address, store=store, slots=slots, solver=solver, frame_source=source,
-                  sensor_shape=(camera.height, camera.width))
+    return Device(
+        args.address,
+        store=store,
+        slots=slots,
+        solver=solver,
+        frame_source=source,
+        sensor_shape=(camera.height, camera.width),
+    )
 
 
 def build_link(args: argparse.Namespace):

@@ -89,8 +89,17 @@ class Detections:
 
 def _empty(reason: str, **counts) -> Detections:
     z = np.zeros(0)
-    return Detections(z, z.copy(), z.copy(), z.copy(), np.zeros(0, np.int32), np.zeros((0, 2, 2)),
-                      np.zeros((0, 2, 2)), reason=reason, **counts)
+    return Detections(
+        z,
+        z.copy(),
+        z.copy(),
+        z.copy(),
+        np.zeros(0, np.int32),
+        np.zeros((0, 2, 2)),
+        np.zeros((0, 2, 2)),
+        reason=reason,
+        **counts,
+    )
 
 
 _K121 = np.array([1.0, 2.0, 1.0], dtype=np.float32)
@@ -107,6 +116,7 @@ def matched_kernel(psf_sigma_px: float) -> np.ndarray:
     x = np.arange(-int(np.ceil(3.0 * s)), int(np.ceil(3.0 * s)) + 1)
     k = np.exp(-0.5 * (x / s) ** 2)
     return (4.0 * k / k.sum()).astype(np.float32)
+
 
 #: Significant regions examined at most, as a multiple of ``max_candidates`` (the brightest by
 #: filtered peak); beyond it detection work would grow with clutter, not with stars.
@@ -141,7 +151,9 @@ def _phase_background(phase: np.ndarray, block: int):
     # the same few columns in every row (a dead column then looked like half the block)
     sparse = blocks[:, :, :: max((b * b) // 64, 1) | 1]
     med = np.median(sparse, axis=2)
-    mad = np.maximum(np.maximum(np.median(np.abs(sparse - med[:, :, None]), axis=2) * 1.4826, _clipped_width(sparse)), 0.5)
+    mad = np.maximum(
+        np.maximum(np.median(np.abs(sparse - med[:, :, None]), axis=2) * 1.4826, _clipped_width(sparse)), 0.5
+    )
     keep = np.abs(blocks - med[:, :, None]) < 4.0 * mad[:, :, None]
     n = np.maximum(keep.sum(axis=2), 1)
     mean = np.where(keep, blocks, 0).sum(axis=2) / n
@@ -220,7 +232,7 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     bg_sum = var_sum = 0.0
     bg_grids, noise_grids, bad, phases = {}, {}, [], {}
     d2 = 1.0 if frame.is_mono else 4.0  # squared distance to the neighbours used (px^2)
-    ratio = params.sharp_fraction * np.exp(-d2 / (2.0 * params.psf_sigma_px ** 2))
+    ratio = params.sharp_fraction * np.exp(-d2 / (2.0 * params.psf_sigma_px**2))
     for py in (0, 1):
         for px_ in (0, 1):
             phase = frame.pixels[py : 2 * h2 : 2, px_ : 2 * w2 : 2].astype(np.float32) - black[py, px_]
@@ -236,7 +248,7 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
             total += phase
             phases[py, px_] = phase
             bg_sum = bg_sum + med
-            var_sum = var_sum + sig ** 2
+            var_sum = var_sum + sig**2
     resid = total - _interpolate(bg_sum, block, total.shape)
     bad_pixels = np.sort(np.concatenate(bad))
     n_sharp = len(bad_pixels)
@@ -244,7 +256,9 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     kernel = matched_kernel(params.psf_sigma_px)
     filt = ndimage.correlate1d(resid, kernel, axis=0, mode="constant")
     filt = ndimage.correlate1d(filt, kernel, axis=1, mode="constant")
-    snr_map = filt / (float(np.sum(kernel.astype(float) ** 2)) * np.sqrt(_expand(var_sum.astype(np.float32), block, filt.shape)))
+    snr_map = filt / (
+        float(np.sum(kernel.astype(float) ** 2)) * np.sqrt(_expand(var_sum.astype(np.float32), block, filt.shape))
+    )
     if kernel is not _K121:
         # a wide kernel sums structure that white noise does not predict (residual column defects,
         # background detail smaller than a block): where the filtered background scatters more
@@ -263,8 +277,9 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
         mask = labels > 0
     mr_, mc_ = np.nonzero(mask)
     pr, pc = _local_maxima(filt, mr_, mc_, params.peak_separation // 2)
-    pr, pc, n_over = _merge_without_dip(filt, snr_map, labels, pr, pc, MERGE_RADIUS_KERNELS * len(kernel),
-                                        REGION_CAP_FACTOR * params.max_candidates)
+    pr, pc, n_over = _merge_without_dip(
+        filt, snr_map, labels, pr, pc, MERGE_RADIUS_KERNELS * len(kernel), REGION_CAP_FACTOR * params.max_candidates
+    )
     plabel = labels[pr, pc]
     peaks_per_region = np.bincount(plabel, minlength=n_regions + 1)
 
@@ -284,8 +299,12 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     n_sharp += int(np.count_nonzero(sharp))
     pr, pc, plabel = pr[~sharp], pc[~sharp], plabel[~sharp]
     if len(pr) == 0:
-        return _empty(f"no star-like candidate ({n_streak} streaks rejected, {n_sharp} sharp pixels cleaned)",
-                      n_rejected_sharp=n_sharp, n_rejected_streak=n_streak, bad_pixels=bad_pixels)
+        return _empty(
+            f"no star-like candidate ({n_streak} streaks rejected, {n_sharp} sharp pixels cleaned)",
+            n_rejected_sharp=n_sharp,
+            n_rejected_streak=n_streak,
+            bad_pixels=bad_pixels,
+        )
 
     flux = filt[pr, pc].astype(float)
     order = np.argsort(-flux)
@@ -303,9 +322,19 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
             noise[:, a, b] = _grid_at(noise_grids[a, b], gy, gx)
             bgv[:, a, b] = _grid_at(bg_grids[a, b], gy, gx)
     det = Detections(
-        x=2.0 * x_sp + 0.5, y=2.0 * y_sp + 0.5, flux=flux, snr=snr_map[pr, pc].astype(float), flags=flags,
-        noise=noise, background=bgv, n_rejected_sharp=n_sharp, n_rejected_streak=n_streak,
-        n_dropped_cap=n_drop, n_regions=n_found, n_regions_examined=n_regions, bad_pixels=bad_pixels,
+        x=2.0 * x_sp + 0.5,
+        y=2.0 * y_sp + 0.5,
+        flux=flux,
+        snr=snr_map[pr, pc].astype(float),
+        flags=flags,
+        noise=noise,
+        background=bgv,
+        n_rejected_sharp=n_sharp,
+        n_rejected_streak=n_streak,
+        n_dropped_cap=n_drop,
+        n_regions=n_found,
+        n_regions_examined=n_regions,
+        bad_pixels=bad_pixels,
     )
     det.reason = "; ".join(bound_notes(det, n_drop, params.max_candidates))
     return det
@@ -320,7 +349,7 @@ def _axis_ratio(lab, r, c, wgt, nb) -> np.ndarray:
     mrr = np.bincount(lab, wgt * dr * dr, nb) / s0
     mcc = np.bincount(lab, wgt * dc * dc, nb) / s0
     mrc = np.bincount(lab, wgt * dr * dc, nb) / s0
-    tr, det = mrr + mcc, mrr * mcc - mrc ** 2
+    tr, det = mrr + mcc, mrr * mcc - mrc**2
     disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
     return np.sqrt((tr / 2 + disc) / np.maximum(tr / 2 - disc, 1e-3))
 
@@ -329,8 +358,9 @@ def bound_notes(det: Detections, n_dropped_cap: int, max_candidates: int) -> lis
     """What the work bounds left out: significant regions not examined, candidates beyond the cap."""
     notes = []
     if det.n_regions > det.n_regions_examined:
-        notes.append(f"{det.n_regions} regions above the threshold: only the {det.n_regions_examined} brightest "
-                     f"examined")
+        notes.append(
+            f"{det.n_regions} regions above the threshold: only the {det.n_regions_examined} brightest examined"
+        )
     if n_dropped_cap:
         notes.append(f"{n_dropped_cap} fainter candidates dropped by the cap of {max_candidates}")
     return notes
@@ -387,8 +417,9 @@ def _clean_columns(phase: np.ndarray, noise: float) -> np.ndarray:
     return cols
 
 
-def _clean_sharp(phase: np.ndarray, med: np.ndarray, sig: np.ndarray, block: int, k_sigma: float,
-                 ratio: float, mono=None):
+def _clean_sharp(
+    phase: np.ndarray, med: np.ndarray, sig: np.ndarray, block: int, k_sigma: float, ratio: float, mono=None
+):
     """Replace, in place, phase pixels much sharper than the PSF (hot pixels, cosmic-ray
     hits) by the mean of the middle two of their four neighbours; returns their (rows,
     cols). Neighbours are the same-colour pixels 2 px away (the phase's own neighbours) or,
@@ -454,7 +485,7 @@ def _peaked_candidates(phases, bg_grids, noise_grids, block, pr, pc, params, mon
     flat = win.reshape(n, -1)
     peak = flat.max(axis=1)
     total = flat.sum(axis=1)
-    sd = np.sqrt(sig2 * (1.0 + share ** 2 * flat.shape[1]))
+    sd = np.sqrt(sig2 * (1.0 + share**2 * flat.shape[1]))
     return peak - share * total > 3.0 * sd
 
 
@@ -462,8 +493,10 @@ def _raw_neighbours(rows, cols, pixels, black, py, px):
     """Black-subtracted values of the 4 adjacent raw pixels of phase pixels (rows, cols)."""
     hr, wr = pixels.shape
     r, c = 2 * rows + py, 2 * cols + px
-    return tuple(pixels[np.clip(r + dr, 0, hr - 1), np.clip(c + dc, 0, wr - 1)].astype(np.float32) - black
-                 for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)))
+    return tuple(
+        pixels[np.clip(r + dr, 0, hr - 1), np.clip(c + dc, 0, wr - 1)].astype(np.float32) - black
+        for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1))
+    )
 
 
 def _merge_without_dip(filt, snr_map, labels, pr, pc, radius: int, limit: int):

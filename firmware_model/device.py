@@ -23,10 +23,39 @@ from typing import Any
 
 from protocol import nsp, result, slip
 from protocol.commands import (
-    APP_START_ADDRESS, MAX_SLOT_BYTES, MAX_STATUS_RANGES, UNASSIGNED, AddressedBytes, Code, Combination,
-    CrcReply, CrcRequest, DarkWindow, Diagnostics, Go, GoBits, Init, MemorySpace, NackInfo, NackReason,
-    PayloadError, Peek, Poke, ReadFile, ReadRange, SlotImage, SlotRejected, SlotRequest, WriteAck,
-    WriteEdac, WriteFile, XferBegin, XferData, XferDataAck, XferState, XferStatus,
+    APP_START_ADDRESS,
+    MAX_SLOT_BYTES,
+    MAX_STATUS_RANGES,
+    UNASSIGNED,
+    AddressedBytes,
+    Code,
+    Combination,
+    CrcReply,
+    CrcRequest,
+    DarkWindow,
+    Diagnostics,
+    Go,
+    GoBits,
+    Init,
+    MemorySpace,
+    NackInfo,
+    NackReason,
+    PayloadError,
+    Peek,
+    Poke,
+    ReadFile,
+    ReadRange,
+    SlotImage,
+    SlotRejected,
+    SlotRequest,
+    WriteAck,
+    WriteEdac,
+    WriteFile,
+    XferBegin,
+    XferData,
+    XferDataAck,
+    XferState,
+    XferStatus,
 )
 from protocol.crc import crc16_mcrf4xx, crc32
 
@@ -47,6 +76,7 @@ FRAME_SLOT = 1  #: a frame committed here is consumed by the next GO before the 
 
 class FrameUnavailable(Exception):
     """Raised by a frame source for a frame it cannot deliver (unreadable file, wrong size)."""
+
 
 #: Emulated "asynchronous analog frame" at EDAC 0x0004 (8 x f32): nominal constants, the emulator
 #: models no electronics. Current (A), bus, Vdd core, Vdd MPU, Vdd IO (V), supervisor temperature
@@ -94,8 +124,11 @@ def default_slots() -> dict[int, SlotHandler]:
     return {
         0: SlotHandler(_reject_empty, bytes, blob),
         1: SlotHandler(_reject_empty, bytes, blob),
-        2: SlotHandler(_params_validate, lambda d: json.loads(d.decode("utf-8")),
-                       lambda d, obj: json.dumps({"keys": sorted(obj)}).encode()),
+        2: SlotHandler(
+            _params_validate,
+            lambda d: json.loads(d.decode("utf-8")),
+            lambda d, obj: json.dumps({"keys": sorted(obj)}).encode(),
+        ),
     }
 
 
@@ -161,10 +194,17 @@ class Device:
     has none, raising :class:`FrameUnavailable` for one it cannot read); a frame committed to slot 1
     since the last GO takes precedence, and without a source the last committed frame is reused."""
 
-    def __init__(self, address: int = nsp.DEVICE_ADDRESS, *, store: SlotStore | None = None,
-                 slots: Mapping[int, SlotHandler] | None = None, solver: Solver | None = None,
-                 frame_source: Callable[[SolveContext], Any] | None = None,
-                 sensor_shape: tuple[int, int] = (2464, 3280), clock: Callable[[], float] = time.time):
+    def __init__(
+        self,
+        address: int = nsp.DEVICE_ADDRESS,
+        *,
+        store: SlotStore | None = None,
+        slots: Mapping[int, SlotHandler] | None = None,
+        solver: Solver | None = None,
+        frame_source: Callable[[SolveContext], Any] | None = None,
+        sensor_shape: tuple[int, int] = (2464, 3280),
+        clock: Callable[[], float] = time.time,
+    ):
         if not 0 <= address <= 0xFF:
             raise ValueError("address must be 0..255")
         self.address = address
@@ -181,7 +221,7 @@ class Device:
         self._scratch = bytearray(EDAC_SCRATCH[1] - EDAC_SCRATCH[0])
         self._ram = bytearray(RAM_SIZE)
         self._rom = bytearray(ROM_SIZE)
-        self._rom[:len(self.boot_banner)] = self.boot_banner.encode()
+        self._rom[: len(self.boot_banner)] = self.boot_banner.encode()
         self._result = result.build({"return_code": result.make_return_code(result.Status.NO_RESULT)}, 0)
         self._result_ready = False
         self._sequence = 0
@@ -196,13 +236,16 @@ class Device:
         for slot in self.store.active_slots():
             data = self.store.active(slot)
             if slot not in self.slots:
-                print(f"device: slot {slot} in the state directory is not a slot of this device; ignored",
-                      file=sys.stderr)
+                print(
+                    f"device: slot {slot} in the state directory is not a slot of this device; ignored", file=sys.stderr
+                )
                 continue
             try:
                 self._install(slot, data)
             except Exception as exc:  # a persisted image the current validator refuses
-                print(f"device: slot {slot} image not activated at start: {' '.join(str(exc).split())}", file=sys.stderr)
+                print(
+                    f"device: slot {slot} image not activated at start: {' '.join(str(exc).split())}", file=sys.stderr
+                )
 
     # ------------------------------------------------------------------ identity
 
@@ -261,8 +304,9 @@ class Device:
                 if self.late_reply is None:  # no transport to answer later: wait here
                     replies = self._replies(msg, replies.wait)
                 else:
-                    threading.Thread(target=self._answer_late, args=(msg, replies), daemon=True,
-                                     name=f"reply-{msg.code:02X}").start()
+                    threading.Thread(
+                        target=self._answer_late, args=(msg, replies), daemon=True, name=f"reply-{msg.code:02X}"
+                    ).start()
                     return []
             return self._count_replies(msg, replies)
 
@@ -341,12 +385,12 @@ class Device:
         if not 1 <= req.count <= MAX_PEEK:
             raise _Nack(NackReason.BAD_LENGTH, f"PEEK count {req.count} outside 1..{MAX_PEEK}")
         buf, off = self._region(req.address, req.count, write=False)
-        return AddressedBytes(req.address, bytes(buf[off:off + req.count]), 4).pack()
+        return AddressedBytes(req.address, bytes(buf[off : off + req.count]), 4).pack()
 
     def _cmd_poke(self, data: bytes) -> bytes:
         req = Poke.unpack(data)
         buf, off = self._region(req.address, len(req.data), write=True)
-        buf[off:off + len(req.data)] = req.data
+        buf[off : off + len(req.data)] = req.data
         return WriteAck(req.address, len(req.data), 4).pack()
 
     def _cmd_diagnostic(self, data: bytes) -> bytes:
@@ -373,23 +417,44 @@ class Device:
             raise _Nack(NackReason.BAD_LENGTH, f"CRC length {req.length} outside 1..{MAX_CRC_SPAN}")
         if req.space == MemorySpace.MEMORY:
             buf, off = self._region(req.address, req.length, write=False)
-            span = bytes(buf[off:off + req.length])
+            span = bytes(buf[off : off + req.length])
         else:
             whole = self._space(req.space)
             if req.address + req.length > len(whole):
                 raise _Nack(NackReason.BAD_ADDRESS, f"0x{req.address:X}+{req.length} beyond {len(whole)} bytes")
-            span = whole[req.address:req.address + req.length]
+            span = whole[req.address : req.address + req.length]
         return CrcReply(req.space, req.address, req.length, crc16_mcrf4xx(span)).pack()
 
     def edac_image(self) -> bytes:
         """The 512 EDAC bytes as READ EDAC sees them now (docs/ICD.md, EDAC map)."""
         c = self.counters
         status = (1 if self.app_mode else 0) | (2 if self.busy else 0) | (4 if self._result_ready else 0)
-        head = struct.pack("<I8f10I", status, *ANALOG_FRAME, c.framing, c.runt, c.oversize, c.bad_crc,
-                           c.fifo_overflow, c.accepted, c.nacked, c.silent, c.other_address, c.replies)
+        head = struct.pack(
+            "<I8f10I",
+            status,
+            *ANALOG_FRAME,
+            c.framing,
+            c.runt,
+            c.oversize,
+            c.bad_crc,
+            c.fifo_overflow,
+            c.accepted,
+            c.nacked,
+            c.silent,
+            c.other_address,
+            c.replies,
+        )
         ready = self._result_ready
-        head += struct.pack("<IIIBBBB", result.STANDARD_LENGTH if ready else 0, result.TOTAL_LENGTH if ready else 0,
-                            self._sequence, self.address, int(self.app_mode), int(self.busy), 0)
+        head += struct.pack(
+            "<IIIBBBB",
+            result.STANDARD_LENGTH if ready else 0,
+            result.TOTAL_LENGTH if ready else 0,
+            self._sequence,
+            self.address,
+            int(self.app_mode),
+            int(self.busy),
+            0,
+        )
         ident = self.boot_banner.encode()[:64].ljust(64, b"\0")
         head += ident
         return head.ljust(EDAC_SCRATCH[0], b"\0") + bytes(self._scratch)
@@ -397,7 +462,7 @@ class Device:
     def _edac_read(self, address: int, count: int) -> bytes:
         if count < 1 or address + count > EDAC_SIZE:
             raise _Nack(NackReason.BAD_ADDRESS, f"EDAC 0x{address:04X}+{count} outside 0x0000-0x01FF")
-        return self.edac_image()[address:address + count]
+        return self.edac_image()[address : address + count]
 
     def _edac_write(self, address: int, value: bytes) -> None:
         lo, hi = EDAC_SCRATCH
@@ -405,7 +470,7 @@ class Device:
             raise _Nack(NackReason.BAD_ADDRESS, f"EDAC 0x{address:04X}+{len(value)} outside 0x0000-0x01FF")
         if address < lo:
             raise _Nack(NackReason.READ_ONLY, f"EDAC 0x{address:04X} is read-only (scratch is 0x0100-0x01FF)")
-        self._scratch[address - lo:address - lo + len(value)] = value
+        self._scratch[address - lo : address - lo + len(value)] = value
 
     def _cmd_read_edac(self, data: bytes) -> bytes:
         req = ReadRange.unpack(data)
@@ -454,15 +519,16 @@ class Device:
         req = ReadRange.unpack(data)
         self._require_app("READ RESULT")
         if req.count < 1 or req.address + req.count > result.TOTAL_LENGTH:
-            raise _Nack(NackReason.BAD_ADDRESS,
-                        f"result 0x{req.address:04X}+{req.count} outside 0..{result.TOTAL_LENGTH}")
+            raise _Nack(
+                NackReason.BAD_ADDRESS, f"result 0x{req.address:04X}+{req.count} outside 0..{result.TOTAL_LENGTH}"
+            )
         return self._result_parts(req.address, req.count)
 
     def _result_parts(self, address: int, count: int) -> list[bytes]:
         parts = []
         for start in range(address, address + count, RESULT_PART):
             n = min(RESULT_PART, address + count - start)
-            parts.append(AddressedBytes(start, self._result[start:start + n]).pack())
+            parts.append(AddressedBytes(start, self._result[start : start + n]).pack())
         return parts
 
     def _cmd_image(self, data: bytes) -> bytes:
@@ -514,21 +580,32 @@ class Device:
         self._sequence += 1
         self._result_ready = False
         ctx = SolveContext(
-            go_code=code, sequence=self._sequence, started=self.clock(),
-            catalog=self._objects.get(0), frame=self._objects.get(1), params=self._objects.get(2),
-            catalog_crc32=crc32(self.store.active(0) or b""), frame_crc32=crc32(self.store.active(1) or b""),
-            dark_windows=tuple(self._dark[0] + self._dark[1]), sensor_shape=self.sensor_shape,
+            go_code=code,
+            sequence=self._sequence,
+            started=self.clock(),
+            catalog=self._objects.get(0),
+            frame=self._objects.get(1),
+            params=self._objects.get(2),
+            catalog_crc32=crc32(self.store.active(0) or b""),
+            frame_crc32=crc32(self.store.active(1) or b""),
+            dark_windows=tuple(self._dark[0] + self._dark[1]),
+            sensor_shape=self.sensor_shape,
         )
         uploaded, self._frame_pending = self._frame_pending, False
-        self._busy = threading.Thread(target=self._run_sequence, args=(ctx, uploaded),
-                                      name=f"sequence-{ctx.sequence}", daemon=True)
+        self._busy = threading.Thread(
+            target=self._run_sequence, args=(ctx, uploaded), name=f"sequence-{ctx.sequence}", daemon=True
+        )
         self._busy.start()
 
     def _sequence_fields(self, ctx: SolveContext, uploaded: bool) -> Mapping[str, Any]:
         base = {"epoch": ctx.started, "ext.catalog_crc32": ctx.catalog_crc32}
 
         def status(st: result.Status, reason: str) -> dict:
-            return {**base, "return_code": result.make_return_code(st), "ext.reason": reason.encode()[:result.EXT_REASON_BYTES]}
+            return {
+                **base,
+                "return_code": result.make_return_code(st),
+                "ext.reason": reason.encode()[: result.EXT_REASON_BYTES],
+            }
 
         if ctx.catalog is None:
             return status(result.Status.NO_CATALOG, "no catalog: upload one to slot 0")
@@ -548,7 +625,7 @@ class Device:
         t0 = time.perf_counter()
         fields = dict(self.solver(ctx))
         if "ext.reason" in fields and isinstance(fields["ext.reason"], str):
-            fields["ext.reason"] = fields["ext.reason"].encode()[:result.EXT_REASON_BYTES]
+            fields["ext.reason"] = fields["ext.reason"].encode()[: result.EXT_REASON_BYTES]
         if "return_code" not in fields:
             raise ValueError("solver returned no return_code")
         fields.setdefault("ext.solve_time", time.perf_counter() - t0)
@@ -559,10 +636,14 @@ class Device:
             data = result.build(self._sequence_fields(ctx, uploaded), ctx.sequence)
         except Exception as exc:
             traceback.print_exc(file=sys.stderr)
-            data = result.build({"epoch": ctx.started,
-                                 "return_code": result.make_return_code(result.Status.SOLVER_ERROR),
-                                 "ext.reason": f"{type(exc).__name__}: {exc}".encode()[:result.EXT_REASON_BYTES]},
-                                ctx.sequence)
+            data = result.build(
+                {
+                    "epoch": ctx.started,
+                    "return_code": result.make_return_code(result.Status.SOLVER_ERROR),
+                    "ext.reason": f"{type(exc).__name__}: {exc}".encode()[: result.EXT_REASON_BYTES],
+                },
+                ctx.sequence,
+            )
         with self._lock:
             self._result = data
             self._result_ready = True
@@ -592,8 +673,16 @@ class Device:
             return XferStatus(slot, XferState.NONE)
         missing = tr.missing()
         state = XferState.COMPLETE if tr.complete else XferState.RECEIVING
-        return XferStatus(slot, state, tr.length, tr.crc32, tr.contiguous, tr.received, len(missing),
-                          tuple(missing[:MAX_STATUS_RANGES]))
+        return XferStatus(
+            slot,
+            state,
+            tr.length,
+            tr.crc32,
+            tr.contiguous,
+            tr.received,
+            len(missing),
+            tuple(missing[:MAX_STATUS_RANGES]),
+        )
 
     def _cmd_xfer_begin(self, data: bytes) -> bytes:
         req = XferBegin.unpack(data)
@@ -645,8 +734,10 @@ class Device:
             raise _Nack(NackReason.STORAGE_ERROR, str(exc)) from None
         if len(image) != tr.length or crc32(image) != tr.crc32:
             self.store.drop_transfer(req.slot)
-            raise _Nack(NackReason.CRC_MISMATCH,
-                        f"image CRC-32 0x{crc32(image):08X} != announced 0x{tr.crc32:08X}; transfer discarded")
+            raise _Nack(
+                NackReason.CRC_MISMATCH,
+                f"image CRC-32 0x{crc32(image):08X} != announced 0x{tr.crc32:08X}; transfer discarded",
+            )
         try:
             handler.validate(image)
             obj = handler.activate(image)

@@ -112,11 +112,18 @@ class StarList:
         recs = []
         for i in range(len(self)):
             rec = {
-                "x": num(self.x[i]), "y": num(self.y[i]), "flux": num(self.flux[i]),
-                "rg": num(self.rg[i]), "bg": num(self.bg[i]),
-                "sigma_x": num(np.sqrt(self.cov_xy[i, 0, 0])), "sigma_y": num(np.sqrt(self.cov_xy[i, 1, 1])),
-                "sigma_rg": num(np.sqrt(self.cov_colour[i, 0, 0])), "sigma_bg": num(np.sqrt(self.cov_colour[i, 1, 1])),
-                "snr": num(self.snr[i]), "psf_sigma": num(self.sigma[i]), "reduced_chi2": num(self.reduced_chi2[i]),
+                "x": num(self.x[i]),
+                "y": num(self.y[i]),
+                "flux": num(self.flux[i]),
+                "rg": num(self.rg[i]),
+                "bg": num(self.bg[i]),
+                "sigma_x": num(np.sqrt(self.cov_xy[i, 0, 0])),
+                "sigma_y": num(np.sqrt(self.cov_xy[i, 1, 1])),
+                "sigma_rg": num(np.sqrt(self.cov_colour[i, 0, 0])),
+                "sigma_bg": num(np.sqrt(self.cov_colour[i, 1, 1])),
+                "snr": num(self.snr[i]),
+                "psf_sigma": num(self.sigma[i]),
+                "reduced_chi2": num(self.reduced_chi2[i]),
                 "flags": int(self.flags[i]),
                 "flag_names": [f.name for f in StarFlag if f and int(self.flags[i]) & int(f)],
             }
@@ -210,8 +217,11 @@ def extract_stars(frame: Frame, camera: CameraModel | None = None, params: Extra
         while True:
             measured = measure_psf_sigma(*current[:2])
             source = "measured" if np.isfinite(measured) else "start"
-            if (not np.isfinite(measured) or abs(measured / current[3] - 1.0) <= params.psf_tolerance
-                    or passes >= params.psf_max_passes):
+            if (
+                not np.isfinite(measured)
+                or abs(measured / current[3] - 1.0) <= params.psf_tolerance
+                or passes >= params.psf_max_passes
+            ):
                 break
             nxt, passes = one_pass(measured), passes + 1
             if len(nxt[0].x) < 0.5 * len(current[0].x):
@@ -234,9 +244,23 @@ def extract_stars(frame: Frame, camera: CameraModel | None = None, params: Extra
     vectors = camera.pixel_to_vector(fit.x, fit.y) if camera is not None else None
     t3 = time.perf_counter()
     return StarList(
-        x=fit.x, y=fit.y, flux=flux, amp=fit.amp, rg=fit.rg, bg=fit.bg, cov_xy=fit.cov_xy,
-        cov_colour=fit.cov_colour, snr=snr, sigma=fit.sigma, reduced_chi2=fit.reduced_chi2,
-        flags=fit.flags, vectors=vectors,
+        x=fit.x,
+        y=fit.y,
+        flux=flux,
+        amp=fit.amp,
+        rg=fit.rg,
+        bg=fit.bg,
+        cov_xy=fit.cov_xy,
+        cov_colour=fit.cov_colour,
+        snr=snr,
+        sigma=fit.sigma,
+        reduced_chi2=fit.reduced_chi2,
+        flags=fit.flags,
+        vectors=vectors,
         timings={"detect_s": t1 - t0, "fit_s": t2 - t1, "vectors_s": t3 - t2, "total_s": t3 - t0},
-        reason=reason, psf_sigma_px=float(sigma), psf_measured_px=measured, psf_source=source, psf_passes=passes,
+        reason=reason,
+        psf_sigma_px=float(sigma),
+        psf_measured_px=measured,
+        psf_source=source,
+        psf_passes=passes,
     )

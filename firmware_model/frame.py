@@ -98,9 +98,7 @@ class Frame:
             if bad:
                 raise ValueError(f"frame contains {bad} non-finite (NaN/inf) pixels")
         if self.pattern != "MONO" and (px.shape[0] % 2 or px.shape[1] % 2):
-            raise ValueError(
-                f"a {self.pattern} frame needs even dimensions, got {px.shape[1]} x {px.shape[0]} (W x H)"
-            )
+            raise ValueError(f"a {self.pattern} frame needs even dimensions, got {px.shape[1]} x {px.shape[0]} (W x H)")
         self.pixels = px
         bl = np.atleast_1d(np.asarray(self.black_level, dtype=float))
         if bl.size == 1:
@@ -160,8 +158,16 @@ def frame_to_bytes(frame: Frame) -> bytes:
     blob = json.dumps(extras, separators=(",", ":")).encode("utf-8")
     exposure = float("nan") if frame.exposure_s is None else frame.exposure_s
     header = _HEADER.pack(
-        _MAGIC, _VERSION, PATTERNS.index(frame.pattern), 0, frame.width, frame.height,
-        *frame.black_level, frame.white_level, exposure, len(blob),
+        _MAGIC,
+        _VERSION,
+        PATTERNS.index(frame.pattern),
+        0,
+        frame.width,
+        frame.height,
+        *frame.black_level,
+        frame.white_level,
+        exposure,
+        len(blob),
     )
     body = header + blob + np.ascontiguousarray(px, dtype="<u2").tobytes()
     return body + struct.pack("<I", zlib.crc32(body) & 0xFFFFFFFF)

@@ -64,8 +64,26 @@ import numpy as np
 from firmware_model.frame import Frame, frame_from_bytes, normalise_pattern
 
 RAW_EXTENSIONS = {
-    ".dng", ".cr2", ".cr3", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".orf",
-    ".rw2", ".pef", ".srw", ".3fr", ".iiq", ".mos", ".erf", ".kdc", ".raw", ".rwl",
+    ".dng",
+    ".cr2",
+    ".cr3",
+    ".nef",
+    ".nrw",
+    ".arw",
+    ".srf",
+    ".sr2",
+    ".raf",
+    ".orf",
+    ".rw2",
+    ".pef",
+    ".srw",
+    ".3fr",
+    ".iiq",
+    ".mos",
+    ".erf",
+    ".kdc",
+    ".raw",
+    ".rwl",
 }
 FITS_CAMERA_KEYS = ("f", "cx", "cy", "k1", "k2", "k3", "p1", "p2")
 #: File suffixes taken for frames when a directory is listed (sidecars and truth files are not).
@@ -164,8 +182,14 @@ def read_dng(path) -> Frame:
         timestamp = stamp.replace(tzinfo=stamp.tzinfo or timezone.utc).isoformat()
     exposure = extras.get("exposure_s", shutter if shutter > 0 else None)
     return Frame(
-        pixels=pixels, pattern=pattern, black_level=black, white_level=white, exposure_s=exposure,
-        timestamp=timestamp, site=extras.get("site"), camera=extras.get("camera"),
+        pixels=pixels,
+        pattern=pattern,
+        black_level=black,
+        white_level=white,
+        exposure_s=exposure,
+        timestamp=timestamp,
+        site=extras.get("site"),
+        camera=extras.get("camera"),
         metadata=extras.get("metadata") or {},
     )
 
@@ -217,11 +241,15 @@ def _check_size(path: Path, shape, itemsize: int, compressed: bool = False) -> N
     uncompressed) more bytes than the file holds, before anything is allocated."""
     n = int(np.prod(np.asarray(shape, dtype=np.float64))) if len(shape) else 0
     if n > MAX_FRAME_PIXELS:
-        raise FrameReadError(f"{path}: header claims a {' x '.join(map(str, shape))} image "
-                             f"(over {MAX_FRAME_PIXELS} pixels): damaged file?")
+        raise FrameReadError(
+            f"{path}: header claims a {' x '.join(map(str, shape))} image "
+            f"(over {MAX_FRAME_PIXELS} pixels): damaged file?"
+        )
     if not compressed and n * itemsize > path.stat().st_size:
-        raise FrameReadError(f"{path}: header claims {n * itemsize} bytes of pixels, the file holds "
-                             f"{path.stat().st_size}: truncated or damaged")
+        raise FrameReadError(
+            f"{path}: header claims {n * itemsize} bytes of pixels, the file holds "
+            f"{path.stat().st_size}: truncated or damaged"
+        )
 
 
 def read_fits(path) -> Frame:
@@ -266,11 +294,20 @@ def read_fits(path) -> Frame:
         camera.update({k: float(hdr[f"CAM_{k.upper()}"]) for k in FITS_CAMERA_KEYS if f"CAM_{k.upper()}" in hdr})
     site = None
     if "SITELAT" in hdr and "SITELONG" in hdr:
-        site = {"lat_deg": float(hdr["SITELAT"]), "lon_deg": float(hdr["SITELONG"]),
-                "height_m": float(hdr.get("SITEELEV", 0.0))}
+        site = {
+            "lat_deg": float(hdr["SITELAT"]),
+            "lon_deg": float(hdr["SITELONG"]),
+            "height_m": float(hdr.get("SITEELEV", 0.0)),
+        }
     return Frame(
-        pixels=data, pattern=pattern, black_level=black, white_level=float(hdr.get("WHITELVL", default_white)),
-        exposure_s=hdr.get("EXPTIME"), timestamp=hdr.get("DATE-OBS"), site=site, camera=camera,
+        pixels=data,
+        pattern=pattern,
+        black_level=black,
+        white_level=float(hdr.get("WHITELVL", default_white)),
+        exposure_s=hdr.get("EXPTIME"),
+        timestamp=hdr.get("DATE-OBS"),
+        site=site,
+        camera=camera,
     )
 
 
@@ -294,7 +331,9 @@ def read_npy(path) -> Frame:
         pixels=data,
         pattern=meta.get("pattern", "MONO"),
         black_level=meta.get("black_level", 0.0),
-        white_level=meta.get("white_level", float(np.iinfo(data.dtype).max) if np.issubdtype(data.dtype, np.integer) else 65535.0),
+        white_level=meta.get(
+            "white_level", float(np.iinfo(data.dtype).max) if np.issubdtype(data.dtype, np.integer) else 65535.0
+        ),
         exposure_s=meta.get("exposure_s"),
         timestamp=meta.get("timestamp"),
         site=meta.get("site"),
@@ -332,8 +371,12 @@ def read_image(path) -> Frame:
         if isinstance(exc, Image.UnidentifiedImageError):
             reason = "Pillow cannot identify the image data"  # its message repeats the path
         raise FrameReadError(f"{path}: not a readable PNG/JPEG image ({reason})") from None
-    metadata = {"demosaiced": pattern != "MONO", "source_format": fmt, "source_mode": mode,
-                "source_size": [int(size[0]), int(size[1])]}
+    metadata = {
+        "demosaiced": pattern != "MONO",
+        "source_format": fmt,
+        "source_mode": mode,
+        "source_size": [int(size[0]), int(size[1])],
+    }
     if fmt == "PNG" and pattern != "MONO" and _png_bit_depth(path) == 16:
         metadata["png_bit_depth"] = 16  # Pillow keeps only the high bytes of 16-bit colour
     if pattern != "MONO":
@@ -346,8 +389,15 @@ def read_image(path) -> Frame:
         raise FrameReadError(f"{path}: image of {size[0]} x {size[1]} px is too small for a frame")
     timestamp, exposure = exif.pop("timestamp", None), exif.pop("exposure_s", None)
     metadata.update(exif)
-    return Frame(pixels=np.ascontiguousarray(pixels), pattern=pattern, black_level=0.0, white_level=white,
-                 exposure_s=exposure, timestamp=timestamp, metadata=metadata)
+    return Frame(
+        pixels=np.ascontiguousarray(pixels),
+        pattern=pattern,
+        black_level=0.0,
+        white_level=white,
+        exposure_s=exposure,
+        timestamp=timestamp,
+        metadata=metadata,
+    )
 
 
 def _image_pixels(im) -> tuple[np.ndarray, str, float]:

@@ -242,7 +242,7 @@ class Pacer:
         """Write ``data`` starting no earlier than ``ready_at`` and no faster than the line."""
         start = max(ready_at, self._tx_free)
         for i in range(0, len(data), PACE_SLICE):
-            piece = data[i:i + PACE_SLICE]
+            piece = data[i : i + PACE_SLICE]
             _sleep_until(start + i * self.byte_time)
             if not link.write(piece):
                 return False
@@ -266,8 +266,9 @@ def _pieces(chunk: bytes):
         start = end
 
 
-def serve(device, link, stop: threading.Event, *, baud: int | None = None, turnaround: float = 0.0,
-          poll: float = 0.1) -> None:
+def serve(
+    device, link, stop: threading.Event, *, baud: int | None = None, turnaround: float = 0.0, poll: float = 0.1
+) -> None:
     """Serve ``device`` on ``link`` until ``stop`` is set; pace to ``baud`` if given. Replies the
     device produces later (a COMBINATION's, when its sequence ends) are written as they come,
     while the loop goes on reading and answering."""

@@ -170,13 +170,16 @@ def apply_colour_correction(rg, bg, beta):
     return b[0] * rg + b[1] * bg + b[4], b[2] * rg + b[3] * bg + b[5]
 
 
-def run_pipeline(frame: Frame, camera: CameraModel, catalog: OnboardCatalog,
-                 params: PipelineParams = PipelineParams()) -> PipelineOutput:
+def run_pipeline(
+    frame: Frame, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams = PipelineParams()
+) -> PipelineOutput:
     """Frame -> stars -> identification -> attitude (module docstring), then planet labelling."""
     t0 = time.perf_counter()
     if (frame.width, frame.height) != (camera.width, camera.height):
-        return PipelineOutput(Status.BAD_FRAME, f"frame is {frame.width} x {frame.height} but the camera is "
-                                                f"{camera.width} x {camera.height}")
+        return PipelineOutput(
+            Status.BAD_FRAME,
+            f"frame is {frame.width} x {frame.height} but the camera is {camera.width} x {camera.height}",
+        )
     try:
         stars = extract_stars(frame, camera, params.extract)
     except ValueError as exc:
@@ -194,10 +197,13 @@ def _label_planets(out: PipelineOutput, frame: Frame, catalog: OnboardCatalog, p
     from firmware_model.planets import label_planets
 
     site = frame.site or {}
-    where = (site["lat_deg"], site["lon_deg"], site.get("height_m", 0.0)) if {"lat_deg", "lon_deg"} <= set(site) else None
+    where = (
+        (site["lat_deg"], site["lon_deg"], site.get("height_m", 0.0)) if {"lat_deg", "lon_deg"} <= set(site) else None
+    )
     try:
-        labels = label_planets(out.stars.x, out.stars.y, out.solution.q_icrs_to_sensor, out.camera, frame.timestamp,
-                               site=where)
+        labels = label_planets(
+            out.stars.x, out.stars.y, out.solution.q_icrs_to_sensor, out.camera, frame.timestamp, site=where
+        )
     except ValueError as exc:  # an unreadable timestamp: no labels, and say so
         out.reason = f"{out.reason}; planets not predicted: {exc}" if out.reason else f"planets not predicted: {exc}"
         return out
@@ -215,13 +221,17 @@ def _label_planets(out: PipelineOutput, frame: Frame, catalog: OnboardCatalog, p
     return out
 
 
-def identify_stars(stars: StarList, camera: CameraModel, catalog: OnboardCatalog,
-                   params: PipelineParams = PipelineParams()) -> PipelineOutput:
+def identify_stars(
+    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams = PipelineParams()
+) -> PipelineOutput:
     """Identification and attitude from extracted stars (``stars.vectors`` from ``camera``),
     with the optics search and fit of :class:`OpticsSearch`."""
     t0 = time.perf_counter()
-    timings = {"detect": stars.timings.get("detect_s", 0.0), "fit": stars.timings.get("fit_s", 0.0),
-               "vectors": stars.timings.get("vectors_s", 0.0)}
+    timings = {
+        "detect": stars.timings.get("detect_s", 0.0),
+        "fit": stars.timings.get("fit_s", 0.0),
+        "vectors": stars.timings.get("vectors_s", 0.0),
+    }
     out = _identify(stars, camera, catalog, params, timings)
     if params.optics is not None and out.status is not Status.TOO_FEW_STARS:
         if out.status is not Status.OK:
@@ -239,23 +249,26 @@ def identify_stars(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
     return out
 
 
-def _identify(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams,
-              timings: dict) -> PipelineOutput:
+def _identify(
+    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams, timings: dict
+) -> PipelineOutput:
     """One identification with one camera model: colour or geometric with their fallbacks."""
     used = _usable(stars)
     if len(used) < 2:
         why = stars.reason or f"{len(stars)} detection(s)"
         return PipelineOutput(Status.TOO_FEW_STARS, f"too few stars: {why}", stars, used, camera=camera)
-    geometric = params.solve.mode == "geometric" or (params.solve.mode == "auto" and (
-        not catalog.has_colour or not np.isfinite(stars.rg[used]).any()))
+    geometric = params.solve.mode == "geometric" or (
+        params.solve.mode == "auto" and (not catalog.has_colour or not np.isfinite(stars.rg[used]).any())
+    )
     if geometric:
         sol, rows = _solve_geometric(used, stars, camera, catalog, params, timings)
     else:
         sol, rows = _solve_rows(used, stars, camera, catalog, params, params.solve.mode, True, timings)
         if sol.status is not Outcome.HIGH_CONFIDENCE and params.colour_fallback and params.solve.mode == "auto":
             # colours biased beyond the catalog's noise model (the atmosphere, an sRGB image): geometry alone
-            geo, geo_rows = _solve_geometric(used, stars, camera, catalog, replace(params, solve=replace(
-                params.solve, mode="geometric")), timings)
+            geo, geo_rows = _solve_geometric(
+                used, stars, camera, catalog, replace(params, solve=replace(params.solve, mode="geometric")), timings
+            )
             if sol.status is Outcome.NO_MATCH or geo.status is Outcome.HIGH_CONFIDENCE:
                 geometric, sol, rows = True, geo, geo_rows
     if geometric and sol.status is Outcome.NO_MATCH and params.geometric_fallback and catalog.has_colour:
@@ -264,8 +277,9 @@ def _identify(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, par
             sol2.method = "geometric-consensus"
             sol, rows = sol2, rows2
     if sol.status is Outcome.NO_MATCH:
-        return PipelineOutput(Status.NO_MATCH, sol.reason, stars, rows, sol, colour_beta=params.colour_beta,
-                              camera=camera)
+        return PipelineOutput(
+            Status.NO_MATCH, sol.reason, stars, rows, sol, colour_beta=params.colour_beta, camera=camera
+        )
     status = Status.OK if sol.status is Outcome.HIGH_CONFIDENCE else Status.LOW_CONFIDENCE
     return PipelineOutput(status, sol.reason, stars, rows, sol, colour_beta=params.colour_beta, camera=camera)
 
@@ -276,7 +290,7 @@ def _usable(stars: StarList) -> np.ndarray:
     if not len(stars):
         return np.empty(0, np.int64)
     var = 0.5 * (stars.cov_xy[:, 0, 0] + stars.cov_xy[:, 1, 1])
-    known = ~(var > MAX_CENTROID_SIGMA_PX ** 2)  # NaN (no covariance) stays: the pipeline gives it 1 px
+    known = ~(var > MAX_CENTROID_SIGMA_PX**2)  # NaN (no covariance) stays: the pipeline gives it 1 px
     return np.flatnonzero(np.isfinite(stars.vectors).all(axis=1) & known)
 
 
@@ -294,8 +308,9 @@ def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSear
     rows, cat = out.used[sol.matched_det], sol.matched_cat
     res = None
     for _ in range(2):
-        res = fit_frame(StarObservations(out.stars.x[rows], out.stars.y[rows], catalog.vec[cat]), out.camera,
-                        search.k1_min_stars)
+        res = fit_frame(
+            StarObservations(out.stars.x[rows], out.stars.y[rows], catalog.vec[cat]), out.camera, search.k1_min_stars
+        )
         if res is None or not res.success or not np.isfinite(res.residual_rms_px):
             return None
         err = np.hypot(*res.residuals[0].T)
@@ -322,8 +337,14 @@ def _corner_shift_px(a: CameraModel, b: CameraModel) -> float:
 REFIT_RMS_RATIO = 1.5
 
 
-def _refine_optics(out: PipelineOutput, stars: StarList, camera: CameraModel, catalog: OnboardCatalog,
-                   params: PipelineParams, timings: dict) -> PipelineOutput | None:
+def _refine_optics(
+    out: PipelineOutput,
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    timings: dict,
+) -> PipelineOutput | None:
     """Attach the optics fit to a high-confidence ``out``; identify again with the fitted camera when
     it moves a corner by more than ``refit_px`` or fits the stars :data:`REFIT_RMS_RATIO` times
     better than the answer's camera did, and keep that answer if it is high-confidence and
@@ -331,8 +352,10 @@ def _refine_optics(out: PipelineOutput, stars: StarList, camera: CameraModel, ca
     fit = _fit_optics(out, catalog, params.optics)
     out.optics = fit
     rms_px = out.solution.consensus_rms * camera.f
-    if fit is None or (_corner_shift_px(camera, fit.camera) <= params.optics.refit_px
-                       and rms_px <= REFIT_RMS_RATIO * fit.residual_rms_px):
+    if fit is None or (
+        _corner_shift_px(camera, fit.camera) <= params.optics.refit_px
+        and rms_px <= REFIT_RMS_RATIO * fit.residual_rms_px
+    ):
         return None
     again = _identify(_with_camera(stars, fit.camera), fit.camera, catalog, params, timings)
     if again.status is Status.OK and _same_attitude(again.solution, out.solution, 1e-3):
@@ -341,8 +364,9 @@ def _refine_optics(out: PipelineOutput, stars: StarList, camera: CameraModel, ca
     return None
 
 
-def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams,
-                   timings: dict, t0: float) -> PipelineOutput | None:
+def _search_optics(
+    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams, timings: dict, t0: float
+) -> PipelineOutput | None:
     """The scale-free search of :class:`OpticsSearch`: the first pattern match that leads to a
     high-confidence answer with the fitted camera, else the low-confidence answer of a pattern
     match that explains the most stars (None when no pattern match verifies)."""
@@ -372,7 +396,9 @@ def _search_optics(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
         out = _identify(seen, fitted, catalog, tight, timings)
         if out.status is not Status.OK:
             pattern = _verify_pattern(seen, fitted, rows, cat, catalog, tight, timings)
-            out = pattern if pattern is not None and (pattern.status is Status.OK or _rank(pattern) > _rank(out)) else out
+            out = (
+                pattern if pattern is not None and (pattern.status is Status.OK or _rank(pattern) > _rank(out)) else out
+            )
         if out.solution is not None:
             out.optics = _fit_optics(out, catalog, search)
             if out.optics is not None:
@@ -390,25 +416,26 @@ def _rank(out: PipelineOutput | None) -> tuple[int, float]:
     return (0, 0.0) if out is None or out.solution is None else (len(out.solution.matched_det), out.solution.confidence)
 
 
-def _pattern_seeds(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, search: OpticsSearch,
-                   timings: dict):
+def _pattern_seeds(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, search: OpticsSearch, timings: dict):
     """Pattern hypotheses (``scale_free.hypotheses``) from the brightest clean detections, then, when
     poor fits were among them (hot-pixel clusters and other unblurred clutter can outshine the
     stars), from the brightest detections that also fit the PSF well."""
     clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)  # clutter is blended or badly fitted
     well = clean[(stars.flags[clean] & int(StarFlag.POOR_FIT)) == 0]
     for rows in (clean, well):
-        if rows is well and np.array_equal(well[:search.n_bright], clean[:search.n_bright]):
+        if rows is well and np.array_equal(well[: search.n_bright], clean[: search.n_bright]):
             return
         t1 = time.perf_counter()
-        hyps = scale_free.hypotheses(stars.x[rows], stars.y[rows], camera, catalog, search.n_bright,
-                                     search.pattern_tolerance, search.focal_range)
+        hyps = scale_free.hypotheses(
+            stars.x[rows], stars.y[rows], camera, catalog, search.n_bright, search.pattern_tolerance, search.focal_range
+        )
         timings["identify"] = timings.get("identify", 0.0) + time.perf_counter() - t1
         yield from hyps
 
 
-def _verify_pattern(stars: StarList, camera: CameraModel, rows, cat, catalog: OnboardCatalog, params: PipelineParams,
-                    timings: dict) -> PipelineOutput | None:
+def _verify_pattern(
+    stars: StarList, camera: CameraModel, rows, cat, catalog: OnboardCatalog, params: PipelineParams, timings: dict
+) -> PipelineOutput | None:
     """The refined pattern match itself (detection ``rows`` on catalog stars ``cat``), verified over
     every usable detection with the fitted camera and the tight noise model (method "pattern"),
     or None when verification refuses it. High confidence only as the solver grants a large set
@@ -424,10 +451,18 @@ def _verify_pattern(stars: StarList, camera: CameraModel, rows, cat, catalog: On
         return None
     cp = sp.consensus
     confident = match.n >= cp.confident_stars and match.coverage >= cp.confident_coverage
-    outcome, status = (Outcome.HIGH_CONFIDENCE, Status.OK) if confident else (Outcome.LOW_CONFIDENCE, Status.LOW_CONFIDENCE)
-    reason = "" if confident else (f"pattern match of {match.n} stars (coverage {match.coverage:.2f}) "
-                                   f"below the {cp.confident_stars} stars and {cp.confident_coverage:g} coverage "
-                                   "a search-chosen pattern needs")
+    outcome, status = (
+        (Outcome.HIGH_CONFIDENCE, Status.OK) if confident else (Outcome.LOW_CONFIDENCE, Status.LOW_CONFIDENCE)
+    )
+    reason = (
+        ""
+        if confident
+        else (
+            f"pattern match of {match.n} stars (coverage {match.coverage:.2f}) "
+            f"below the {cp.confident_stars} stars and {cp.confident_coverage:g} coverage "
+            "a search-chosen pattern needs"
+        )
+    )
     sol = solution_from_match(match, outcome, reason, np.arange(len(used)), catalog, "pattern", len(used))
     return PipelineOutput(status, reason, stars, used, sol, colour_beta=params.colour_beta, camera=camera)
 
@@ -439,17 +474,32 @@ _PATTERN_EXCLUDE = int(StarFlag.BLEND | StarFlag.FIT_FAILED | StarFlag.EDGE)
 _SAME_SEED_RAD = np.radians(0.2)
 
 
-def _solve_rows(rows, stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams,
-                mode: str, use_colour: bool, timings: dict):
+def _solve_rows(
+    rows,
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    mode: str,
+    use_colour: bool,
+    timings: dict,
+):
     """Solve on ``rows`` of ``stars`` (adds to ``timings``); returns (solution, rows it refers to).
     Inputs as :func:`_solver_inputs`; a low-confidence answer is retried with the photometric
     gate (:class:`PipelineParams`)."""
     rg, bg, sigma_px, solve_params = _solver_inputs(rows, stars, camera, catalog, params, mode, use_colour)
 
     def run(sub):
-        out = solve(stars.vectors[rows[sub]], rg[sub], bg[sub], catalog,
-                    replace(solve_params, sigma_vec=solve_params.sigma_vec[sub]))
-        timings["identify"] = timings.get("identify", 0.0) + out.timings.get("match", 0.0) + out.timings.get("validate", 0.0)
+        out = solve(
+            stars.vectors[rows[sub]],
+            rg[sub],
+            bg[sub],
+            catalog,
+            replace(solve_params, sigma_vec=solve_params.sigma_vec[sub]),
+        )
+        timings["identify"] = (
+            timings.get("identify", 0.0) + out.timings.get("match", 0.0) + out.timings.get("validate", 0.0)
+        )
         timings["attitude"] = timings.get("attitude", 0.0) + out.timings.get("verify", 0.0)
         return out
 
@@ -458,13 +508,22 @@ def _solve_rows(rows, stars: StarList, camera: CameraModel, catalog: OnboardCata
         gated = _photometric_gate(stars.flux[rows], sol, catalog, params.photometric_gate)
         if gated is not None and 2 <= len(gated) < len(rows):
             sol2 = run(gated)
-            if sol2.status is Outcome.HIGH_CONFIDENCE and _same_attitude(sol, sol2, 5 * float(np.max(sigma_px)) / camera.f):
+            if sol2.status is Outcome.HIGH_CONFIDENCE and _same_attitude(
+                sol, sol2, 5 * float(np.max(sigma_px)) / camera.f
+            ):
                 return sol2, rows[gated]
     return sol, rows
 
 
-def _solver_inputs(rows, stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams,
-                   mode: str, use_colour: bool):
+def _solver_inputs(
+    rows,
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    mode: str,
+    use_colour: bool,
+):
     """Colours, per-star noise (px) and solver parameters for ``rows`` of ``stars``.
 
     Saturated or blended stars keep their geometry but lose their colour; the per-star
@@ -483,19 +542,26 @@ def _solver_inputs(rows, stars: StarList, camera: CameraModel, catalog: OnboardC
         sigma_px = np.full(len(rows), float(params.fixed_sigma_px))
     else:
         var = 0.5 * (stars.cov_xy[rows, 0, 0] + stars.cov_xy[rows, 1, 1])
-        var = np.where(np.isfinite(var), var, UNKNOWN_CENTROID_SIGMA_PX ** 2)
-        floor = np.where((flags & int(UNTRUSTED)) != 0, max(UNTRUSTED_CENTROID_FLOOR_PX, params.centroid_floor_px),
-                         params.centroid_floor_px)
-        sigma_px = np.sqrt(var + floor ** 2)
+        var = np.where(np.isfinite(var), var, UNKNOWN_CENTROID_SIGMA_PX**2)
+        floor = np.where(
+            (flags & int(UNTRUSTED)) != 0,
+            max(UNTRUSTED_CENTROID_FLOOR_PX, params.centroid_floor_px),
+            params.centroid_floor_px,
+        )
+        sigma_px = np.sqrt(var + floor**2)
     measured = np.sqrt(np.where(colour_ok[:, None], stars.cov_colour[rows][:, [0, 1], [0, 1]], np.nan))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: no colour measured
         frame_rg, frame_bg = np.nanmedian(measured, axis=0)
     solve_params = replace(
-        params.solve, mode=mode, sigma_vec=sigma_px / camera.f, fov=params.solve.fov or FieldOfView.from_camera(camera),
+        params.solve,
+        mode=mode,
+        sigma_vec=sigma_px / camera.f,
+        fov=params.solve.fov or FieldOfView.from_camera(camera),
         sigma_rg=float(np.nanmax([params.solve.sigma_rg, catalog.meta.get("sigma_rg", np.nan), frame_rg])),
         sigma_bg=float(np.nanmax([params.solve.sigma_bg, catalog.meta.get("sigma_bg", np.nan), frame_bg])),
-        verify=replace(params.solve.verify, frame_detections=len(stars)))  # the solver may see only the brightest
+        verify=replace(params.solve.verify, frame_detections=len(stars)),
+    )  # the solver may see only the brightest
 
     return rg, bg, sigma_px, solve_params
 
@@ -514,32 +580,64 @@ def _solve_geometric(used, stars, camera, catalog, params: PipelineParams, timin
     return best
 
 
-def _match_all(sol, rows, used, stars: StarList, camera: CameraModel, catalog: OnboardCatalog,
-               params: PipelineParams, timings: dict):
+def _match_all(
+    sol,
+    rows,
+    used,
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    timings: dict,
+):
     """A high-confidence answer found on the brightest ``rows`` verified again over every usable
     detection (``used``), so every star in view is matched; the answer stands if that verification
     fails, finds fewer stars or moves the attitude."""
     if len(rows) >= len(used):
         return sol, rows
-    match, sigma_px, _ = _verify_over(used, rows[sol.matched_det], sol.matched_cat, stars, camera, catalog, params,
-                                      timings)
-    if (match is None or match.n < len(sol.matched_det)
-            or rotation_angle(match.attitude.a, quat_to_matrix(sol.q_icrs_to_sensor)) > 5 * float(np.max(sigma_px)) / camera.f):
+    match, sigma_px, _ = _verify_over(
+        used, rows[sol.matched_det], sol.matched_cat, stars, camera, catalog, params, timings
+    )
+    if (
+        match is None
+        or match.n < len(sol.matched_det)
+        or rotation_angle(match.attitude.a, quat_to_matrix(sol.q_icrs_to_sensor))
+        > 5 * float(np.max(sigma_px)) / camera.f
+    ):
         return sol, rows
     full = solution_from_match(match, sol.status, sol.reason, np.arange(len(used)), catalog, sol.method, len(used))
     full.attempts, full.timings, full.notes = sol.attempts, sol.timings, sol.notes
     return full, used
 
 
-def _verify_over(used, rows, cat, stars: StarList, camera: CameraModel, catalog: OnboardCatalog,
-                 params: PipelineParams, timings: dict):
+def _verify_over(
+    used,
+    rows,
+    cat,
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    timings: dict,
+):
     """The solver's verification (geometry only) of detection ``rows`` matched to catalog stars
     ``cat``, over every detection in ``used`` (sorted rows): (VerifiedMatch or None, per-star noise
     px, solver parameters); its time goes to ``timings["attitude"]``."""
     t0 = time.perf_counter()
     rg, bg, sigma_px, sp = _solver_inputs(used, stars, camera, catalog, params, "geometric", False)
-    match, _ = verify(np.searchsorted(used, rows), cat, stars.vectors[used], rg, bg, sigma_px / camera.f, catalog,
-                      sp.fov, 0.0, 0.0, sp.verify)
+    match, _ = verify(
+        np.searchsorted(used, rows),
+        cat,
+        stars.vectors[used],
+        rg,
+        bg,
+        sigma_px / camera.f,
+        catalog,
+        sp.fov,
+        0.0,
+        0.0,
+        sp.verify,
+    )
     timings["attitude"] = timings.get("attitude", 0.0) + time.perf_counter() - t0
     return match, sigma_px, sp
 
@@ -584,16 +682,28 @@ def _optics_fields(out: PipelineOutput) -> dict:
     """The extension's optics block: PSF sigma and the fitted focal length and distortion."""
     stars, fit = out.stars, out.optics
     flags = result.PSF_MEASURED if stars is not None and stars.psf_source == "measured" else 0
-    fields = {"ext.psf_sigma": stars.psf_sigma_px if stars is not None else np.nan,
-              "ext.focal_px": out.camera.f if out.camera is not None else np.nan, "ext.focal_sigma": np.nan,
-              "ext.k1": out.camera.k1 if out.camera is not None else np.nan, "ext.k1_sigma": np.nan,
-              "ext.optics_rms": np.nan, "ext.focal_scale": np.nan}
+    fields = {
+        "ext.psf_sigma": stars.psf_sigma_px if stars is not None else np.nan,
+        "ext.focal_px": out.camera.f if out.camera is not None else np.nan,
+        "ext.focal_sigma": np.nan,
+        "ext.k1": out.camera.k1 if out.camera is not None else np.nan,
+        "ext.k1_sigma": np.nan,
+        "ext.optics_rms": np.nan,
+        "ext.focal_scale": np.nan,
+    }
     if fit is not None:
         flags |= result.OPTICS_FITTED | (result.OPTICS_SEARCHED if np.isfinite(fit.focal_scale) else 0)
-        fields.update({"ext.focal_px": fit.camera.f, "ext.focal_sigma": fit.sigmas.get("f", np.nan),
-                       "ext.k1": fit.camera.k1, "ext.k1_sigma": fit.sigmas.get("k1", np.nan),
-                       "ext.optics_rms": fit.residual_rms_px, "ext.optics_stars": fit.n_stars,
-                       "ext.focal_scale": fit.focal_scale})
+        fields.update(
+            {
+                "ext.focal_px": fit.camera.f,
+                "ext.focal_sigma": fit.sigmas.get("f", np.nan),
+                "ext.k1": fit.camera.k1,
+                "ext.k1_sigma": fit.sigmas.get("k1", np.nan),
+                "ext.optics_rms": fit.residual_rms_px,
+                "ext.optics_stars": fit.n_stars,
+                "ext.focal_scale": fit.focal_scale,
+            }
+        )
     fields["ext.optics_flags"] = flags
     return fields
 
@@ -611,9 +721,16 @@ def result_fields(out: PipelineOutput) -> dict:
         vec = np.zeros((10, 3))
         if stars.vectors is not None:
             vec[top] = stars.vectors[top]
-        fields.update({"centroid.0.initialized": 1, "centroid.0.good_stars": int(stars.trusted.sum()),
-                       "centroid.0.centroids": cen, "centroid.0.unit_vectors": vec,
-                       "image.0.initialized": 1, "image.0.peak_count": len(stars)})
+        fields.update(
+            {
+                "centroid.0.initialized": 1,
+                "centroid.0.good_stars": int(stars.trusted.sum()),
+                "centroid.0.centroids": cen,
+                "centroid.0.unit_vectors": vec,
+                "image.0.initialized": 1,
+                "image.0.peak_count": len(stars),
+            }
+        )
     n_matched = 0
     ext_stars = np.zeros(result.EXT_MAX_STARS, dtype=result.EXT_STAR)
     ext_stars["catalog_id"] = -1
@@ -636,24 +753,31 @@ def result_fields(out: PipelineOutput) -> dict:
                 ext_stars["residual"][row] = sol.residuals[k]
                 ext_stars["flags"][row] |= 1
         matched10 = np.full(10, -1, dtype=np.int32)
-        matched10[:min(10, n_matched)] = sol.matched_star_id[:10]
+        matched10[: min(10, n_matched)] = sol.matched_star_id[:10]
         bits |= ReturnBits.IMAGE1_SUCCESS
         if out.status is Status.OK:
             bits |= ReturnBits.CONSISTENT_SOLUTION
-        fields.update({
-            "quaternion": q, "matching.0.initialized": 1, "matching.0.quaternion": q,
-            "matching.0.consensus_size": int(sol.consensus_size), "matching.0.consensus_rms": float(sol.consensus_rms),
-            "matching.0.confidence": float(sol.confidence), "matching.0.matched_stars": matched10,
-            "matching.0.set_tests": int(sol.attempts),
-            "ext.quaternion": q, "ext.sigma": _sigma_axes(sol.covariance),
-            "ext.residual_rms": float(sol.consensus_rms),
-        })
+        fields.update(
+            {
+                "quaternion": q,
+                "matching.0.initialized": 1,
+                "matching.0.quaternion": q,
+                "matching.0.consensus_size": int(sol.consensus_size),
+                "matching.0.consensus_rms": float(sol.consensus_rms),
+                "matching.0.confidence": float(sol.confidence),
+                "matching.0.matched_stars": matched10,
+                "matching.0.set_tests": int(sol.attempts),
+                "ext.quaternion": q,
+                "ext.sigma": _sigma_axes(sol.covariance),
+                "ext.residual_rms": float(sol.consensus_rms),
+            }
+        )
         if n_matched and out.stars is not None and np.isfinite(out.stars.rg[rows]).any():
             obs_rg, obs_bg = out.stars.rg[rows], out.stars.bg[rows]
             if out.colour_beta is not None:
                 obs_rg, obs_bg = apply_colour_correction(obs_rg, obs_bg, out.colour_beta)
             d = np.concatenate([obs_rg - sol.matched_rg, obs_bg - sol.matched_bg])
-            fields["ext.colour_rms"] = float(np.sqrt(np.nanmean(d ** 2)))
+            fields["ext.colour_rms"] = float(np.sqrt(np.nanmean(d**2)))
     for lab in out.planets:
         if lab.index < result.EXT_MAX_STARS:
             ext_stars["flags"][lab.index] |= 4 | (1 + result.BODIES.index(lab.body)) << 8

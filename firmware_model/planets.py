@@ -57,8 +57,14 @@ EXTENDED = frozenset({"moon"})
 
 #: Equatorial radii (km, IAU WGCCRE); Saturn's globe, its rings reach 2.3 times further.
 RADIUS_KM = {
-    "mercury": 2440.5, "venus": 6051.8, "mars": 3396.2, "jupiter": 71492.0,
-    "saturn": 60268.0, "uranus": 25559.0, "neptune": 24764.0, "moon": 1737.4,
+    "mercury": 2440.5,
+    "venus": 6051.8,
+    "mars": 3396.2,
+    "jupiter": 71492.0,
+    "saturn": 60268.0,
+    "uranus": 25559.0,
+    "neptune": 24764.0,
+    "moon": 1737.4,
     "sun": 695700.0,
 }
 
@@ -164,9 +170,7 @@ def _positions_cached(scale: str, jd1: float, jd2: float, site) -> dict[str, Bod
     out = {}
     for name, rel in astrometric_positions(t, BODIES, site).items():
         dist = float(np.linalg.norm(rel))
-        out[name] = BodyPosition(
-            name, rel / dist, dist, float(np.arcsin(RADIUS_KM[name] / dist)), name in EXTENDED
-        )
+        out[name] = BodyPosition(name, rel / dist, dist, float(np.arcsin(RADIUS_KM[name] / dist)), name in EXTENDED)
     return out
 
 
@@ -207,8 +211,9 @@ def default_tol_px(camera) -> float:
     return max(MIN_TOL_PX, DEFAULT_TOL * camera.f)
 
 
-def planets_in_view(q_icrs_to_sensor, camera, epoch, site=None,
-                    moon_margin: float = DEFAULT_MOON_MARGIN) -> list[BodyInView]:
+def planets_in_view(
+    q_icrs_to_sensor, camera, epoch, site=None, moon_margin: float = DEFAULT_MOON_MARGIN
+) -> list[BodyInView]:
     """Bodies whose predicted centre falls inside the array, plus the Moon when its disk
     widened by ``moon_margin`` (rad) reaches the array; ordered as ``BODIES``."""
     bodies = list(body_positions(epoch, site).values())
@@ -226,8 +231,16 @@ def planets_in_view(q_icrs_to_sensor, camera, epoch, site=None,
     return out
 
 
-def label_planets(x, y, q_icrs_to_sensor, camera, epoch, tol_px: float | None = None, site=None,
-                  moon_margin: float = DEFAULT_MOON_MARGIN) -> list[PlanetLabel]:
+def label_planets(
+    x,
+    y,
+    q_icrs_to_sensor,
+    camera,
+    epoch,
+    tol_px: float | None = None,
+    site=None,
+    moon_margin: float = DEFAULT_MOON_MARGIN,
+) -> list[PlanetLabel]:
     """Detections (pixel coordinates ``x``, ``y``) that sit on a predicted body, for a
     frame at ``epoch`` with attitude ``q_icrs_to_sensor``: within ``tol_px`` (default
     ``default_tol_px(camera)``) plus the body's disk radius of its centre, and for the

@@ -84,7 +84,7 @@ def _groups(near: list, brightness_rank: np.ndarray, centres: np.ndarray, neighb
 def _region_groups(tree: cKDTree, mag: np.ndarray, field_radius: float) -> np.ndarray:
     """Every 4-combination of the :data:`REGION_STARS` brightest stars of each field-sized region."""
     spacing = REGION_SPACING * field_radius
-    n = int(np.ceil(4.0 * np.pi / spacing ** 2))
+    n = int(np.ceil(4.0 * np.pi / spacing**2))
     i = np.arange(n) + 0.5
     z = 1.0 - 2.0 * i / n
     phi = np.pi * (1.0 + np.sqrt(5.0)) * i
@@ -119,8 +119,16 @@ def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
     return cache[mrad]
 
 
-def hypotheses(x: np.ndarray, y: np.ndarray, camera: CameraModel, catalog: OnboardCatalog, n_bright: int,
-               tolerance: float, focal_range: float, max_hypotheses: int = 64) -> list[Hypothesis]:
+def hypotheses(
+    x: np.ndarray,
+    y: np.ndarray,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    n_bright: int,
+    tolerance: float,
+    focal_range: float,
+    max_hypotheses: int = 64,
+) -> list[Hypothesis]:
     """Pattern matches of the ``n_bright`` brightest detections (rows of ``x, y``, brightest first)
     with key distance below ``tolerance`` and focal length within ``focal_range`` (relative) of
     the nominal camera's, best key distance first."""
@@ -172,8 +180,16 @@ def _assign(b: np.ndarray, r: np.ndarray):
     return rot.as_matrix()
 
 
-def refine(x: np.ndarray, y: np.ndarray, camera: CameraModel, hyp: Hypothesis, catalog: OnboardCatalog,
-           radii_px=(30.0, 10.0, 4.0, 2.5), min_stars: int = 4, k1_min_stars: int = 6):
+def refine(
+    x: np.ndarray,
+    y: np.ndarray,
+    camera: CameraModel,
+    hyp: Hypothesis,
+    catalog: OnboardCatalog,
+    radii_px=(30.0, 10.0, 4.0, 2.5),
+    min_stars: int = 4,
+    k1_min_stars: int = 6,
+):
     """Predict-match-fit from a pattern hypothesis: the camera with the hypothesis' focal length,
     then for each radius in ``radii_px`` match every detection to the nearest predicted catalog
     star within it (one detection per star) and fit f, k1 (with enough stars) and the attitude.

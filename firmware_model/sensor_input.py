@@ -50,13 +50,22 @@ def frame_slot_handler(camera: CameraModel) -> SlotHandler:
         except (ValueError, KeyError) as exc:
             raise SlotRejected(REJECT_FRAME_FORMAT, f"not a frame image: {exc}") from None
         if (frame.width, frame.height) != (camera.width, camera.height):
-            raise SlotRejected(REJECT_FRAME_SIZE, f"frame is {frame.width} x {frame.height}, the device's camera "
-                                                  f"is {camera.width} x {camera.height}")
+            raise SlotRejected(
+                REJECT_FRAME_SIZE,
+                f"frame is {frame.width} x {frame.height}, the device's camera is {camera.width} x {camera.height}",
+            )
         return frame
 
     def info(data: bytes, frame: Frame) -> bytes:
-        return json.dumps({"width": frame.width, "height": frame.height, "pattern": frame.pattern,
-                           "exposure_s": frame.exposure_s, "timestamp": frame.timestamp}).encode()
+        return json.dumps(
+            {
+                "width": frame.width,
+                "height": frame.height,
+                "pattern": frame.pattern,
+                "exposure_s": frame.exposure_s,
+                "timestamp": frame.timestamp,
+            }
+        ).encode()
 
     def validate(data: bytes) -> None:
         load(data)
@@ -87,8 +96,16 @@ class DeviceParams:
     colour_beta: tuple | None = None
     focal_search: float | None = None
 
-    KEYS = ("mode", "sigma_rg", "sigma_bg", "centroid_sigma_px", "time_budget_s", "psf_sigma_px", "colour_correction",
-            "focal_search")
+    KEYS = (
+        "mode",
+        "sigma_rg",
+        "sigma_bg",
+        "centroid_sigma_px",
+        "time_budget_s",
+        "psf_sigma_px",
+        "colour_correction",
+        "focal_search",
+    )
 
     @classmethod
     def load(cls, path) -> "DeviceParams":
@@ -117,10 +134,16 @@ class DeviceParams:
             v = obj.get(key)
             if v is None:
                 return None
-            if (not isinstance(v, (int, float)) or isinstance(v, bool) or not (lo < v if lo_open else lo <= v)
-                    or not v < hi):
-                raise SlotRejected(REJECT_PARAMS_VALUE, f"{key} must be a number in {'(' if lo_open else '['}{lo:g}, "
-                                                        f"{hi:g}), got {v!r}")
+            if (
+                not isinstance(v, (int, float))
+                or isinstance(v, bool)
+                or not (lo < v if lo_open else lo <= v)
+                or not v < hi
+            ):
+                raise SlotRejected(
+                    REJECT_PARAMS_VALUE,
+                    f"{key} must be a number in {'(' if lo_open else '['}{lo:g}, {hi:g}), got {v!r}",
+                )
             return float(v)
 
         def positive(key):
@@ -133,13 +156,23 @@ class DeviceParams:
         if "colour_correction" in obj:
             cc = obj["colour_correction"]
             b = cc.get("beta") if isinstance(cc, dict) else None
-            if (not isinstance(b, list) or len(b) != 6
-                    or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and abs(x) < 1e3 for x in b)):
-                raise SlotRejected(REJECT_PARAMS_VALUE, "colour_correction must be {\"beta\": [6 finite numbers]}")
+            if (
+                not isinstance(b, list)
+                or len(b) != 6
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and abs(x) < 1e3 for x in b)
+            ):
+                raise SlotRejected(REJECT_PARAMS_VALUE, 'colour_correction must be {"beta": [6 finite numbers]}')
             beta = tuple(float(x) for x in b)
-        return cls(mode, positive("sigma_rg"), positive("sigma_bg"), positive("centroid_sigma_px"),
-                   positive("time_budget_s"), number("psf_sigma_px", *PSF_SIGMA_RANGE_PX, lo_open=False), beta,
-                   number("focal_search", 0.0, 0.2, lo_open=False))
+        return cls(
+            mode,
+            positive("sigma_rg"),
+            positive("sigma_bg"),
+            positive("centroid_sigma_px"),
+            positive("time_budget_s"),
+            number("psf_sigma_px", *PSF_SIGMA_RANGE_PX, lo_open=False),
+            beta,
+            number("focal_search", 0.0, 0.2, lo_open=False),
+        )
 
     def apply(self, base: PipelineParams) -> PipelineParams:
         solve = base.solve
@@ -153,10 +186,12 @@ class DeviceParams:
             base = replace(base, optics=None)
         elif base.optics is not None and self.focal_search is not None:
             base = replace(base, optics=replace(base.optics, focal_range=self.focal_search))
-        return replace(base, solve=solve,
-                       colour_beta=self.colour_beta if self.colour_beta is not None else base.colour_beta,
-                       fixed_sigma_px=self.centroid_sigma_px if self.centroid_sigma_px is not None
-                       else base.fixed_sigma_px)
+        return replace(
+            base,
+            solve=solve,
+            colour_beta=self.colour_beta if self.colour_beta is not None else base.colour_beta,
+            fixed_sigma_px=self.centroid_sigma_px if self.centroid_sigma_px is not None else base.fixed_sigma_px,
+        )
 
 
 def params_slot_handler() -> SlotHandler:
@@ -200,8 +235,10 @@ class FileFrames:
         except (FrameReadError, OSError, ValueError) as exc:
             raise FrameUnavailable(f"{path.name}: {exc}") from None
         if (frame.width, frame.height) != (self.camera.width, self.camera.height):
-            raise FrameUnavailable(f"{path.name} is {frame.width} x {frame.height}; the camera is "
-                                   f"{self.camera.width} x {self.camera.height}")
+            raise FrameUnavailable(
+                f"{path.name} is {frame.width} x {frame.height}; the camera is "
+                f"{self.camera.width} x {self.camera.height}"
+            )
         return frame
 
 
@@ -226,8 +263,9 @@ class PipelineSolver:
         """Build the catalog's pattern index for the optics search in the background (0.4-1.6 s,
         once per catalog), so the first GO after a catalog commit or a restart stays in budget."""
         if self.params.optics is not None:
-            threading.Thread(target=scale_free.catalog_patterns, args=(catalog, self.camera), daemon=True,
-                             name="catalog-patterns").start()
+            threading.Thread(
+                target=scale_free.catalog_patterns, args=(catalog, self.camera), daemon=True, name="catalog-patterns"
+            ).start()
 
     def __call__(self, ctx: SolveContext) -> dict:
         params = ctx.params.apply(self.params) if isinstance(ctx.params, DeviceParams) else self.params

@@ -54,7 +54,7 @@ def unpack_image(blob: bytes) -> bytes:
     if len(blob) < _IMAGE_HEADER.size:
         raise ValueError(f"image file of {len(blob)} bytes is shorter than its header")
     magic, length, crc = _IMAGE_HEADER.unpack_from(blob)
-    data = blob[_IMAGE_HEADER.size:]
+    data = blob[_IMAGE_HEADER.size :]
     if magic != IMAGE_MAGIC:
         raise ValueError(f"image file has magic {magic!r}, expected {IMAGE_MAGIC!r}")
     if len(data) != length or crc32(data) != crc:
@@ -113,8 +113,12 @@ def _transfer_from_meta(slot: int, meta) -> "Transfer":
         raise ValueError("received ranges are not a list of [start, end] pairs")
     merged: list[list[int]] = []
     for pair in ranges:
-        if (not isinstance(pair, list) or len(pair) != 2 or any(type(v) is not int for v in pair)
-                or not 0 <= pair[0] < pair[1] <= length):
+        if (
+            not isinstance(pair, list)
+            or len(pair) != 2
+            or any(type(v) is not int for v in pair)
+            or not 0 <= pair[0] < pair[1] <= length
+        ):
             raise ValueError(f"received range {pair!r} is not [start, end] within 0..{length}")
         merged = _merge(merged, pair[0], pair[1])
     return Transfer(slot, length, crc, merged)
@@ -207,7 +211,9 @@ class SlotStore:
                 _warn(f"slot {slot}: active.img: {exc}; ignored, the slot has no image")
         elif meta_path.exists() or bin_path.exists():  # a state directory from before active.img
             if not (meta_path.exists() and bin_path.exists()):
-                _warn(f"slot {slot}: {meta_path.name if meta_path.exists() else bin_path.name} without its pair; ignored")
+                _warn(
+                    f"slot {slot}: {meta_path.name if meta_path.exists() else bin_path.name} without its pair; ignored"
+                )
                 return
             meta = json.loads(meta_path.read_text())
             data = bin_path.read_bytes()
@@ -275,7 +281,7 @@ class SlotStore:
         """Store ``data`` at ``offset`` of the pending transfer (caller checked the bounds)."""
         tr = self._transfers[slot]
         if not self._persistent(slot):
-            self._buffers[slot][offset:offset + len(data)] = data
+            self._buffers[slot][offset : offset + len(data)] = data
         else:
             with open(self._dir(slot) / "partial.bin", "r+b") as fh:
                 fh.seek(offset)

@@ -45,8 +45,11 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
 
     def _get_help_string(self, action):
         text = action.help or ""
-        if (any(action.default is v for v in (None, False, argparse.SUPPRESS)) or "default" in text
-                or not (action.option_strings or action.nargs in (argparse.OPTIONAL, argparse.ZERO_OR_MORE))):
+        if (
+            any(action.default is v for v in (None, False, argparse.SUPPRESS))
+            or "default" in text
+            or not (action.option_strings or action.nargs in (argparse.OPTIONAL, argparse.ZERO_OR_MORE))
+        ):
             return text
         return text + " (default: %(default)s)"
 
@@ -67,8 +70,12 @@ def _global_options(parser: argparse.ArgumentParser, defaults: bool = True) -> N
     add("--host-address", "our NSP address", 0x11, "0x11", type=U8)
     add("--timeout", "reply timeout in seconds", 1.0, type=ranged(float, 0.001, 3600.0, "a reply timeout in s"))
     add("--json", "machine-readable output", False, action="store_true")
-    add("--no-progress", "no progress bars (also off with --json or when stderr is not a terminal)", False,
-        action="store_true")
+    add(
+        "--no-progress",
+        "no progress bars (also off with --json or when stderr is not a terminal)",
+        False,
+        action="store_true",
+    )
     add("--log", "append every exchange to this JSONL file", None, type=output_file)
 
 
@@ -83,8 +90,11 @@ def _leaf_parsers(parser: argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="st16-ground", description=__doc__.splitlines()[0], formatter_class=HelpFormatter,
-        epilog="exit codes:\n" + "\n".join(f"  {code:>3}  {text}" for code, text in EXIT_CODES.items()))
+        prog="st16-ground",
+        description=__doc__.splitlines()[0],
+        formatter_class=HelpFormatter,
+        epilog="exit codes:\n" + "\n".join(f"  {code:>3}  {text}" for code, text in EXIT_CODES.items()),
+    )
     _global_options(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True

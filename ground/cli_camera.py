@@ -36,19 +36,34 @@ def _calibrate(args) -> int:
     params = PipelineParams() if args.psf_sigma is None else with_psf_sigma(PipelineParams(), args.psf_sigma)
     catalog = catalog_from_image(Path(args.catalog).read_bytes())
     try:
-        cal = calibrate_from_frames(frames, catalog, initial, params, fit=tuple(args.fit.split(",")),
-                                    focal_search=args.focal_search, progress=progress_on(args))
+        cal = calibrate_from_frames(
+            frames,
+            catalog,
+            initial,
+            params,
+            fit=tuple(args.fit.split(",")),
+            focal_search=args.focal_search,
+            progress=progress_on(args),
+        )
     except ValueError as exc:
         print(f"st16-ground: {exc}", file=sys.stderr)
         return 1
     cam = cal.result.camera
-    write_text(args.output, json_text.dumps({k: float(v) if isinstance(v, float) else v
-                                             for k, v in cam.to_dict().items()}, indent=2))
-    report = {"camera": args.output, "focal_scale_searched": cal.focal_scale,
-              "residual_rms_px": cal.result.residual_rms_px, "stars": cal.result.n_observations,
-              "sigmas": cal.result.sigmas, "frames_solved": int(sum(cal.solved)), "frames": len(frames),
-              "fov_major_deg": float(2 * np.degrees(cam.fov_half_angle_major)),
-              "fov_minor_deg": float(2 * np.degrees(cam.fov_half_angle_minor))}
+    write_text(
+        args.output,
+        json_text.dumps({k: float(v) if isinstance(v, float) else v for k, v in cam.to_dict().items()}, indent=2),
+    )
+    report = {
+        "camera": args.output,
+        "focal_scale_searched": cal.focal_scale,
+        "residual_rms_px": cal.result.residual_rms_px,
+        "stars": cal.result.n_observations,
+        "sigmas": cal.result.sigmas,
+        "frames_solved": int(sum(cal.solved)),
+        "frames": len(frames),
+        "fov_major_deg": float(2 * np.degrees(cam.fov_half_angle_major)),
+        "fov_minor_deg": float(2 * np.degrees(cam.fov_half_angle_minor)),
+    }
     print(json_text.dumps(report, indent=None if args.json else 2))
     return 0
 
@@ -63,7 +78,9 @@ def register(sub) -> None:
     p.add_argument("--camera", help="initial camera model JSON")
     p.add_argument("--focal-mm", type=float, help="nominal focal length (instead of --camera)")
     p.add_argument("--pixel-um", type=float, help="pixel pitch (instead of --camera)")
-    p.add_argument("--psf-sigma", type=float, help="PSF Gaussian sigma, px (an override: measured per frame by default)")
+    p.add_argument(
+        "--psf-sigma", type=float, help="PSF Gaussian sigma, px (an override: measured per frame by default)"
+    )
     p.add_argument("--fit", default="f,k1", help="parameters to fit: any of f,cx,cy,k1,k2,k3,p1,p2")
     p.add_argument("--focal-search", type=float, default=0.05, help="relative focal-length search half-range")
     p.add_argument("-o", "--output", type=output_file, default="camera.json", help="camera model JSON to write")

@@ -15,10 +15,23 @@ CATALOG_SLOT = 0
 
 #: CLI flag -> CatalogDesign field
 _DESIGN_FLAGS = {
-    "theta_fov": "theta_fov_deg", "width": "sensor_width_px", "height": "sensor_height_px", "m_thresh": "m_thresh",
-    "sigma_pix": "sigma_pix", "sigma_rg": "sigma_rg", "sigma_bg": "sigma_bg", "p_correct": "p_correct",
-    "phi_min": "phi_min_deg", "phi_max": "phi_max_deg", "n_h": "n_h", "epoch": "epoch", "source": "source",
-    "source_path": "source_path", "qe": "qe_path", "pickles": "pickles_dir", "resolve": "resolve_deg",
+    "theta_fov": "theta_fov_deg",
+    "width": "sensor_width_px",
+    "height": "sensor_height_px",
+    "m_thresh": "m_thresh",
+    "sigma_pix": "sigma_pix",
+    "sigma_rg": "sigma_rg",
+    "sigma_bg": "sigma_bg",
+    "p_correct": "p_correct",
+    "phi_min": "phi_min_deg",
+    "phi_max": "phi_max_deg",
+    "n_h": "n_h",
+    "epoch": "epoch",
+    "source": "source",
+    "source_path": "source_path",
+    "qe": "qe_path",
+    "pickles": "pickles_dir",
+    "resolve": "resolve_deg",
     "mk_types": "mk_types_path",
 }
 
@@ -29,8 +42,12 @@ def _design_args(p) -> None:
     g.add_argument("--source", choices=("hipparcos", "bsc5"), help="source star catalog")
     g.add_argument("--source-path", help="catalog file (default: bundled hip2.dat / ../shared BSC5)")
     g.add_argument("--theta-fov", type=float, help="half-angle FOV along the minor axis, deg")
-    g.add_argument("--fov-deg", type=float, help="horizontal field of view across --width, deg: sets theta-fov, "
-                                                 "phi-max (the diagonal) and m-thresh (~15 stars in view) unless given")
+    g.add_argument(
+        "--fov-deg",
+        type=float,
+        help="horizontal field of view across --width, deg: sets theta-fov, "
+        "phi-max (the diagonal) and m-thresh (~15 stars in view) unless given",
+    )
     g.add_argument("--width", type=SENSOR_PX, help="sensor width, px")
     g.add_argument("--height", type=SENSOR_PX, help="sensor height, px")
     g.add_argument("--m-thresh", type=float, help="limiting V magnitude")
@@ -124,13 +141,21 @@ def _analyze(args) -> int:
     if args.json_out:
         atomic_write.write_text(args.json_out, res.to_json() + "\n")
     if args.plot:
-        plot_views(args.plot, views, vc, vm, title=f"{res.source} V<={design.m_thresh} thetaFOV={design.theta_fov_deg} deg: bad views")
+        plot_views(
+            args.plot,
+            views,
+            vc,
+            vm,
+            title=f"{res.source} V<={design.m_thresh} thetaFOV={design.theta_fov_deg} deg: bad views",
+        )
     if args.json:
         print(res.to_json())
     else:
         print(TABLE_HEADER)
         print(table_row(res))
-        print(f"{res.n_stars} stars, Delta* = {res.delta_star:.3f}, sigma_phi = {res.sigma_phi_rad:.3e} rad, {res.n_views} views")
+        print(
+            f"{res.n_stars} stars, Delta* = {res.delta_star:.3f}, sigma_phi = {res.sigma_phi_rad:.3e} rad, {res.n_views} views"
+        )
     return 0
 
 
@@ -173,9 +198,18 @@ def _upload(args) -> int:
         except LinkError as exc:
             return report_error(exc, args.json)
     if not info.active or info.crc32 != report.crc32 or info.length != len(data):
-        return _fail(f"device holds length {info.length} CRC-32 0x{info.crc32:08X}, sent {len(data)} 0x{report.crc32:08X}")
-    out = {"slot": CATALOG_SLOT, "bytes": len(data), "crc32": f"0x{report.crc32:08X}", "resumed_from": report.resumed_from,
-           "sent": report.sent, "seconds": round(report.seconds, 3), "verified": True}
+        return _fail(
+            f"device holds length {info.length} CRC-32 0x{info.crc32:08X}, sent {len(data)} 0x{report.crc32:08X}"
+        )
+    out = {
+        "slot": CATALOG_SLOT,
+        "bytes": len(data),
+        "crc32": f"0x{report.crc32:08X}",
+        "resumed_from": report.resumed_from,
+        "sent": report.sent,
+        "seconds": round(report.seconds, 3),
+        "verified": True,
+    }
     _print(out, args.json)
     return 0
 

@@ -24,7 +24,6 @@ def _fail(message: str) -> int:
     return 2
 
 
-
 def register(sub) -> None:
     frame = sub.add_parser("frame", help="render simulated raw frames, inspect frames")
     fsub = frame.add_subparsers(dest="frame_command", metavar="ACTION")
@@ -37,10 +36,20 @@ def register(sub) -> None:
     sky.add_argument("--ra", type=RA_DEG, default=83.8, help="boresight RA, deg")
     sky.add_argument("--dec", type=DEC_DEG, default=-5.4, help="boresight Dec, deg")
     sky.add_argument("--roll", type=ANGLE_DEG, default=0.0, help="roll, deg")
-    sky.add_argument("--random", type=ranged(int, 0, 100_000, "a star count"), default=20,
-                     help="synthetic stars when no --catalog is given")
-    sky.add_argument("--mag-range", type=float, nargs=2, default=(2.0, 6.0), metavar=("BRIGHT", "FAINT"),
-                     help="V magnitudes of the random stars")
+    sky.add_argument(
+        "--random",
+        type=ranged(int, 0, 100_000, "a star count"),
+        default=20,
+        help="synthetic stars when no --catalog is given",
+    )
+    sky.add_argument(
+        "--mag-range",
+        type=float,
+        nargs=2,
+        default=(2.0, 6.0),
+        metavar=("BRIGHT", "FAINT"),
+        help="V magnitudes of the random stars",
+    )
     cam = p.add_argument_group("camera (default: seed 000 reference design)")
     cam.add_argument("--camera", help="CameraModel JSON (to_dict keys)")
     cam.add_argument("--width", type=SENSOR_PX, help="sensor width, px (default: the reference design's)")
@@ -73,10 +82,14 @@ def register(sub) -> None:
     p.add_argument("--truth", help="truth JSON (default FRAME.truth.json when present)")
     p.add_argument("--plot", help="write an overlay PNG here")
     p.add_argument("--k-sigma", type=float, help="detection threshold (default: the --params set's, else the device's)")
-    p.add_argument("--max-stars", type=int, help="candidates kept, brightest first (default: the --params set's, "
-                                                 "else the device's)")
-    p.add_argument("--psf-sigma", type=float, help="PSF Gaussian sigma, px (an override: measured on the frame "
-                                                   "by default)")
+    p.add_argument(
+        "--max-stars",
+        type=int,
+        help="candidates kept, brightest first (default: the --params set's, else the device's)",
+    )
+    p.add_argument(
+        "--psf-sigma", type=float, help="PSF Gaussian sigma, px (an override: measured on the frame by default)"
+    )
     p.add_argument("--gain", type=float, help="e-/DN for fit weights (default: the --params set's, else the device's)")
     p.set_defaults(func=cmd_inspect)
 
@@ -102,10 +115,18 @@ def cmd_render(args) -> int:
     try:
         camera = _camera_from_args(args)
         detector = DetectorModel(
-            pattern=args.pattern, exposure_s=args.exposure, psf_sigma_px=args.psf_sigma,
-            defocus_radius_px=args.defocus, read_noise_e=args.read_noise, dark_e_per_s=args.dark,
-            sky_e_per_s=args.sky, hot_pixel_fraction=args.hot_fraction, gain_e_per_dn=args.gain,
-            bit_depth=args.bits, black_level_dn=args.black, sensor_seed=args.sensor_seed,
+            pattern=args.pattern,
+            exposure_s=args.exposure,
+            psf_sigma_px=args.psf_sigma,
+            defocus_radius_px=args.defocus,
+            read_noise_e=args.read_noise,
+            dark_e_per_s=args.dark,
+            sky_e_per_s=args.sky,
+            hot_pixel_fraction=args.hot_fraction,
+            gain_e_per_dn=args.gain,
+            bit_depth=args.bits,
+            black_level_dn=args.black,
+            sensor_seed=args.sensor_seed,
         )
     except (ValueError, OSError, json.JSONDecodeError) as exc:
         return _fail(str(exc))
@@ -123,8 +144,10 @@ def cmd_render(args) -> int:
     else:
         stars = random_star_field(camera, attitude, args.random, tuple(args.mag_range), seed=args.seed)
     rng = np.random.default_rng(args.seed + 7919)
-    objs = [FalseObject("cosmic", *rng.uniform([0, 0], [camera.width - 1, camera.height - 1]), rng.uniform(500, 5000))
-            for _ in range(args.cosmics)]
+    objs = [
+        FalseObject("cosmic", *rng.uniform([0, 0], [camera.width - 1, camera.height - 1]), rng.uniform(500, 5000))
+        for _ in range(args.cosmics)
+    ]
     if args.satellite:
         x, y = rng.uniform([0, 0], [camera.width - 1, camera.height - 1])
         ang = rng.uniform(0, np.pi)
@@ -133,18 +156,27 @@ def cmd_render(args) -> int:
         x, y = rng.uniform([50, 50], [camera.width - 51, camera.height - 51])
         objs.append(FalseObject("planet", x, y, 2e5, rg=1.3, bg=0.6))
     try:
-        res = render_frame(stars, attitude, camera, detector, seed=args.seed, false_objects=objs,
-                           timestamp=args.timestamp)
+        res = render_frame(
+            stars, attitude, camera, detector, seed=args.seed, false_objects=objs, timestamp=args.timestamp
+        )
         out = write_rendered(res, args.out)
     except (ValueError, OSError) as exc:
         return _fail(str(exc))
     truth_file = truth_path_for(out)
-    summary = {"frame": str(out), "truth": str(truth_file), "stars_in_frame": len(res.truth["stars"]),
-               "false_objects": len(objs), "pattern": res.frame.pattern,
-               "size": [res.frame.width, res.frame.height]}
-    print(json_text.dumps(summary) if args.json else
-          f"wrote {out} ({res.frame.width} x {res.frame.height} {res.frame.pattern}, "
-          f"{summary['stars_in_frame']} stars, {len(objs)} false objects) and {truth_file}")
+    summary = {
+        "frame": str(out),
+        "truth": str(truth_file),
+        "stars_in_frame": len(res.truth["stars"]),
+        "false_objects": len(objs),
+        "pattern": res.frame.pattern,
+        "size": [res.frame.width, res.frame.height],
+    }
+    print(
+        json_text.dumps(summary)
+        if args.json
+        else f"wrote {out} ({res.frame.width} x {res.frame.height} {res.frame.pattern}, "
+        f"{summary['stars_in_frame']} stars, {len(objs)} false objects) and {truth_file}"
+    )
     return 0
 
 
@@ -164,9 +196,16 @@ def _match_truth(stars, truth: dict) -> list[dict | None]:
             out.append(None)
             continue
         t = ts[j]
-        out.append({"id": t["id"], "vmag": t["vmag"], "dx": float(stars.x[i] - t["x"]),
-                    "dy": float(stars.y[i] - t["y"]), "drg": float(stars.rg[i] - t["rg"]),
-                    "dbg": float(stars.bg[i] - t["bg"])})
+        out.append(
+            {
+                "id": t["id"],
+                "vmag": t["vmag"],
+                "dx": float(stars.x[i] - t["x"]),
+                "dy": float(stars.y[i] - t["y"]),
+                "drg": float(stars.rg[i] - t["rg"]),
+                "dbg": float(stars.bg[i] - t["bg"]),
+            }
+        )
     return out
 
 
@@ -200,10 +239,16 @@ def cmd_inspect(args) -> int:
     def given(value, default):
         return default if value is None else value
 
-    params = replace(base, detect=replace(base.detect, k_sigma=given(args.k_sigma, base.detect.k_sigma),
-                                          max_candidates=given(args.max_stars, base.detect.max_candidates)),
-                     fit=replace(base.fit, gain_e_per_dn=given(args.gain, base.fit.gain_e_per_dn)),
-                     psf_sigma_px=given(args.psf_sigma, base.psf_sigma_px))
+    params = replace(
+        base,
+        detect=replace(
+            base.detect,
+            k_sigma=given(args.k_sigma, base.detect.k_sigma),
+            max_candidates=given(args.max_stars, base.detect.max_candidates),
+        ),
+        fit=replace(base.fit, gain_e_per_dn=given(args.gain, base.fit.gain_e_per_dn)),
+        psf_sigma_px=given(args.psf_sigma, base.psf_sigma_px),
+    )
     try:
         stars = extract_stars(frame, camera, params)
     except ValueError as exc:
@@ -225,10 +270,22 @@ def cmd_inspect(args) -> int:
         for rec, m in zip(records, _match_truth(stars, truth)):
             rec["truth"] = m
     timings_ms = {k.replace("_s", "_ms"): round(v * 1e3, 3) for k, v in stars.timings.items()}
-    psf = {"sigma_px": stars.psf_sigma_px, "measured_px": stars.psf_measured_px if np.isfinite(stars.psf_measured_px)
-           else None, "source": stars.psf_source, "passes": stars.psf_passes}
-    report = {"frame": str(args.frame), "size": [frame.width, frame.height], "pattern": frame.pattern,
-              "n_stars": len(stars), "reason": stars.reason, "psf": psf, "timings_ms": timings_ms, "stars": records}
+    psf = {
+        "sigma_px": stars.psf_sigma_px,
+        "measured_px": stars.psf_measured_px if np.isfinite(stars.psf_measured_px) else None,
+        "source": stars.psf_source,
+        "passes": stars.psf_passes,
+    }
+    report = {
+        "frame": str(args.frame),
+        "size": [frame.width, frame.height],
+        "pattern": frame.pattern,
+        "n_stars": len(stars),
+        "reason": stars.reason,
+        "psf": psf,
+        "timings_ms": timings_ms,
+        "stars": records,
+    }
     if args.plot:
         from ground.frame_plot import plot_detections
 
@@ -236,14 +293,18 @@ def cmd_inspect(args) -> int:
     if args.json:
         print(json_text.dumps(report, indent=1))
         return 0
-    print(f"{args.frame}: {frame.width} x {frame.height} {frame.pattern}, {len(stars)} stars"
-          + (f" ({stars.reason})" if stars.reason else ""))
+    print(
+        f"{args.frame}: {frame.width} x {frame.height} {frame.pattern}, {len(stars)} stars"
+        + (f" ({stars.reason})" if stars.reason else "")
+    )
     print(f"PSF sigma {stars.psf_sigma_px:.3f} px ({stars.psf_source}, {stars.psf_passes} pass(es))")
     print("timings ms: " + ", ".join(f"{k} {v:.1f}" for k, v in timings_ms.items()))
     print(f"{'#':>3} {'x':>9} {'y':>9} {'rg':>6} {'bg':>6} {'snr':>7} {'chi2r':>6}  flags")
     for i, r in enumerate(records):
-        print(f"{i:>3} {_fmt(r['x'], '9.3f')} {_fmt(r['y'], '9.3f')} {_fmt(r['rg'], '6.3f')} {_fmt(r['bg'], '6.3f')} "
-              f"{_fmt(r['snr'], '7.1f')} {_fmt(r['reduced_chi2'], '6.2f')}  {','.join(r['flag_names']) or '-'}")
+        print(
+            f"{i:>3} {_fmt(r['x'], '9.3f')} {_fmt(r['y'], '9.3f')} {_fmt(r['rg'], '6.3f')} {_fmt(r['bg'], '6.3f')} "
+            f"{_fmt(r['snr'], '7.1f')} {_fmt(r['reduced_chi2'], '6.2f')}  {','.join(r['flag_names']) or '-'}"
+        )
     if "plot" in report:
         print(f"overlay: {report['plot']}")
     return 0

@@ -138,9 +138,16 @@ def _run_upload(c, a):
 
 
 def _status_dict(st) -> dict:
-    return {"slot": st.slot, "state": int(st.state), "length": st.length, "crc32": st.crc32,
-            "contiguous": st.contiguous, "received": st.received, "n_missing": st.n_missing,
-            "missing": [list(r) for r in st.missing]}
+    return {
+        "slot": st.slot,
+        "state": int(st.state),
+        "length": st.length,
+        "crc32": st.crc32,
+        "contiguous": st.contiguous,
+        "received": st.received,
+        "n_missing": st.n_missing,
+        "missing": [list(r) for r in st.missing],
+    }
 
 
 def _run_slot_status(c, a):
@@ -195,8 +202,11 @@ def _a_go(p):
 
 def _a_result(p):
     p.add_argument("--address", type=U32, default=0, help="result offset of the raw bytes (with --count)")
-    p.add_argument("--count", type=ranged(int, 1, 1 << 20, "a byte count (1 to 1048576)"),
-                   help="raw bytes instead of the decoded summary")
+    p.add_argument(
+        "--count",
+        type=ranged(int, 1, 1 << 20, "a byte count (1 to 1048576)"),
+        help="raw bytes instead of the decoded summary",
+    )
 
 
 def _a_combination(p):
@@ -239,8 +249,7 @@ COMMANDS: dict[str, tuple[str, Callable, Run]] = {
     "crc": ("CRC: CRC-16 of a device memory span", _a_crc, _run_crc),
     "go": ("GO [CODE]: start a sequence (--wait prints the result)", _a_go, _run_go),
     "result": ("READ RESULT: decoded summary, or raw bytes with --count", _a_result, _run_result),
-    "combination": ("COMBINATION GO_CODE MASK: sequence + selected result sections", _a_combination,
-                    _run_combination),
+    "combination": ("COMBINATION GO_CODE MASK: sequence + selected result sections", _a_combination, _run_combination),
     "dark-window": ("IMAGE dark window BUFFER ROW COL ROWS COLS [VALUES]", _a_dark, _run_dark_window),
     "upload": ("upload FILE into SLOT (resumable, then commit)", _a_upload, _run_upload),
     "slot-status": ("transfer status of SLOT", _args_slot, _run_slot_status),
@@ -290,8 +299,13 @@ def report_error(exc: LinkError, as_json: bool) -> int:
 
 def client_kwargs(args) -> dict:
     """``Client`` keyword arguments from the global options of ``st16-ground``."""
-    return {"device_address": args.device_address, "host_address": args.host_address,
-            "timeout": args.timeout, "log": args.log, "baudrate": args.baud}
+    return {
+        "device_address": args.device_address,
+        "host_address": args.host_address,
+        "timeout": args.timeout,
+        "log": args.log,
+        "baudrate": args.baud,
+    }
 
 
 def open_client(args) -> Client:

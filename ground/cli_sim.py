@@ -16,11 +16,23 @@ from ground.atomic_write import atomic_path, write_text
 from ground.cli_types import SEED, SENSOR_PX, progress_on
 
 #: Seed 000 section 5.2 (table 3, fig. 9) for 1e6 poses.
-PAPER_COLOUR = {"poses": 1_000_000, "problem_orientations": 7078, "no_solution": 897, "poor_match": 1763,
-                "incorrect": 4418, "fraction_within_0.01deg": 0.90, "fraction_within_1deg": 0.993}
+PAPER_COLOUR = {
+    "poses": 1_000_000,
+    "problem_orientations": 7078,
+    "no_solution": 897,
+    "poor_match": 1763,
+    "incorrect": 4418,
+    "fraction_within_0.01deg": 0.90,
+    "fraction_within_1deg": 0.993,
+}
 #: Seed 001 section 3 (2664 observations).
-PAPER_FOURSTAR = {"observations": 2664, "fovs_fewer_than_4_stars": 2, "mean_stars_per_fov": 17.5,
-                  "misidentified": 0, "fraction_fovs_2plus_identified": 2662 / 2664}
+PAPER_FOURSTAR = {
+    "observations": 2664,
+    "fovs_fewer_than_4_stars": 2,
+    "mean_stars_per_fov": 17.5,
+    "misidentified": 0,
+    "fraction_fovs_2plus_identified": 2662 / 2664,
+}
 
 
 def _common(p) -> None:
@@ -47,7 +59,11 @@ def register(subparsers) -> None:
     c.add_argument("--sigma-colour", type=float, default=0.05, help="colour-ratio noise")
     c.add_argument("--false-stars", type=float, default=0.0, help="mean false detections per frame")
     c.add_argument("--drop", type=float, default=0.0, help="probability of missing a true star")
-    c.add_argument("--mono", action="store_true", help="mono frames, solved as the device does: geometric (4-star, triangle) matching, then consensus on geometry alone")
+    c.add_argument(
+        "--mono",
+        action="store_true",
+        help="mono frames, solved as the device does: geometric (4-star, triangle) matching, then consensus on geometry alone",
+    )
     _common(c)
     c.set_defaults(func=run_colour)
     f = sub.add_parser("fourstar", help="seed 001 4-star matching test on a 5 deg grid")
@@ -76,9 +92,16 @@ def run_colour(args) -> int:
     from ground.catalog.design import CatalogDesign, DesignError
 
     try:
-        design = CatalogDesign(theta_fov_deg=args.theta_fov, sensor_width_px=args.width, sensor_height_px=args.height,
-                               m_thresh=args.m_thresh, sigma_pix=args.sigma_pix, sigma_rg=args.sigma_colour,
-                               sigma_bg=args.sigma_colour, source=args.source)
+        design = CatalogDesign(
+            theta_fov_deg=args.theta_fov,
+            sensor_width_px=args.width,
+            sensor_height_px=args.height,
+            m_thresh=args.m_thresh,
+            sigma_pix=args.sigma_pix,
+            sigma_rg=args.sigma_colour,
+            sigma_bg=args.sigma_colour,
+            source=args.source,
+        )
         if args.boresights < 2 or args.rolls < 1:
             raise DesignError("need --boresights >= 2 and --rolls >= 1")
     except (DesignError, ValueError) as exc:
@@ -86,14 +109,34 @@ def run_colour(args) -> int:
         return 2
     catalog = build_catalog(design)
     camera = CameraModel.from_fov(args.width, args.height, args.theta_fov)
-    cfg = skysim.ColourSimConfig(n_boresights=args.boresights, n_roll=args.rolls, seed=args.seed, colour=not args.mono,
-                                 model=skysim.ErrorModel(args.sigma_pix, args.sigma_colour, args.false_stars, args.drop))
+    cfg = skysim.ColourSimConfig(
+        n_boresights=args.boresights,
+        n_roll=args.rolls,
+        seed=args.seed,
+        colour=not args.mono,
+        model=skysim.ErrorModel(args.sigma_pix, args.sigma_colour, args.false_stars, args.drop),
+    )
     n = args.boresights * args.rolls
-    rows, wall = skysim.execute("colour", catalog, camera, cfg, n, workers=args.workers, chunk=args.chunk,
-                                scheduler=args.scheduler, progress=progress_on(args))
+    rows, wall = skysim.execute(
+        "colour",
+        catalog,
+        camera,
+        cfg,
+        n,
+        workers=args.workers,
+        chunk=args.chunk,
+        scheduler=args.scheduler,
+        progress=progress_on(args),
+    )
     summary = skysim.colour_summary(rows)
-    summary.update(poses_per_second=n / wall, wall_seconds=wall, catalog_stars=catalog.n_stars,
-                   catalog_pairs=catalog.n_pairs, workers=args.workers, scheduler=args.scheduler)
+    summary.update(
+        poses_per_second=n / wall,
+        wall_seconds=wall,
+        catalog_stars=catalog.n_stars,
+        catalog_pairs=catalog.n_pairs,
+        workers=args.workers,
+        scheduler=args.scheduler,
+    )
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         with atomic_path(args.out / "colour_rows.npy") as tmp, open(tmp, "wb") as f:
@@ -101,21 +144,27 @@ def run_colour(args) -> int:
         write_text(args.out / "colour_summary.json", json_text.dumps(summary, indent=2))
         skysim.plot_error_cdf(rows, args.out / "error_cdf.png")
         skysim.plot_mollweide(rows, skysim.spiral_boresights(args.boresights), args.out / "problem_map.png")
-    lines = [f"{n} poses ({args.boresights} boresights x {args.rolls} rolls), {catalog.n_stars} stars, "
-             f"{catalog.n_pairs} pairs; {wall:.1f} s, {n / wall:.0f} poses/s",
-             f"{'':32s}{'this run':>14s}{'seed 000 (1e6)':>16s}"]
+    lines = [
+        f"{n} poses ({args.boresights} boresights x {args.rolls} rolls), {catalog.n_stars} stars, "
+        f"{catalog.n_pairs} pairs; {wall:.1f} s, {n / wall:.0f} poses/s",
+        f"{'':32s}{'this run':>14s}{'seed 000 (1e6)':>16s}",
+    ]
     for key in ("problem_orientations", "no_solution", "poor_match", "incorrect"):
         lines.append(f"{key:32s}{summary[key] / n * 100:13.3f}%{PAPER_COLOUR[key] / 1e4:15.3f}%")
     for key in ("fraction_within_0.01deg", "fraction_within_1deg"):
         lines.append(f"{key:32s}{summary[key] * 100:13.2f}%{PAPER_COLOUR[key] * 100:15.2f}%")
-    lines.append(f"{'high confidence (wrong)':32s}{summary['high_confidence']:>8d} ({summary['high_confidence_wrong']})")
+    lines.append(
+        f"{'high confidence (wrong)':32s}{summary['high_confidence']:>8d} ({summary['high_confidence_wrong']})"
+    )
     lines.append(f"{'low confidence (wrong)':32s}{summary['low_confidence']:>8d} ({summary['low_confidence_wrong']})")
     lines.append(f"incorrect breakdown (wrong of visible): {summary['incorrect_breakdown']}")
     lines.append("no solution by cause (availability loss):")
     for key, count in summary["no_solution_by_cause"].items():
         lines.append(f"  {key:30s}{count:8d}{count / n * 100:13.3f}%")
-    lines.append(f"solve time ms p50/p99/max: {summary['solve_ms_p50']:.3f} / {summary['solve_ms_p99']:.3f} / "
-                 f"{summary['solve_ms_max']:.3f}")
+    lines.append(
+        f"solve time ms p50/p99/max: {summary['solve_ms_p50']:.3f} / {summary['solve_ms_p99']:.3f} / "
+        f"{summary['solve_ms_max']:.3f}"
+    )
     _emit(args, summary, "\n".join(lines))
     return 0
 
@@ -128,21 +177,43 @@ def run_fourstar(args) -> int:
     from ground.catalog.design import CatalogDesign, DesignError
 
     try:
-        design = CatalogDesign(theta_fov_deg=args.radius, sensor_width_px=1024, sensor_height_px=1024,
-                               m_thresh=args.m_thresh, phi_min_deg=0.05, phi_max_deg=2 * args.radius,
-                               source=args.source)
+        design = CatalogDesign(
+            theta_fov_deg=args.radius,
+            sensor_width_px=1024,
+            sensor_height_px=1024,
+            m_thresh=args.m_thresh,
+            phi_min_deg=0.05,
+            phi_max_deg=2 * args.radius,
+            source=args.source,
+        )
     except (DesignError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     catalog = build_catalog(design)
     n = len(skysim.grid_boresights(args.step))
-    results, lines = {}, [f"{n} observations, {catalog.n_stars} stars, {catalog.n_pairs} pairs "
-                          f"(seed 001: 2664, 1631, 65890)"]
+    results, lines = (
+        {},
+        [f"{n} observations, {catalog.n_stars} stars, {catalog.n_pairs} pairs (seed 001: 2664, 1631, 65890)"],
+    )
     for eps in args.epsilon:
-        cfg = skysim.FourStarSimConfig(step_deg=args.step, radius_deg=args.radius, epsilon_deg=eps, seed=args.seed,
-                                       check_consistency=not args.paper)
-        rows, wall = skysim.execute("fourstar", catalog, None, cfg, n, workers=args.workers, chunk=args.chunk,
-                                    scheduler=args.scheduler, progress=progress_on(args))
+        cfg = skysim.FourStarSimConfig(
+            step_deg=args.step,
+            radius_deg=args.radius,
+            epsilon_deg=eps,
+            seed=args.seed,
+            check_consistency=not args.paper,
+        )
+        rows, wall = skysim.execute(
+            "fourstar",
+            catalog,
+            None,
+            cfg,
+            n,
+            workers=args.workers,
+            chunk=args.chunk,
+            scheduler=args.scheduler,
+            progress=progress_on(args),
+        )
         s = skysim.fourstar_summary(rows)
         s.update(epsilon_deg=eps, wall_seconds=wall, fovs_per_second=n / wall)
         results[str(eps)] = s
@@ -150,11 +221,13 @@ def run_fourstar(args) -> int:
             args.out.mkdir(parents=True, exist_ok=True)
             with atomic_path(args.out / f"fourstar_rows_eps{eps:g}.npy") as tmp, open(tmp, "wb") as f:
                 np.save(f, rows)
-        lines.append(f"eps {eps:g} deg: identified {s['identified']}, unidentified {s['unidentified']}, "
-                     f"misidentified {s['misidentified']} (paper 0); FOVs with >= 2 identified "
-                     f"{s['fovs_with_2plus_identified']}/{n} = {s['fraction_fovs_2plus_identified'] * 100:.2f}% "
-                     f"(paper 99.9%); FOVs < 4 stars {s['fovs_fewer_than_4_stars']} (paper 2); "
-                     f"mean stars {s['mean_stars_per_fov']:.1f} (paper 17.5); {n / wall:.0f} FOV/s")
+        lines.append(
+            f"eps {eps:g} deg: identified {s['identified']}, unidentified {s['unidentified']}, "
+            f"misidentified {s['misidentified']} (paper 0); FOVs with >= 2 identified "
+            f"{s['fovs_with_2plus_identified']}/{n} = {s['fraction_fovs_2plus_identified'] * 100:.2f}% "
+            f"(paper 99.9%); FOVs < 4 stars {s['fovs_fewer_than_4_stars']} (paper 2); "
+            f"mean stars {s['mean_stars_per_fov']:.1f} (paper 17.5); {n / wall:.0f} FOV/s"
+        )
     if args.out:
         write_text(args.out / "fourstar_summary.json", json_text.dumps(results, indent=2))
     _emit(args, results, "\n".join(lines))

@@ -30,8 +30,6 @@ def _load_catalog(path):
     return catalog_from_image(Path(path).read_bytes())
 
 
-
-
 def _print_record(rec: dict, as_json: bool) -> None:
     from ground.solve_report import format_record
 
@@ -78,8 +76,7 @@ def _solve_on_device(args, frame):
     from ground.replay import LinkSolver
 
     bar = frame is not None and progress_on(args)  # a 10 MB frame is 15 min at 115 200 baud
-    solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, upload_progress=bar,
-                        **client_kwargs(args))
+    solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, upload_progress=bar, **client_kwargs(args))
     try:  # a NACK (exit 5) or a device that does not come back (exit 4) ends in ground.cli.main
         return solver.solve(frame, say=lambda m: print(m, file=sys.stderr))
     finally:
@@ -138,8 +135,9 @@ def _table5(args) -> int:
     from firmware_model.frame_io import frame_files
     from ground.replay import TABLE5_MODES, table5
 
-    out = table5(frame_files(args.directory), load_camera(args.camera), _load_catalog(args.catalog),
-                 progress=progress_on(args))
+    out = table5(
+        frame_files(args.directory), load_camera(args.camera), _load_catalog(args.catalog), progress=progress_on(args)
+    )
     if args.json:
         print(json_text.dumps(out))
     else:
@@ -173,11 +171,16 @@ def _colour_fit(args) -> int:
         print(f"st16-ground: {exc}", file=sys.stderr)
         return 1
     fit.save(args.output)
-    write_text(Path(args.output).with_suffix(".params.json"),
-               json_text.dumps({"colour_correction": {"beta": [float(b) for b in fit.beta]}}, indent=2))
-    print(fit.to_json() if args.json else
-          f"eq. 24 fit on {fit.n_used} stars ({fit.n_rejected} rejected): colour RMS {fit.rms_before:.3f} -> "
-          f"{fit.rms_after:.3f}; wrote {args.output} and {Path(args.output).with_suffix('.params.json')}")
+    write_text(
+        Path(args.output).with_suffix(".params.json"),
+        json_text.dumps({"colour_correction": {"beta": [float(b) for b in fit.beta]}}, indent=2),
+    )
+    print(
+        fit.to_json()
+        if args.json
+        else f"eq. 24 fit on {fit.n_used} stars ({fit.n_rejected} rejected): colour RMS {fit.rms_before:.3f} -> "
+        f"{fit.rms_after:.3f}; wrote {args.output} and {Path(args.output).with_suffix('.params.json')}"
+    )
     return 0
 
 
@@ -214,8 +217,9 @@ def register(sub) -> None:
 
     p = sub.add_parser("solve", help="command one lost-in-space solve (upload --frame, or capture)")
     p.add_argument("--frame", help="frame file to upload and solve (DNG/raw, FITS, TIFF, PNG/JPEG, .npy)")
-    p.add_argument("--offline", action="store_true", help="solve --frame in-process (needs --catalog) instead of "
-                                                          "on the device")
+    p.add_argument(
+        "--offline", action="store_true", help="solve --frame in-process (needs --catalog) instead of on the device"
+    )
     p.add_argument("--catalog", help="catalog image for --offline")
     add_camera_options(p)
     add_params_option(p)
@@ -233,9 +237,12 @@ def register(sub) -> None:
     p.add_argument("--pressure", type=float, default=1013.25, help="site pressure, hPa (with --site)")
     p.add_argument("--temperature", type=float, default=10.0, help="site temperature, deg C (with --site)")
     p.add_argument("--out", default=DEFAULT_RESULTS, help="output directory (log, summary, plots)")
-    p.add_argument("--resume", action="store_true",
-                   help="continue the run logged in --out (its frames are skipped); without it a --out that "
-                        "holds results is refused")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run logged in --out (its frames are skipped); without it a --out that "
+        "holds results is refused",
+    )
     p.add_argument("--reconnect-timeout", type=float, default=120.0, help="wait this long for a silent device, s")
     p.set_defaults(func=_replay)
 
@@ -251,8 +258,13 @@ def register(sub) -> None:
     p = csub.add_parser("fit", help="fit eq. 24 from the matched stars of a results log")
     p.add_argument("results", help="results.jsonl of a solve or replay run")
     p.add_argument("--catalog", required=True, help="catalog image the run used")
-    p.add_argument("-o", "--output", type=output_file, default="colour_correction.json",
-                   help="colour correction JSON to write (and its .params.json for params upload)")
+    p.add_argument(
+        "-o",
+        "--output",
+        type=output_file,
+        default="colour_correction.json",
+        help="colour correction JSON to write (and its .params.json for params upload)",
+    )
     p.set_defaults(func=_colour_fit)
 
     params = sub.add_parser("params", help="device parameter sets (slot 2)")

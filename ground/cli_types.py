@@ -14,11 +14,15 @@ def ranged(kind, lo=None, hi=None, what: str = "value"):
         try:
             value = int(text, 0) if kind is int else kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{what} must be {'an integer' if kind is int else 'a number'}, "
-                                             f"got {text!r}") from None
+            raise argparse.ArgumentTypeError(
+                f"{what} must be {'an integer' if kind is int else 'a number'}, got {text!r}"
+            ) from None
         if value != value or (lo is not None and value < lo) or (hi is not None and value > hi):  # NaN too
-            bounds = f"from {lo} to {hi}" if lo is not None and hi is not None else (
-                f"at least {lo}" if lo is not None else f"at most {hi}")
+            bounds = (
+                f"from {lo} to {hi}"
+                if lo is not None and hi is not None
+                else (f"at least {lo}" if lo is not None else f"at most {hi}")
+            )
             raise argparse.ArgumentTypeError(f"{what} must be {bounds}, got {text}")
         return value
 

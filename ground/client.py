@@ -25,9 +25,34 @@ from tqdm import tqdm
 
 from protocol import nsp, result, slip
 from protocol.commands import (
-    APP_START_ADDRESS, GO_OPERATIONAL, UPLOAD_CHUNK, AddressedBytes, Code, Combination, CrcReply, CrcRequest,
-    DarkWindow, Diagnostics, Go, Init, NackInfo, PayloadError, Peek, Poke, ReadFile, ReadRange, SlotImage,
-    SlotRequest, WriteAck, WriteEdac, WriteFile, XferBegin, XferData, XferDataAck, XferState, XferStatus,
+    APP_START_ADDRESS,
+    GO_OPERATIONAL,
+    UPLOAD_CHUNK,
+    AddressedBytes,
+    Code,
+    Combination,
+    CrcReply,
+    CrcRequest,
+    DarkWindow,
+    Diagnostics,
+    Go,
+    Init,
+    NackInfo,
+    PayloadError,
+    Peek,
+    Poke,
+    ReadFile,
+    ReadRange,
+    SlotImage,
+    SlotRequest,
+    WriteAck,
+    WriteEdac,
+    WriteFile,
+    XferBegin,
+    XferData,
+    XferDataAck,
+    XferState,
+    XferStatus,
 )
 from protocol.crc import crc32
 
@@ -89,9 +114,16 @@ class UploadReport:
 class Client:
     """NSP client; use as a context manager. ``log`` is a JSONL path or an :class:`ExchangeLog`."""
 
-    def __init__(self, url: str, device_address: int = nsp.DEVICE_ADDRESS, host_address: int = nsp.HOST_ADDRESS,
-                 timeout: float = 1.0, log: str | Path | ExchangeLog | None = None, retries: int = 2,
-                 baudrate: int = 115200):
+    def __init__(
+        self,
+        url: str,
+        device_address: int = nsp.DEVICE_ADDRESS,
+        host_address: int = nsp.HOST_ADDRESS,
+        timeout: float = 1.0,
+        log: str | Path | ExchangeLog | None = None,
+        retries: int = 2,
+        baudrate: int = 115200,
+    ):
         self.url = url
         self.device_address = device_address
         self.host_address = host_address
@@ -101,8 +133,9 @@ class Client:
         self.log = ExchangeLog(log) if self._own_log else log  # first: a log that fails leaves no port open
         # Reads wait at most READ_SLICE so the reply deadline is checked without reconfiguring the port.
         try:
-            self._ser = serial.serial_for_url(url, baudrate=baudrate, timeout=READ_SLICE,
-                                              write_timeout=max(timeout, 5.0))
+            self._ser = serial.serial_for_url(
+                url, baudrate=baudrate, timeout=READ_SLICE, write_timeout=max(timeout, 5.0)
+            )
         except BaseException:
             if self._own_log and self.log is not None:
                 self.log.close()
@@ -126,8 +159,9 @@ class Client:
 
     # ------------------------------------------------------------------ transactions
 
-    def transact(self, code: int, data: bytes = b"", *, poll: bool = True, timeout: float | None = None,
-                 idempotent: bool = False) -> list[nsp.Message]:
+    def transact(
+        self, code: int, data: bytes = b"", *, poll: bool = True, timeout: float | None = None, idempotent: bool = False
+    ) -> list[nsp.Message]:
         """Send a command; return its reply messages (all ACKed, last one Final); [] if not polled."""
         attempts = 1 + (self.retries if idempotent else 0)
         for attempt in range(attempts):
@@ -173,8 +207,11 @@ class Client:
             now = time.monotonic()
             if now - start >= bound or (now - last >= quiet and not self._ser.in_waiting):
                 return
-            chunk = self._ser.read(self._ser.in_waiting) if self._ser.in_waiting else (
-                self._ser.read(1) if quiet > 0 else b"")
+            chunk = (
+                self._ser.read(self._ser.in_waiting)
+                if self._ser.in_waiting
+                else (self._ser.read(1) if quiet > 0 else b"")
+            )
             if chunk:
                 self.discarded += len(chunk)
                 last = time.monotonic()
@@ -204,14 +241,17 @@ class Client:
             if remaining <= 0:
                 got = f"; {len(parts)} part(s) received before the Final one" if parts else ""
                 if damage:
-                    raise MalformedReply(f"{code_name(code)}: no valid reply within {timeout:.3f} s{got}; "
-                                         f"read past {len(damage)} bad frame(s), first: {damage[0]}", bytes(received))
+                    raise MalformedReply(
+                        f"{code_name(code)}: no valid reply within {timeout:.3f} s{got}; "
+                        f"read past {len(damage)} bad frame(s), first: {damage[0]}",
+                        bytes(received),
+                    )
                 raise ReplyTimeout(f"{code_name(code)}: no reply within {timeout:.3f} s{got}", bytes(received))
             chunk = self._ser.read(max(1, self._ser.in_waiting))
             if not chunk:
                 continue
             if len(received) < MAX_RAW:
-                received += chunk[:MAX_RAW - len(received)]
+                received += chunk[: MAX_RAW - len(received)]
             self.last_exchange = (self.last_exchange[0], bytes(received))
             for event in decoder.feed(chunk):
                 reply = self._accept(event, code, damage)
@@ -220,8 +260,10 @@ class Client:
                 if not reply.ack:
                     raise Nack(code, NackInfo.unpack(reply.data), bytes(received))
                 if parts and len(damage) > damage_before:  # a part of this reply may be among them
-                    raise MalformedReply(f"{code_name(code)}: a frame was damaged inside the multi-part reply: "
-                                         f"{damage[-1]}", bytes(received))
+                    raise MalformedReply(
+                        f"{code_name(code)}: a frame was damaged inside the multi-part reply: {damage[-1]}",
+                        bytes(received),
+                    )
                 if not parts:
                     damage_before = len(damage)  # noise before the first part is harmless
                 parts.append(reply)
@@ -246,8 +288,13 @@ class Client:
         stale = reply.b != self._b
         other = not stale and reply.code != code
         if self.log:
-            note = ("stale: B bit of an earlier command" if stale
-                    else f"ignored: a reply to code 0x{reply.code:02X}" if other else None)
+            note = (
+                "stale: B bit of an earlier command"
+                if stale
+                else f"ignored: a reply to code 0x{reply.code:02X}"
+                if other
+                else None
+            )
             self.log.record("rx", event.data, note)
         if stale:
             self.stale_replies += 1
@@ -260,8 +307,9 @@ class Client:
     def _single(self, code: int, data: bytes = b"", **kw) -> bytes:
         parts = self.transact(code, data, **kw)
         if len(parts) != 1:
-            raise MalformedReply(f"{code_name(code)}: {len(parts)} reply messages, expected 1",
-                                 b"".join(p.encode() for p in parts))
+            raise MalformedReply(
+                f"{code_name(code)}: {len(parts)} reply messages, expected 1", b"".join(p.encode() for p in parts)
+            )
         return parts[0].data
 
     def _parse(self, code: int, data: bytes, parser, *args):
@@ -307,9 +355,9 @@ class Client:
         req = ReadFile(address, long)
         data = self._single(Code.READ_FILE, req.pack(), idempotent=True)
         head = req.pack()
-        if len(data) != len(head) + 4 or data[:len(head)] != head:
+        if len(data) != len(head) + 4 or data[: len(head)] != head:
             raise MalformedReply(f"READ_FILE: reply {data.hex()} does not echo {head.hex()} + 4 bytes", data)
-        return data[len(head):]
+        return data[len(head) :]
 
     def write_file(self, address: int, value: bytes, long: bool = False) -> None:
         if len(value) != 4:
@@ -410,8 +458,9 @@ class Client:
         data = self._single(Code.SLOT_INFO, SlotRequest(slot).pack(), idempotent=True)
         return self._parse(Code.SLOT_INFO, data, SlotImage.unpack)
 
-    def upload(self, slot: int, data: bytes, progress: bool = True, chunk: int = UPLOAD_CHUNK,
-               commit: bool = True) -> UploadReport:
+    def upload(
+        self, slot: int, data: bytes, progress: bool = True, chunk: int = UPLOAD_CHUNK, commit: bool = True
+    ) -> UploadReport:
         """Upload ``data`` into ``slot``, resuming whatever the device already holds of the same
         image (same length and CRC-32), then COMMIT (raises :class:`Nack` if the device refuses)."""
         t0 = time.monotonic()
@@ -419,14 +468,15 @@ class Client:
         crc = crc32(data)
         status = self.xfer_begin(slot, len(data), crc)
         resumed, sent = status.received, 0
-        with tqdm(total=len(data), initial=resumed, unit="B", unit_scale=True, disable=not progress,
-                  desc=f"slot {slot}") as bar:
+        with tqdm(
+            total=len(data), initial=resumed, unit="B", unit_scale=True, disable=not progress, desc=f"slot {slot}"
+        ) as bar:
             while status.state != XferState.COMPLETE:
                 if not status.missing:
                     raise MalformedReply(f"slot {slot}: transfer incomplete but no missing range reported")
                 for offset, length in status.missing:
                     for start in range(offset, offset + length, chunk):
-                        piece = data[start:min(start + chunk, offset + length)]
+                        piece = data[start : min(start + chunk, offset + length)]
                         self.xfer_data(slot, start, piece)
                         sent += len(piece)
                         bar.update(len(piece))
@@ -441,8 +491,9 @@ class Client:
 
     def _check_echo(self, code, got_addr, want_addr, got_n, want_n, raw) -> None:
         if got_addr != want_addr or got_n != want_n:
-            raise MalformedReply(f"{code_name(code)}: reply for 0x{got_addr:X}+{got_n}, asked 0x{want_addr:X}+{want_n}",
-                                 raw)
+            raise MalformedReply(
+                f"{code_name(code)}: reply for 0x{got_addr:X}+{got_n}, asked 0x{want_addr:X}+{want_n}", raw
+            )
 
     def _assemble(self, code: int, parts: list[nsp.Message], address: int, count: int) -> bytes:
         buf = bytearray(count)
@@ -452,9 +503,10 @@ class Client:
             lo = piece.address - address
             if lo < 0 or lo + len(piece.data) > count:
                 raise MalformedReply(f"{code_name(code)}: part at 0x{piece.address:X} outside the request", part.data)
-            buf[lo:lo + len(piece.data)] = piece.data
+            buf[lo : lo + len(piece.data)] = piece.data
             covered += len(piece.data)
         if covered != count:
-            raise MalformedReply(f"{code_name(code)}: parts cover {covered} of {count} bytes",
-                                 b"".join(p.encode() for p in parts))
+            raise MalformedReply(
+                f"{code_name(code)}: parts cover {covered} of {count} bytes", b"".join(p.encode() for p in parts)
+            )
         return bytes(buf)

@@ -148,9 +148,11 @@ class Console(cmd.Cmd):
             width = max(map(len, COMMANDS))
             for cname, (help_text, _, _) in COMMANDS.items():
                 print(f"  {cname:<{width}}  {help_text}")
-            print(f"  {'raw':<{width}}  raw on|off: show frame hex\n"
-                  f"  {'reopen':<{width}}  close the link and open it again (after a device restart)\n"
-                  f"  {'quit':<{width}}  leave")
+            print(
+                f"  {'raw':<{width}}  raw on|off: show frame hex\n"
+                f"  {'reopen':<{width}}  close the link and open it again (after a device restart)\n"
+                f"  {'quit':<{width}}  leave"
+            )
         return False
 
     def completenames(self, text, *ignored):

@@ -50,8 +50,17 @@ class ColourCorrection:
         return apply_colour_correction(np.asarray(rg, float), np.asarray(bg, float), self.beta)
 
     @classmethod
-    def fit(cls, observed, catalog, clip: float = 3.0, max_iter: int = 10, min_stars: int = 4,
-            min_sigma: float = 0.01, max_reject: float = 0.2, prior_weight: float = 0.01):
+    def fit(
+        cls,
+        observed,
+        catalog,
+        clip: float = 3.0,
+        max_iter: int = 10,
+        min_stars: int = 4,
+        min_sigma: float = 0.01,
+        max_reject: float = 0.2,
+        prior_weight: float = 0.01,
+    ):
         """Least-squares fit of eq. 24 with iterative rejection of outliers.
 
         ``observed`` and ``catalog`` are (N, 2) arrays of (rg, bg). The residual scale is
@@ -98,14 +107,17 @@ class ColourCorrection:
         return corr
 
     def to_json(self) -> str:
-        return json.dumps({
-            "kind": PARAMETER_KIND,
-            "beta": [float(b) for b in self.beta],
-            "rms_before": self.rms_before,
-            "rms_after": self.rms_after,
-            "n_used": self.n_used,
-            "n_rejected": self.n_rejected,
-        }, indent=2)
+        return json.dumps(
+            {
+                "kind": PARAMETER_KIND,
+                "beta": [float(b) for b in self.beta],
+                "rms_before": self.rms_before,
+                "rms_after": self.rms_after,
+                "n_used": self.n_used,
+                "n_rejected": self.n_rejected,
+            },
+            indent=2,
+        )
 
     @classmethod
     def from_json(cls, text: str) -> "ColourCorrection":
@@ -115,9 +127,13 @@ class ColourCorrection:
         beta = np.asarray(data["beta"], dtype=float)
         if beta.shape != (6,) or not np.isfinite(beta).all():
             raise ValueError(f"colour correction needs 6 finite coefficients, got {data['beta']!r}")
-        return cls(beta=beta, rms_before=data.get("rms_before", float("nan")),
-                   rms_after=data.get("rms_after", float("nan")),
-                   n_used=int(data.get("n_used", 0)), n_rejected=int(data.get("n_rejected", 0)))
+        return cls(
+            beta=beta,
+            rms_before=data.get("rms_before", float("nan")),
+            rms_after=data.get("rms_after", float("nan")),
+            n_used=int(data.get("n_used", 0)),
+            n_rejected=int(data.get("n_rejected", 0)),
+        )
 
     def save(self, path) -> Path:
         path = Path(path)
@@ -152,9 +168,14 @@ def _altaz_frames(site: Site, time):
     iers.conf.auto_download = False
     loc = site.location()
     vacuum = AltAz(obstime=time, location=loc, pressure=0 * u.hPa)
-    air = AltAz(obstime=time, location=loc, pressure=site.pressure_hpa * u.hPa,
-                temperature=site.temperature_c * u.deg_C, relative_humidity=site.relative_humidity,
-                obswl=site.wavelength_um * u.micron)
+    air = AltAz(
+        obstime=time,
+        location=loc,
+        pressure=site.pressure_hpa * u.hPa,
+        temperature=site.temperature_c * u.deg_C,
+        relative_humidity=site.relative_humidity,
+        obswl=site.wavelength_um * u.micron,
+    )
     return vacuum, air
 
 

@@ -47,13 +47,16 @@ def pick_attitudes(catalog, camera: CameraModel, n: int, rng) -> list[np.ndarray
 
 
 def start_device(state_dir: Path, *extra: str) -> tuple[subprocess.Popen, str]:
-    proc = subprocess.Popen([sys.executable, "-m", "firmware_model.cli", "--pty", "--state", str(state_dir), *extra],
-                            stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "firmware_model.cli", "--pty", "--state", str(state_dir), *extra],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     line = proc.stdout.readline().strip()
     if not line.startswith("listening on "):
         proc.kill()
         raise RuntimeError(f"device did not start: {line!r}")
-    return proc, line[len("listening on "):]
+    return proc, line[len("listening on ") :]
 
 
 def stop_device(proc: subprocess.Popen) -> int:
@@ -77,8 +80,11 @@ def run_demo(out, n_frames: int = 6, seed: int = 2026, progress: bool = True) ->
     catalog = build_catalog(design)
     image = catalog_to_image(catalog)
     write_bytes(out / "catalog.st16cat", image)
-    print(f"catalog: Hipparcos V <= {design.m_thresh}, theta_FOV {design.theta_fov_deg} deg: {catalog.n_stars} stars, "
-          f"{catalog.n_pairs} pairs, {len(image)} bytes, built in {time.perf_counter() - t0:.1f} s", flush=True)
+    print(
+        f"catalog: Hipparcos V <= {design.m_thresh}, theta_FOV {design.theta_fov_deg} deg: {catalog.n_stars} stars, "
+        f"{catalog.n_pairs} pairs, {len(image)} bytes, built in {time.perf_counter() - t0:.1f} s",
+        flush=True,
+    )
 
     camera = CameraModel.reference_design()
     rng = np.random.default_rng(seed)
@@ -86,11 +92,15 @@ def run_demo(out, n_frames: int = 6, seed: int = 2026, progress: bool = True) ->
     n_mono = max(1, n_frames // 3) if n_frames >= 2 else 0
     for k, a in enumerate(pick_attitudes(catalog, camera, n_frames, rng)):
         pattern = "MONO" if k >= n_frames - n_mono else "RGGB"
-        rendered = render_frame(stars, a, camera, DetectorModel(pattern=pattern), seed=seed + k,
-                                timestamp="2026-01-01T00:00:00Z")
+        rendered = render_frame(
+            stars, a, camera, DetectorModel(pattern=pattern), seed=seed + k, timestamp="2026-01-01T00:00:00Z"
+        )
         write_rendered(rendered, frames_dir / f"frame_{k:02d}_{pattern.lower()}.dng")
-    print(f"frames: {n_frames} rendered at known attitudes ({n_frames - n_mono} colour RGGB, {n_mono} mono), "
-          f"sky to V {6.5}, in {frames_dir}", flush=True)
+    print(
+        f"frames: {n_frames} rendered at known attitudes ({n_frames - n_mono} colour RGGB, {n_mono} mono), "
+        f"sky to V {6.5}, in {frames_dir}",
+        flush=True,
+    )
 
     with tempfile.TemporaryDirectory(prefix="st16-state-") as state:
         proc, pty = start_device(Path(state))
@@ -102,8 +112,11 @@ def run_demo(out, n_frames: int = 6, seed: int = 2026, progress: bool = True) ->
                 print(f"  {client.ping()}", flush=True)
                 report = client.upload(0, image, progress=progress)
                 info = client.slot_info(0)
-                print(f"catalog uploaded: {report.sent} bytes, device CRC-32 0x{info.crc32:08X} "
-                      f"({'verified' if info.active else 'NOT ACTIVE'})", flush=True)
+                print(
+                    f"catalog uploaded: {report.sent} bytes, device CRC-32 0x{info.crc32:08X} "
+                    f"({'verified' if info.active else 'NOT ACTIVE'})",
+                    flush=True,
+                )
             solver = LinkSolver(pty)
             try:
                 summary = replay(frames_dir, solver, out)
@@ -115,15 +128,21 @@ def run_demo(out, n_frames: int = 6, seed: int = 2026, progress: bool = True) ->
     from ground.results_log import ResultsLog
 
     print()
-    print(f"{'frame':<22}{'method':<11}{'status':<16}{'matched':>8}{'error (arcsec)':>16}{'device (ms)':>13}"
-          f"{'exchange (s)':>14}")
+    print(
+        f"{'frame':<22}{'method':<11}{'status':<16}{'matched':>8}{'error (arcsec)':>16}{'device (ms)':>13}"
+        f"{'exchange (s)':>14}"
+    )
     for rec in ResultsLog(out).records():
         err = rec.get("attitude_error_deg")
-        print(f"{rec['frame']:<22}{rec.get('method') or '-':<11}{rec.get('status', rec['outcome']):<16}"
-              f"{rec.get('n_matched', 0):>8}{'-' if err is None else f'{err * 3600:.2f}':>16}"
-              f"{(rec.get('solve_s') or 0) * 1e3:>13.1f}{rec.get('exchange_s', 0):>14.2f}")
+        print(
+            f"{rec['frame']:<22}{rec.get('method') or '-':<11}{rec.get('status', rec['outcome']):<16}"
+            f"{rec.get('n_matched', 0):>8}{'-' if err is None else f'{err * 3600:.2f}':>16}"
+            f"{(rec.get('solve_s') or 0) * 1e3:>13.1f}{rec.get('exchange_s', 0):>14.2f}"
+        )
     counts = summary["counts"]
-    print(f"\n{counts.get('correct', 0)} of {summary['frames']} frames solved correctly "
-          f"(wrong {counts.get('wrong', 0)}, no match {counts.get('no_match', 0)}); "
-          f"log {out / 'results.jsonl'}, plots {', '.join(Path(p).name for p in summary['plots'])} in {out}")
+    print(
+        f"\n{counts.get('correct', 0)} of {summary['frames']} frames solved correctly "
+        f"(wrong {counts.get('wrong', 0)}, no match {counts.get('no_match', 0)}); "
+        f"log {out / 'results.jsonl'}, plots {', '.join(Path(p).name for p in summary['plots'])} in {out}"
+    )
     return 0 if counts.get("wrong", 0) == 0 else 1

@@ -29,8 +29,17 @@ def describe(raw: bytes) -> dict:
         msg = nsp.decode(raw)
     except nsp.MessageError as exc:
         return {"error": str(exc)}
-    return {"dst": msg.dst, "src": msg.src, "mcf": msg.mcf, "code": msg.code, "name": code_name(msg.code),
-            "poll_final": msg.poll, "b": msg.b, "ack": msg.ack, "data": msg.data.hex()}
+    return {
+        "dst": msg.dst,
+        "src": msg.src,
+        "mcf": msg.mcf,
+        "code": msg.code,
+        "name": code_name(msg.code),
+        "poll_final": msg.poll,
+        "b": msg.b,
+        "ack": msg.ack,
+        "data": msg.data.hex(),
+    }
 
 
 class LogWriteError(Exception):
@@ -50,8 +59,12 @@ class ExchangeLog:
         self._lock = threading.Lock()
 
     def record(self, direction: str, raw: bytes, note: str | None = None) -> None:
-        entry = {"t": datetime.now(timezone.utc).isoformat(timespec="microseconds"), "dir": direction,
-                 "hex": bytes(raw).hex(), **describe(raw)}
+        entry = {
+            "t": datetime.now(timezone.utc).isoformat(timespec="microseconds"),
+            "dir": direction,
+            "hex": bytes(raw).hex(),
+            **describe(raw),
+        }
         if note:
             entry["note"] = note
         with self._lock:

@@ -38,8 +38,9 @@ class FrameCalibration:
 
 
 def _identify_all(stars: list[StarList], camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams):
-    return [identify_stars(replace(s, vectors=camera.pixel_to_vector(s.x, s.y)), camera, catalog, params)
-            for s in stars]
+    return [
+        identify_stars(replace(s, vectors=camera.pixel_to_vector(s.x, s.y)), camera, catalog, params) for s in stars
+    ]
 
 
 def _high(out: PipelineOutput) -> bool:
@@ -55,17 +56,28 @@ def _observations(stars: list[StarList], outs: list[PipelineOutput], catalog: On
     return obs
 
 
-def calibrate_from_frames(frames: list[Frame], catalog: OnboardCatalog, initial: CameraModel,
-                          params: PipelineParams = PipelineParams(), fit=("f", "k1"), focal_search: float = 0.05,
-                          rounds: int = 2, progress: bool = True) -> FrameCalibration:
+def calibrate_from_frames(
+    frames: list[Frame],
+    catalog: OnboardCatalog,
+    initial: CameraModel,
+    params: PipelineParams = PipelineParams(),
+    fit=("f", "k1"),
+    focal_search: float = 0.05,
+    rounds: int = 2,
+    progress: bool = True,
+) -> FrameCalibration:
     """Calibrate ``initial`` on ``frames`` of the real sky (module docstring)."""
     stars = [extract_stars(f, None, params.extract) for f in frames]
     search = replace(params, optics=replace(params.optics or OpticsSearch(), focal_range=focal_search))
-    outs = [identify_stars(replace(s, vectors=initial.pixel_to_vector(s.x, s.y)), initial, catalog, search)
-            for s in tqdm(stars, desc="identify", disable=not progress)]
+    outs = [
+        identify_stars(replace(s, vectors=initial.pixel_to_vector(s.x, s.y)), initial, catalog, search)
+        for s in tqdm(stars, desc="identify", disable=not progress)
+    ]
     focals = [o.optics.camera.f for o in outs if _high(o) and o.optics is not None]
     if not any(_high(o) for o in outs):
-        raise ValueError(f"no frame could be identified with focal lengths within {focal_search:.0%} of the initial camera")
+        raise ValueError(
+            f"no frame could be identified with focal lengths within {focal_search:.0%} of the initial camera"
+        )
     camera = replace(initial, f=float(np.median(focals))) if focals else initial
     scale = camera.f / initial.f
     fixed = replace(params, optics=None)

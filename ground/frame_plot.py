@@ -30,8 +30,13 @@ def plot_detections(frame: Frame, stars: StarList, path, truth: dict | None = No
     noise = 1.4826 * float(np.median(np.abs(lum - lo)))
     hi = max(float(np.percentile(lum, 99.99)), lo + 30.0 * max(noise, 1.0))
     fig, ax = plt.subplots(figsize=(12, 12 * frame.height / frame.width + 0.6), dpi=110)
-    ax.imshow(np.clip((lum - lo) / max(hi - lo, 1e-9), 0, 1) ** 0.5, cmap="gray", origin="upper",
-              extent=(-0.5, 2 * w2 - 0.5, 2 * h2 - 0.5, -0.5), interpolation="nearest")
+    ax.imshow(
+        np.clip((lum - lo) / max(hi - lo, 1e-9), 0, 1) ** 0.5,
+        cmap="gray",
+        origin="upper",
+        extent=(-0.5, 2 * w2 - 0.5, 2 * h2 - 0.5, -0.5),
+        interpolation="nearest",
+    )
     trusted = stars.trusted
     for i in range(len(stars)):
         colour = "lime" if trusted[i] else "orange"
@@ -47,8 +52,11 @@ def plot_detections(frame: Frame, stars: StarList, path, truth: dict | None = No
     ax.set_ylim(frame.height - 0.5, -0.5)
     ax.set_xlabel("x (column, px)")
     ax.set_ylabel("y (row, px)")
-    ax.set_title(title or f"{len(stars)} detections ({int(trusted.sum())} trusted), pattern {frame.pattern}; "
-                 "labels: rank (rg, bg)", fontsize=9)
+    ax.set_title(
+        title
+        or f"{len(stars)} detections ({int(trusted.sum())} trusted), pattern {frame.pattern}; labels: rank (rg, bg)",
+        fontsize=9,
+    )
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

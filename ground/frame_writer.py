@@ -34,10 +34,16 @@ def _uint16_pixels(frame: Frame) -> np.ndarray:
 
 
 def _description(frame: Frame) -> str:
-    return json.dumps({
-        "format": "st16-frame", "exposure_s": frame.exposure_s, "timestamp": frame.timestamp,
-        "site": frame.site, "camera": frame.camera, "metadata": frame.metadata,
-    })
+    return json.dumps(
+        {
+            "format": "st16-frame",
+            "exposure_s": frame.exposure_s,
+            "timestamp": frame.timestamp,
+            "site": frame.site,
+            "camera": frame.camera,
+            "metadata": frame.metadata,
+        }
+    )
 
 
 def write_dng(frame: Frame, path) -> Path:
@@ -74,8 +80,13 @@ def write_dng(frame: Frame, path) -> Path:
         tags.append((33434, "2I", 1, (fr.numerator, fr.denominator), True))
     with atomic_path(path) as tmp:
         tifffile.imwrite(
-            tmp, data, photometric="minisblack" if mono else 32803, extratags=tags,
-            description=_description(frame), metadata=None, subfiletype=0,
+            tmp,
+            data,
+            photometric="minisblack" if mono else 32803,
+            extratags=tags,
+            description=_description(frame),
+            metadata=None,
+            subfiletype=0,
         )
         if mono:  # tifffile refuses LinearRaw with one sample; patch the tag in place
             with tifffile.TiffFile(tmp, mode="r+b") as tif:
@@ -115,9 +126,14 @@ def write_npy(frame: Frame, path) -> Path:
     """Write ``frame`` as ``path`` (.npy) plus the ``<stem>.json`` sidecar."""
     path = Path(path)
     side = {
-        "pattern": frame.pattern, "black_level": list(frame.black_level), "white_level": frame.white_level,
-        "exposure_s": frame.exposure_s, "timestamp": frame.timestamp, "site": frame.site,
-        "camera": frame.camera, "metadata": frame.metadata,
+        "pattern": frame.pattern,
+        "black_level": list(frame.black_level),
+        "white_level": frame.white_level,
+        "exposure_s": frame.exposure_s,
+        "timestamp": frame.timestamp,
+        "site": frame.site,
+        "camera": frame.camera,
+        "metadata": frame.metadata,
     }
     with atomic_path(path.with_suffix(".json")) as side_tmp:  # replaced after the pixels, not without them
         side_tmp.write_text(json.dumps(side, indent=1))

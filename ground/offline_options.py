@@ -25,8 +25,11 @@ if TYPE_CHECKING:  # the pipeline imports scipy: only when a command runs
 def add_camera_options(parser) -> None:
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--camera", help="camera model JSON (default: the reference design)")
-    group.add_argument("--fov-deg", type=float, help="horizontal field of view across the frame width, deg: "
-                                                     "a distortion-free pinhole camera per frame")
+    group.add_argument(
+        "--fov-deg",
+        type=float,
+        help="horizontal field of view across the frame width, deg: a distortion-free pinhole camera per frame",
+    )
 
 
 def add_params_option(parser) -> None:

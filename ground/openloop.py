@@ -72,8 +72,8 @@ class MoffatPSF:
     def stamp(self, x0, y0, cols, rows) -> np.ndarray:
         xs, ys = _subgrid(cols, rows)
         r2 = (xs[None, :] - x0) ** 2 + (ys[:, None] - y0) ** 2
-        a2 = self.alpha ** 2
-        fine = (self.beta - 1.0) / (np.pi * a2) * (1.0 + r2 / a2) ** (-self.beta) / _SUB ** 2
+        a2 = self.alpha**2
+        fine = (self.beta - 1.0) / (np.pi * a2) * (1.0 + r2 / a2) ** (-self.beta) / _SUB**2
         return _bin(fine, len(rows), len(cols))
 
     def to_dict(self) -> dict:
@@ -104,7 +104,7 @@ class DonutPSF:
     def stamp(self, x0, y0, cols, rows) -> np.ndarray:
         xs, ys = _subgrid(cols, rows)
         r2 = (xs[None, :] - x0) ** 2 + (ys[:, None] - y0) ** 2
-        fine = ((r2 <= self.r_out_px ** 2) & (r2 >= self.r_in_px ** 2)).astype(float)
+        fine = ((r2 <= self.r_out_px**2) & (r2 >= self.r_in_px**2)).astype(float)
         if self.blur_sigma_px > 0:
             fine = gaussian_filter(fine, self.blur_sigma_px * _SUB, mode="constant")
         total = fine.sum()
@@ -112,8 +112,12 @@ class DonutPSF:
         return out / total if total > 0 else out
 
     def to_dict(self) -> dict:
-        return {"model": "donut", "r_out_px": float(self.r_out_px), "r_in_px": float(self.r_in_px),
-                "blur_sigma_px": float(self.blur_sigma_px)}
+        return {
+            "model": "donut",
+            "r_out_px": float(self.r_out_px),
+            "r_in_px": float(self.r_in_px),
+            "blur_sigma_px": float(self.blur_sigma_px),
+        }
 
 
 @dataclass(frozen=True)
@@ -164,8 +168,14 @@ class ComaPSF:
         return ey.T @ ex / len(dx)
 
     def to_dict(self) -> dict:
-        return {"model": "coma", "sigma_px": float(self.sigma_px), "coma_px_at_corner": float(self.coma_px_at_corner),
-                "cx": float(self.cx), "cy": float(self.cy), "r_corner_px": float(self.r_corner_px)}
+        return {
+            "model": "coma",
+            "sigma_px": float(self.sigma_px),
+            "coma_px_at_corner": float(self.coma_px_at_corner),
+            "cx": float(self.cx),
+            "cy": float(self.cy),
+            "r_corner_px": float(self.r_corner_px),
+        }
 
 
 # -------------------------------------------------------------------------------------- geometry
@@ -226,7 +236,7 @@ class RadialMappedCamera:
         ru = self.r_corner
         rd = ru + self.corner_shift_px / self.base.f
         if self.model == "division":
-            return (rd / ru - 1.0) / rd ** 2
+            return (rd / ru - 1.0) / rd**2
         return (rd - ru) / (2.0 * np.sin(np.arctan(ru) / 2.0) - ru)
 
     def radial(self, ru: np.ndarray) -> np.ndarray:
@@ -252,8 +262,12 @@ class RadialMappedCamera:
         return b.cx + b.f * u * scale, b.cy + b.f * w * scale
 
     def to_dict(self) -> dict:
-        return {**self.base.to_dict(), "radial_model": self.model, "corner_shift_px": float(self.corner_shift_px),
-                "radial_param": float(self.param)}
+        return {
+            **self.base.to_dict(),
+            "radial_model": self.model,
+            "corner_shift_px": float(self.corner_shift_px),
+            "radial_param": float(self.param),
+        }
 
 
 # ----------------------------------------------------------------------------- detector and sky
@@ -278,7 +292,7 @@ def hot_clusters_e(shape, n: int, rng: np.random.Generator, e_range=(100.0, 3000
     for _ in range(n):
         side = int(rng.choice(sizes))
         r, c = int(rng.integers(0, h - side)), int(rng.integers(0, w - side))
-        out[r:r + side, c:c + side] += rng.uniform(*e_range, size=(side, side))
+        out[r : r + side, c : c + side] += rng.uniform(*e_range, size=(side, side))
         where.append([r, c, side])
     return out, where
 
@@ -326,7 +340,7 @@ def drop_stars(stars: Stars, fraction: float, rng: np.random.Generator) -> tuple
 def scintillate(stars: Stars, sigma: float, rng: np.random.Generator) -> Stars:
     """Per-star flux times a log-normal factor ``exp(sigma N(0,1) - sigma^2 / 2)`` (mean 1):
     ``vmag`` changes by ``-2.5 log10`` of it."""
-    f = np.exp(sigma * rng.standard_normal(len(stars.ids)) - 0.5 * sigma ** 2)
+    f = np.exp(sigma * rng.standard_normal(len(stars.ids)) - 0.5 * sigma**2)
     return replace(stars, vmag=stars.vmag - 2.5 * np.log10(f))
 
 
@@ -384,5 +398,6 @@ def streak(x: float, y: float, x2: float, y2: float, electrons_per_px: float, rg
     """Satellite / aircraft trail from (x, y) to (x2, y2) with ``electrons_per_px`` green e- per
     pixel of length (PSF-shaped across)."""
     length = float(np.hypot(x2 - x, y2 - y))
-    return FalseObject("satellite", float(x), float(y), float(electrons_per_px * length), float(rg), float(bg),
-                       float(x2), float(y2))
+    return FalseObject(
+        "satellite", float(x), float(y), float(electrons_per_px * length), float(rg), float(bg), float(x2), float(y2)
+    )

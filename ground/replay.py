@@ -67,9 +67,12 @@ class Truth:
         try:
             data = json.loads(path.read_text())
             stars = data.get("stars", [])
-            truth = cls(np.asarray(data["attitude_quaternion"], dtype=float).reshape(4),
-                        np.array([s["id"] for s in stars], dtype=np.int64),
-                        np.array([s["x"] for s in stars], dtype=float), np.array([s["y"] for s in stars], dtype=float))
+            truth = cls(
+                np.asarray(data["attitude_quaternion"], dtype=float).reshape(4),
+                np.array([s["id"] for s in stars], dtype=np.int64),
+                np.array([s["x"] for s in stars], dtype=float),
+                np.array([s["y"] for s in stars], dtype=float),
+            )
             camera, seed = data.get("camera") or {}, data.get("seed")
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
             say(f"{path.name} is not a readable truth file ({type(exc).__name__}: {exc}); frame not scored")
@@ -78,9 +81,12 @@ class Truth:
             size = (camera.get("width"), camera.get("height"))
             frame_seed = (frame.metadata or {}).get("seed")
             if (None not in size and size != (frame.width, frame.height)) or (
-                    seed is not None and frame_seed is not None and int(seed) != int(frame_seed)):
-                say(f"{path.name} describes another frame ({size[0]} x {size[1]}, seed {seed}; the frame is "
-                    f"{frame.width} x {frame.height}, seed {frame_seed}); frame not scored")
+                seed is not None and frame_seed is not None and int(seed) != int(frame_seed)
+            ):
+                say(
+                    f"{path.name} describes another frame ({size[0]} x {size[1]}, seed {seed}; the frame is "
+                    f"{frame.width} x {frame.height}, seed {frame_seed}); frame not scored"
+                )
                 return None
         return truth
 
@@ -122,8 +128,13 @@ class OfflineSolver:
     camera per frame size).
     """
 
-    def __init__(self, camera: CameraModel | Callable[[Frame], CameraModel], catalog: OnboardCatalog,
-                 params: PipelineParams = PipelineParams(), site=None):
+    def __init__(
+        self,
+        camera: CameraModel | Callable[[Frame], CameraModel],
+        catalog: OnboardCatalog,
+        params: PipelineParams = PipelineParams(),
+        site=None,
+    ):
         self.camera, self.catalog, self.params, self.site = camera, catalog, params, site
 
     def camera_for(self, frame: Frame) -> CameraModel:
@@ -156,8 +167,12 @@ class OfflineSolver:
                 rec = record_from_output(out)
                 rec["refraction"] = "not corrected: no approximate attitude"
                 return rec
-        vec = correct_refraction(stars.vectors, quat_to_matrix(approx.solution.q_icrs_to_sensor), self.site,
-                                 Time(frame.timestamp, scale="utc"))
+        vec = correct_refraction(
+            stars.vectors,
+            quat_to_matrix(approx.solution.q_icrs_to_sensor),
+            self.site,
+            Time(frame.timestamp, scale="utc"),
+        )
         corrected = identify_stars(replace(stars, vectors=vec), camera, self.catalog, params)
         rec = record_from_output(corrected)
         rec["refraction"] = "corrected"
@@ -167,8 +182,15 @@ class OfflineSolver:
 class LinkSolver:
     """Solves on a device over the serial link (``replay`` / ``solve``), surviving link loss."""
 
-    def __init__(self, url: str, reconnect_timeout: float = 120.0, go_timeout: float = 60.0, log=None,
-                 upload_progress: bool = False, **client_kw):
+    def __init__(
+        self,
+        url: str,
+        reconnect_timeout: float = 120.0,
+        go_timeout: float = 60.0,
+        log=None,
+        upload_progress: bool = False,
+        **client_kw,
+    ):
         self.url = url
         self.upload_progress = upload_progress  #: a progress bar while the frame uploads (minutes at 115 200 baud)
         self.reconnect_timeout = reconnect_timeout
@@ -243,12 +265,14 @@ def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool =
     log = ResultsLog(out_dir)
     done = {r.get("frame") for r in log.records()}
     if done and not resume:
-        raise ValueError(f"{out_dir} already holds {len(done)} frame result(s): --resume continues that run, "
-                         f"or choose another --out")
+        raise ValueError(
+            f"{out_dir} already holds {len(done)} frame result(s): --resume continues that run, or choose another --out"
+        )
     say = tqdm.write if progress else (lambda msg: print(msg, file=sys.stderr))
     todo = [p for p in paths if p.name not in done]
-    bar = tqdm(todo, desc="replay", unit="frame", disable=not progress, initial=len(paths) - len(todo),
-               total=len(paths))
+    bar = tqdm(
+        todo, desc="replay", unit="frame", disable=not progress, initial=len(paths) - len(todo), total=len(paths)
+    )
     for path in bar:
         base = {"time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "frame": path.name}
         try:
@@ -267,8 +291,9 @@ def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool =
         truth = Truth.for_frame(path, frame, say)
         record.update(base)
         record.update(score(record, truth))
-        record["residuals_arcsec"] = [s["residual_arcsec"] for s in matched_stars(record)
-                                      if s["residual_arcsec"] is not None]
+        record["residuals_arcsec"] = [
+            s["residual_arcsec"] for s in matched_stars(record) if s["residual_arcsec"] is not None
+        ]
         log.append(record)
         bar.set_postfix_str(record["outcome"])
     records = log.records()
@@ -293,8 +318,13 @@ def _associate(stars: StarList, truth: Truth):
     return pairs
 
 
-def table5(paths, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams = PipelineParams(),
-           progress: bool = True) -> dict:
+def table5(
+    paths,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams = PipelineParams(),
+    progress: bool = True,
+) -> dict:
     """Seed 000 table 5 on frames with truth: correct/incorrect matches for the basic pipeline,
     with idealised colour (each star's mean colour error over the run removed), with
     idealised geometry (each star's mean centroid error removed: the paper's chromatic

@@ -21,9 +21,26 @@ from ground import json_text
 from ground.atomic_write import save_figure
 
 CSV_FIELDS = (
-    "time_utc", "frame", "method", "status", "outcome", "ra_deg", "dec_deg", "roll_deg",
-    "qw", "qx", "qy", "qz", "n_detected", "n_matched", "confidence", "attitude_error_deg",
-    "wrong_ids", "solve_s", "exchange_s", "reason",
+    "time_utc",
+    "frame",
+    "method",
+    "status",
+    "outcome",
+    "ra_deg",
+    "dec_deg",
+    "roll_deg",
+    "qw",
+    "qx",
+    "qy",
+    "qz",
+    "n_detected",
+    "n_matched",
+    "confidence",
+    "attitude_error_deg",
+    "wrong_ids",
+    "solve_s",
+    "exchange_s",
+    "reason",
 )
 
 #: Outcomes that count as an attitude returned by the solver.
@@ -63,8 +80,9 @@ class ResultsLog:
         warning (the next append after it starts on a line of its own)."""
         if not self.jsonl_path.exists():
             return []
-        lines = [line for line in self.jsonl_path.read_text(encoding="utf-8", errors="replace").splitlines()
-                 if line.strip()]
+        lines = [
+            line for line in self.jsonl_path.read_text(encoding="utf-8", errors="replace").splitlines() if line.strip()
+        ]
         out = []
         for k, line in enumerate(lines):
             try:
@@ -88,10 +106,19 @@ def summarize(records: list[dict]) -> dict:
     """Counts per outcome and attitude-error statistics (degrees) over scored solves."""
     outcomes = [r.get("outcome", "unscored") for r in records]
     counts = {k: outcomes.count(k) for k in sorted(set(outcomes))}
-    errors = np.array([r["attitude_error_deg"] for r in records
-                       if r.get("outcome") in ("correct", "wrong") and r.get("attitude_error_deg") is not None])
+    errors = np.array(
+        [
+            r["attitude_error_deg"]
+            for r in records
+            if r.get("outcome") in ("correct", "wrong") and r.get("attitude_error_deg") is not None
+        ]
+    )
     statuses = [r.get("status", "?") for r in records]
-    summary = {"frames": len(records), "counts": counts, "status": {k: statuses.count(k) for k in sorted(set(statuses))}}
+    summary = {
+        "frames": len(records),
+        "counts": counts,
+        "status": {k: statuses.count(k) for k in sorted(set(statuses))},
+    }
     scored = counts.get("correct", 0) + counts.get("wrong", 0) + counts.get("no_match", 0)
     if scored:
         summary["success_rate"] = counts.get("correct", 0) / scored
@@ -106,8 +133,11 @@ def summarize(records: list[dict]) -> dict:
         }
     times = np.array([r["solve_s"] for r in records if isinstance(r.get("solve_s"), (int, float))])
     if len(times):
-        summary["solve_s"] = {"median": float(np.median(times)), "p95": float(np.percentile(times, 95)),
-                              "max": float(times.max())}
+        summary["solve_s"] = {
+            "median": float(np.median(times)),
+            "p95": float(np.percentile(times, 95)),
+            "max": float(times.max()),
+        }
     return summary
 
 

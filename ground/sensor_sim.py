@@ -81,7 +81,7 @@ class DetectorModel:
 
     @property
     def white_level_dn(self) -> int:
-        return 2 ** self.bit_depth - 1
+        return 2**self.bit_depth - 1
 
     def green_electrons(self, vmag) -> np.ndarray:
         """Green channel total S_g (e-) for V magnitude(s) over one exposure."""
@@ -153,7 +153,7 @@ def _psf_stamp(det: DetectorModel, x0: float, y0: float, cols: np.ndarray, rows:
     xs = (cols[:, None] + sub[None, :]).ravel()
     ys = (rows[:, None] + sub[None, :]).ravel()
     dx, dy = xs[None, :] - x0, ys[:, None] - y0
-    disc = (dx * dx + dy * dy <= det.defocus_radius_px ** 2).astype(float)
+    disc = (dx * dx + dy * dy <= det.defocus_radius_px**2).astype(float)
     if det.psf_sigma_px > 0:
         from scipy.ndimage import gaussian_filter
 
@@ -256,17 +256,34 @@ def render_frame(
         s_rgb = (stars.rg[i] * s_g[i], s_g[i], stars.bg[i] * s_g[i])
         _add_source(signal, chan_map, det, x[i], y[i], s_rgb, mono, psf)
         if camera.in_frame(x[i], y[i]):
-            star_rows.append({
-                "id": int(stars.ids[i]), "x": float(x[i]), "y": float(y[i]), "vmag": float(stars.vmag[i]),
-                "rg": float(stars.rg[i]), "bg": float(stars.bg[i]),
-                "electrons": ({"mono": float(det.mono_response * sum(s_rgb))} if mono else
-                              {"r": float(s_rgb[0]), "g": float(s_rgb[1]), "b": float(s_rgb[2])}),
-            })
+            star_rows.append(
+                {
+                    "id": int(stars.ids[i]),
+                    "x": float(x[i]),
+                    "y": float(y[i]),
+                    "vmag": float(stars.vmag[i]),
+                    "rg": float(stars.rg[i]),
+                    "bg": float(stars.bg[i]),
+                    "electrons": (
+                        {"mono": float(det.mono_response * sum(s_rgb))}
+                        if mono
+                        else {"r": float(s_rgb[0]), "g": float(s_rgb[1]), "b": float(s_rgb[2])}
+                    ),
+                }
+            )
     false_rows = []
     for obj in false_objects:
         if obj.kind == "planet":
-            _add_source(signal, chan_map, det, obj.x, obj.y, (obj.rg * obj.electrons_g, obj.electrons_g, obj.bg * obj.electrons_g),
-                        mono, psf)
+            _add_source(
+                signal,
+                chan_map,
+                det,
+                obj.x,
+                obj.y,
+                (obj.rg * obj.electrons_g, obj.electrons_g, obj.bg * obj.electrons_g),
+                mono,
+                psf,
+            )
         elif obj.kind == "satellite":
             if obj.x2 is None or obj.y2 is None:
                 raise ValueError("a satellite streak needs x2, y2")
@@ -303,8 +320,13 @@ def render_frame(
     dn = np.clip(dn, 0, det.white_level_dn).astype(np.uint16)
 
     frame = Frame(
-        pixels=dn, pattern=det.pattern, black_level=det.black_level_dn, white_level=det.white_level_dn,
-        exposure_s=det.exposure_s, timestamp=timestamp, camera=camera.to_dict(),
+        pixels=dn,
+        pattern=det.pattern,
+        black_level=det.black_level_dn,
+        white_level=det.white_level_dn,
+        exposure_s=det.exposure_s,
+        timestamp=timestamp,
+        camera=camera.to_dict(),
         metadata={"simulated": True, "seed": int(seed), "gain_e_per_dn": det.gain_e_per_dn},
     )
     truth = {
@@ -326,8 +348,15 @@ def render_frame(
     return RenderResult(frame=frame, truth=truth, electrons=signal)
 
 
-def random_star_field(camera: CameraModel, attitude: np.ndarray, n: int, vmag_range=(2.0, 7.0),
-                      seed: int = 0, margin_px: float = 20.0, min_separation_px: float = 0.0) -> Stars:
+def random_star_field(
+    camera: CameraModel,
+    attitude: np.ndarray,
+    n: int,
+    vmag_range=(2.0, 7.0),
+    seed: int = 0,
+    margin_px: float = 20.0,
+    min_separation_px: float = 0.0,
+) -> Stars:
     """``n`` synthetic stars uniformly placed in the camera's field (``margin_px`` from the
     edges), magnitudes uniform in ``vmag_range``, colour ratios rg in [0.3, 1.6] and bg in
     [0.2, 1.4] (the spread of real stars through a Bayer CMOS), as ICRS vectors for
@@ -344,6 +373,9 @@ def random_star_field(camera: CameraModel, attitude: np.ndarray, n: int, vmag_ra
     v_sensor = camera.pixel_to_vector(np.array(xs), np.array(ys))
     v_icrs = v_sensor @ np.asarray(attitude, dtype=float)
     return Stars(
-        ids=np.arange(1, n + 1), vectors=v_icrs, vmag=rng.uniform(*vmag_range, size=n),
-        rg=rng.uniform(0.3, 1.6, size=n), bg=rng.uniform(0.2, 1.4, size=n),
+        ids=np.arange(1, n + 1),
+        vectors=v_icrs,
+        vmag=rng.uniform(*vmag_range, size=n),
+        rg=rng.uniform(0.3, 1.6, size=n),
+        bg=rng.uniform(0.2, 1.4, size=n),
     )

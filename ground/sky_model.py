@@ -21,8 +21,9 @@ DEFAULT_RENDER_LIMIT = 6.5
 
 
 @lru_cache(maxsize=4)
-def sky_stars(m_limit: float = DEFAULT_RENDER_LIMIT, epoch: float = 2025.0, source: str = "hipparcos",
-              qe_path: str | None = None) -> Stars:
+def sky_stars(
+    m_limit: float = DEFAULT_RENDER_LIMIT, epoch: float = 2025.0, source: str = "hipparcos", qe_path: str | None = None
+) -> Stars:
     """Stars brighter than ``m_limit`` (V) at ``epoch`` with rg/bg for the detector's QE."""
     design = CatalogDesign(m_thresh=m_limit, epoch=epoch, source=source, qe_path=qe_path)
     table = load_source(design)

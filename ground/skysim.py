@@ -43,11 +43,22 @@ STATUS_CODE = {Outcome.NO_MATCH: 0, Outcome.LOW_CONFIDENCE: 1, Outcome.HIGH_CONF
 
 #: One row per simulated pose. ``n_true``: true stars among the detections (after drops);
 #: ``cause``: index into ``CAUSES`` for a pose with no solution (0 otherwise).
-POSE_DTYPE = np.dtype([
-    ("boresight", np.int32), ("roll", np.float64), ("n_visible", np.int16), ("n_det", np.int16),
-    ("status", np.int8), ("n_matched", np.int16), ("n_correct", np.int16), ("n_wrong", np.int16),
-    ("err_deg", np.float64), ("time_s", np.float64), ("n_true", np.int16), ("cause", np.int8),
-])
+POSE_DTYPE = np.dtype(
+    [
+        ("boresight", np.int32),
+        ("roll", np.float64),
+        ("n_visible", np.int16),
+        ("n_det", np.int16),
+        ("status", np.int8),
+        ("n_matched", np.int16),
+        ("n_correct", np.int16),
+        ("n_wrong", np.int16),
+        ("err_deg", np.float64),
+        ("time_s", np.float64),
+        ("n_true", np.int16),
+        ("cause", np.int8),
+    ]
+)
 
 #: Why a pose has no solution (the availability loss), decided in this order:
 #: ``too_few_true_stars``: fewer true stars detected than the method needs (2 for colour, 3 for
@@ -119,8 +130,14 @@ class Scene:
     n_visible: int
 
 
-def observe(catalog: OnboardCatalog, a: np.ndarray, camera: CameraModel, model: ErrorModel,
-            rng: np.random.Generator, colour: bool = True) -> Scene:
+def observe(
+    catalog: OnboardCatalog,
+    a: np.ndarray,
+    camera: CameraModel,
+    model: ErrorModel,
+    rng: np.random.Generator,
+    colour: bool = True,
+) -> Scene:
     """Detections of the catalog stars on the array for attitude ``a`` (eqs 19-21)."""
     boresight = a[2]
     near = catalog.stars_within(boresight, _field_radius(camera))
@@ -184,9 +201,13 @@ class ColourSimConfig:
 def _solve_params(camera: CameraModel, cfg: ColourSimConfig) -> SolveParams:
     if cfg.solve is not None:
         return cfg.solve
-    return SolveParams(sigma_vec=cfg.model.sigma_pix / camera.f, sigma_rg=max(cfg.model.sigma_colour, 1e-3),
-                       sigma_bg=max(cfg.model.sigma_colour, 1e-3), fov=FieldOfView.from_camera(camera, 0.0),
-                       mode="colour" if cfg.colour else "geometric")
+    return SolveParams(
+        sigma_vec=cfg.model.sigma_pix / camera.f,
+        sigma_rg=max(cfg.model.sigma_colour, 1e-3),
+        sigma_bg=max(cfg.model.sigma_colour, 1e-3),
+        fov=FieldOfView.from_camera(camera, 0.0),
+        mode="colour" if cfg.colour else "geometric",
+    )
 
 
 def run_poses(catalog: OnboardCatalog, camera: CameraModel, cfg: ColourSimConfig, pose_ids: np.ndarray) -> np.ndarray:
@@ -222,8 +243,9 @@ def run_poses(catalog: OnboardCatalog, camera: CameraModel, cfg: ColourSimConfig
     return out
 
 
-def no_solution_cause(scene: Scene, reason: str, catalog: OnboardCatalog, params: SolveParams, colour: bool,
-                      poor_fraction: float = 0.4) -> int:
+def no_solution_cause(
+    scene: Scene, reason: str, catalog: OnboardCatalog, params: SolveParams, colour: bool, poor_fraction: float = 0.4
+) -> int:
     """Index into ``CAUSES`` of an unsolved pose (see ``CAUSES`` for the order of the tests)."""
     true_det = np.nonzero(scene.truth >= 0)[0]
     need = 2 if colour else 3
@@ -238,10 +260,17 @@ def no_solution_cause(scene: Scene, reason: str, catalog: OnboardCatalog, params
 
 
 # ------------------------------------------------------------------ seed 001 4-star run
-FOURSTAR_DTYPE = np.dtype([
-    ("boresight", np.int32), ("n_visible", np.int16), ("identified", np.int16), ("unidentified", np.int16),
-    ("misidentified", np.int16), ("groups", np.int16), ("time_s", np.float64),
-])
+FOURSTAR_DTYPE = np.dtype(
+    [
+        ("boresight", np.int32),
+        ("n_visible", np.int16),
+        ("identified", np.int16),
+        ("unidentified", np.int16),
+        ("misidentified", np.int16),
+        ("groups", np.int16),
+        ("time_s", np.float64),
+    ]
+)
 
 
 @dataclass(frozen=True)
@@ -261,8 +290,12 @@ def run_fourstar(catalog: OnboardCatalog, cfg: FourStarSimConfig, pose_ids: np.n
     """Evaluate boresights ``pose_ids`` of the seed 001 grid; returns FOURSTAR_DTYPE rows."""
     boresights = grid_boresights(cfg.step_deg)
     eps = np.radians(cfg.epsilon_deg)
-    params = FourStarParams(epsilon=eps, max_groups=cfg.max_groups, check_consistency=cfg.check_consistency,
-                            resolve_ambiguous=cfg.check_consistency)
+    params = FourStarParams(
+        epsilon=eps,
+        max_groups=cfg.max_groups,
+        check_consistency=cfg.check_consistency,
+        resolve_ambiguous=cfg.check_consistency,
+    )
     out = np.zeros(len(pose_ids), FOURSTAR_DTYPE)
     for row, pid in enumerate(np.asarray(pose_ids, np.int64)):
         rng = np.random.default_rng([cfg.seed, int(pid)])
@@ -301,9 +334,17 @@ def _run_chunk(kind: str, ids: np.ndarray, payload=None):
     return run_fourstar(catalog, cfg, ids)
 
 
-def execute(kind: str, catalog: OnboardCatalog, camera: CameraModel | None, cfg, n_poses: int,
-            workers: int | None = None, chunk: int = 500, scheduler: str | None = None,
-            progress: bool = True) -> tuple[np.ndarray, float]:
+def execute(
+    kind: str,
+    catalog: OnboardCatalog,
+    camera: CameraModel | None,
+    cfg,
+    n_poses: int,
+    workers: int | None = None,
+    chunk: int = 500,
+    scheduler: str | None = None,
+    progress: bool = True,
+) -> tuple[np.ndarray, float]:
     """Run all ``n_poses`` of a ``kind`` ("colour" or "fourstar") simulation; returns rows and wall seconds.
 
     ``workers``: local processes (default: all cores; 1 runs in this process). ``scheduler``: a
@@ -467,8 +508,9 @@ def plot_mollweide(rows: np.ndarray, boresights: np.ndarray, path) -> None:
     for k, name in enumerate(MAP_CLASSES):
         m = worst == k
         if m.any():
-            ax.scatter(lon[m], dec[m], s=2 if k == 0 else 7, c=colours[k], label=f"{name} ({int(m.sum())})",
-                       linewidths=0)
+            ax.scatter(
+                lon[m], dec[m], s=2 if k == 0 else 7, c=colours[k], label=f"{name} ({int(m.sum())})", linewidths=0
+            )
     ticks = np.radians(np.arange(-150, 151, 30))
     ax.set_xticks(ticks)
     ax.set_xticklabels([f"{int(round(np.degrees(-t) % 360 / 15))}h" for t in ticks])

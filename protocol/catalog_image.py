@@ -28,7 +28,15 @@ ANGLE_TOL = 1e-9  # rad, stored pair angle vs. angle from the star vectors
 FLAG_COLOUR = 0x1  # header flag: the star table holds colour ratios
 
 STAR_DTYPE = np.dtype(
-    [("star_id", "<u4"), ("flags", "<u4"), ("vec", "<f8", (3,)), ("mag", "<f4"), ("rg", "<f4"), ("bg", "<f4"), ("reserved", "<u4")]
+    [
+        ("star_id", "<u4"),
+        ("flags", "<u4"),
+        ("vec", "<f8", (3,)),
+        ("mag", "<f4"),
+        ("rg", "<f4"),
+        ("bg", "<f4"),
+        ("reserved", "<u4"),
+    ]
 )
 PAIR_DTYPE = np.dtype([("i", "<u4"), ("j", "<u4"), ("phi", "<f8")])
 INDEX_DTYPE = np.dtype("<u4")
@@ -158,9 +166,32 @@ def pack_image(params: ImageParams, stars: np.ndarray, pairs: np.ndarray, hash_i
 
 
 def _pack_header(p: ImageParams, n_stars: int, n_pairs: int, total: int, entries: list, data_crc: int) -> bytes:
-    values = (MAGIC, VERSION, HEADER_SIZE, p.flags, total, n_stars, n_pairs, p.n_h, p.source_id,
-              p.epoch, p.phi_min, p.phi_max, p.dphi_star, p.kv_m, p.kv_q, p.theta_fov, p.m_thresh,
-              p.sigma_phi, p.sigma_rg, p.sigma_bg, p.created_unix, *entries, data_crc, 0)
+    values = (
+        MAGIC,
+        VERSION,
+        HEADER_SIZE,
+        p.flags,
+        total,
+        n_stars,
+        n_pairs,
+        p.n_h,
+        p.source_id,
+        p.epoch,
+        p.phi_min,
+        p.phi_max,
+        p.dphi_star,
+        p.kv_m,
+        p.kv_q,
+        p.theta_fov,
+        p.m_thresh,
+        p.sigma_phi,
+        p.sigma_rg,
+        p.sigma_bg,
+        p.created_unix,
+        *entries,
+        data_crc,
+        0,
+    )
     raw = _HEADER.pack(*values)
     return raw[:-4] + struct.pack("<I", crc32(raw[:-4]))
 
@@ -178,7 +209,9 @@ def parse_image(data) -> CatalogImage:
     if version != VERSION:
         raise CatalogImageError(Reason.BAD_VERSION, f"version {version}, this device reads version {VERSION}")
     if crc32(buf[: HEADER_SIZE - 4]) != v[-1]:
-        raise CatalogImageError(Reason.HEADER_CRC, f"header CRC-32 0x{v[-1]:08X} != computed 0x{crc32(buf[:HEADER_SIZE - 4]):08X}")
+        raise CatalogImageError(
+            Reason.HEADER_CRC, f"header CRC-32 0x{v[-1]:08X} != computed 0x{crc32(buf[: HEADER_SIZE - 4]):08X}"
+        )
     if header_size != HEADER_SIZE:
         raise CatalogImageError(Reason.SIZE_MISMATCH, f"header_size {header_size}, expected {HEADER_SIZE}")
     if n < total:
@@ -186,18 +219,28 @@ def parse_image(data) -> CatalogImage:
     if n > total:
         raise CatalogImageError(Reason.SIZE_MISMATCH, f"{n} bytes, header declares {total} ({n - total} trailing)")
     params = ImageParams(*v[9:15], n_h, *v[15:20], source_id=source_id, flags=flags, created_unix=v[20])
-    sec = {name: SectionEntry(*v[21 + 3 * k: 24 + 3 * k]) for k, name in enumerate(SECTIONS)}
+    sec = {name: SectionEntry(*v[21 + 3 * k : 24 + 3 * k]) for k, name in enumerate(SECTIONS)}
     data_crc = v[33]
     _check_sections(sec, total, n_stars, n_pairs, n_h)
     for name, e in sec.items():
-        got = crc32(buf[e.offset: e.offset + e.size])
+        got = crc32(buf[e.offset : e.offset + e.size])
         if got != e.crc32:
-            raise CatalogImageError(Reason.SECTION_CRC, f"section {name}: CRC-32 0x{e.crc32:08X} != computed 0x{got:08X}")
+            raise CatalogImageError(
+                Reason.SECTION_CRC, f"section {name}: CRC-32 0x{e.crc32:08X} != computed 0x{got:08X}"
+            )
     got = crc32(buf[HEADER_SIZE:total])
     if got != data_crc:
-        raise CatalogImageError(Reason.DATA_CRC, f"data CRC-32 0x{data_crc:08X} != computed 0x{got:08X} (padding altered?)")
+        raise CatalogImageError(
+            Reason.DATA_CRC, f"data CRC-32 0x{data_crc:08X} != computed 0x{got:08X} (padding altered?)"
+        )
     img = CatalogImage(
-        version=version, n_stars=n_stars, n_pairs=n_pairs, params=params, sections=sec, total_size=total, data_crc32=data_crc,
+        version=version,
+        n_stars=n_stars,
+        n_pairs=n_pairs,
+        params=params,
+        sections=sec,
+        total_size=total,
+        data_crc32=data_crc,
         header_crc32=v[-1],
         stars=np.frombuffer(buf, STAR_DTYPE, n_stars, sec["stars"].offset),
         pairs=np.frombuffer(buf, PAIR_DTYPE, n_pairs, sec["pairs"].offset),
@@ -232,7 +275,9 @@ def _check_sections(sec: dict[str, SectionEntry], total: int, n_stars: int, n_pa
                 f"section {name} at {e.offset}+{e.size}: must be {ALIGN}-byte aligned, after byte {end} and inside {total} bytes",
             )
         if e.size != expected[name]:
-            raise CatalogImageError(Reason.SECTION_SIZE, f"section {name}: {e.size} bytes, the counts need {expected[name]}")
+            raise CatalogImageError(
+                Reason.SECTION_SIZE, f"section {name}: {e.size} bytes, the counts need {expected[name]}"
+            )
         end = e.offset + e.size
 
 
@@ -241,7 +286,9 @@ def _check_params(p: ImageParams) -> None:
         if not np.isfinite(getattr(p, name)):
             raise CatalogImageError(Reason.BAD_PARAMETERS, f"{name} = {getattr(p, name)} is not finite")
     if not 0.0 <= p.phi_min < p.phi_max <= np.pi:
-        raise CatalogImageError(Reason.BAD_PARAMETERS, f"need 0 <= phi_min < phi_max <= pi, got {p.phi_min}, {p.phi_max}")
+        raise CatalogImageError(
+            Reason.BAD_PARAMETERS, f"need 0 <= phi_min < phi_max <= pi, got {p.phi_min}, {p.phi_max}"
+        )
     if not 0.0 <= p.dphi_star < p.phi_max:
         raise CatalogImageError(Reason.BAD_PARAMETERS, f"dphi_star = {p.dphi_star} outside [0, phi_max)")
 
@@ -251,7 +298,9 @@ def _check_stars(img: CatalogImage) -> None:
     norm = np.linalg.norm(s["vec"], axis=1)
     bad = np.flatnonzero(~np.isfinite(norm) | (np.abs(norm - 1.0) > UNIT_NORM_TOL))
     if len(bad):
-        raise CatalogImageError(Reason.STAR_VECTOR, f"star row {bad[0]} (id {s['star_id'][bad[0]]}): |vec| = {norm[bad[0]]!r}")
+        raise CatalogImageError(
+            Reason.STAR_VECTOR, f"star row {bad[0]} (id {s['star_id'][bad[0]]}): |vec| = {norm[bad[0]]!r}"
+        )
     bad = np.flatnonzero(~np.isfinite(s["mag"]))
     if len(bad):
         raise CatalogImageError(Reason.STAR_VALUES, f"star row {bad[0]}: magnitude {s['mag'][bad[0]]}")
@@ -262,7 +311,9 @@ def _check_stars(img: CatalogImage) -> None:
             raise CatalogImageError(Reason.STAR_VALUES, f"star row {bad[0]}: {name} = {x[bad[0]]}")
     bad = np.flatnonzero((s["flags"] & STAR_COLOUR_SOURCE_MASK) > MAX_COLOUR_SOURCE)
     if len(bad):
-        raise CatalogImageError(Reason.STAR_VALUES, f"star row {bad[0]}: unknown colour source {s['flags'][bad[0]] & 0xFF}")
+        raise CatalogImageError(
+            Reason.STAR_VALUES, f"star row {bad[0]}: unknown colour source {s['flags'][bad[0]] & 0xFF}"
+        )
 
 
 def _check_pairs(img: CatalogImage) -> None:
@@ -270,20 +321,28 @@ def _check_pairs(img: CatalogImage) -> None:
     bad = np.flatnonzero((pr["i"] >= pr["j"]) | (pr["j"] >= img.n_stars))
     if len(bad):
         k = bad[0]
-        raise CatalogImageError(Reason.PAIR_INDEX, f"pair {k}: ({pr['i'][k]}, {pr['j'][k]}) with {img.n_stars} stars (need i < j < n)")
+        raise CatalogImageError(
+            Reason.PAIR_INDEX, f"pair {k}: ({pr['i'][k]}, {pr['j'][k]}) with {img.n_stars} stars (need i < j < n)"
+        )
     phi = pr["phi"]
     bad = np.flatnonzero(~(phi > p.phi_min) | ~(phi <= p.phi_max))
     if len(bad):
-        raise CatalogImageError(Reason.PAIR_ORDER, f"pair {bad[0]}: angle {phi[bad[0]]!r} outside ({p.phi_min}, {p.phi_max}]")
+        raise CatalogImageError(
+            Reason.PAIR_ORDER, f"pair {bad[0]}: angle {phi[bad[0]]!r} outside ({p.phi_min}, {p.phi_max}]"
+        )
     bad = np.flatnonzero(np.diff(phi) < 0)
     if len(bad):
-        raise CatalogImageError(Reason.PAIR_ORDER, f"pairs {bad[0]}, {bad[0] + 1}: angles {phi[bad[0]]!r} > {phi[bad[0] + 1]!r}")
+        raise CatalogImageError(
+            Reason.PAIR_ORDER, f"pairs {bad[0]}, {bad[0] + 1}: angles {phi[bad[0]]!r} > {phi[bad[0] + 1]!r}"
+        )
     vec = img.stars["vec"]
     d = np.linalg.norm(vec[pr["i"]] - vec[pr["j"]], axis=1)
     err = np.abs(2.0 * np.arcsin(np.clip(d / 2.0, 0.0, 1.0)) - phi)
     bad = np.flatnonzero(err > ANGLE_TOL)
     if len(bad):
-        raise CatalogImageError(Reason.PAIR_ANGLE, f"pair {bad[0]}: stored angle differs from the star vectors by {err[bad[0]]:.3g} rad")
+        raise CatalogImageError(
+            Reason.PAIR_ANGLE, f"pair {bad[0]}: stored angle differs from the star vectors by {err[bad[0]]:.3g} rad"
+        )
 
 
 def _check_hash(img: CatalogImage) -> None:
@@ -304,9 +363,12 @@ def _check_kvector(img: CatalogImage) -> None:
         return
     y = np.cos(img.pairs["phi"][::-1])
     if not (p.kv_m > 0 and p.kv_m + p.kv_q <= y[0] and p.kv_m * n + p.kv_q >= y[-1]):
-        raise CatalogImageError(Reason.KVECTOR, f"line m = {p.kv_m!r}, q = {p.kv_q!r} does not bracket the cosines [{y[0]!r}, {y[-1]!r}]")
+        raise CatalogImageError(
+            Reason.KVECTOR, f"line m = {p.kv_m!r}, q = {p.kv_q!r} does not bracket the cosines [{y[0]!r}, {y[-1]!r}]"
+        )
     want = np.searchsorted(y, p.kv_m * np.arange(1, n + 1) + p.kv_q, side="right")
     bad = np.flatnonzero(img.kvector != want)
     if len(bad):
-        raise CatalogImageError(Reason.KVECTOR, f"k[{bad[0]}] = {img.kvector[bad[0]]}, the pair table gives {want[bad[0]]}")
-
+        raise CatalogImageError(
+            Reason.KVECTOR, f"k[{bad[0]}] = {img.kvector[bad[0]]}, the pair table gives {want[bad[0]]}"
+        )

@@ -540,8 +540,9 @@ class XferStatus:
     missing: tuple[tuple[int, int], ...] = ()
 
     def pack(self) -> bytes:
-        head = struct.pack("<BBIIIIH", self.slot, self.state, self.length, self.crc32,
-                           self.contiguous, self.received, self.n_missing)
+        head = struct.pack(
+            "<BBIIIIH", self.slot, self.state, self.length, self.crc32, self.contiguous, self.received, self.n_missing
+        )
         shown = self.missing[:MAX_STATUS_RANGES]
         return head + b"".join(struct.pack("<II", o, n) for o, n in shown)
 

@@ -25,38 +25,85 @@ def _struct(fields: list[tuple[str, str, int]], itemsize: int) -> np.dtype:
     return np.dtype({"names": list(names), "formats": list(formats), "offsets": list(offsets), "itemsize": itemsize})
 
 
-HARDWARE = _struct([
-    ("unused", "12u1", 0x00), ("detector_temp_raw", "<i2", 0x0C), ("processor_temp_raw", "<u2", 0x0E),
-    ("status", "<u4", 0x10), ("vdd_core_setpoint", "u1", 0x14), ("mpu_setpoint", "u1", 0x15),
-    ("reserved", "2u1", 0x16), ("dark_offsets", "<16u2", 0x18),
-], 56)
+HARDWARE = _struct(
+    [
+        ("unused", "12u1", 0x00),
+        ("detector_temp_raw", "<i2", 0x0C),
+        ("processor_temp_raw", "<u2", 0x0E),
+        ("status", "<u4", 0x10),
+        ("vdd_core_setpoint", "u1", 0x14),
+        ("mpu_setpoint", "u1", 0x15),
+        ("reserved", "2u1", 0x16),
+        ("dark_offsets", "<16u2", 0x18),
+    ],
+    56,
+)
 
-STATISTICS = _struct([
-    ("good_rows", "<2u2", 0), ("mean_1", "<8f4", 4), ("mean_2", "<8f4", 36), ("variation_1", "<8f4", 68),
-    ("variation_2", "<8f4", 100), ("temporal_variation", "<8f4", 132), ("spare", "<2u4", 164),
-], 172)
+STATISTICS = _struct(
+    [
+        ("good_rows", "<2u2", 0),
+        ("mean_1", "<8f4", 4),
+        ("mean_2", "<8f4", 36),
+        ("variation_1", "<8f4", 68),
+        ("variation_2", "<8f4", 100),
+        ("temporal_variation", "<8f4", 132),
+        ("spare", "<2u4", 164),
+    ],
+    172,
+)
 
-IMAGE = _struct([
-    ("initialized", "<u4", 0), ("return_code", "<i4", 4), ("lit_pixels", "<i4", 8), ("peak_count", "<u4", 12),
-    ("exposure_error", "<f8", 16), ("capture_time", "<f8", 24), ("peaks", "<(30,3)i4", 32),
-], 392)
+IMAGE = _struct(
+    [
+        ("initialized", "<u4", 0),
+        ("return_code", "<i4", 4),
+        ("lit_pixels", "<i4", 8),
+        ("peak_count", "<u4", 12),
+        ("exposure_error", "<f8", 16),
+        ("capture_time", "<f8", 24),
+        ("peaks", "<(30,3)i4", 32),
+    ],
+    392,
+)
 
-ERS = _struct([
-    ("initialized", "<u4", 0), ("return_code", "<i4", 4), ("star_mapping", "<10i4", 8),
-    ("fit_residual", "<f8", 48), ("omega_covariance", "<6f8", 56),
-], 104)
+ERS = _struct(
+    [
+        ("initialized", "<u4", 0),
+        ("return_code", "<i4", 4),
+        ("star_mapping", "<10i4", 8),
+        ("fit_residual", "<f8", 48),
+        ("omega_covariance", "<6f8", 56),
+    ],
+    104,
+)
 
-CENTROID = _struct([
-    ("initialized", "<u4", 0), ("return_code", "<i4", 4), ("good_stars", "<i4", 8),
-    ("centroids", "<(10,2)f8", 16), ("unit_vectors", "<(10,3)f8", 176),
-], 416)
+CENTROID = _struct(
+    [
+        ("initialized", "<u4", 0),
+        ("return_code", "<i4", 4),
+        ("good_stars", "<i4", 8),
+        ("centroids", "<(10,2)f8", 16),
+        ("unit_vectors", "<(10,3)f8", 176),
+    ],
+    416,
+)
 
-MATCHING = _struct([
-    ("initialized", "<u4", 0), ("return_code", "<i4", 4), ("triangle_tests", "<i4", 8),
-    ("matching_error", "<f8", 16), ("confidence", "<f8", 24), ("star_tests", "<i4", 32),
-    ("set_tests", "<i4", 36), ("consensus_size", "<i4", 40), ("consensus_rms", "<f8", 48),
-    ("matched_stars", "<10i4", 56), ("quaternion", "<4f8", 96), ("omega_covariance", "<6f8", 128),
-], 176)
+MATCHING = _struct(
+    [
+        ("initialized", "<u4", 0),
+        ("return_code", "<i4", 4),
+        ("triangle_tests", "<i4", 8),
+        ("matching_error", "<f8", 16),
+        ("confidence", "<f8", 24),
+        ("star_tests", "<i4", 32),
+        ("set_tests", "<i4", 36),
+        ("consensus_size", "<i4", 40),
+        ("consensus_rms", "<f8", 48),
+        ("matched_stars", "<10i4", 56),
+        ("quaternion", "<4f8", 96),
+        ("omega_covariance", "<6f8", 128),
+    ],
+    176,
+)
 
 EXT_MAX_STARS = 31
 
@@ -67,11 +114,21 @@ BODIES = ("mercury", "venus", "mars", "jupiter", "saturn", "uranus", "neptune", 
 #: DN, colour ratios rg = S_r/S_g and bg = S_b/S_g with 1-sigma, matched catalog id (-1: none),
 #: residual to the matched catalog direction (rad), flags (bit 0 matched, bit 1 saturated,
 #: bit 2 on a predicted planet or the moon, bits 8-11 which: 1 + index into :data:`BODIES`).
-EXT_STAR = _struct([
-    ("x", "<f4", 0), ("y", "<f4", 4), ("flux", "<f4", 8), ("rg", "<f4", 12), ("bg", "<f4", 16),
-    ("rg_sigma", "<f4", 20), ("bg_sigma", "<f4", 24), ("catalog_id", "<i4", 28),
-    ("residual", "<f4", 32), ("flags", "<u4", 36),
-], 40)
+EXT_STAR = _struct(
+    [
+        ("x", "<f4", 0),
+        ("y", "<f4", 4),
+        ("flux", "<f4", 8),
+        ("rg", "<f4", 12),
+        ("bg", "<f4", 16),
+        ("rg_sigma", "<f4", 20),
+        ("bg_sigma", "<f4", 24),
+        ("catalog_id", "<i4", 28),
+        ("residual", "<f4", 32),
+        ("flags", "<u4", 36),
+    ],
+    40,
+)
 
 EXT_MAGIC = 0x31545343  # b"CST1"
 EXT_VERSION = 2  #: 2: optics block added, EXT_MAX_STARS 32 -> 31 (same total length)
@@ -95,31 +152,63 @@ PSF_MEASURED = 0x04  #: ``psf_sigma`` was measured on this frame (else: the sett
 #: ``k1`` / ``k1_sigma`` radial distortion (NaN sigma: held), ``optics_rms`` residual of that fit
 #: (px) over ``optics_stars`` stars, ``optics_flags`` (OPTICS_*, PSF_MEASURED), ``n_planets``
 #: detections labelled as planets or the moon, ``focal_scale`` the search step that solved.
-EXTENSION = _struct([
-    ("magic", "<u4", 0), ("version", "<u2", 4), ("n_detected", "<u2", 6), ("n_matched", "<u2", 8),
-    ("n_reported", "<u2", 10), ("solve_time", "<f4", 12), ("quaternion", "<4f8", 16),
-    ("sigma", "<3f8", 48), ("catalog_crc32", "<u4", 72), ("frame_crc32", "<u4", 76),
-    ("colour_rms", "<f4", 80), ("residual_rms", "<f4", 84), ("stage_times", "<6f4", 88),
-    ("method", "u1", 112), ("spare", "15u1", 113),
-    ("psf_sigma", "<f4", 128), ("focal_px", "<f4", 132), ("focal_sigma", "<f4", 136), ("k1", "<f4", 140),
-    ("k1_sigma", "<f4", 144), ("optics_rms", "<f4", 148), ("optics_stars", "<u2", 152),
-    ("optics_flags", "u1", 154), ("n_planets", "u1", 155), ("focal_scale", "<f4", 156), ("spare2", "8u1", 160),
-    ("stars", np.dtype((EXT_STAR, (EXT_MAX_STARS,))), 168),
-    ("reason", f"S{EXT_REASON_BYTES}", 168 + 40 * EXT_MAX_STARS),
-], 168 + 40 * EXT_MAX_STARS + EXT_REASON_BYTES)
+EXTENSION = _struct(
+    [
+        ("magic", "<u4", 0),
+        ("version", "<u2", 4),
+        ("n_detected", "<u2", 6),
+        ("n_matched", "<u2", 8),
+        ("n_reported", "<u2", 10),
+        ("solve_time", "<f4", 12),
+        ("quaternion", "<4f8", 16),
+        ("sigma", "<3f8", 48),
+        ("catalog_crc32", "<u4", 72),
+        ("frame_crc32", "<u4", 76),
+        ("colour_rms", "<f4", 80),
+        ("residual_rms", "<f4", 84),
+        ("stage_times", "<6f4", 88),
+        ("method", "u1", 112),
+        ("spare", "15u1", 113),
+        ("psf_sigma", "<f4", 128),
+        ("focal_px", "<f4", 132),
+        ("focal_sigma", "<f4", 136),
+        ("k1", "<f4", 140),
+        ("k1_sigma", "<f4", 144),
+        ("optics_rms", "<f4", 148),
+        ("optics_stars", "<u2", 152),
+        ("optics_flags", "u1", 154),
+        ("n_planets", "u1", 155),
+        ("focal_scale", "<f4", 156),
+        ("spare2", "8u1", 160),
+        ("stars", np.dtype((EXT_STAR, (EXT_MAX_STARS,))), 168),
+        ("reason", f"S{EXT_REASON_BYTES}", 168 + 40 * EXT_MAX_STARS),
+    ],
+    168 + 40 * EXT_MAX_STARS + EXT_REASON_BYTES,
+)
 
 STANDARD_LENGTH = 2616  #: 0x0A38, the length COSMOS waits for at EDAC 0x004C
 EXT_OFFSET = STANDARD_LENGTH
 TOTAL_LENGTH = EXT_OFFSET + EXTENSION.itemsize  #: 4120 bytes
 
-RESULT = _struct([
-    ("sequence", "<u4", 0x000), ("return_code", "<u4", 0x004), ("quaternion", "<4f8", 0x008),
-    ("omega", "<3f8", 0x028), ("epoch", "<f8", 0x040), ("hardware", HARDWARE, 0x048),
-    ("statistics", STATISTICS, 0x080), ("spare_12c", "<u4", 0x12C),
-    ("image", np.dtype((IMAGE, (2,))), 0x130), ("ers", ERS, 0x440),
-    ("centroid", np.dtype((CENTROID, (2,))), 0x4A8), ("matching", np.dtype((MATCHING, (2,))), 0x7E8),
-    ("reserved_948", "240u1", 0x948), ("ext", EXTENSION, EXT_OFFSET),
-], TOTAL_LENGTH)
+RESULT = _struct(
+    [
+        ("sequence", "<u4", 0x000),
+        ("return_code", "<u4", 0x004),
+        ("quaternion", "<4f8", 0x008),
+        ("omega", "<3f8", 0x028),
+        ("epoch", "<f8", 0x040),
+        ("hardware", HARDWARE, 0x048),
+        ("statistics", STATISTICS, 0x080),
+        ("spare_12c", "<u4", 0x12C),
+        ("image", np.dtype((IMAGE, (2,))), 0x130),
+        ("ers", ERS, 0x440),
+        ("centroid", np.dtype((CENTROID, (2,))), 0x4A8),
+        ("matching", np.dtype((MATCHING, (2,))), 0x7E8),
+        ("reserved_948", "240u1", 0x948),
+        ("ext", EXTENSION, EXT_OFFSET),
+    ],
+    TOTAL_LENGTH,
+)
 
 
 class ReturnBits(IntEnum):
@@ -164,9 +253,18 @@ def status_of(return_code: int) -> Status | int:
 #: COMBINATION section mask -> (result address, length). 0x0800 (self-test) is not emulated;
 #: 0x1000 (ours) returns the extension region.
 SECTIONS: dict[int, tuple[int, int]] = {
-    0x0001: (0x000, 4), 0x0002: (0x004, 4), 0x0004: (0x008, 32), 0x0008: (0x028, 24),
-    0x0010: (0x040, 8), 0x0020: (0x048, 56), 0x0040: (0x080, 172), 0x0080: (0x130, 784),
-    0x0100: (0x440, 104), 0x0200: (0x4A8, 832), 0x0400: (0x7E8, 352), 0x1000: (EXT_OFFSET, EXTENSION.itemsize),
+    0x0001: (0x000, 4),
+    0x0002: (0x004, 4),
+    0x0004: (0x008, 32),
+    0x0008: (0x028, 24),
+    0x0010: (0x040, 8),
+    0x0020: (0x048, 56),
+    0x0040: (0x080, 172),
+    0x0080: (0x130, 784),
+    0x0100: (0x440, 104),
+    0x0200: (0x4A8, 832),
+    0x0400: (0x7E8, 352),
+    0x1000: (EXT_OFFSET, EXTENSION.itemsize),
 }
 SELF_TEST_SECTION = 0x0800
 
@@ -211,4 +309,3 @@ def parse(data: bytes) -> np.ndarray:
         raise ValueError(f"result of {len(data)} bytes; expected {STANDARD_LENGTH} or {TOTAL_LENGTH}")
     buf = bytes(data) + bytes(TOTAL_LENGTH - len(data))
     return np.frombuffer(buf, dtype=RESULT)[0].copy()
-

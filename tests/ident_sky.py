@@ -15,8 +15,15 @@ def random_catalog(n=1600, seed=0, phi_max_deg=15.0, phi_min_deg=0.015, colour=T
     v /= np.linalg.norm(v, axis=1)[:, None]
     rg = rng.uniform(0.3, 1.3, n) if colour else None
     bg = rng.uniform(0.3, 1.4, n) if colour else None
-    return OnboardCatalog.build(np.arange(n) + 10000, v, rng.uniform(0.0, 5.0, n), rg, bg,
-                               phi_min=np.radians(phi_min_deg), phi_max=np.radians(phi_max_deg))
+    return OnboardCatalog.build(
+        np.arange(n) + 10000,
+        v,
+        rng.uniform(0.0, 5.0, n),
+        rg,
+        bg,
+        phi_min=np.radians(phi_min_deg),
+        phi_max=np.radians(phi_max_deg),
+    )
 
 
 def random_attitude(rng):

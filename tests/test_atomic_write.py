@@ -13,6 +13,7 @@ from ground.cli import main
 
 def _fail_half_way(monkeypatch):
     """Make every ``Path.write_bytes`` write half its data, then fail as a full disk does."""
+
     def write_half(self, data):
         with open(self, "wb") as fh:
             fh.write(data[: len(data) // 2])
@@ -69,10 +70,15 @@ def test_an_interrupted_frame_render_keeps_the_previous_frame_sidecar_and_truth(
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # no partial or temporary file
 
 
-@pytest.mark.parametrize("argv", [
-    ["--log", "{d}/missing/log.jsonl", "ping"], ["ping", "--log", "{d}/missing/log.jsonl"],
-    ["catalog", "build", "-o", "{d}/missing/cat.img"], ["frame", "render", "--out", "{d}"],
-])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--log", "{d}/missing/log.jsonl", "ping"],
+        ["ping", "--log", "{d}/missing/log.jsonl"],
+        ["catalog", "build", "-o", "{d}/missing/cat.img"],
+        ["frame", "render", "--out", "{d}"],
+    ],
+)
 def test_output_paths_are_checked_before_any_work(argv, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_:
         main(["--port", "/dev/no-such-port", *[a.format(d=tmp_path) for a in argv]])

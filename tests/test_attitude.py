@@ -5,8 +5,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from firmware_model.frames import matrix_to_quat, quat_to_matrix
-from firmware_model.ident.attitude import (attitude_covariance, davenport_q, quat_matrix, residual_angles,
-                                           solve_attitude, svd_attitude)
+from firmware_model.ident.attitude import (
+    attitude_covariance,
+    davenport_q,
+    quat_matrix,
+    residual_angles,
+    solve_attitude,
+    svd_attitude,
+)
 
 
 def star_set(rng, n, radius=0.12):

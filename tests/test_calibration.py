@@ -19,7 +19,9 @@ def _observations(n_frames=8, n_stars=40, noise_px=0.0, seed=0):
         x = rng.uniform(0, TRUE.width - 1, n_stars)
         y = rng.uniform(0, TRUE.height - 1, n_stars)
         v_icrs = TRUE.pixel_to_vector(x, y) @ a
-        frames.append(StarObservations(x + rng.normal(0, noise_px, n_stars), y + rng.normal(0, noise_px, n_stars), v_icrs))
+        frames.append(
+            StarObservations(x + rng.normal(0, noise_px, n_stars), y + rng.normal(0, noise_px, n_stars), v_icrs)
+        )
         atts.append(a)
     return frames, atts
 
@@ -84,7 +86,9 @@ def test_end_to_end_from_rendered_frames():
             d = np.hypot(out.x - t["x"], out.y - t["y"])
             j = int(np.argmin(d))
             if d[j] < 1.0 and out.trusted[j]:
-                ids.append(t["id"] - 1); xs.append(out.x[j]); ys.append(out.y[j])
+                ids.append(t["id"] - 1)
+                xs.append(out.x[j])
+                ys.append(out.y[j])
         frames.append(StarObservations(xs, ys, stars.vectors[ids]))
     res = calibrate(frames, CameraModel.from_fov(640, 480, 10.0), fit=("f", "k1", "p1", "p2"))
     assert res.residual_rms_px < 0.06

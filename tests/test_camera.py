@@ -80,8 +80,12 @@ from hypothesis import given, settings, strategies as st  # noqa: E402
 
 @settings(max_examples=60, deadline=None)
 @given(
-    k1=st.floats(-0.5, 0.5), k2=st.floats(-1.0, 1.0), p1=st.floats(-2e-3, 2e-3), p2=st.floats(-2e-3, 2e-3),
-    x=st.floats(-0.5, 2591.5), y=st.floats(-0.5, 1943.5),
+    k1=st.floats(-0.5, 0.5),
+    k2=st.floats(-1.0, 1.0),
+    p1=st.floats(-2e-3, 2e-3),
+    p2=st.floats(-2e-3, 2e-3),
+    x=st.floats(-0.5, 2591.5),
+    y=st.floats(-0.5, 1943.5),
 )
 def test_inverse_property(k1, k2, p1, p2, x, y):
     cam = CameraModel.from_fov(2592, 1944, 7.5, k1=k1, k2=k2, p1=p1, p2=p2)

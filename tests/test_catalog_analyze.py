@@ -30,10 +30,16 @@ def _brute_ambiguous(cat, sphi, dstar, srg=None, sbg=None):
         d2 = ((cat.pair_phi[p] - cat.pair_phi[q]) / sphi) ** 2
         if srg is not None:
             i, j, k, l = cat.pair_i[p], cat.pair_j[p], cat.pair_i[q], cat.pair_j[q]
+
             def c(a, b, c_, d):
-                t = ((cat.rg[a] - cat.rg[c_]) / srg) ** 2 + ((cat.rg[b] - cat.rg[d]) / srg) ** 2 \
-                    + ((cat.bg[a] - cat.bg[c_]) / sbg) ** 2 + ((cat.bg[b] - cat.bg[d]) / sbg) ** 2
+                t = (
+                    ((cat.rg[a] - cat.rg[c_]) / srg) ** 2
+                    + ((cat.rg[b] - cat.rg[d]) / srg) ** 2
+                    + ((cat.bg[a] - cat.bg[c_]) / sbg) ** 2
+                    + ((cat.bg[b] - cat.bg[d]) / sbg) ** 2
+                )
                 return 0.0 if np.isnan(t) else t
+
             d2 += min(c(i, j, k, l), c(i, j, l, k))
         if d2 < dstar**2:
             amb[p] = amb[q] = True
@@ -54,6 +60,7 @@ def test_spiral_is_uniform():
     assert np.allclose(np.linalg.norm(pts, axis=1), 1.0)
     assert np.linalg.norm(pts.mean(axis=0)) < 0.01
     from scipy.spatial import cKDTree
+
     d, _ = cKDTree(pts).query(pts, k=2)
     spacing = np.sqrt(4 * np.pi / 2000)
     assert 0.8 * spacing < np.median(d[:, 1]) < 1.2 * spacing and d[:, 1].min() > 0.5 * spacing

@@ -74,8 +74,20 @@ def test_cli_refuses_impossible_design(tmp_path, capsys):
 
 
 def test_cli_analyze_outputs(tmp_path, capsys):
-    args = ["catalog", "analyze", "--m-thresh", "3.5", "--theta-fov", "10", "--views", "3000",
-            "--json-out", str(tmp_path / "r.json"), "--plot", str(tmp_path / "v.png")]
+    args = [
+        "catalog",
+        "analyze",
+        "--m-thresh",
+        "3.5",
+        "--theta-fov",
+        "10",
+        "--views",
+        "3000",
+        "--json-out",
+        str(tmp_path / "r.json"),
+        "--plot",
+        str(tmp_path / "v.png"),
+    ]
     assert cli_main(["--json", *args]) == 0
     res = json.loads((tmp_path / "r.json").read_text())
     assert res["n_views"] == 3000 and 0 <= res["ambiguous_pairs_pct"] <= 100

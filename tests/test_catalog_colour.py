@@ -4,8 +4,21 @@ import numpy as np
 import pytest
 
 from ground.catalog.colour import (
-    ColourDataError, ColourModel, ColourSource, MKType, QETable, blackbody_ratios, default_qe, load_qe_csv,
-    match_template, parse_mk, parse_template_name, photon_signals, planck_lambda, read_sed, shipped_template_table,
+    ColourDataError,
+    ColourModel,
+    ColourSource,
+    MKType,
+    QETable,
+    blackbody_ratios,
+    default_qe,
+    load_qe_csv,
+    match_template,
+    parse_mk,
+    parse_template_name,
+    photon_signals,
+    planck_lambda,
+    read_sed,
+    shipped_template_table,
 )
 
 HC_OVER_K_NM = 1.438776877e7  # h c / k in nm K
@@ -20,9 +33,11 @@ def _box_qe():
 
 def _photon_band(t, lo, hi):
     """Analytic int_lo^hi lambda B_lambda dlambda up to a constant: int x^2/(e^x - 1) dx, x = hc/(lambda k T)."""
+
     def antideriv(x):
         n = np.arange(1, 4000)[:, None]
         return -np.sum(np.exp(-n * x) * (x**2 / n + 2 * x / n**2 + 2 / n**3), axis=0)
+
     x_lo, x_hi = HC_OVER_K_NM / (hi * t), HC_OVER_K_NM / (lo * t)
     return antideriv(np.array([x_hi]))[0] - antideriv(np.array([x_lo]))[0]
 
@@ -83,11 +98,23 @@ def test_sed_reader_errors(tmp_path):
         read_sed(p)
 
 
-@pytest.mark.parametrize("text, temp, lum", [
-    ("K1.5IIIFe-0.5", 51.5, 3), ("M1-M2Ia-Iab", 61.0, 1), ("A0Va", 20.0, 5), ("B2III", 12.0, 3),
-    ("A1V+DA", 21.0, 5), ("kA2hA5mA7V", 25.0, 5), ("gG8", 48.0, 3), ("K0", 50.0, None), ("B7Vne", 17.0, 5),
-    ("S3.5/2", 63.5, None), ("G8III-IV", 48.0, 3), ("sgK0", 50.0, 4),
-])
+@pytest.mark.parametrize(
+    "text, temp, lum",
+    [
+        ("K1.5IIIFe-0.5", 51.5, 3),
+        ("M1-M2Ia-Iab", 61.0, 1),
+        ("A0Va", 20.0, 5),
+        ("B2III", 12.0, 3),
+        ("A1V+DA", 21.0, 5),
+        ("kA2hA5mA7V", 25.0, 5),
+        ("gG8", 48.0, 3),
+        ("K0", 50.0, None),
+        ("B7Vne", 17.0, 5),
+        ("S3.5/2", 63.5, None),
+        ("G8III-IV", 48.0, 3),
+        ("sgK0", 50.0, 4),
+    ],
+)
 def test_parse_mk(text, temp, lum):
     assert parse_mk(text) == MKType(temp, lum)
 
@@ -118,8 +145,17 @@ def test_shipped_model_works_without_spectra(tmp_path):
     vi = np.array([np.nan, np.nan, 0.7, np.nan, np.nan, 2.5, 0.7, np.nan, np.nan])
     rg, bg, src, tmpl = model.star_ratios(["A0V", "K0", "", "", "", "", "", "", ""], bv, vi)
     s = ColourSource
-    assert list(src) == [s.PICKLES_MK, s.BV_LOOKUP, s.BV_LOOKUP, s.BLACKBODY, s.NONE, s.VI_LOOKUP, s.BV_LOOKUP,
-                         s.BV_LOOKUP, s.NONE]
+    assert list(src) == [
+        s.PICKLES_MK,
+        s.BV_LOOKUP,
+        s.BV_LOOKUP,
+        s.BLACKBODY,
+        s.NONE,
+        s.VI_LOOKUP,
+        s.BV_LOOKUP,
+        s.BV_LOOKUP,
+        s.NONE,
+    ]
     assert tmpl[0] == "a0v" and np.isnan(rg[4]) and np.isnan(bg[4]) and np.isnan(rg[8])
     assert rg[1] > rg[2] > rg[0] and bg[0] > bg[2] > bg[1]  # redder star: more red, less blue
     assert (rg[7], bg[7]) == model.bv_lookup(model.bv_lookup.lo)  # hot star held at the blue end

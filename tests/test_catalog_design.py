@@ -16,16 +16,19 @@ def test_defaults_and_derived_quantities():
     assert d.dphi_star == pytest.approx(d.sigma_phi * d.delta_star / 2)  # eq. 9
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"theta_fov_deg": -1.0}, "theta_fov_deg = -1.0: must be in"),
-    ({"phi_min_deg": 15.0}, "phi_min = 15 deg must be below phi_max = 15 deg"),
-    ({"phi_min_deg": 1.0, "phi_max_deg": 0.5}, "phi_min = 1 deg must be below phi_max = 0.5 deg"),
-    ({"sigma_pix": 0.0}, "sigma_pix = 0.0: must be > 0"),
-    ({"p_correct": 1.0}, "p_correct = 1.0"),
-    ({"n_h": 0}, "n_h = 0"),
-    ({"source": "sky2000"}, "source = 'sky2000'"),
-    ({"sensor_width_px": 10.5}, "sensor_width_px = 10.5"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"theta_fov_deg": -1.0}, "theta_fov_deg = -1.0: must be in"),
+        ({"phi_min_deg": 15.0}, "phi_min = 15 deg must be below phi_max = 15 deg"),
+        ({"phi_min_deg": 1.0, "phi_max_deg": 0.5}, "phi_min = 1 deg must be below phi_max = 0.5 deg"),
+        ({"sigma_pix": 0.0}, "sigma_pix = 0.0: must be > 0"),
+        ({"p_correct": 1.0}, "p_correct = 1.0"),
+        ({"n_h": 0}, "n_h = 0"),
+        ({"source": "sky2000"}, "source = 'sky2000'"),
+        ({"sensor_width_px": 10.5}, "sensor_width_px = 10.5"),
+    ],
+)
 def test_impossible_parameters_are_named(kwargs, match):
     with pytest.raises(DesignError, match=match):
         CatalogDesign(**kwargs)

@@ -9,7 +9,13 @@ from firmware_model.catalog_image_io import catalog_from_image, catalog_slot_han
 from firmware_model.frames import radec_to_vec
 from firmware_model.onboard_catalog import OnboardCatalog
 from protocol.catalog_image import (
-    HEADER_SIZE, STAR_DTYPE, CatalogImageError, Reason, crc32, pack_image, parse_image,
+    HEADER_SIZE,
+    STAR_DTYPE,
+    CatalogImageError,
+    Reason,
+    crc32,
+    pack_image,
+    parse_image,
 )
 from protocol.commands import SlotRejected
 
@@ -20,8 +26,15 @@ def small_catalog():
     n = 40
     ra, dec = rng.uniform(0, 0.6, n), rng.uniform(-0.3, 0.3, n)
     return OnboardCatalog.build(
-        np.arange(100, 100 + n), radec_to_vec(ra, dec), rng.uniform(1, 5, n), rng.uniform(0.7, 1.3, n),
-        rng.uniform(0.6, 1.1, n), phi_min=1e-3, phi_max=0.3, n_h=32, dphi_star=2e-4,
+        np.arange(100, 100 + n),
+        radec_to_vec(ra, dec),
+        rng.uniform(1, 5, n),
+        rng.uniform(0.7, 1.3, n),
+        rng.uniform(0.6, 1.1, n),
+        phi_min=1e-3,
+        phi_max=0.3,
+        n_h=32,
+        dphi_star=2e-4,
         meta={"epoch": 2025.0, "source": "hipparcos", "colour_source": np.full(n, 2)},
     )
 
@@ -37,7 +50,7 @@ def _arrays(data):
 
 
 def _resign_header(raw: bytearray) -> bytes:
-    raw[HEADER_SIZE - 4:HEADER_SIZE] = struct.pack("<I", crc32(raw[:HEADER_SIZE - 4]))
+    raw[HEADER_SIZE - 4 : HEADER_SIZE] = struct.pack("<I", crc32(raw[: HEADER_SIZE - 4]))
     return bytes(raw)
 
 
@@ -136,23 +149,26 @@ def _set(arr, field, k, value):
     arr[field][k] = value
 
 
-@pytest.mark.parametrize("mutate, reason", [
-    (lambda p, s, pr, h, k: _set(pr, "j", 0, 10_000), Reason.PAIR_INDEX),
-    (lambda p, s, pr, h, k: _set(pr, "i", 0, pr["j"][0]), Reason.PAIR_INDEX),
-    (lambda p, s, pr, h, k: pr.__setitem__(slice(0, 2), pr[1::-1].copy()), Reason.PAIR_ORDER),
-    (lambda p, s, pr, h, k: _set(pr, "phi", len(pr) - 1, 0.31), Reason.PAIR_ORDER),
-    (lambda p, s, pr, h, k: _nudge_angle(pr), Reason.PAIR_ANGLE),
-    (lambda p, s, pr, h, k: s["vec"].__setitem__(3, s["vec"][3] * 1.001), Reason.STAR_VECTOR),
-    (lambda p, s, pr, h, k: s["vec"].__setitem__(3, np.nan), Reason.STAR_VECTOR),
-    (lambda p, s, pr, h, k: _set(s, "mag", 2, np.inf), Reason.STAR_VALUES),
-    (lambda p, s, pr, h, k: _set(s, "rg", 2, -1.0), Reason.STAR_VALUES),
-    (lambda p, s, pr, h, k: _set(s, "flags", 2, 9), Reason.STAR_VALUES),
-    (lambda p, s, pr, h, k: h.__setitem__(5, h[5] + 1), Reason.HASH_INDEX),
-    (lambda p, s, pr, h, k: k.__setitem__(7, k[7] + 1), Reason.KVECTOR),
-    (lambda p, s, pr, h, k: setattr(p, "kv_q", p.kv_q + 1.0), Reason.KVECTOR),
-    (lambda p, s, pr, h, k: setattr(p, "phi_min", p.phi_max), Reason.BAD_PARAMETERS),
-    (lambda p, s, pr, h, k: setattr(p, "epoch", float("nan")), Reason.BAD_PARAMETERS),
-])
+@pytest.mark.parametrize(
+    "mutate, reason",
+    [
+        (lambda p, s, pr, h, k: _set(pr, "j", 0, 10_000), Reason.PAIR_INDEX),
+        (lambda p, s, pr, h, k: _set(pr, "i", 0, pr["j"][0]), Reason.PAIR_INDEX),
+        (lambda p, s, pr, h, k: pr.__setitem__(slice(0, 2), pr[1::-1].copy()), Reason.PAIR_ORDER),
+        (lambda p, s, pr, h, k: _set(pr, "phi", len(pr) - 1, 0.31), Reason.PAIR_ORDER),
+        (lambda p, s, pr, h, k: _nudge_angle(pr), Reason.PAIR_ANGLE),
+        (lambda p, s, pr, h, k: s["vec"].__setitem__(3, s["vec"][3] * 1.001), Reason.STAR_VECTOR),
+        (lambda p, s, pr, h, k: s["vec"].__setitem__(3, np.nan), Reason.STAR_VECTOR),
+        (lambda p, s, pr, h, k: _set(s, "mag", 2, np.inf), Reason.STAR_VALUES),
+        (lambda p, s, pr, h, k: _set(s, "rg", 2, -1.0), Reason.STAR_VALUES),
+        (lambda p, s, pr, h, k: _set(s, "flags", 2, 9), Reason.STAR_VALUES),
+        (lambda p, s, pr, h, k: h.__setitem__(5, h[5] + 1), Reason.HASH_INDEX),
+        (lambda p, s, pr, h, k: k.__setitem__(7, k[7] + 1), Reason.KVECTOR),
+        (lambda p, s, pr, h, k: setattr(p, "kv_q", p.kv_q + 1.0), Reason.KVECTOR),
+        (lambda p, s, pr, h, k: setattr(p, "phi_min", p.phi_max), Reason.BAD_PARAMETERS),
+        (lambda p, s, pr, h, k: setattr(p, "epoch", float("nan")), Reason.BAD_PARAMETERS),
+    ],
+)
 def test_inconsistent_content_with_valid_crcs_refused(image, mutate, reason):
     assert _code(_repack(image, mutate)) == reason
 

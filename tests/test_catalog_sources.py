@@ -4,15 +4,26 @@ import numpy as np
 import pytest
 
 from ground.catalog.sources import (
-    MAS, CatalogFormatError, StarTable, hp_to_v, hp_to_v_coefficients, merge_close_doubles, read_bsc5,
-    read_hipparcos, select_stars,
+    MAS,
+    CatalogFormatError,
+    StarTable,
+    hp_to_v,
+    hp_to_v_coefficients,
+    merge_close_doubles,
+    read_bsc5,
+    read_hipparcos,
+    select_stars,
 )
 
 # Real BSC5 lines (HR 3 = 30 Psc, a variable K0 giant; HR 92 = a nova entry without position/V)
-BSC5_HR3 = ("   3 33    PscBD-06 6357     281285721002I         Var?     000013.0-061601000520.1-054227 93.75-65.93 4.61  "
-            "+1.04 +0.89 +0.54   K0IIIbCN-0.5       -0.009+0.089 +.014-006SB1O < 17  2.5   0.0     3*")
-BSC5_SIRIUS = ("2491  9Alp CMaBD-16 1591  48915151881 257I   5423           064044.6-163444064508.9-164258227.22-08.88-1.46   "
-               "0.00 -0.05 -0.03   A1Vm               -0.553-1.205 +.375-008SBO    13 10.3  11.2AB   4*")
+BSC5_HR3 = (
+    "   3 33    PscBD-06 6357     281285721002I         Var?     000013.0-061601000520.1-054227 93.75-65.93 4.61  "
+    "+1.04 +0.89 +0.54   K0IIIbCN-0.5       -0.009+0.089 +.014-006SB1O < 17  2.5   0.0     3*"
+)
+BSC5_SIRIUS = (
+    "2491  9Alp CMaBD-16 1591  48915151881 257I   5423           064044.6-163444064508.9-164258227.22-08.88-1.46   "
+    "0.00 -0.05 -0.03   A1Vm               -0.553-1.205 +.375-008SBO    13 10.3  11.2AB   4*"
+)
 BSC5_NOVA = "  92          BD+61 2604  2245 109       ".ljust(160)
 
 
@@ -33,13 +44,16 @@ def test_bsc5_reader_fields_and_nova_dropped(tmp_path):
     assert t.pm_ra[1] == pytest.approx(-0.553 * 1000 * MAS)
 
 
-@pytest.mark.parametrize("mutate, match", [
-    (lambda s: s[:102] + " 4.x1" + s[107:], r"line 1: Vmag \(bytes 103-107\) is not a number: '4.x1'"),
-    (lambda s: s[:120], r"line 1: 120 characters"),
-    (lambda s: s[:83] + "*" + s[84:], r"line 1: Dec sign \(byte 84\) is '\*'"),
-    (lambda s: s[:75] + "25" + s[77:], r"line 1: position out of range"),
-    (lambda s: "    " + s[4:], r"line 1: HR number"),
-])
+@pytest.mark.parametrize(
+    "mutate, match",
+    [
+        (lambda s: s[:102] + " 4.x1" + s[107:], r"line 1: Vmag \(bytes 103-107\) is not a number: '4.x1'"),
+        (lambda s: s[:120], r"line 1: 120 characters"),
+        (lambda s: s[:83] + "*" + s[84:], r"line 1: Dec sign \(byte 84\) is '\*'"),
+        (lambda s: s[:75] + "25" + s[77:], r"line 1: position out of range"),
+        (lambda s: "    " + s[4:], r"line 1: HR number"),
+    ],
+)
 def test_bsc5_malformed_lines_name_file_line_and_value(tmp_path, mutate, match):
     path = _write(tmp_path, "bad.dat", [mutate(BSC5_HR3)])
     with pytest.raises(CatalogFormatError, match=match) as info:
@@ -48,7 +62,12 @@ def test_bsc5_malformed_lines_name_file_line_and_value(tmp_path, mutate, match):
 
 
 def _hip_line(hip=32349, ra=1.7678, dec=-0.2917, hp=-1.0876, bv=0.009, vi=-0.02, va=0, pmra=-546.01, pmde=-1223.07):
-    f = [hip, 1, 0, 1, ra, dec, 379.21, pmra, pmde] + [0.5] * 5 + [100, 0.1, 0, 0.0, 0, hp, 0.002, 0.01, va, bv, 0.01, vi] + [1.0] * 15
+    f = (
+        [hip, 1, 0, 1, ra, dec, 379.21, pmra, pmde]
+        + [0.5] * 5
+        + [100, 0.1, 0, 0.0, 0, hp, 0.002, 0.01, va, bv, 0.01, vi]
+        + [1.0] * 15
+    )
     return " ".join(str(x) for x in f)
 
 
@@ -65,11 +84,14 @@ def test_hipparcos_reader_and_epoch(tmp_path):
     assert ddec == pytest.approx(-1223.07 * MAS * 100, rel=1e-3)
 
 
-@pytest.mark.parametrize("line, match", [
-    (" ".join(_hip_line().split()[:-1]), "line 2: expected 41 fields, got 40"),
-    (_hip_line().replace("-1.0876", "abc"), "could not convert"),
-    (_hip_line(dec=2.0), "line 2: position out of range"),
-])
+@pytest.mark.parametrize(
+    "line, match",
+    [
+        (" ".join(_hip_line().split()[:-1]), "line 2: expected 41 fields, got 40"),
+        (_hip_line().replace("-1.0876", "abc"), "could not convert"),
+        (_hip_line(dec=2.0), "line 2: position out of range"),
+    ],
+)
 def test_hipparcos_malformed(tmp_path, line, match):
     path = _write(tmp_path, "hip2.dat", [_hip_line(), line])
     with pytest.raises(CatalogFormatError, match=match) as info:
@@ -88,8 +110,20 @@ def test_hp_to_v_transform_is_the_fitted_one():
 def _table(ra_deg, dec_deg, v):
     n = len(v)
     z = np.zeros(n)
-    return StarTable("test", np.arange(n), np.radians(ra_deg), np.radians(dec_deg), np.array(v, float), z, z,
-                     np.full(n, "", object), np.array([False] * (n - 1) + [True]), z, z, 2000.0)
+    return StarTable(
+        "test",
+        np.arange(n),
+        np.radians(ra_deg),
+        np.radians(dec_deg),
+        np.array(v, float),
+        z,
+        z,
+        np.full(n, "", object),
+        np.array([False] * (n - 1) + [True]),
+        z,
+        z,
+        2000.0,
+    )
 
 
 def test_close_doubles_merged_keeping_the_brighter():

@@ -46,7 +46,7 @@ def test_upload_survives_interruption_restart_and_corrupt_images(tmp_path, capsy
         with Client(port) as c:  # start the second image, then the device goes away mid-transfer
             c.xfer_begin(0, len(second), crc32(second))
             for off in range(0, 8192, 2048):
-                c.xfer_data(0, off, second[off:off + 2048])
+                c.xfer_data(0, off, second[off : off + 2048])
 
     with running_device(state) as (device, port):  # restart: first image active, second resumable
         assert device._objects[0].n_stars == 300
@@ -60,8 +60,11 @@ def test_upload_survives_interruption_restart_and_corrupt_images(tmp_path, capsy
         bad = bytearray(first)
         bad[len(bad) // 2] ^= 0x04  # bit flip inside the pair table
         v2 = wrong_version(first, 2)  # a future version, header re-signed
-        for corrupt, reason in ((bytes(bad), Reason.SECTION_CRC), (first[:-16], Reason.TRUNCATED),
-                                (v2, Reason.BAD_VERSION)):
+        for corrupt, reason in (
+            (bytes(bad), Reason.SECTION_CRC),
+            (first[:-16], Reason.TRUNCATED),
+            (v2, Reason.BAD_VERSION),
+        ):
             with Client(port) as c:
                 with pytest.raises(Nack) as exc:
                     c.upload(0, corrupt, progress=False)

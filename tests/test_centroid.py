@@ -61,12 +61,15 @@ def test_errors_match_predicted_covariance():
             d = np.hypot(out.x - t["x"], out.y - t["y"])
             j = int(np.argmin(d))
             assert d[j] < 0.5 and out.flags[j] == 0
-            ex.append(out.x[j] - t["x"]); ey.append(out.y[j] - t["y"]); erg.append(out.rg[j] - t["rg"])
-            sx.append(np.sqrt(out.cov_xy[j, 0, 0])); srg.append(np.sqrt(out.cov_colour[j, 0, 0]))
+            ex.append(out.x[j] - t["x"])
+            ey.append(out.y[j] - t["y"])
+            erg.append(out.rg[j] - t["rg"])
+            sx.append(np.sqrt(out.cov_xy[j, 0, 0]))
+            srg.append(np.sqrt(out.cov_colour[j, 0, 0]))
     ex, erg, sx, srg = map(np.asarray, (ex, erg, sx, srg))
     assert 0.75 < np.std(ex / sx) < 1.3 and 0.75 < np.std(erg / srg) < 1.3
     assert abs(np.mean(ex / sx)) < 0.4 and abs(np.mean(erg / srg)) < 0.4
-    assert np.sqrt(np.mean(ex ** 2)) < 0.06  # px, bright stars
+    assert np.sqrt(np.mean(ex**2)) < 0.06  # px, bright stars
 
 
 def test_mono_frame_single_amplitude_no_colour():
@@ -120,7 +123,7 @@ def test_cog_method_is_coarser_than_the_fit_and_bad_method_rejected():
 
     def rms(fit):
         d = np.hypot(fit.x[:, None] - tx[None], fit.y[:, None] - ty[None]).min(axis=1)
-        return np.sqrt(np.mean(d ** 2))
+        return np.sqrt(np.mean(d**2))
 
     assert rms(lm) < 0.06 and rms(lm) < rms(cog) < 0.5
     assert np.all(np.isfinite(cog.rg)) and np.all(cog.flags & StarFlag.FIT_FAILED == 0)
@@ -138,8 +141,15 @@ def test_batched_windows_match_single_window_model():
     win = _Windows(res.frame, det, 4)
     rng = np.random.default_rng(1)
     n = len(det)
-    p = np.column_stack([det.x + rng.normal(0, 0.3, n), det.y + rng.normal(0, 0.3, n), rng.uniform(0.8, 1.3, n),
-                         rng.uniform(500, 2000, (n, 3)), rng.uniform(2, 8, (n, 3))])
+    p = np.column_stack(
+        [
+            det.x + rng.normal(0, 0.3, n),
+            det.y + rng.normal(0, 0.3, n),
+            rng.uniform(0.8, 1.3, n),
+            rng.uniform(500, 2000, (n, 3)),
+            rng.uniform(2, 8, (n, 3)),
+        ]
+    )
     r, jac, jfd = win.residuals(p, win.w), win.jacobian(p, win.w), win.jacobian_fd(p, win.w)
     lin = win.linear_solve(p[:, 0], p[:, 1], p[:, 2], win.w)
     for i in range(n):

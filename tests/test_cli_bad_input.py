@@ -27,14 +27,17 @@ def files(tmp_path):
     return tmp_path
 
 
-@pytest.mark.parametrize("argv,code,fragment", [
-    (["params", "upload", "{d}/nope.json"], 2, "No such file"),
-    (["params", "upload", "{d}/garbage.bin"], 2, "not UTF-8 JSON"),
-    (["replay", "{d}/frames", "--offline", "--catalog", "{d}/nope.st16cat"], 2, "--catalog"),
-    (["replay", "{d}/frames", "--offline", "--catalog", "{d}/text.txt"], 2, "TRUNCATED"),
-    (["demo", "--out", "{d}/a_file"], 2, "Not a directory"),
-    (["frame", "inspect", "{d}/nope.dng"], 2, "no such file"),
-])
+@pytest.mark.parametrize(
+    "argv,code,fragment",
+    [
+        (["params", "upload", "{d}/nope.json"], 2, "No such file"),
+        (["params", "upload", "{d}/garbage.bin"], 2, "not UTF-8 JSON"),
+        (["replay", "{d}/frames", "--offline", "--catalog", "{d}/nope.st16cat"], 2, "--catalog"),
+        (["replay", "{d}/frames", "--offline", "--catalog", "{d}/text.txt"], 2, "TRUNCATED"),
+        (["demo", "--out", "{d}/a_file"], 2, "Not a directory"),
+        (["frame", "inspect", "{d}/nope.dng"], 2, "no such file"),
+    ],
+)
 def test_missing_or_garbage_files_are_one_line(files, capsys, argv, code, fragment):
     rc = main(["--port", "/dev/no-such-port", *[a.format(d=files) for a in argv]])
     assert rc == code
@@ -48,16 +51,43 @@ def test_a_camera_file_that_is_not_a_camera_model_is_one_line(files, capsys):
     from ground.frame_writer import write_frame
 
     write_frame(Frame(np.zeros((48, 64), np.uint16), "MONO", white_level=4095), files / "f.npy")
-    rc = main(["solve", "--frame", str(files / "f.npy"), "--offline", "--catalog", str(files / "text.txt"),
-               "--camera", str(files / "text.txt")])
+    rc = main(
+        [
+            "solve",
+            "--frame",
+            str(files / "f.npy"),
+            "--offline",
+            "--catalog",
+            str(files / "text.txt"),
+            "--camera",
+            str(files / "text.txt"),
+        ]
+    )
     assert rc == 2
     assert "camera model" in _one_line_error(capsys)
 
 
 def test_ctrl_c_in_a_long_command_is_one_line_and_exit_130(tmp_path):
-    proc = subprocess.Popen([sys.executable, "-m", "ground.cli", "sim", "colour", "--boresights", "100000",
-                             "--rolls", "10", "--workers", "1", "--out", str(tmp_path)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "ground.cli",
+            "sim",
+            "colour",
+            "--boresights",
+            "100000",
+            "--rolls",
+            "10",
+            "--workers",
+            "1",
+            "--out",
+            str(tmp_path),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     time.sleep(3.0)  # past start-up and the catalog build, inside the run
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=30)
@@ -67,8 +97,10 @@ def test_ctrl_c_in_a_long_command_is_one_line_and_exit_130(tmp_path):
 
 def test_a_reader_that_goes_away_leaves_no_traceback():
     """``st16-ground ... | head -1``: the pipe closes under the writer."""
-    cmd = (f"{sys.executable} -m ground.cli --json sim fourstar --step 20 | head -c 1 > /dev/null; "
-           "echo ${PIPESTATUS[0]} >&2")
+    cmd = (
+        f"{sys.executable} -m ground.cli --json sim fourstar --step 20 | head -c 1 > /dev/null; "
+        "echo ${PIPESTATUS[0]} >&2"
+    )
     run = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, timeout=120)
     assert "Traceback" not in run.stderr and "BrokenPipe" not in run.stderr, run.stderr
     assert run.stderr.strip().splitlines()[-1] in ("0", "1")

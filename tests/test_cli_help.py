@@ -38,9 +38,13 @@ def _helps():
 
 
 def test_every_option_with_a_default_shows_it():
-    missing = [f"{prog} {action.option_strings or action.dest}" for prog, action, text in _helps()
-               if all(action.default is not v for v in (None, False, argparse.SUPPRESS)) and "default" not in text
-               and (action.option_strings or action.nargs == "?")]
+    missing = [
+        f"{prog} {action.option_strings or action.dest}"
+        for prog, action, text in _helps()
+        if all(action.default is not v for v in (None, False, argparse.SUPPRESS))
+        and "default" not in text
+        and (action.option_strings or action.nargs == "?")
+    ]
     assert missing == []
     shown = {f"{prog} {action.dest}": text for prog, action, text in _helps()}
     assert shown["st16-ground frame render roll"] == "roll, deg (default: 0.0)"  # a zero is a default too

@@ -114,8 +114,7 @@ def test_stale_b_bit_reply_is_discarded(responder):
 def test_multipart_reply_and_nack(responder):
     def script(msg):
         if msg.code == Code.READ_RESULT:
-            return (nsp.reply_to(msg, b"\x00\x00ab", final=False).frame()
-                    + nsp.reply_to(msg, b"\x02\x00cd").frame())
+            return nsp.reply_to(msg, b"\x00\x00ab", final=False).frame() + nsp.reply_to(msg, b"\x02\x00cd").frame()
         return nsp.reply_to(msg, b"\x07\x00nope", ack=False).frame()
 
     r = responder(script)
@@ -135,7 +134,9 @@ def test_exchange_log_records_both_directions(served_device, tmp_path):
             c.write_edac(0, b"x")
     lines = [json.loads(line) for line in log.read_text().splitlines()]
     assert [e["dir"] for e in lines] == ["tx", "rx", "tx", "rx"]
-    assert lines[0]["name"] == "PING" and lines[0]["poll_final"] and lines[0]["hex"].startswith("0e11c0")  # first command has B set
+    assert (
+        lines[0]["name"] == "PING" and lines[0]["poll_final"] and lines[0]["hex"].startswith("0e11c0")
+    )  # first command has B set
     assert lines[3]["ack"] is False and lines[3]["name"] == "WRITE_EDAC"
     assert all(e["t"].endswith("+00:00") for e in lines)
 
@@ -203,6 +204,7 @@ def test_a_closed_client_and_a_failing_log_are_named_for_what_they_are(tmp_path,
         Client("loop://", log=tmp_path / "log_dir")  # a directory: cannot be opened for appending
     assert not opened
     with Client("loop://", timeout=0.05, retries=0, log=tmp_path / "x.jsonl") as c:
+
         class FullDisk:
             def write(self, text):
                 raise OSError(28, "No space left on device")

@@ -72,13 +72,22 @@ def test_debug_shows_the_traceback():
         main(["--debug", "--port", "/dev/no-such-port", "ping"])
 
 
-
-@pytest.mark.parametrize("argv", [
-    ["read-edac", "-1", "4"], ["go", "999"], ["--baud", "-5", "ping"], ["--timeout", "-1", "ping"],
-    ["--timeout", "nan", "ping"], ["frame", "render", "--random", "-5", "-o", "x.dng"],
-    ["frame", "render", "--width", "100000", "-o", "x.dng"], ["frame", "render", "--exposure", "-1", "-o", "x.dng"],
-    ["frame", "render", "--dec", "200", "-o", "x.dng"], ["send", "0x20"], ["combination", "11", "0x10000"],
-])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["read-edac", "-1", "4"],
+        ["go", "999"],
+        ["--baud", "-5", "ping"],
+        ["--timeout", "-1", "ping"],
+        ["--timeout", "nan", "ping"],
+        ["frame", "render", "--random", "-5", "-o", "x.dng"],
+        ["frame", "render", "--width", "100000", "-o", "x.dng"],
+        ["frame", "render", "--exposure", "-1", "-o", "x.dng"],
+        ["frame", "render", "--dec", "200", "-o", "x.dng"],
+        ["send", "0x20"],
+        ["combination", "11", "0x10000"],
+    ],
+)
 def test_out_of_range_values_are_refused_before_any_work(argv, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exit_:
@@ -123,9 +132,19 @@ def test_combination_sections_decode_to_attitude_and_time():
     from protocol import result
 
     q = matrix_to_quat(attitude_from_radec_roll(*np.radians([83.8, -5.4, 10.0])))
-    data = result.build({"return_code": result.make_return_code(result.Status.OK, result.ReturnBits.IMAGE1_SUCCESS),
-                         "quaternion": q, "epoch": 1795495102.25, "ext.n_matched": 7, "ext.n_detected": 9}, sequence=4)
-    parts = {addr: data[addr:addr + n] for mask, (addr, n) in result.SECTIONS.items() if mask in (2, 4, 0x10, 0x20, 0x1000)}
+    data = result.build(
+        {
+            "return_code": result.make_return_code(result.Status.OK, result.ReturnBits.IMAGE1_SUCCESS),
+            "quaternion": q,
+            "epoch": 1795495102.25,
+            "ext.n_matched": 7,
+            "ext.n_detected": 9,
+        },
+        sequence=4,
+    )
+    parts = {
+        addr: data[addr : addr + n] for mask, (addr, n) in result.SECTIONS.items() if mask in (2, 4, 0x10, 0x20, 0x1000)
+    }
     out = combination_record(parts)
     assert out["status"] == "OK" and out["bits"] == ["IMAGE1_SUCCESS"] and "sequence" not in out
     assert out["ra_deg"] == pytest.approx(83.8) and out["dec_deg"] == pytest.approx(-5.4)

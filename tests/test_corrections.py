@@ -5,8 +5,7 @@ import pytest
 from astropy.time import Time
 
 from firmware_model import frames
-from ground.corrections import (ColourCorrection, Site, bennett_refraction_deg, correct_refraction,
-                                refraction_angle)
+from ground.corrections import ColourCorrection, Site, bennett_refraction_deg, correct_refraction, refraction_angle
 
 
 def test_colour_fit_recovers_known_map_and_rejects_outliers():

@@ -36,8 +36,13 @@ def test_running_crc_and_residue(a, b):
 def test_worked_examples_crc_bytes():
     # research notes section 2.5: (unescaped message without CRC, CRC bytes low first)
     cases = [
-        ("0E1180", "6921"), ("0E118100200000", "1F31"), ("0E11894C0004", "2ABF"),
-        ("0E118D00004800", "B2CD"), ("0E118DC00010", "2C32"), ("0E118B0B", "9DA4"), ("110EA0", "60D9"),
+        ("0E1180", "6921"),
+        ("0E118100200000", "1F31"),
+        ("0E11894C0004", "2ABF"),
+        ("0E118D00004800", "B2CD"),
+        ("0E118DC00010", "2C32"),
+        ("0E118B0B", "9DA4"),
+        ("110EA0", "60D9"),
     ]
     for body, want in cases:
         crc = crc16_mcrf4xx(bytes.fromhex(body))

@@ -50,8 +50,13 @@ def test_thousands_of_hot_pixels_cosmics_and_streaks_rejected():
 
 
 def test_planet_is_detected_as_a_source():
-    res = render_frame(random_star_field(CAM, ATT, 3, seed=3, vmag_range=(3, 4)), ATT, CAM, seed=1,
-                       false_objects=[FalseObject("planet", 320.0, 240.0, 5e4, rg=1.4, bg=0.4)])
+    res = render_frame(
+        random_star_field(CAM, ATT, 3, seed=3, vmag_range=(3, 4)),
+        ATT,
+        CAM,
+        seed=1,
+        false_objects=[FalseObject("planet", 320.0, 240.0, 5e4, rg=1.4, bg=0.4)],
+    )
     det = detect_stars(res.frame)
     assert np.min(np.hypot(det.x - 320.0, det.y - 240.0)) < 1.5
 
@@ -122,8 +127,14 @@ def test_column_defects_are_not_detected_and_do_not_hide_a_trail_crossing_them(k
 
     cam = CameraModel.from_fov(640, 480, 3.0)
     trail = ol.streak(40.0, 400.0, 600.0, 80.0, 400.0)
-    r = render_frame(Stars(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0)),
-                     np.eye(3), cam, DetectorModel(hot_pixel_fraction=0), seed=2, false_objects=[trail])
+    r = render_frame(
+        Stars(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0)),
+        np.eye(3),
+        cam,
+        DetectorModel(hot_pixel_fraction=0),
+        seed=2,
+        false_objects=[trail],
+    )
     frame = ol.apply_bad_columns(r.frame, [(321, kind)])
     det = detect_stars(frame)
     assert len(det) <= 2, (len(det), det.reason)

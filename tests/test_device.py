@@ -9,8 +9,20 @@ from firmware_model.device import Device, SlotHandler
 from firmware_model.state import SlotStore
 from protocol import nsp, result, slip
 from protocol.commands import (
-    UNASSIGNED, Code, Combination, DarkWindow, Diagnostics, NackInfo, NackReason, ReadRange, SlotImage,
-    SlotRejected, XferBegin, XferData, XferState, XferStatus,
+    UNASSIGNED,
+    Code,
+    Combination,
+    DarkWindow,
+    Diagnostics,
+    NackInfo,
+    NackReason,
+    ReadRange,
+    SlotImage,
+    SlotRejected,
+    XferBegin,
+    XferData,
+    XferState,
+    XferStatus,
 )
 from protocol.crc import crc32
 
@@ -70,7 +82,7 @@ def test_edac_read_write_and_file_access():
     assert ok(dev, Code.WRITE_EDAC, struct.pack("<H", 0x100) + b"scratch!") == struct.pack("<HH", 0x100, 8)
     assert ok(dev, Code.READ_EDAC, ReadRange(0x100, 8, long=False).pack()) == struct.pack("<H", 0x100) + b"scratch!"
     long_read = ok(dev, Code.READ_EDAC, ReadRange(0, 512, long=True).pack())
-    assert len(long_read) == 514 and long_read[2 + 0x100:2 + 0x108] == b"scratch!"
+    assert len(long_read) == 514 and long_read[2 + 0x100 : 2 + 0x108] == b"scratch!"
     # file access: short form index 0x41 = EDAC 0x104, long form by address
     assert ok(dev, Code.WRITE_FILE, b"\x41WXYZ") == b"\x41WXYZ"
     assert ok(dev, Code.READ_FILE, b"\x04\x01") == b"\x04\x01WXYZ"
@@ -156,7 +168,7 @@ def _read_result(dev, address=0, count=result.TOTAL_LENGTH):
     buf = bytearray(count)
     for p in parts:
         addr = struct.unpack_from("<H", p.data)[0]
-        buf[addr - address:addr - address + len(p.data) - 2] = p.data[2:]
+        buf[addr - address : addr - address + len(p.data) - 2] = p.data[2:]
     return bytes(buf)
 
 
@@ -180,14 +192,17 @@ class _GatedSolver:
     def __call__(self, ctx):
         self.contexts.append(ctx)
         assert self.gate.wait(5)
-        return {"return_code": result.make_return_code(result.Status.OK, 0x5C), "quaternion": [1, 0, 0, 0],
-                "ext.n_detected": 12}
+        return {
+            "return_code": result.make_return_code(result.Status.OK, 0x5C),
+            "quaternion": [1, 0, 0, 0],
+            "ext.n_detected": 12,
+        }
 
 
 def _upload(dev, slot, data):
     ok(dev, Code.XFER_BEGIN, XferBegin(slot, len(data), crc32(data)).pack())
     for off in range(0, len(data), 1000):
-        ok(dev, Code.XFER_DATA, XferData(slot, off, data[off:off + 1000]).pack())
+        ok(dev, Code.XFER_DATA, XferData(slot, off, data[off : off + 1000]).pack())
     return send(dev, Code.XFER_COMMIT, bytes([slot]))[0]
 
 
@@ -293,7 +308,7 @@ def test_transfer_status_ranges_and_resume_after_restart(tmp_path):
     assert st2.missing == st.missing
     for off, n in st2.missing:
         for start in range(off, off + n, 4096):
-            ok(dev2, Code.XFER_DATA, XferData(2, start, data[start:min(start + 4096, off + n)]).pack())
+            ok(dev2, Code.XFER_DATA, XferData(2, start, data[start : min(start + 4096, off + n)]).pack())
     rep = send(dev2, Code.XFER_COMMIT, b"\x02")[0]
     assert not rep.ack and NackInfo.unpack(rep.data).reason == 0x0101  # not JSON: params validator
     params = b'{"max_stars": 20}'

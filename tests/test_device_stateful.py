@@ -49,13 +49,13 @@ class DeviceModel(RuleBasedStateMachine):
         valid = addr >= 0x100 and addr + len(data) <= 0x200
         if not poll:
             if valid:
-                self.scratch[addr - 0x100:addr - 0x100 + len(data)] = data
+                self.scratch[addr - 0x100 : addr - 0x100 + len(data)] = data
             else:
                 self.expect["nacked"] += 1
             return
         assert rep.ack == valid
         if valid:
-            self.scratch[addr - 0x100:addr - 0x100 + len(data)] = data
+            self.scratch[addr - 0x100 : addr - 0x100 + len(data)] = data
 
     @rule(addr=st.integers(0x100, 0x1FF), count=st.integers(1, 256))
     def read_scratch(self, addr, count):
@@ -63,7 +63,7 @@ class DeviceModel(RuleBasedStateMachine):
         if addr + count > 0x200:
             assert not rep.ack and NackInfo.unpack(rep.data).reason == NackReason.BAD_ADDRESS
         else:
-            assert rep.ack and rep.data[2:] == self.scratch[addr - 0x100:addr - 0x100 + count]
+            assert rep.ack and rep.data[2:] == self.scratch[addr - 0x100 : addr - 0x100 + count]
 
     @rule(data=st.binary(min_size=1, max_size=30), flip=st.integers(1, 255))
     def bad_crc(self, data, flip):
@@ -97,8 +97,10 @@ class DeviceModel(RuleBasedStateMachine):
         rep = self.command(code, data)
         assert not rep.ack and NackInfo.unpack(rep.data).reason == NackReason.UNKNOWN_COMMAND
 
-    @rule(code=st.sampled_from([Code.INIT, Code.PEEK, Code.READ_EDAC, Code.GO, Code.XFER_STATUS]),
-          data=st.binary(max_size=12))
+    @rule(
+        code=st.sampled_from([Code.INIT, Code.PEEK, Code.READ_EDAC, Code.GO, Code.XFER_STATUS]),
+        data=st.binary(max_size=12),
+    )
     def wrong_length(self, code, data):
         sizes = {Code.INIT: (4,), Code.PEEK: (6,), Code.READ_EDAC: (3, 4), Code.GO: (1,), Code.XFER_STATUS: (1,)}
         if len(data) in sizes[code]:

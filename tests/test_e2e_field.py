@@ -43,8 +43,10 @@ def biased_sky() -> Stars:
 def test_device_renders_the_sky_from_a_schedule(catalog, tmp_path):
     atts = pick_attitudes(catalog, CAMERA, 2, np.random.default_rng(9))
     schedule = tmp_path / "schedule.csv"
-    schedule.write_text("# two exposures\nqw,qx,qy,qz,pattern\n" + "".join(
-        ",".join(f"{v:.12f}" for v in matrix_to_quat(a)) + f",{p}\n" for a, p in zip(atts, ("RGGB", "MONO"))))
+    schedule.write_text(
+        "# two exposures\nqw,qx,qy,qz,pattern\n"
+        + "".join(",".join(f"{v:.12f}" for v in matrix_to_quat(a)) + f",{p}\n" for a, p in zip(atts, ("RGGB", "MONO")))
+    )
     proc, pty = start_device(tmp_path / "state", "--sky", str(schedule))
     try:
         with Client(pty) as c:
@@ -62,8 +64,12 @@ def test_device_renders_the_sky_from_a_schedule(catalog, tmp_path):
 def test_bad_schedule_is_refused(tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("qw,qx,qy,qz\n1,0,0,0.5\n")
-    run = subprocess.run([sys.executable, "-m", "firmware_model.cli", "--pty", "--sky", str(bad)],
-                         capture_output=True, text=True, timeout=60)
+    run = subprocess.run(
+        [sys.executable, "-m", "firmware_model.cli", "--pty", "--sky", str(bad)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert run.returncode == 2 and "row 1: quaternion norm" in run.stderr
 
 
@@ -85,8 +91,12 @@ def test_colour_calibration_from_a_run_and_on_the_device(catalog, biased_frames,
     image.write_bytes(catalog_to_image(catalog))
     exe = Path(sys.executable).parent / "st16-ground"
     out = tmp_path / "cc.json"
-    run = subprocess.run([str(exe), "colour", "fit", str(tmp_path / "run" / "results.jsonl"), "--catalog",
-                          str(image), "-o", str(out)], capture_output=True, text=True, timeout=120)
+    run = subprocess.run(
+        [str(exe), "colour", "fit", str(tmp_path / "run" / "results.jsonl"), "--catalog", str(image), "-o", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert run.returncode == 0, run.stderr
     fit = ColourCorrection.from_json(out.read_text())
     assert fit.rms_after < 0.5 * fit.rms_before and fit.n_used >= 20
@@ -108,8 +118,9 @@ def test_colour_calibration_from_a_run_and_on_the_device(catalog, biased_frames,
             c.upload(1, frame, progress=False)
             before = solve_record(c.go_and_wait(timeout=60)), float(c.read_result_record()["ext"]["colour_rms"])
             params = out.with_suffix(".params.json")
-            run = subprocess.run([str(exe), "--port", pty, "params", "upload", str(params)], capture_output=True,
-                                 text=True, timeout=60)
+            run = subprocess.run(
+                [str(exe), "--port", pty, "params", "upload", str(params)], capture_output=True, text=True, timeout=60
+            )
             assert run.returncode == 0, run.stderr
             assert c.slot_info(2).active
             c.upload(1, frame, progress=False)
@@ -151,8 +162,13 @@ def test_offline_replay_corrects_refraction(catalog, tmp_path):
     true = SkyCoord(*vec_to_radec(sky.vectors[near]), unit="rad", frame=ICRS())
     app = true.transform_to(air)
     seen = SkyCoord(az=app.az, alt=app.alt, frame=vacuum).transform_to(ICRS())
-    stars = Stars(ids=sky.ids[near], vectors=radec_to_vec(seen.ra.rad, seen.dec.rad), vmag=sky.vmag[near],
-                  rg=sky.rg[near], bg=sky.bg[near])
+    stars = Stars(
+        ids=sky.ids[near],
+        vectors=radec_to_vec(seen.ra.rad, seen.dec.rad),
+        vmag=sky.vmag[near],
+        rg=sky.rg[near],
+        bg=sky.bg[near],
+    )
     frame = render_frame(stars, a, CAMERA, DetectorModel(), seed=5, timestamp=when + "Z").frame
     truth = Truth(matrix_to_quat(a), np.empty(0, np.int64), np.empty(0), np.empty(0))
     raw = OfflineSolver(CAMERA, catalog).solve(frame)

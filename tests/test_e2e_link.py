@@ -175,8 +175,12 @@ def test_cli_solve_json_and_results_log(device, scene, tmp_path):
     frame = sorted(scene["frames"].glob("*rggb.dng"))[0]
     exe = Path(sys.executable).parent / "st16-ground"
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "ground.cli"]
-    run = subprocess.run(cmd + ["--port", device, "--json", "solve", "--frame", str(frame), "--out", str(tmp_path)],
-                         capture_output=True, text=True, timeout=120)
+    run = subprocess.run(
+        cmd + ["--port", device, "--json", "solve", "--frame", str(frame), "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert run.returncode == 0, run.stderr
     rec = json.loads(run.stdout)
     assert rec["status"] == "OK" and len(rec["q_icrs_to_sensor"]) == 4
@@ -194,13 +198,16 @@ def test_refused_frame_is_an_answer_not_silence(device, scene, tmp_path):
 
     _upload_catalog(device, scene["image"])
     small = tmp_path / "small.dng"
-    write_dng(Frame(pixels=np.full((480, 640), 64, np.uint16), pattern="RGGB", black_level=64, white_level=4095),
-              small)
+    write_dng(Frame(pixels=np.full((480, 640), 64, np.uint16), pattern="RGGB", black_level=64, white_level=4095), small)
     exe = Path(sys.executable).parent / "st16-ground"
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "ground.cli"]
     t0 = time.monotonic()
-    run = subprocess.run(cmd + ["--port", device, "solve", "--frame", str(small), "--out", str(tmp_path / "s")],
-                         capture_output=True, text=True, timeout=60)
+    run = subprocess.run(
+        cmd + ["--port", device, "solve", "--frame", str(small), "--out", str(tmp_path / "s")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert time.monotonic() - t0 < 20
     assert run.returncode == 5 and "Traceback" not in run.stderr  # 5: refused (st16-ground --help)
     lines = run.stderr.strip().splitlines()

@@ -9,8 +9,27 @@ from ground.cli import main
 
 def test_render_then_inspect_json_and_plot(tmp_path, capsys):
     out = tmp_path / "f.dng"
-    args = ["frame", "render", "--out", str(out), "--width", "640", "--height", "480", "--fov", "2.5",
-            "--random", "8", "--mag-range", "2", "4", "--seed", "5", "--cosmics", "3"]
+    args = [
+        "frame",
+        "render",
+        "--out",
+        str(out),
+        "--width",
+        "640",
+        "--height",
+        "480",
+        "--fov",
+        "2.5",
+        "--random",
+        "8",
+        "--mag-range",
+        "2",
+        "4",
+        "--seed",
+        "5",
+        "--cosmics",
+        "3",
+    ]
     assert main(args) == 0
     truth = json.loads((tmp_path / "f.truth.json").read_text())
     assert len(truth["stars"]) == 8 and len(truth["attitude_quaternion"]) == 4
@@ -26,8 +45,28 @@ def test_render_then_inspect_json_and_plot(tmp_path, capsys):
 
 def test_inspect_text_and_bad_file(tmp_path, capsys):
     out = tmp_path / "m.fits"
-    assert main(["frame", "render", "--out", str(out), "--width", "320", "--height", "240", "--pattern", "MONO",
-                 "--random", "4", "--mag-range", "2", "3"]) == 0
+    assert (
+        main(
+            [
+                "frame",
+                "render",
+                "--out",
+                str(out),
+                "--width",
+                "320",
+                "--height",
+                "240",
+                "--pattern",
+                "MONO",
+                "--random",
+                "4",
+                "--mag-range",
+                "2",
+                "3",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     assert main(["frame", "inspect", str(out)]) == 0
     text = capsys.readouterr().out
@@ -52,12 +91,43 @@ def test_render_from_catalog_image(tmp_path):
     v_out /= np.linalg.norm(v_out, axis=1, keepdims=True)
     vec = np.vstack([v_in, v_out])
     ids = np.arange(1000, 1000 + len(vec))
-    cat = OnboardCatalog.build(ids, vec, rng.uniform(2, 4, len(vec)), rng.uniform(0.4, 1.4, len(vec)),
-                               rng.uniform(0.3, 1.2, len(vec)), phi_min=1e-4, phi_max=0.2, meta={"epoch": 2000.0})
+    cat = OnboardCatalog.build(
+        ids,
+        vec,
+        rng.uniform(2, 4, len(vec)),
+        rng.uniform(0.4, 1.4, len(vec)),
+        rng.uniform(0.3, 1.2, len(vec)),
+        phi_min=1e-4,
+        phi_max=0.2,
+        meta={"epoch": 2000.0},
+    )
     (tmp_path / "cat.bin").write_bytes(catalog_to_image(cat, created_unix=0))
     out = tmp_path / "c.fits"
-    assert main(["frame", "render", "--out", str(out), "--catalog", str(tmp_path / "cat.bin"), "--width", "640",
-                 "--height", "480", "--fov", "2.5", "--ra", "10", "--dec", "20", "--roll", "30"]) == 0
+    assert (
+        main(
+            [
+                "frame",
+                "render",
+                "--out",
+                str(out),
+                "--catalog",
+                str(tmp_path / "cat.bin"),
+                "--width",
+                "640",
+                "--height",
+                "480",
+                "--fov",
+                "2.5",
+                "--ra",
+                "10",
+                "--dec",
+                "20",
+                "--roll",
+                "30",
+            ]
+        )
+        == 0
+    )
     truth = json.loads((tmp_path / "c.truth.json").read_text())
     assert np.allclose(quat_to_matrix(truth["attitude_quaternion"]), a, atol=1e-12)
     got = {s["id"]: (s["x"], s["y"]) for s in truth["stars"]}

@@ -11,9 +11,13 @@ from ground.frame_writer import write_dng, write_frame
 def _frame(pattern="RGGB", shape=(48, 64), seed=0):
     rng = np.random.default_rng(seed)
     return Frame(
-        pixels=rng.integers(0, 4096, shape, dtype=np.uint16), pattern=pattern,
-        black_level=(64, 65, 66, 67) if pattern != "MONO" else 64, white_level=4095, exposure_s=0.1,
-        timestamp="2026-11-22T01:00:00+00:00", site={"lat_deg": 52.1, "lon_deg": 4.4, "height_m": 3.0},
+        pixels=rng.integers(0, 4096, shape, dtype=np.uint16),
+        pattern=pattern,
+        black_level=(64, 65, 66, 67) if pattern != "MONO" else 64,
+        white_level=4095,
+        exposure_s=0.1,
+        timestamp="2026-11-22T01:00:00+00:00",
+        site={"lat_deg": 52.1, "lon_deg": 4.4, "height_m": 3.0},
         camera={"width": shape[1], "height": shape[0], "f": 1000.0, "cx": 31.5, "cy": 23.5},
         metadata={"note": "test"},
     )
@@ -127,8 +131,12 @@ def test_bad_files(tmp_path):
     np.save(tmp_path / "pat.npy", np.zeros((4, 4), np.uint16))
     (tmp_path / "pat.json").write_text('{"pattern": "XYZW"}')
     for name, msg in [
-        ("missing.dng", "no such file"), ("empty.dng", "empty"), ("text.fits", "not a recognised"),
-        ("junk.cr2", "not a readable raw"), ("trunc.dng", "raw"), ("odd.npy", "even dimensions"),
+        ("missing.dng", "no such file"),
+        ("empty.dng", "empty"),
+        ("text.fits", "not a recognised"),
+        ("junk.cr2", "not a readable raw"),
+        ("trunc.dng", "raw"),
+        ("odd.npy", "even dimensions"),
         ("pat.npy", "unknown CFA pattern"),
     ]:
         with pytest.raises(FrameReadError, match=msg):
@@ -180,7 +188,7 @@ def test_damaged_frame_files_raise_only_frame_read_error(tmp_path, suffix):
         else:
             for _ in range(3):
                 i = rng.randrange(min(len(d) - 4, 400))
-                d[i:i + 4] = struct.pack("<I", rng.choice([0xFFFFFFFF, 100_000, 1 << 20]))
+                d[i : i + 4] = struct.pack("<I", rng.choice([0xFFFFFFFF, 100_000, 1 << 20]))
         (tmp_path / f"f{suffix}").write_bytes(bytes(d))
         try:
             read_frame(tmp_path / f"f{suffix}")
@@ -305,9 +313,12 @@ def test_bad_png_and_jpeg_files(tmp_path):
     (tmp_path / "trunc.jpg").write_bytes(good[: len(good) // 2])
     Image.fromarray(_rgb_planes(1, 5), "RGB").save(tmp_path / "thin.png")
     for name, msg in [
-        ("garbage.png", "not a readable PNG/JPEG"), ("garbage.jpg", "not a readable PNG/JPEG"),
-        ("text.png", "not a recognised"), ("trunc.png", "not a readable PNG/JPEG"),
-        ("trunc.jpg", "not a readable PNG/JPEG"), ("thin.png", "too small"),
+        ("garbage.png", "not a readable PNG/JPEG"),
+        ("garbage.jpg", "not a readable PNG/JPEG"),
+        ("text.png", "not a recognised"),
+        ("trunc.png", "not a readable PNG/JPEG"),
+        ("trunc.jpg", "not a readable PNG/JPEG"),
+        ("thin.png", "too small"),
     ]:
         with pytest.raises(FrameReadError, match=msg) as info:
             read_frame(tmp_path / name)

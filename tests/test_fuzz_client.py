@@ -53,8 +53,11 @@ def test_a_late_reply_to_a_killed_client_is_not_taken_by_the_next_one(tmp_path):
                     time.sleep(0.03)  # the first GO is acknowledged late
                     link.write(nsp.reply_to(msg, b"\x0b").frame())
                 else:
-                    link.write(nsp.reply_to(msg, NackInfo(NackReason.BUSY, "sequence 1 still running").pack(),
-                                            ack=False).frame())
+                    link.write(
+                        nsp.reply_to(
+                            msg, NackInfo(NackReason.BUSY, "sequence 1 still running").pack(), ack=False
+                        ).frame()
+                    )
 
     thread = threading.Thread(target=device, daemon=True)
     thread.start()

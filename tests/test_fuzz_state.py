@@ -2,7 +2,6 @@
 starts, says what it ignored in one line each, answers PING and keeps its catalog intact or has
 none, never another one (fixed seeds; long run: bench/bench_fuzz.py)."""
 
-
 from firmware_model.state import SlotStore
 from ground.fuzz import state_faults
 from ground.fuzz.tally import Tally

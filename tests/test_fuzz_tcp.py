@@ -38,13 +38,13 @@ def test_the_newest_client_takes_over_and_the_old_one_gets_a_link_error(tcp_devi
 
 def test_a_silent_client_is_closed_after_the_idle_timeout_and_locks_nobody_out(tcp_device):
     link, _ = tcp_device
-    silent = socket.create_connection(link.path[len("socket://"):].rsplit(":", 1))
+    silent = socket.create_connection(link.path[len("socket://") :].rsplit(":", 1))
     try:
         assert tcp_faults.closed_by_peer(silent, 2.0)
         assert link.idle_closed == 1
     finally:
         silent.close()
-    with socket.create_connection(link.path[len("socket://"):].rsplit(":", 1)):
+    with socket.create_connection(link.path[len("socket://") :].rsplit(":", 1)):
         with Client(link.path, timeout=1.0, retries=0) as c:
             t0 = time.monotonic()
             assert c.ping().startswith("ST16-EMU") and time.monotonic() - t0 < 1.0
@@ -52,7 +52,7 @@ def test_a_silent_client_is_closed_after_the_idle_timeout_and_locks_nobody_out(t
 
 def test_a_frame_cut_by_a_disconnect_is_ended_and_counted(tcp_device):
     link, device = tcp_device
-    with socket.create_connection(link.path[len("socket://"):].rsplit(":", 1)) as cut:
+    with socket.create_connection(link.path[len("socket://") :].rsplit(":", 1)) as cut:
         cut.sendall(b"\x0e\x11\x80")  # no end: the client vanishes mid-message
         deadline = time.monotonic() + 2.0
         while device._decoder.pending < 3 and time.monotonic() < deadline:  # once the device holds them

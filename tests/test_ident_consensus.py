@@ -97,7 +97,9 @@ def test_backtracking_recovers_a_colour_swapped_seed_pair():
     fov = FieldOfView.cone(0.1)
     chk = lambda d, c: verify(d, c, v, rg, bg, np.full(3, 5e-6), cat, fov, 0.05, 0.05, VerifyParams())
     # one seed attempt isolates backtracking from simply trying another seed pair
-    paper = match_scene(v, rg, bg, cat, noise, ConsensusParams(k_best=1, k_best_sparse=1, anchors=1, max_attempts=1), chk)
+    paper = match_scene(
+        v, rg, bg, cat, noise, ConsensusParams(k_best=1, k_best_sparse=1, anchors=1, max_attempts=1), chk
+    )
     # the reversed assignment cannot grow: at best a low-confidence two-star answer, and a wrong one
     assert paper.outcome is not Outcome.HIGH_CONFIDENCE
     assert paper.best is None or paper.best.cat[:2].tolist() == [1, 0]
@@ -122,8 +124,13 @@ def test_all_false_scenes_never_high_confidence(cat):
         n = rng.integers(2, 15)
         v = CAM.pixel_to_vector(rng.uniform(0, CAM.width, n), rng.uniform(0, CAM.height, n))
         v = CAM.pixel_to_vector(rng.uniform(0, CAM.width, n), rng.uniform(0, CAM.height, n))
-        res = solve(v, rng.uniform(0.3, 1.3, n), rng.uniform(0.3, 1.4, n), cat,
-                    SolveParams(sigma_vec=SIG, fov=FieldOfView.from_camera(CAM)))
+        res = solve(
+            v,
+            rng.uniform(0.3, 1.3, n),
+            rng.uniform(0.3, 1.4, n),
+            cat,
+            SolveParams(sigma_vec=SIG, fov=FieldOfView.from_camera(CAM)),
+        )
         statuses.append(res.status)
     assert Outcome.HIGH_CONFIDENCE not in statuses
     assert statuses.count(Outcome.NO_MATCH) >= 36

@@ -3,8 +3,14 @@
 import numpy as np
 import pytest
 
-from firmware_model.ident.four_star import (GROUP_PAIRS, SIGNATURES, FourStarParams, identify_group,
-                                            match_four_star, vote_matrix)
+from firmware_model.ident.four_star import (
+    GROUP_PAIRS,
+    SIGNATURES,
+    FourStarParams,
+    identify_group,
+    match_four_star,
+    vote_matrix,
+)
 from firmware_model.onboard_catalog import angle_between
 from ident_sky import random_attitude, random_catalog
 
@@ -55,8 +61,9 @@ def brute_consistent(group, cat, eps, cands):
     out = []
     for c in np.array(np.meshgrid(*cands, indexing="ij")).reshape(4, -1).T:
         if len(set(c.tolist())) == 4 and all(
-                abs(float(angle_between(cat.vec[c[a]], cat.vec[c[b]]) - angle_between(group[a], group[b]))) <= eps
-                for a, b in GROUP_PAIRS):
+            abs(float(angle_between(cat.vec[c[a]], cat.vec[c[b]]) - angle_between(group[a], group[b]))) <= eps
+            for a, b in GROUP_PAIRS
+        ):
             out.append(c.tolist())
     return out
 

@@ -100,8 +100,9 @@ def test_true_identification_with_a_third_missing_is_verified_only_with_the_miss
         # drop the faintest: 4 of 6, 5 of 8, 6 of 10, 8 of 12 remain (coverage < 0.7)
         keep = np.arange(len(v) - max(2, int(np.ceil(0.31 * len(v)))))
         for name, vp in (("new", VerifyParams()), ("strict", VerifyParams(miss_rate=0.0))):
-            m, _ = verify(keep, truth[keep], v[keep], rg[keep], bg[keep], np.full(len(keep), SIG), cat, FOV,
-                          0.05, 0.05, vp)
+            m, _ = verify(
+                keep, truth[keep], v[keep], rg[keep], bg[keep], np.full(len(keep), SIG), cat, FOV, 0.05, 0.05, vp
+            )
             passed[name] += m is not None
     assert passed["strict"] <= 3 and passed["new"] >= 12
 
@@ -127,8 +128,10 @@ def test_scene_whose_brightest_detections_are_false_is_solved(cat):
     for _ in range(6):
         v, rg, bg, truth = _impaired_frame(cat, rng, drop=0, n_false=10, min_true=6)
         chk = lambda d, c: verify(d, c, v, rg, bg, np.full(len(v), SIG), cat, FOV, 0.05, 0.05, VerifyParams())
-        for name, cp in (("adaptive", ConsensusParams()),
-                         ("paper order", ConsensusParams(adaptive_seeds=False, attempts_per_star=3.0))):
+        for name, cp in (
+            ("adaptive", ConsensusParams()),
+            ("paper order", ConsensusParams(adaptive_seeds=False, attempts_per_star=3.0)),
+        ):
             res = match_scene(v, rg, bg, cat, NOISE, cp, chk)
             if res.outcome is Outcome.HIGH_CONFIDENCE:
                 assert np.all(truth[res.best.det] == res.best.cat)
@@ -252,7 +255,6 @@ def test_a_false_detection_next_to_a_star_gives_way_to_the_star(cat):
     v2 = np.vstack([fake / np.linalg.norm(fake), v])
     rg2, bg2, truth2 = np.r_[rg[2], rg], np.r_[bg[2], bg], np.r_[-1, truth]
     det = np.r_[0, 1, 2, 4]  # the hypothesis took the false detection for star 2
-    m, _ = verify(det, truth2[[3, 1, 2, 4]], v2, rg2, bg2, np.full(len(v2), SIG), cat, FOV, 0.05, 0.05,
-                  VerifyParams())
+    m, _ = verify(det, truth2[[3, 1, 2, 4]], v2, rg2, bg2, np.full(len(v2), SIG), cat, FOV, 0.05, 0.05, VerifyParams())
     assert m is not None and 0 not in m.det and 3 in m.det
     assert np.all(truth2[m.det] == m.cat)

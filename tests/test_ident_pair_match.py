@@ -3,8 +3,15 @@
 import numpy as np
 import pytest
 
-from firmware_model.ident.pair_match import (PairNoise, best_match, consistency_tolerance, critical_distance,
-                                             match_pair, pair_tuple, sigma_phi_from_centroid)
+from firmware_model.ident.pair_match import (
+    PairNoise,
+    best_match,
+    consistency_tolerance,
+    critical_distance,
+    match_pair,
+    pair_tuple,
+    sigma_phi_from_centroid,
+)
 from firmware_model.onboard_catalog import OnboardCatalog
 from ident_sky import random_catalog
 
@@ -24,9 +31,13 @@ def brute_force(t, cat, noise, delta_star):
     for row in range(cat.n_pairs):
         i, j, phi = cat.pair_i[row], cat.pair_j[row], cat.pair_phi[row]
         for swapped, (a, b) in enumerate(((i, j), (j, i))):
-            d = np.sqrt(((t[0] - cat.rg[a]) / noise.sigma_rg) ** 2 + ((t[1] - cat.bg[a]) / noise.sigma_bg) ** 2
-                        + ((t[2] - phi) / noise.sigma_phi) ** 2 + ((t[3] - cat.rg[b]) / noise.sigma_rg) ** 2
-                        + ((t[4] - cat.bg[b]) / noise.sigma_bg) ** 2)
+            d = np.sqrt(
+                ((t[0] - cat.rg[a]) / noise.sigma_rg) ** 2
+                + ((t[1] - cat.bg[a]) / noise.sigma_bg) ** 2
+                + ((t[2] - phi) / noise.sigma_phi) ** 2
+                + ((t[3] - cat.rg[b]) / noise.sigma_rg) ** 2
+                + ((t[4] - cat.bg[b]) / noise.sigma_bg) ** 2
+            )
             if d < delta_star:
                 out[(row, bool(swapped))] = d
     return out
@@ -60,8 +71,7 @@ def test_match_pair_equals_brute_force_both_orderings(seed):
 def symmetric_catalog():
     """Three stars; stars 0 and 1 share a colour (a symmetric pair), star 2 differs."""
     v = np.array([[1.0, 0, 0], [np.cos(0.05), np.sin(0.05), 0], [np.cos(0.03), 0, np.sin(0.03)]])
-    return OnboardCatalog.build([1, 2, 3], v, [1, 2, 3], [0.6, 0.6, 1.1], [0.9, 0.9, 0.4],
-                                phi_min=1e-4, phi_max=0.2)
+    return OnboardCatalog.build([1, 2, 3], v, [1, 2, 3], [0.6, 0.6, 1.1], [0.9, 0.9, 0.4], phi_min=1e-4, phi_max=0.2)
 
 
 def test_symmetric_pair_gives_both_assignments_with_equal_distance():

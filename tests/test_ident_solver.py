@@ -56,15 +56,18 @@ def test_auto_picks_geometric_without_colour_and_forced_modes(cat):
     assert r.status is Outcome.NO_MATCH and "no colours" in r.reason
 
 
-@pytest.mark.parametrize("vectors, reason", [
-    (np.empty((0, 3)), "need at least two"),
-    (np.array([[0, 0, 1.0]]), "need at least two"),
-    (np.full((5, 3), np.nan), "need at least two"),
-    (np.zeros((4, 3)), "need at least two"),
-    (np.ones((4, 2)), "shape (N, 3)"),
-    ("junk", "numeric"),
-    (np.array([[0, 0, 1.0], [0, 0, 1.0], [0, 0, 1.0]]), "need at least two"),
-])
+@pytest.mark.parametrize(
+    "vectors, reason",
+    [
+        (np.empty((0, 3)), "need at least two"),
+        (np.array([[0, 0, 1.0]]), "need at least two"),
+        (np.full((5, 3), np.nan), "need at least two"),
+        (np.zeros((4, 3)), "need at least two"),
+        (np.ones((4, 2)), "shape (N, 3)"),
+        ("junk", "numeric"),
+        (np.array([[0, 0, 1.0], [0, 0, 1.0], [0, 0, 1.0]]), "need at least two"),
+    ],
+)
 def test_degenerate_input_is_a_clean_no_match(cat, vectors, reason):
     res = solve(vectors, None, None, cat, PARAMS)
     assert res.status is Outcome.NO_MATCH and reason in res.reason and res.q_icrs_to_sensor is None
@@ -97,14 +100,16 @@ def test_hundreds_of_detections_are_bounded(cat):
     n = 400
     junk = CAM.pixel_to_vector(rng.uniform(0, CAM.width, n), rng.uniform(0, CAM.height, n))
     v2 = np.vstack([v, junk])  # true stars brightest, then noise detections
-    res = solve(v2, np.concatenate([rg, rng.uniform(0.3, 1.3, n)]), np.concatenate([bg, rng.uniform(0.3, 1.4, n)]),
-                cat, PARAMS)
+    res = solve(
+        v2, np.concatenate([rg, rng.uniform(0.3, 1.3, n)]), np.concatenate([bg, rng.uniform(0.3, 1.4, n)]), cat, PARAMS
+    )
     assert res.ok and np.all(np.concatenate([truth, np.full(n, -1)])[res.matched_det] == res.matched_cat)
     assert any("brightest" in s for s in res.notes)
     assert res.timings["total"] < 1.0
     junk_first = solve(np.vstack([junk, v]), None, None, cat, PARAMS)  # all-false brightest: geometric
     assert junk_first.status is not Outcome.HIGH_CONFIDENCE or np.all(
-        np.concatenate([np.full(n, -1), truth])[junk_first.matched_det] == junk_first.matched_cat)
+        np.concatenate([np.full(n, -1), truth])[junk_first.matched_det] == junk_first.matched_cat
+    )
 
 
 def test_catalog_for_another_fov_is_a_clean_no_match(cat):

@@ -16,10 +16,14 @@ def _strict(text):
 
 
 def test_non_finite_values_become_null_and_numpy_values_plain():
-    obj = {"a": float("nan"), "b": np.float32(1.5), "c": np.array([1.0, np.inf]), "d": [np.int64(3), -np.inf],
-           "e": (1, "x", None)}
-    assert _strict(json_text.dumps(obj)) == {"a": None, "b": 1.5, "c": [1.0, None], "d": [3, None],
-                                             "e": [1, "x", None]}
+    obj = {
+        "a": float("nan"),
+        "b": np.float32(1.5),
+        "c": np.array([1.0, np.inf]),
+        "d": [np.int64(3), -np.inf],
+        "e": (1, "x", None),
+    }
+    assert _strict(json_text.dumps(obj)) == {"a": None, "b": 1.5, "c": [1.0, None], "d": [3, None], "e": [1, "x", None]}
 
 
 def test_what_it_cannot_represent_is_refused():
@@ -31,7 +35,14 @@ def test_the_results_log_is_strict_json(tmp_path):
     from ground.results_log import ResultsLog
 
     log = ResultsLog(tmp_path)
-    log.append({"frame": "f.dng", "outcome": "no_match", "status": "NO_MATCH", "sigma_arcsec": [np.nan, 1.0, np.inf],
-                "q_icrs_to_sensor": None})
+    log.append(
+        {
+            "frame": "f.dng",
+            "outcome": "no_match",
+            "status": "NO_MATCH",
+            "sigma_arcsec": [np.nan, 1.0, np.inf],
+            "q_icrs_to_sensor": None,
+        }
+    )
     rows = [_strict(line) for line in (tmp_path / "results.jsonl").read_text().splitlines()]
     assert rows[0]["sigma_arcsec"] == [None, 1.0, None]

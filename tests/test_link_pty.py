@@ -17,11 +17,12 @@ from protocol.crc import crc32
 
 class DeviceProcess:
     def __init__(self, *args: str):
-        self.proc = subprocess.Popen(_device_command() + list(args), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                     text=True)
+        self.proc = subprocess.Popen(
+            _device_command() + list(args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
         line = self.proc.stdout.readline().strip()
         assert line.startswith("listening on "), (line, self.proc.stderr.read() if self.proc.poll() else "")
-        self.path = line[len("listening on "):]
+        self.path = line[len("listening on ") :]
 
     def stop(self, sig=signal.SIGTERM) -> int:
         if self.proc.poll() is None:
@@ -101,9 +102,16 @@ def _small_catalog_image(n: int = 300) -> bytes:
     rng = np.random.default_rng(7)
     v = rng.normal(size=(n, 3))
     v /= np.linalg.norm(v, axis=1)[:, None]
-    cat = OnboardCatalog.build(np.arange(1, n + 1), v, rng.uniform(1, 5, n), rng.uniform(0.3, 1.5, n),
-                               rng.uniform(0.2, 1.4, n), phi_min=0.002, phi_max=np.radians(15.0),
-                               meta={"epoch": 2025.0})
+    cat = OnboardCatalog.build(
+        np.arange(1, n + 1),
+        v,
+        rng.uniform(1, 5, n),
+        rng.uniform(0.3, 1.5, n),
+        rng.uniform(0.2, 1.4, n),
+        phi_min=0.002,
+        phi_max=np.radians(15.0),
+        meta={"epoch": 2025.0},
+    )
     return catalog_to_image(cat, created_unix=0)
 
 
@@ -115,7 +123,7 @@ def test_upload_interrupted_resumed_and_persisted(tmp_path):
     with Client(dev.path) as c:
         c.xfer_begin(0, len(image), crc32(image))
         for off in range(0, 12_288, 4096):
-            c.xfer_data(0, off, image[off:off + 4096])
+            c.xfer_data(0, off, image[off : off + 4096])
     assert dev.stop(signal.SIGINT) == 0  # interrupted mid-transfer
     dev = DeviceProcess("--pty", "--state", str(state))
     with Client(dev.path) as c:
@@ -173,14 +181,14 @@ def test_short_soak_no_lost_or_misattributed_reply(device):
             if kind == 0:
                 v = rng.randbytes(rng.randrange(1, 0x200 - a))
                 assert c.write_edac(a, v) == len(v)
-                scratch[a - 0x100:a - 0x100 + len(v)] = v
+                scratch[a - 0x100 : a - 0x100 + len(v)] = v
             elif kind == 1:
                 k = rng.randrange(1, 0x200 - a)
-                assert c.read_edac(a, k) == scratch[a - 0x100:a - 0x100 + k]
+                assert c.read_edac(a, k) == scratch[a - 0x100 : a - 0x100 + k]
             elif kind == 2:
                 v = rng.randbytes(4)
                 c.send_silent(Code.WRITE_EDAC, struct.pack("<H", a) + v)
-                scratch[a - 0x100:a - 0x100 + 4] = v
+                scratch[a - 0x100 : a - 0x100 + 4] = v
             else:
                 with pytest.raises(Nack):
                     c.transact(0x0E)
@@ -236,8 +244,11 @@ def test_link_is_served_while_a_combination_waits_for_its_sequence():
         with Client(link.path, timeout=2.0, retries=0) as c:
             c.upload(0, _small_catalog_image(), progress=False)
             c.init()
-            c.write_raw(nsp.command(c.device_address, c.host_address, Code.COMBINATION,
-                                    Combination(0x0B, 0x0007).pack()).frame())
+            c.write_raw(
+                nsp.command(
+                    c.device_address, c.host_address, Code.COMBINATION, Combination(0x0B, 0x0007).pack()
+                ).frame()
+            )
             assert "APPLICATION" in c.ping() and dev.busy  # answered while the sequence runs
             assert c.read_edac(0x0100, 4) == bytes(4)
             release.set()
@@ -265,8 +276,18 @@ def test_ctrl_c_during_an_upload_keeps_what_was_sent_and_the_next_upload_resumes
     partial = tmp_path / "state" / "slot0" / "partial.json"
     dev = DeviceProcess("--pty", "--pace", "--baud", "115200", "--state", str(tmp_path / "state"))
     try:
-        cmd = [sys.executable, "-m", "ground.cli", "--port", dev.path, "--timeout", "2", "upload", "0",
-               str(tmp_path / "cat.img")]
+        cmd = [
+            sys.executable,
+            "-m",
+            "ground.cli",
+            "--port",
+            dev.path,
+            "--timeout",
+            "2",
+            "upload",
+            "0",
+            str(tmp_path / "cat.img"),
+        ]
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         deadline = time.monotonic() + 30
         while not (partial.exists() and json.loads(partial.read_text() or "{}").get("ranges")):

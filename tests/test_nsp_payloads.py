@@ -6,8 +6,20 @@ from hypothesis import given, strategies as st
 
 from protocol import result
 from protocol.commands import (
-    Combination, DarkWindow, Diagnostics, NackInfo, NackReason, PayloadError, ReadFile, ReadRange,
-    SlotImage, SlotRejected, WriteFile, XferBegin, XferData, XferStatus,
+    Combination,
+    DarkWindow,
+    Diagnostics,
+    NackInfo,
+    NackReason,
+    PayloadError,
+    ReadFile,
+    ReadRange,
+    SlotImage,
+    SlotRejected,
+    WriteFile,
+    XferBegin,
+    XferData,
+    XferStatus,
 )
 
 
@@ -74,8 +86,16 @@ def test_result_layout_matches_cosmos_offsets():
 
 def test_result_build_parse_paths():
     q = [0.5, 0.5, 0.5, 0.5]
-    data = result.build({"return_code": result.make_return_code(result.Status.OK, 0x5C), "quaternion": q,
-                         "centroid.1.good_stars": 7, "ext.n_reported": 1, "ext.stars.0.rg": 0.8}, sequence=3)
+    data = result.build(
+        {
+            "return_code": result.make_return_code(result.Status.OK, 0x5C),
+            "quaternion": q,
+            "centroid.1.good_stars": 7,
+            "ext.n_reported": 1,
+            "ext.stars.0.rg": 0.8,
+        },
+        sequence=3,
+    )
     assert len(data) == result.TOTAL_LENGTH
     assert data[0x008:0x010] == np.float64(0.5).tobytes()
     rec = result.parse(data)

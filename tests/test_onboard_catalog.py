@@ -45,8 +45,15 @@ def test_pair_table_rejects_impossible_bounds():
 @pytest.mark.parametrize("n_h,dphi_star", [(1024, 0.0), (64, 0.001), (7, 0.01)])
 def test_indices_match_brute_force(n_h, dphi_star):
     vec = random_sky(400, 5)
-    cat = OnboardCatalog.build(np.arange(400), vec, np.zeros(400), phi_min=np.radians(0.1),
-                               phi_max=np.radians(20.0), n_h=n_h, dphi_star=dphi_star)
+    cat = OnboardCatalog.build(
+        np.arange(400),
+        vec,
+        np.zeros(400),
+        phi_min=np.radians(0.1),
+        phi_max=np.radians(20.0),
+        n_h=n_h,
+        dphi_star=dphi_star,
+    )
     rng = np.random.default_rng(9)
     queries = np.concatenate([rng.uniform(-0.01, cat.phi_max + 0.01, 300), cat.pair_phi[::97]])
     for phi in queries:

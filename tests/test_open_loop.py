@@ -13,8 +13,7 @@ import numpy as np
 import pytest
 
 from firmware_model.camera import CameraModel
-from firmware_model.extract import (PSF_FAIL_FRACTION, ExtractParams, _detect_and_fit, extract_stars,
-                                     failed_fit_fraction)
+from firmware_model.extract import PSF_FAIL_FRACTION, ExtractParams, _detect_and_fit, extract_stars, failed_fit_fraction
 from firmware_model.frame import Frame
 from firmware_model.frames import attitude_from_radec_roll, rotation_angle, quat_to_matrix, vec_to_radec
 from firmware_model.pipeline import PipelineParams, run_pipeline
@@ -34,8 +33,16 @@ POINTINGS = [(83.8, -5.4, 20.0), (201.3, -11.2, 100.0), (296.6, 10.6, 250.0)]
 
 @pytest.fixture(scope="module")
 def catalog():
-    return build_catalog(CatalogDesign(theta_fov_deg=4.3, sensor_width_px=1024, sensor_height_px=768, m_thresh=6.0,
-                                       phi_min_deg=0.05, phi_max_deg=15.0))
+    return build_catalog(
+        CatalogDesign(
+            theta_fov_deg=4.3,
+            sensor_width_px=1024,
+            sensor_height_px=768,
+            m_thresh=6.0,
+            phi_min_deg=0.05,
+            phi_max_deg=15.0,
+        )
+    )
 
 
 def render(camera, pointing, seed=1, pattern="MONO", psf_sigma=1.0, **kw):

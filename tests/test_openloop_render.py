@@ -64,7 +64,9 @@ def test_coma_grows_with_field_radius_and_flares_outward():
     assert not np.allclose(s, s[::-1, ::-1], atol=1e-3)  # asymmetric
 
 
-@pytest.mark.parametrize("model,shift", [("division", 5.0), ("division", -5.0), ("equisolid", -5.0), ("equisolid", 3.0)])
+@pytest.mark.parametrize(
+    "model,shift", [("division", 5.0), ("division", -5.0), ("equisolid", -5.0), ("equisolid", 3.0)]
+)
 def test_radial_models_move_the_corner_star_by_the_requested_pixels(model, shift):
     base = CameraModel.reference_design()
     cam = ol.RadialMappedCamera(base, model, shift)

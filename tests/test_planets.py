@@ -43,8 +43,12 @@ def _radius(body, pos) -> float:
 # ---------------------------------------------------------------- published events
 @pytest.mark.parametrize(
     "utc, sign",
-    [("2019-11-11T12:35:27", +1), ("2019-11-11T12:37:08", -1),
-     ("2019-11-11T18:02:33", -1), ("2019-11-11T18:04:14", +1)],
+    [
+        ("2019-11-11T12:35:27", +1),
+        ("2019-11-11T12:37:08", -1),
+        ("2019-11-11T18:02:33", -1),
+        ("2019-11-11T18:04:14", +1),
+    ],
 )
 def test_mercury_transit_contacts(utc, sign):
     # Mercury crosses the limb at ~6 arcsec/min: 10 arcsec is 2 min of timing

@@ -16,8 +16,14 @@ GROUND = [sys.executable, "-m", "ground.cli"]
 #: Solved today (docs/e2e.md); tree.jpg (foreground clutter) is not, and must come back without a
 #: high-confidence answer or with a right one. openstartracker_img2 solves on 5 stars, three of them
 #: faint 2 x 2 px blobs of an 8-bit frame whose fits fail (kept as centre-of-gravity centroids).
-SOLVED = {"pifinder_debug_01.png", "pifinder_debug_02.png", "hale_bopp.jpg", "img_7660.png",
-          "openstartracker_img0.png", "openstartracker_img2.png"}
+SOLVED = {
+    "pifinder_debug_01.png",
+    "pifinder_debug_02.png",
+    "hale_bopp.jpg",
+    "img_7660.png",
+    "openstartracker_img0.png",
+    "openstartracker_img2.png",
+}
 
 
 @pytest.fixture(scope="module")
@@ -35,12 +41,32 @@ def test_colour_frames_solve_through_the_cli_with_fov_only(colour_real, tmp_path
         w, h = ref["size_px"]
         fov = str(ref["fov_deg"][0])
         catalog = tmp_path / f"{name}.st16cat"
-        run = subprocess.run([*GROUND, "catalog", "build", "--fov-deg", fov, "--width", str(w), "--height",
-                              str(h), "-o", str(catalog)], capture_output=True, text=True, timeout=300)
+        run = subprocess.run(
+            [*GROUND, "catalog", "build", "--fov-deg", fov, "--width", str(w), "--height", str(h), "-o", str(catalog)],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert run.returncode == 0, run.stderr
-        run = subprocess.run([*GROUND, "--json", "solve", "--offline", "--frame", str(folder / name), "--catalog",
-                              str(catalog), "--fov-deg", fov, "--out", str(tmp_path / "log")],
-                             capture_output=True, text=True, timeout=300)
+        run = subprocess.run(
+            [
+                *GROUND,
+                "--json",
+                "solve",
+                "--offline",
+                "--frame",
+                str(folder / name),
+                "--catalog",
+                str(catalog),
+                "--fov-deg",
+                fov,
+                "--out",
+                str(tmp_path / "log"),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert run.returncode in (0, 1, 3), run.stderr  # 1: not high confidence, 3: no attitude
         rec = json.loads(run.stdout, parse_constant=lambda name: pytest.fail(f"bare {name} in --json output"))
         assert rec["status"] and (rec["status"] == "OK" or rec["reason"]), rec["status"]

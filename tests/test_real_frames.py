@@ -32,8 +32,17 @@ def tetra3(shared_data, tmp_path_factory):
     frames = shared_data / "frames" / "tetra3-mono"
     if not frames.is_dir():
         pytest.skip("tetra3 frames absent")
-    catalog = build_catalog(CatalogDesign(theta_fov_deg=4.33, sensor_width_px=1024, sensor_height_px=768,
-                                          m_thresh=6.5, phi_min_deg=0.05, phi_max_deg=15.0, epoch=2019.6))
+    catalog = build_catalog(
+        CatalogDesign(
+            theta_fov_deg=4.33,
+            sensor_width_px=1024,
+            sensor_height_px=768,
+            m_thresh=6.5,
+            phi_min_deg=0.05,
+            phi_max_deg=15.0,
+            epoch=2019.6,
+        )
+    )
     work = tmp_path_factory.mktemp("tetra3")
     (work / "catalog.st16cat").write_bytes(catalog_to_image(catalog))
     (work / "datasheet.json").write_text(json.dumps(DATASHEET.to_dict()))
@@ -68,9 +77,23 @@ def test_real_frames_solve_with_datasheet_optics_and_defaults(tetra3):
 @pytest.mark.parametrize("camera", ["--fov-deg=11.4", "datasheet"])
 def test_real_frames_solve_through_the_cli(tetra3, camera, tmp_path):
     option = camera if camera.startswith("--") else f"--camera={tetra3['work'] / 'datasheet.json'}"
-    run = subprocess.run([*GROUND, "--json", "replay", str(tetra3["dir"]), "--offline", "--catalog",
-                          str(tetra3["work"] / "catalog.st16cat"), option, "--out", str(tmp_path)],
-                         capture_output=True, text=True, timeout=300)
+    run = subprocess.run(
+        [
+            *GROUND,
+            "--json",
+            "replay",
+            str(tetra3["dir"]),
+            "--offline",
+            "--catalog",
+            str(tetra3["work"] / "catalog.st16cat"),
+            option,
+            "--out",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert run.returncode == 0, run.stderr
     assert json.loads(run.stdout)["status"] == {"OK": 8}
     records = [json.loads(line) for line in (tmp_path / "results.jsonl").read_text().splitlines()]
@@ -84,14 +107,31 @@ def test_device_and_offline_replay_give_the_same_answers(tetra3, tmp_path):
 
     params = tmp_path / "params.json"
     params.write_text(json.dumps({"mode": "geometric", "time_budget_s": 0.2}))
-    run = subprocess.run([*GROUND, "--json", "replay", str(tetra3["dir"]), "--offline", "--catalog",
-                          str(tetra3["work"] / "catalog.st16cat"), "--camera", str(tetra3["work"] / "datasheet.json"),
-                          "--params", str(params), "--out", str(tmp_path / "offline")],
-                         capture_output=True, text=True, timeout=300)
+    run = subprocess.run(
+        [
+            *GROUND,
+            "--json",
+            "replay",
+            str(tetra3["dir"]),
+            "--offline",
+            "--catalog",
+            str(tetra3["work"] / "catalog.st16cat"),
+            "--camera",
+            str(tetra3["work"] / "datasheet.json"),
+            "--params",
+            str(params),
+            "--out",
+            str(tmp_path / "offline"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert run.returncode == 0, run.stderr
     offline = [json.loads(line) for line in (tmp_path / "offline" / "results.jsonl").read_text().splitlines()]
-    proc, pty = start_device(tmp_path / "state", "--camera", str(tetra3["work"] / "datasheet.json"),
-                             "--frames", str(tetra3["dir"]))
+    proc, pty = start_device(
+        tmp_path / "state", "--camera", str(tetra3["work"] / "datasheet.json"), "--frames", str(tetra3["dir"])
+    )
     try:
         with Client(pty) as c:
             c.init()
@@ -110,9 +150,26 @@ def test_device_and_offline_replay_give_the_same_answers(tetra3, tmp_path):
 
 def test_camera_calibrates_from_the_datasheet_alone(tetra3, tmp_path):
     out = tmp_path / "camera.json"
-    run = subprocess.run([*GROUND, "--json", "camera", "calibrate", *map(str, tetra3["paths"]), "--catalog",
-                          str(tetra3["work"] / "catalog.st16cat"), "--focal-mm", "35", "--pixel-um", "6.9",
-                          "-o", str(out)], capture_output=True, text=True, timeout=300)
+    run = subprocess.run(
+        [
+            *GROUND,
+            "--json",
+            "camera",
+            "calibrate",
+            *map(str, tetra3["paths"]),
+            "--catalog",
+            str(tetra3["work"] / "catalog.st16cat"),
+            "--focal-mm",
+            "35",
+            "--pixel-um",
+            "6.9",
+            "-o",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert run.returncode == 0, run.stderr
     report = json.loads(run.stdout)
     assert report["frames_solved"] == 8 and report["residual_rms_px"] < 0.15

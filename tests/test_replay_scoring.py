@@ -33,8 +33,12 @@ def test_a_malformed_or_foreign_truth_file_is_not_scored_and_says_why(tmp_path):
     from firmware_model.frame import Frame
 
     frame = Frame(pixels=np.zeros((40, 60), np.uint16), pattern="MONO", metadata={"seed": 5})
-    good = {"seed": 5, "camera": {"width": 60, "height": 40}, "attitude_quaternion": [1, 0, 0, 0],
-            "stars": [{"id": 7, "x": 3.0, "y": 4.0}]}
+    good = {
+        "seed": 5,
+        "camera": {"width": 60, "height": 40},
+        "attitude_quaternion": [1, 0, 0, 0],
+        "stars": [{"id": 7, "x": 3.0, "y": 4.0}],
+    }
     cases = {
         "garbage": "{not json",
         "no_quaternion": json.dumps({"stars": []}),

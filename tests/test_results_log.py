@@ -7,8 +7,16 @@ from ground.results_log import ResultsLog, plot_summary, summarize
 
 def test_log_appends_jsonl_and_csv_and_summarizes(tmp_path):
     log = ResultsLog(tmp_path)
-    log.append({"frame": "a", "outcome": "correct", "attitude_error_deg": 0.002, "solve_s": 0.1,
-                "q_icrs_to_sensor": np.array([1.0, 0, 0, 0]), "residuals_arcsec": [1.0, 2.0]})
+    log.append(
+        {
+            "frame": "a",
+            "outcome": "correct",
+            "attitude_error_deg": 0.002,
+            "solve_s": 0.1,
+            "q_icrs_to_sensor": np.array([1.0, 0, 0, 0]),
+            "residuals_arcsec": [1.0, 2.0],
+        }
+    )
     log.append({"frame": "b", "outcome": "wrong", "attitude_error_deg": 12.0, "solve_s": 0.3})
     log.append({"frame": "c", "outcome": "no_match", "reason": "too few stars"})
     log.append({"frame": "d", "outcome": "unreadable", "reason": "not an image"})

@@ -35,7 +35,7 @@ def test_dark_frame_mean_and_variance():
 
 def _blackbody_photons(lam_m, temp):
     h, c, k = 6.62607015e-34, 299792458.0, 1.380649e-23
-    f_lam = 2 * h * c ** 2 / lam_m ** 5 / np.expm1(h * c / (lam_m * k * temp))
+    f_lam = 2 * h * c**2 / lam_m**5 / np.expm1(h * c / (lam_m * k * temp))
     return f_lam * lam_m / (h * c)  # photon flux density (arbitrary scale)
 
 
@@ -108,8 +108,11 @@ def test_deterministic_and_seed_dependent():
 
 def test_saturation_hot_pixels_false_objects_and_truth_json():
     det = DetectorModel(hot_pixel_fraction=1e-3)
-    objs = [FalseObject("planet", 50.0, 50.0, 2e5, 1.5, 0.5), FalseObject("cosmic", 200.0, 30.0, 3000.0),
-            FalseObject("satellite", 20.0, 200.0, 5e4, x2=120.0, y2=220.0)]
+    objs = [
+        FalseObject("planet", 50.0, 50.0, 2e5, 1.5, 0.5),
+        FalseObject("cosmic", 200.0, 30.0, 3000.0),
+        FalseObject("satellite", 20.0, 200.0, 5e4, x2=120.0, y2=220.0),
+    ]
     res = render_frame(_star_at(160.0, 120.0, -2.0), ATT, CAM, det, seed=1, false_objects=objs)
     px = res.frame.pixels
     assert px.max() == det.white_level_dn and px[120, 160] == det.white_level_dn

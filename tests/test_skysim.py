@@ -28,16 +28,21 @@ def seed001_catalog():
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
 
-    return build_catalog(CatalogDesign(theta_fov_deg=12.25, sensor_width_px=1024, sensor_height_px=1024,
-                                       phi_min_deg=0.05, phi_max_deg=24.5))
+    return build_catalog(
+        CatalogDesign(
+            theta_fov_deg=12.25, sensor_width_px=1024, sensor_height_px=1024, phi_min_deg=0.05, phi_max_deg=24.5
+        )
+    )
 
 
 def small_config(**kw):
     # a generous time budget keeps the outcome independent of machine load
-    params = SolveParams(sigma_vec=0.2 / CAM.f, fov=FieldOfView.from_camera(CAM, 0.0), mode="colour",
-                         time_budget_s=10.0)
-    return skysim.ColourSimConfig(n_boresights=150, n_roll=2, seed=7, model=skysim.ErrorModel(false_stars=0.5),
-                                  solve=params, **kw)
+    params = SolveParams(
+        sigma_vec=0.2 / CAM.f, fov=FieldOfView.from_camera(CAM, 0.0), mode="colour", time_budget_s=10.0
+    )
+    return skysim.ColourSimConfig(
+        n_boresights=150, n_roll=2, seed=7, model=skysim.ErrorModel(false_stars=0.5), solve=params, **kw
+    )
 
 
 def test_spiral_is_uniform_and_grid_has_2664_observations():
@@ -93,8 +98,9 @@ def test_executors_agree(colour_catalog):
     local, _ = skysim.execute("colour", colour_catalog, CAM, cfg, 80, workers=1, chunk=25, progress=False)
     procs, _ = skysim.execute("colour", colour_catalog, CAM, cfg, 80, workers=2, chunk=25, progress=False)
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
-        dask_rows, _ = skysim.execute("colour", colour_catalog, CAM, cfg, 80, chunk=25, progress=False,
-                                      scheduler=cluster.scheduler_address)
+        dask_rows, _ = skysim.execute(
+            "colour", colour_catalog, CAM, cfg, 80, chunk=25, progress=False, scheduler=cluster.scheduler_address
+        )
     for other in (procs, dask_rows):
         for name in ("boresight", "status", "n_matched", "n_wrong", "err_deg"):
             np.testing.assert_array_equal(local[name], other[name])
@@ -122,13 +128,30 @@ def test_plots_are_written(colour_catalog, tmp_path):
 def test_cli_runs_both_simulations(tmp_path, capsys):
     from ground.cli import main
 
-    assert main(["sim", "colour", "--boresights", "20", "--rolls", "1", "--workers", "1", "--no-progress",
-                 "--out", str(tmp_path)]) == 0
+    assert (
+        main(
+            [
+                "sim",
+                "colour",
+                "--boresights",
+                "20",
+                "--rolls",
+                "1",
+                "--workers",
+                "1",
+                "--no-progress",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "problem_orientations" in out and "seed 000" in out and "no solution by cause" in out
     assert (tmp_path / "error_cdf.png").exists() and (tmp_path / "problem_map.png").exists()
-    assert main(["--json", "sim", "fourstar", "--step", "45", "--epsilon", "0.01", "--workers", "1",
-                 "--no-progress"]) == 0
+    assert (
+        main(["--json", "sim", "fourstar", "--step", "45", "--epsilon", "0.01", "--workers", "1", "--no-progress"]) == 0
+    )
     import json
 
     s = json.loads(capsys.readouterr().out)["0.01"]
@@ -137,10 +160,12 @@ def test_cli_runs_both_simulations(tmp_path, capsys):
 
 
 def test_impaired_run_splits_the_availability_loss_by_cause(colour_catalog):
-    params = SolveParams(sigma_vec=0.2 / CAM.f, fov=FieldOfView.from_camera(CAM, 0.0), mode="colour",
-                         time_budget_s=10.0)
-    cfg = skysim.ColourSimConfig(n_boresights=200, n_roll=2, seed=3, solve=params,
-                                 model=skysim.ErrorModel(false_stars=3.0, p_drop=0.3))
+    params = SolveParams(
+        sigma_vec=0.2 / CAM.f, fov=FieldOfView.from_camera(CAM, 0.0), mode="colour", time_budget_s=10.0
+    )
+    cfg = skysim.ColourSimConfig(
+        n_boresights=200, n_roll=2, seed=3, solve=params, model=skysim.ErrorModel(false_stars=3.0, p_drop=0.3)
+    )
     rows, _ = skysim.execute("colour", colour_catalog, CAM, cfg, 400, workers=1, progress=False)
     s = skysim.colour_summary(rows)
     by = s["no_solution_by_cause"]
@@ -165,7 +190,10 @@ def test_cause_of_a_frame_without_true_stars(colour_catalog):
     a = attitude_from_radec_roll(1.0, 0.2, 0.3)
     sc = skysim.observe(colour_catalog, a, CAM, skysim.ErrorModel(), rng)
     assert len(sc.truth) >= 3
-    assert skysim.CAUSES[skysim.no_solution_cause(sc, "time budget exhausted", colour_catalog, params, True)] == "time_budget"
+    assert (
+        skysim.CAUSES[skysim.no_solution_cause(sc, "time budget exhausted", colour_catalog, params, True)]
+        == "time_budget"
+    )
     assert skysim.CAUSES[skysim.no_solution_cause(sc, "", colour_catalog, params, True)] == "matcher_missed"
 
 
@@ -178,9 +206,26 @@ def test_ctrl_c_ends_a_parallel_run_at_once_and_leaves_no_worker(tmp_path):
     import time
 
     marker = str(tmp_path / "sim-out")
-    run = subprocess.Popen([sys.executable, "-m", "ground.cli", "sim", "colour", "--boresights", "50000", "--rolls",
-                            "4", "--workers", "2", "--out", marker], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                           text=True)
+    run = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "ground.cli",
+            "sim",
+            "colour",
+            "--boresights",
+            "50000",
+            "--rolls",
+            "4",
+            "--workers",
+            "2",
+            "--out",
+            marker,
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         time.sleep(6)  # imports, catalog, workers started and solving
         t0 = time.monotonic()
@@ -223,8 +268,21 @@ def test_progress_bars_only_on_a_terminal_and_without_no_progress(tmp_path):
 
     from ground.cli_types import progress_on
 
-    cmd = [_sys.executable, "-m", "ground.cli", "sim", "colour", "--boresights", "20", "--rolls", "1", "--workers",
-           "1", "--out", str(tmp_path)]
+    cmd = [
+        _sys.executable,
+        "-m",
+        "ground.cli",
+        "sim",
+        "colour",
+        "--boresights",
+        "20",
+        "--rolls",
+        "1",
+        "--workers",
+        "1",
+        "--out",
+        str(tmp_path),
+    ]
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0 and "pose" not in run.stderr  # tqdm's unit: no bar into the pipe
     assert not progress_on(argparse.Namespace(no_progress=True, json=False))

@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import numpy as np
 
 
-
 def attitude_profile(b: np.ndarray, r: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Attitude profile matrix ``B = sum_i w_i b_i r_i^T`` (3x3)."""
     return (np.asarray(b, float) * np.asarray(w, float)[:, None]).T @ np.asarray(r, float)
@@ -91,11 +90,13 @@ def quat_matrix(q: np.ndarray) -> np.ndarray:
     """Attitude matrix of a unit scalar-first quaternion (same as ``frames.quat_to_matrix``, no scipy
     overhead): ``A = (w^2 - v.v) I + 2 v v^T + 2 w [v x]``."""
     w, x, y, z = q
-    return np.array([
-        [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
-    ])
+    return np.array(
+        [
+            [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
+        ]
+    )
 
 
 def solve_attitude(b: np.ndarray, r: np.ndarray, sigma) -> AttitudeSolution:

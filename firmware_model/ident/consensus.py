@@ -202,8 +202,18 @@ def _sq(x):
     return np.where(np.isfinite(x), x * x, 0.0)
 
 
-def grow(seed_det, seed_cat, vectors, rg, bg, ang, catalog: OnboardCatalog, noise: PairNoise,
-         delta_star: float, params: ConsensusParams):
+def grow(
+    seed_det,
+    seed_cat,
+    vectors,
+    rg,
+    bg,
+    ang,
+    catalog: OnboardCatalog,
+    noise: PairNoise,
+    delta_star: float,
+    params: ConsensusParams,
+):
     """Grow a consensus set from a matched seed pair (steps 2-3); returns (det, cat) arrays.
 
     The constrained pair match of detection ``i`` with anchor ``s`` scores the catalog
@@ -220,7 +230,9 @@ def grow(seed_det, seed_cat, vectors, rg, bg, ang, catalog: OnboardCatalog, nois
         a, b = indptr[cs], indptr[cs + 1]
         nb = nbr[a:b]
         d2 = ((ang[:, s][:, None] - nphi[None, a:b]) / noise.sigma_phi) ** 2
-        d2 += _sq((rg[:, None] - crg[nb][None, :]) / noise.sigma_rg) + _sq((bg[:, None] - cbg[nb][None, :]) / noise.sigma_bg)
+        d2 += _sq((rg[:, None] - crg[nb][None, :]) / noise.sigma_rg) + _sq(
+            (bg[:, None] - cbg[nb][None, :]) / noise.sigma_bg
+        )
         d2 += _sq((rg[s] - crg[cs]) / noise.sigma_rg) + _sq((bg[s] - cbg[cs]) / noise.sigma_bg)
         ii, jj = np.nonzero(d2 < delta_star * delta_star)
         cand_det.append(ii)
@@ -265,10 +277,16 @@ def grow(seed_det, seed_cat, vectors, rg, bg, ang, catalog: OnboardCatalog, nois
     return np.array(s_det + extra_det, np.int64), np.array(s_cat + extra_cat, np.int64)
 
 
-def match_scene(vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray, catalog: OnboardCatalog,
-                noise: PairNoise, params: ConsensusParams,
-                verify: Callable[[np.ndarray, np.ndarray], tuple[object | None, str]],
-                deadline: float | None = None) -> ConsensusResult:
+def match_scene(
+    vectors: np.ndarray,
+    rg: np.ndarray,
+    bg: np.ndarray,
+    catalog: OnboardCatalog,
+    noise: PairNoise,
+    params: ConsensusParams,
+    verify: Callable[[np.ndarray, np.ndarray], tuple[object | None, str]],
+    deadline: float | None = None,
+) -> ConsensusResult:
     """Consensus match of a scene (module docstring); detections ordered brightest first.
 
     ``verify(det, cat)`` returns ``(match, "")`` with ``match.n``, ``match.attitude.a`` and
@@ -301,8 +319,7 @@ def match_scene(vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray, catalog: On
         if not catalog.phi_min - tol < phi <= catalog.phi_max + tol:
             continue
         attempts += 1
-        cands = match_pair(np.array([rg[k], bg[k], phi, rg[l], bg[l]]), catalog, noise, delta_star,
-                           params.max_window)
+        cands = match_pair(np.array([rg[k], bg[k], phi, rg[l], bg[l]]), catalog, noise, delta_star, params.max_window)
         if len(cands) == 0:
             order.failed(k, l)
             if not seeded:
@@ -312,8 +329,18 @@ def match_scene(vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray, catalog: On
         explored_all = len(cands) <= k_best and not cands.truncated
         good = False
         for m in range(min(k_best, len(cands))):
-            det, cat = grow((k, l), (int(cands.cat_k[m]), int(cands.cat_l[m])), vectors, rg, bg, ang,
-                            catalog, noise, delta_star, params)
+            det, cat = grow(
+                (k, l),
+                (int(cands.cat_k[m]), int(cands.cat_l[m])),
+                vectors,
+                rg,
+                bg,
+                ang,
+                catalog,
+                noise,
+                delta_star,
+                params,
+            )
             if n >= params.rich_scene and len(det) < params.min_consensus_rich:
                 small.append((float(cands.delta[m]), det, cat, explored_all))
                 continue
@@ -438,8 +465,11 @@ def _add_distinct(verified: list, match, rival_angle: float) -> None:
 
 def _rivals(best, verified: list, params: ConsensusParams) -> list:
     need = max(params.rival_ratio * best.n, min(best.n, 3))  # two-star sets cannot rival a verified triple
-    return [v for v in verified if v is not best and v.n >= need
-            and _angle(v.attitude.a, best.attitude.a) >= params.rival_angle]
+    return [
+        v
+        for v in verified
+        if v is not best and v.n >= need and _angle(v.attitude.a, best.attitude.a) >= params.rival_angle
+    ]
 
 
 def _angle(a1: np.ndarray, a2: np.ndarray) -> float:

@@ -80,9 +80,14 @@ def vote_matrix(group_vectors: np.ndarray, catalog: OnboardCatalog, epsilon: flo
     return rows, m
 
 
-def identify_group(group_vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float,
-                   max_candidates: int = 50000, resolve_ambiguous: bool = True,
-                   max_combinations: int = 4096) -> np.ndarray:
+def identify_group(
+    group_vectors: np.ndarray,
+    catalog: OnboardCatalog,
+    epsilon: float,
+    max_candidates: int = 50000,
+    resolve_ambiguous: bool = True,
+    max_combinations: int = 4096,
+) -> np.ndarray:
     """Catalog index of each of the four stars, or -1 where no or several rows match (step 5).
 
     With ``resolve_ambiguous`` (beyond the paper), a group the signatures leave incomplete is
@@ -131,8 +136,9 @@ class FourStarResult:
     unidentified: np.ndarray
 
 
-def match_four_star(vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float,
-                    params: FourStarParams = FourStarParams()) -> FourStarResult:
+def match_four_star(
+    vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float, params: FourStarParams = FourStarParams()
+) -> FourStarResult:
     """Iterate 4-star groups over the frame (module docstring); ``vectors`` are sensor unit vectors."""
     n = len(vectors)
     centre_order = list(np.argsort(-vectors[:, 2], kind="stable"))  # +z boresight first
@@ -149,8 +155,9 @@ def match_four_star(vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float
                 break
             group = group + fill
         groups += 1
-        ids = identify_group(vectors[np.array(group)], catalog, epsilon, params.max_candidates,
-                             params.resolve_ambiguous)
+        ids = identify_group(
+            vectors[np.array(group)], catalog, epsilon, params.max_candidates, params.resolve_ambiguous
+        )
         newly = [(d, int(c)) for d, c in zip(group, ids) if c >= 0 and d not in ident and c not in ident.values()]
         if params.check_consistency:
             newly = _consistent(newly, ident, vectors, catalog, epsilon)

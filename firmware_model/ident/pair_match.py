@@ -107,8 +107,9 @@ def _empty_candidates(truncated=False) -> PairCandidates:
     return PairCandidates(e, np.empty(0, bool), e, e, np.empty(0), truncated)
 
 
-def match_pair(t_a: np.ndarray, catalog: OnboardCatalog, noise: PairNoise, delta_star: float,
-               max_window: int = 4096) -> PairCandidates:
+def match_pair(
+    t_a: np.ndarray, catalog: OnboardCatalog, noise: PairNoise, delta_star: float, max_window: int = 4096
+) -> PairCandidates:
     """All catalog tuples within ``Delta*`` of ``t_a`` in either ordering, sorted by ``Delta``.
 
     The candidate rows are located through the hash index (eqs 14-16). If more than

@@ -161,17 +161,28 @@ def _clean(vectors, rg, bg, sigma, catalog: OnboardCatalog, params: SolveParams)
     return v, cols[0][idx], cols[1][idx], s[idx], idx, notes
 
 
-def solution_from_match(match: VerifiedMatch, status: Outcome, reason: str, index_map, catalog, method,
-                        n_used) -> SolveResult:
+def solution_from_match(
+    match: VerifiedMatch, status: Outcome, reason: str, index_map, catalog, method, n_used
+) -> SolveResult:
     """The solution a verified match stands for (``index_map``: input row of each detection)."""
     att = match.attitude
     return SolveResult(
-        status=status, reason=reason, q_icrs_to_sensor=att.q.copy(), covariance=att.covariance,
-        matched_det=index_map[match.det], matched_cat=match.cat, matched_star_id=catalog.star_id[match.cat],
-        matched_rg=catalog.rg[match.cat].astype(float), matched_bg=catalog.bg[match.cat].astype(float),
-        residuals=att.residuals, consensus_size=match.n_consensus, consensus_rms=att.rms,
+        status=status,
+        reason=reason,
+        q_icrs_to_sensor=att.q.copy(),
+        covariance=att.covariance,
+        matched_det=index_map[match.det],
+        matched_cat=match.cat,
+        matched_star_id=catalog.star_id[match.cat],
+        matched_rg=catalog.rg[match.cat].astype(float),
+        matched_bg=catalog.bg[match.cat].astype(float),
+        residuals=att.residuals,
+        consensus_size=match.n_consensus,
+        consensus_rms=att.rms,
         confidence=float(match.coverage if np.isfinite(match.coverage) else 1.0) * min(1.0, match.n / max(n_used, 1)),
-        method=method, n_used=n_used)
+        method=method,
+        n_used=n_used,
+    )
 
 
 def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveParams()) -> SolveResult:
@@ -194,7 +205,9 @@ def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveP
     if catalog.n_pairs == 0:
         return no_match("catalog has no star pairs")
     frame_colour = bool(np.isfinite(rg).any() and np.isfinite(bg).any())
-    method = params.mode if params.mode != "auto" else ("colour" if frame_colour and catalog.has_colour else "geometric")
+    method = (
+        params.mode if params.mode != "auto" else ("colour" if frame_colour and catalog.has_colour else "geometric")
+    )
     if method == "colour" and not catalog.has_colour:
         return no_match("colour mode forced but the catalog has no colours", method)
     if n < 2:
@@ -202,17 +215,31 @@ def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveP
     ang = angle_between(v[:, None, :], v[None, :, :])
     in_range = (ang > catalog.phi_min) & (ang <= catalog.phi_max)
     if not in_range.any():
-        return no_match(f"no detection pair within the catalog's pair-angle range "
-                        f"({np.degrees(catalog.phi_min):.3g}-{np.degrees(catalog.phi_max):.3g} deg): "
-                        f"catalog built for another field of view?", method)
+        return no_match(
+            f"no detection pair within the catalog's pair-angle range "
+            f"({np.degrees(catalog.phi_min):.3g}-{np.degrees(catalog.phi_max):.3g} deg): "
+            f"catalog built for another field of view?",
+            method,
+        )
     fov = params.fov or FieldOfView.cone(float(np.max(np.arccos(np.clip(v[:, 2], -1, 1)))) + 1e-9)
     noise = PairNoise(params.pair_sigma_phi, params.sigma_rg, params.sigma_bg)
     verify_time = [0.0]
 
     def check(det, cat):
         tv = time.perf_counter()
-        out = verify(det, cat, v, rg, bg, sigma, catalog, fov, noise.sigma_rg if method == "colour" else 0.0,
-                     noise.sigma_bg if method == "colour" else 0.0, params.verify)
+        out = verify(
+            det,
+            cat,
+            v,
+            rg,
+            bg,
+            sigma,
+            catalog,
+            fov,
+            noise.sigma_rg if method == "colour" else 0.0,
+            noise.sigma_bg if method == "colour" else 0.0,
+            params.verify,
+        )
         verify_time[0] += time.perf_counter() - tv
         return out
 
@@ -235,8 +262,9 @@ def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveP
     return out
 
 
-def check_hypothesis(vectors, rg, bg, det, cat, catalog: OnboardCatalog,
-                     params: SolveParams = SolveParams()) -> tuple[VerifiedMatch | None, str]:
+def check_hypothesis(
+    vectors, rg, bg, det, cat, catalog: OnboardCatalog, params: SolveParams = SolveParams()
+) -> tuple[VerifiedMatch | None, str]:
     """Run the solver's verification on a given identification (``det`` input rows matched to
     catalog indices ``cat``), with the cleaning, field of view and noise ``solve`` would use.
 
@@ -253,13 +281,26 @@ def check_hypothesis(vectors, rg, bg, det, cat, catalog: OnboardCatalog,
     if len(pairs) < 2:
         return None, "fewer than two of the given detections survive input cleaning"
     frame_colour = bool(np.isfinite(rg).any() and np.isfinite(bg).any())
-    method = params.mode if params.mode != "auto" else ("colour" if frame_colour and catalog.has_colour else "geometric")
+    method = (
+        params.mode if params.mode != "auto" else ("colour" if frame_colour and catalog.has_colour else "geometric")
+    )
     fov = params.fov or FieldOfView.cone(float(np.max(np.arccos(np.clip(v[:, 2], -1, 1)))) + 1e-9)
     colour = method == "colour"
     d = np.array([p[0] for p in pairs], np.int64)
     c = np.array([p[1] for p in pairs], np.int64)
-    return verify(d, c, v, rg, bg, sigma, catalog, fov, params.sigma_rg if colour else 0.0,
-                  params.sigma_bg if colour else 0.0, params.verify)
+    return verify(
+        d,
+        c,
+        v,
+        rg,
+        bg,
+        sigma,
+        catalog,
+        fov,
+        params.sigma_rg if colour else 0.0,
+        params.sigma_bg if colour else 0.0,
+        params.verify,
+    )
 
 
 def _solve_geometric(v, catalog, noise, params, check, n, t0, t1, timings, verify_time, index_map):
@@ -286,8 +327,13 @@ def _solve_geometric(v, catalog, noise, params, check, n, t0, t1, timings, verif
             return f"time budget exhausted ({groups} 4-star group(s), triangle fallback)"
         return f"no verified identification ({groups} 4-star group(s), triangle fallback)"
     best = max(found, key=lambda f: (f.n, f.coverage if np.isfinite(f.coverage) else 0.0))
-    rivals = [f for f in found if f is not best and f.n >= max(3, cp.rival_ratio * best.n)
-              and rotation_angle(f.attitude.a, best.attitude.a) >= cp.rival_angle]
+    rivals = [
+        f
+        for f in found
+        if f is not best
+        and f.n >= max(3, cp.rival_ratio * best.n)
+        and rotation_angle(f.attitude.a, best.attitude.a) >= cp.rival_angle
+    ]
     high = _geometric_high(best, rivals, n, cp)
     if high:
         reason = ""
@@ -295,8 +341,9 @@ def _solve_geometric(v, catalog, noise, params, check, n, t0, t1, timings, verif
         reason = f"{len(rivals)} rival hypothesis(es) with comparable support"
     else:
         reason = f"{best.n} of {n} detections matched"
-    out = solution_from_match(best, Outcome.HIGH_CONFIDENCE if high else Outcome.LOW_CONFIDENCE, reason, index_map,
-                  catalog, "geometric", n)
+    out = solution_from_match(
+        best, Outcome.HIGH_CONFIDENCE if high else Outcome.LOW_CONFIDENCE, reason, index_map, catalog, "geometric", n
+    )
     out.attempts = groups
     return out
 

@@ -60,8 +60,11 @@ def triangles(v3: np.ndarray, catalog: OnboardCatalog, eps: float, max_pairs: in
     whose two sides are in the catalog's pair-angle range); the third side is checked on the
     catalog vectors directly, so it may be longer than ``phi_max`` (a wide field's diagonal
     exceeds the catalog's pair range)."""
-    meas = {(0, 1): float(angle_between(v3[0], v3[1])), (0, 2): float(angle_between(v3[0], v3[2])),
-            (1, 2): float(angle_between(v3[1], v3[2]))}
+    meas = {
+        (0, 1): float(angle_between(v3[0], v3[1])),
+        (0, 2): float(angle_between(v3[0], v3[2])),
+        (1, 2): float(angle_between(v3[1], v3[2])),
+    }
     lo_ok, hi_ok = catalog.phi_min - eps, catalog.phi_max + eps
     in_range = {k: lo_ok <= m <= hi_ok for k, m in meas.items()}
     empty = np.empty((0, 3), np.int64)
@@ -94,9 +97,11 @@ def triangles(v3: np.ndarray, catalog: OnboardCatalog, eps: float, max_pairs: in
     tri = tri[hand == np.sign(np.linalg.det(v3))]
     if len(tri) == 0:
         return tri
-    err = (np.abs(angle_between(cv[tri[:, 0]], cv[tri[:, 1]]) - meas[(0, 1)])
-           + np.abs(angle_between(cv[tri[:, 0]], cv[tri[:, 2]]) - meas[(0, 2)])
-           + np.abs(angle_between(cv[tri[:, 1]], cv[tri[:, 2]]) - meas[(1, 2)]))
+    err = (
+        np.abs(angle_between(cv[tri[:, 0]], cv[tri[:, 1]]) - meas[(0, 1)])
+        + np.abs(angle_between(cv[tri[:, 0]], cv[tri[:, 2]]) - meas[(0, 2)])
+        + np.abs(angle_between(cv[tri[:, 1]], cv[tri[:, 2]]) - meas[(1, 2)])
+    )
     return tri[np.argsort(err, kind="stable")]
 
 
@@ -149,9 +154,14 @@ class TriadOrder:
         self.fails[np.asarray(det, np.int64)] += 1
 
 
-def match_triangles(vectors: np.ndarray, catalog: OnboardCatalog, eps: float,
-                    verify: Callable[[np.ndarray, np.ndarray], tuple[object | None, str]],
-                    params: TriangleParams = TriangleParams(), deadline: float | None = None):
+def match_triangles(
+    vectors: np.ndarray,
+    catalog: OnboardCatalog,
+    eps: float,
+    verify: Callable[[np.ndarray, np.ndarray], tuple[object | None, str]],
+    params: TriangleParams = TriangleParams(),
+    deadline: float | None = None,
+):
     """Verified hypotheses from triangle candidates, best (most stars) first; ``deadline`` is a
     ``time.perf_counter`` value."""
     import time
@@ -169,7 +179,9 @@ def match_triangles(vectors: np.ndarray, catalog: OnboardCatalog, eps: float,
         if len(tris) > params.probe_below and len(others):
             # the probe needs a true star among the others: a triad with few candidates is
             # verified in full (a frame with three true stars among false ones)
-            tris = tris[_probe(vectors[det], tris, vectors[others], catalog, chord_of_angle(params.probe_gate_eps * eps))]
+            tris = tris[
+                _probe(vectors[det], tris, vectors[others], catalog, chord_of_angle(params.probe_gate_eps * eps))
+            ]
         for tri in tris:
             if any(set(tri.tolist()) <= set(f.cat.tolist()) for f in found):
                 continue  # already part of a verified set

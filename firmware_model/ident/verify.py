@@ -77,7 +77,7 @@ class FieldOfView:
         """Solid angle of the field (sr): the array through the pinhole part of the camera, or the cone."""
         if self.camera is None:
             return float(2.0 * np.pi * (1.0 - np.cos(self.radius)))
-        return float(self.camera.width * self.camera.height / self.camera.f ** 2)
+        return float(self.camera.width * self.camera.height / self.camera.f**2)
 
     def contains(self, v_sensor: np.ndarray) -> np.ndarray:
         """Boolean mask of sensor-frame unit vectors inside the field (with the edge margin)."""
@@ -89,8 +89,12 @@ class FieldOfView:
         if ok.any():
             x, y = self.camera.vector_to_pixel(v[ok])
             m = self.edge_margin_px
-            out[ok] = ((x >= -0.5 + m) & (x <= self.camera.width - 0.5 - m)
-                       & (y >= -0.5 + m) & (y <= self.camera.height - 0.5 - m))
+            out[ok] = (
+                (x >= -0.5 + m)
+                & (x <= self.camera.width - 0.5 - m)
+                & (y >= -0.5 + m)
+                & (y <= self.camera.height - 0.5 - m)
+            )
         return out
 
 
@@ -157,7 +161,7 @@ def chance_alignment(n_det: int, n_pred: int, n_matched: int, gate_rad: float, s
     k, trials = n_matched - 2, max(n_pred, n_matched) - 2
     if k <= 0:
         return 1.0
-    p = min(1.0, n_det * np.pi * gate_rad ** 2 / solid_angle)
+    p = min(1.0, n_det * np.pi * gate_rad**2 / solid_angle)
     return float(sum(comb(trials, j) * p**j * (1.0 - p) ** (trials - j) for j in range(k, trials + 1)))
 
 
@@ -182,9 +186,19 @@ def _sq(x):
     return np.where(np.isfinite(x), x * x, 0.0)
 
 
-def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray, bg: np.ndarray,
-           sigma: np.ndarray, catalog: OnboardCatalog, fov: FieldOfView, noise_rg: float,
-           noise_bg: float, params: VerifyParams) -> tuple[VerifiedMatch | None, str]:
+def verify(
+    det: np.ndarray,
+    cat: np.ndarray,
+    vectors: np.ndarray,
+    rg: np.ndarray,
+    bg: np.ndarray,
+    sigma: np.ndarray,
+    catalog: OnboardCatalog,
+    fov: FieldOfView,
+    noise_rg: float,
+    noise_bg: float,
+    params: VerifyParams,
+) -> tuple[VerifiedMatch | None, str]:
     """Check one hypothesis; returns ``(VerifiedMatch, "")`` or ``(None, reason)``."""
     det = np.asarray(det, np.int64)
     cat = np.asarray(cat, np.int64)
@@ -221,7 +235,7 @@ def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray
         tol = params.refine_sigmas * _predicted_scatter(b, sigma[free], sol.covariance)
         ok = (ang < tol) & ~np.isin(idx, cat)
         if ok.any() and noise_rg > 0 and noise_bg > 0:
-            d2 = (_sq((rg[free] - catalog.rg[idx]) / noise_rg) + _sq((bg[free] - catalog.bg[idx]) / noise_bg))
+            d2 = _sq((rg[free] - catalog.rg[idx]) / noise_rg) + _sq((bg[free] - catalog.bg[idx]) / noise_bg)
             ok &= np.sqrt(d2) < params.colour_gate
         if not ok.any():
             break
@@ -235,12 +249,15 @@ def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray
     free = np.setdiff1d(np.arange(len(vectors)), det)
     if len(free):
         pred = catalog.vec[cat] @ sol.a.T
-        sep = 2.0 * np.arcsin(np.clip(np.linalg.norm(vectors[free][:, None, :] - pred[None, :, :], axis=2) / 2.0, 0.0, 1.0))
+        sep = 2.0 * np.arcsin(
+            np.clip(np.linalg.norm(vectors[free][:, None, :] - pred[None, :, :], axis=2) / 2.0, 0.0, 1.0)
+        )
         tol = params.refine_sigmas * _predicted_scatter(vectors[free], sigma[free], sol.covariance)
         ok = sep < np.minimum(tol[:, None], sol.residuals[None, :])
         if ok.any() and noise_rg > 0 and noise_bg > 0:
-            d2 = (_sq((rg[free][:, None] - catalog.rg[cat][None, :]) / noise_rg)
-                  + _sq((bg[free][:, None] - catalog.bg[cat][None, :]) / noise_bg))
+            d2 = _sq((rg[free][:, None] - catalog.rg[cat][None, :]) / noise_rg) + _sq(
+                (bg[free][:, None] - catalog.bg[cat][None, :]) / noise_bg
+            )
             ok &= np.sqrt(d2) < params.colour_gate
         if ok.any():
             sep = np.where(ok, sep, np.inf)
@@ -292,9 +309,19 @@ def verify(det: np.ndarray, cat: np.ndarray, vectors: np.ndarray, rg: np.ndarray
     matched_inside = int(np.isin(inside, seen).sum())
     coverage = matched_inside / n_pred if n_pred else 1.0
     if not coverage_ok(n_pred, matched_inside, params):
-        return None, (f"coverage {matched_inside}/{n_pred} predicted stars below {params.min_coverage} "
-                      f"and not explained by a {params.miss_rate:g} miss rate")
+        return None, (
+            f"coverage {matched_inside}/{n_pred} predicted stars below {params.min_coverage} "
+            f"and not explained by a {params.miss_rate:g} miss rate"
+        )
     gate = params.residual_sigmas * float(np.median(sigma[det]))
     chance = chance_alignment(max(len(vectors), params.frame_detections), n_pred, len(det), gate, fov.solid_angle)
-    return VerifiedMatch(det, cat, sol, float(coverage), n_pred, n_consensus,
-                         low_coverage=bool(n_pred and coverage < params.min_coverage), chance=chance), ""
+    return VerifiedMatch(
+        det,
+        cat,
+        sol,
+        float(coverage),
+        n_pred,
+        n_consensus,
+        low_coverage=bool(n_pred and coverage < params.min_coverage),
+        chance=chance,
+    ), ""

@@ -32,8 +32,14 @@ from ground.atomic_write import save_figure
 PAIR_CHUNK = 4096
 
 
-def ambiguous_pairs(cat: OnboardCatalog, sigma_phi: float, delta_star: float, sigma_rg: float | None = None,
-                    sigma_bg: float | None = None, progress: bool = False) -> np.ndarray:
+def ambiguous_pairs(
+    cat: OnboardCatalog,
+    sigma_phi: float,
+    delta_star: float,
+    sigma_rg: float | None = None,
+    sigma_bg: float | None = None,
+    progress: bool = False,
+) -> np.ndarray:
     """Boolean per pair: some other catalog pair lies closer than ``delta_star`` (eq. 4).
 
     With ``sigma_rg``/``sigma_bg`` None the comparison is monochrome (angle only).
@@ -63,7 +69,9 @@ def ambiguous_pairs(cat: OnboardCatalog, sigma_phi: float, delta_star: float, si
             p = alive[~(amb[alive] & amb[alive + k])]  # couples already both ambiguous decide nothing
             q = p + k
             d2 = ((phi[q] - phi[p]) / sigma_phi) ** 2
-            d2 += np.minimum(_colour_d2(rg, bg, pi[p], pj[p], pi[q], pj[q]), _colour_d2(rg, bg, pi[p], pj[p], pj[q], pi[q]))
+            d2 += np.minimum(
+                _colour_d2(rg, bg, pi[p], pj[p], pi[q], pj[q]), _colour_d2(rg, bg, pi[p], pj[p], pj[q], pi[q])
+            )
             hit = d2 < limit2
             amb[p[hit]] = True
             amb[q[hit]] = True
@@ -103,8 +111,10 @@ def _incidence(vec: np.ndarray, views: np.ndarray, radius: float) -> sparse.csc_
 def _pairs_in_view(m: sparse.csc_matrix, i: np.ndarray, j: np.ndarray, progress: bool, label: str) -> np.ndarray:
     """Per view, how many of the pairs (i, j) have both stars in view (chunked sparse products)."""
     counts = np.zeros(m.shape[0], dtype=np.int64)
-    for start in tqdm(range(0, len(i), PAIR_CHUNK), desc=label, unit=" chunks", disable=not progress or len(i) <= PAIR_CHUNK):
-        a, b = i[start:start + PAIR_CHUNK], j[start:start + PAIR_CHUNK]
+    for start in tqdm(
+        range(0, len(i), PAIR_CHUNK), desc=label, unit=" chunks", disable=not progress or len(i) <= PAIR_CHUNK
+    ):
+        a, b = i[start : start + PAIR_CHUNK], j[start : start + PAIR_CHUNK]
         counts += np.asarray(m[:, a].multiply(m[:, b]).sum(axis=1)).ravel()
     return counts
 
@@ -118,11 +128,14 @@ class ViewStats:
     unresolvable_mask: np.ndarray
 
 
-def view_availability(cat: OnboardCatalog, views: np.ndarray, theta_fov: float, ambiguous: np.ndarray,
-                      progress: bool = False) -> ViewStats:
+def view_availability(
+    cat: OnboardCatalog, views: np.ndarray, theta_fov: float, ambiguous: np.ndarray, progress: bool = False
+) -> ViewStats:
     """Bad and unresolvable views for boresights ``views`` (unit vectors) and a per-pair ambiguity mask."""
     if cat.phi_max < 2.0 * theta_fov * (1 - 1e-9):
-        raise ValueError(f"phi_max = {math.degrees(cat.phi_max):.4f} deg < 2 theta_FOV: views would hold pairs missing from the catalog")
+        raise ValueError(
+            f"phi_max = {math.degrees(cat.phi_max):.4f} deg < 2 theta_FOV: views would hold pairs missing from the catalog"
+        )
     vec = np.asarray(cat.vec, dtype=float)
     m = _incidence(vec, views, theta_fov)
     n_in = np.asarray(m.sum(axis=1)).ravel()
@@ -165,8 +178,7 @@ class AnalysisResult:
         return json.dumps(asdict(self), indent=2)
 
 
-def analyze(cat: OnboardCatalog, design, n_views: int = 100_000, progress: bool = False,
-            return_views: bool = False):
+def analyze(cat: OnboardCatalog, design, n_views: int = 100_000, progress: bool = False, return_views: bool = False):
     """Seed 000 table-1 figures for ``cat`` built with ``design`` (a CatalogDesign)."""
     sp, dstar = design.sigma_phi, design.delta_star
     amb_c = ambiguous_pairs(cat, sp, dstar, design.sigma_rg, design.sigma_bg, progress=progress)
@@ -176,9 +188,16 @@ def analyze(cat: OnboardCatalog, design, n_views: int = 100_000, progress: bool 
     vm = view_availability(cat, views, design.theta_fov, amb_m, progress)
     n = max(cat.n_pairs, 1)
     res = AnalysisResult(
-        m_thresh=design.m_thresh, theta_fov_deg=design.theta_fov_deg, sigma_pix=design.sigma_pix,
-        sigma_rg=design.sigma_rg, sigma_bg=design.sigma_bg, delta_star=dstar, sigma_phi_rad=sp,
-        n_stars=cat.n_stars, n_pairs=cat.n_pairs, n_views=n_views,
+        m_thresh=design.m_thresh,
+        theta_fov_deg=design.theta_fov_deg,
+        sigma_pix=design.sigma_pix,
+        sigma_rg=design.sigma_rg,
+        sigma_bg=design.sigma_bg,
+        delta_star=dstar,
+        sigma_phi_rad=sp,
+        n_stars=cat.n_stars,
+        n_pairs=cat.n_pairs,
+        n_views=n_views,
         bad_views_pct=100.0 * vc.bad_views / n_views,
         ambiguous_pairs_pct=100.0 * amb_c.sum() / n,
         unresolvable_views=vc.unresolvable_views,

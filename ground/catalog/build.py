@@ -54,7 +54,9 @@ def colour_model(design: CatalogDesign) -> ColourModel:
     return ColourModel(qe=qe, **kwargs)
 
 
-def build_catalog(design: CatalogDesign, source: StarTable | None = None, colours: ColourModel | None = None) -> OnboardCatalog:
+def build_catalog(
+    design: CatalogDesign, source: StarTable | None = None, colours: ColourModel | None = None
+) -> OnboardCatalog:
     """Select stars, compute colour ratios and build the pair table with both indices.
 
     ``source``/``colours`` may be passed to reuse already loaded data (e.g. in sweeps).
@@ -85,8 +87,16 @@ def build_catalog(design: CatalogDesign, source: StarTable | None = None, colour
         "sigma_phi": design.sigma_phi,
     }
     cat = OnboardCatalog.build(
-        sel.star_id, sel.vec, sel.vmag, rg, bg,
-        phi_min=design.phi_min, phi_max=design.phi_max, n_h=design.n_h, dphi_star=design.dphi_star, meta=meta,
+        sel.star_id,
+        sel.vec,
+        sel.vmag,
+        rg,
+        bg,
+        phi_min=design.phi_min,
+        phi_max=design.phi_max,
+        n_h=design.n_h,
+        dphi_star=design.dphi_star,
+        meta=meta,
     )
     cat.meta["build_seconds"] = time.perf_counter() - t0
     return cat

@@ -78,7 +78,9 @@ class QETable:
                 raise ColourDataError(f"QE table {self.name}: {label} is negative ({arr[k]}) at {w[k]} nm")
         bad = np.flatnonzero(np.diff(w) <= 0)
         if len(bad):
-            raise ColourDataError(f"QE table {self.name}: wavelengths not increasing at {w[bad[0]]} -> {w[bad[0] + 1]} nm")
+            raise ColourDataError(
+                f"QE table {self.name}: wavelengths not increasing at {w[bad[0]]} -> {w[bad[0] + 1]} nm"
+            )
         self.wavelength_nm = w
         self.r, self.g, self.b = (np.asarray(a, dtype=float) for a in (self.r, self.g, self.b))
 
@@ -112,7 +114,9 @@ def load_qe_csv(path: str | Path, name: str | None = None, percent: bool | None 
             continue
         parts = [p.strip() for p in s.split(",")]
         if len(parts) != 4:
-            raise ColourDataError(f"{path}: line {lineno}: expected 4 columns (wavelength_nm,R,G,B), got {len(parts)}: {s!r}")
+            raise ColourDataError(
+                f"{path}: line {lineno}: expected 4 columns (wavelength_nm,R,G,B), got {len(parts)}: {s!r}"
+            )
         try:
             rows.append([float(p) for p in parts])
         except ValueError:
@@ -155,7 +159,9 @@ def read_sed(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     w, f = a[:, 0] / 10.0, a[:, 1]
     bad = np.flatnonzero(np.diff(w) <= 0)
     if len(bad):
-        raise ColourDataError(f"{path}: line {bad[0] + 2}: wavelength not increasing ({a[bad[0], 0]} -> {a[bad[0] + 1, 0]} A)")
+        raise ColourDataError(
+            f"{path}: line {bad[0] + 2}: wavelength not increasing ({a[bad[0], 0]} -> {a[bad[0] + 1, 0]} A)"
+        )
     # the library holds noise-level negatives (-1e-6 of the 5556 A level): tolerated below 0.1 % of the peak
     bad = np.flatnonzero(~np.isfinite(f) | (f < -1e-3 * np.nanmax(np.abs(f))))
     if len(bad):
@@ -205,14 +211,14 @@ def parse_mk(text: str) -> MKType | None:
     m = re.match(r"^(sd|sg|d|g|c)(?=[OBAFGKMS])", s)
     if m:
         prefix_lum = _PREFIX_LUM[m.group(1)]
-        s = s[m.end():]
+        s = s[m.end() :]
     h = re.search(r"h([OBAFGKM])(\d+(?:\.\d+)?)", s)  # Am stars: kA2hA5mA7V
     m = h or re.match(r"^([OBAFGKMS])(\d+(?:\.\d+)?)", s)
     if not m:
         return None
     cls, sub = m.group(1), float(m.group(2))
     cls_index = _CLASSES.index("M" if cls == "S" else cls)
-    rest = s[m.end():]
+    rest = s[m.end() :]
     lum_m = re.search(r"(Ia0|Iab|Ia|Ib|VI|IV|V|III|II|I)", rest)
     lum = _LUM[lum_m.group(1)] if lum_m else prefix_lum
     return MKType(10.0 * cls_index + sub, lum)
@@ -292,7 +298,9 @@ def photon_signals(qe: QETable, wavelength_nm, flux, band: tuple[float, float] |
     if w[0] > lo or w[-1] < hi:
         raise ColourDataError(f"spectrum covers {w[0]:.1f}-{w[-1]:.1f} nm but the band is {lo:.1f}-{hi:.1f} nm")
     if lo < qe.band[0] or hi > qe.band[1]:
-        raise ColourDataError(f"QE table {qe.name} covers {qe.band[0]:.1f}-{qe.band[1]:.1f} nm, not the band {lo:.1f}-{hi:.1f} nm")
+        raise ColourDataError(
+            f"QE table {qe.name} covers {qe.band[0]:.1f}-{qe.band[1]:.1f} nm, not the band {lo:.1f}-{hi:.1f} nm"
+        )
     grid = np.union1d(w[(w > lo) & (w < hi)], qe.wavelength_nm[(qe.wavelength_nm >= lo) & (qe.wavelength_nm <= hi)])
     grid = np.union1d(grid, [lo, hi])
     flux = np.asarray(flux, dtype=float)
@@ -353,14 +361,18 @@ class IndexLookup:
         x, lrg, lbg = np.asarray(x, float), np.log(rg), np.log(bg)
         crg = np.polynomial.polynomial.polyfit(x, lrg, degree)
         cbg = np.polynomial.polynomial.polyfit(x, lbg, degree)
-        rms = (float(np.std(np.polynomial.polynomial.polyval(x, crg) - lrg)),
-               float(np.std(np.polynomial.polynomial.polyval(x, cbg) - lbg)))
+        rms = (
+            float(np.std(np.polynomial.polynomial.polyval(x, crg) - lrg)),
+            float(np.std(np.polynomial.polynomial.polyval(x, cbg) - lbg)),
+        )
         return cls(index, crg, cbg, float(x.min()), float(x.max()), rms)
 
     def __call__(self, x) -> tuple[np.ndarray, np.ndarray]:
         x = np.asarray(x, dtype=float)
-        return (np.exp(np.polynomial.polynomial.polyval(x, self.coef_rg)),
-                np.exp(np.polynomial.polynomial.polyval(x, self.coef_bg)))
+        return (
+            np.exp(np.polynomial.polynomial.polyval(x, self.coef_rg)),
+            np.exp(np.polynomial.polynomial.polyval(x, self.coef_bg)),
+        )
 
     def covers(self, x) -> np.ndarray:
         x = np.asarray(x, dtype=float)
@@ -383,15 +395,21 @@ class ColourModel:
     def __post_init__(self):
         self.band = tuple(self.band or self.qe.band)
         if not (self.qe.band[0] <= self.band[0] < self.band[1] <= self.qe.band[1]):
-            raise ColourDataError(f"QE table {self.qe.name} covers {self.qe.band[0]}-{self.qe.band[1]} nm, not the band {self.band}")
+            raise ColourDataError(
+                f"QE table {self.qe.name} covers {self.qe.band[0]}-{self.qe.band[1]} nm, not the band {self.band}"
+            )
         self._have_spectra = self.pickles_dir is not None and Path(self.pickles_dir).is_dir()
         shipped_ok = self.qe.name == DEFAULT_QE_NAME and self.band == default_qe().band
         if not self._have_spectra and not shipped_ok:
-            raise ColourDataError(f"QE table {self.qe.name} needs the Pickles spectra, but {self.pickles_dir} is missing")
+            raise ColourDataError(
+                f"QE table {self.qe.name} needs the Pickles spectra, but {self.pickles_dir} is missing"
+            )
         rows = shipped_template_table()
-        self._templates = pickles_templates(self.pickles_dir) if self._have_spectra else {
-            r["template"]: parse_template_name(r["template"])[0] for r in rows
-        }
+        self._templates = (
+            pickles_templates(self.pickles_dir)
+            if self._have_spectra
+            else {r["template"]: parse_template_name(r["template"])[0] for r in rows}
+        )
         self._cache: dict[str, tuple[float, float]] = {}
         if not self._have_spectra:
             self._cache = {r["template"]: (r["rg_default"], r["bg_default"]) for r in rows}
@@ -454,10 +472,12 @@ class ColourModel:
 
         todo = src == ColourSource.NONE
         red = ~(bv < VI_FROM_BV)  # also True for a missing B-V
-        for lookup, code, x, first in ((self.vi_lookup, ColourSource.VI_LOOKUP, vi, red),
-                                       (self.bv_lookup, ColourSource.BV_LOOKUP, bv, ~red),
-                                       (self.vi_lookup, ColourSource.VI_LOOKUP, vi, ~red),
-                                       (self.bv_lookup, ColourSource.BV_LOOKUP, bv, red)):
+        for lookup, code, x, first in (
+            (self.vi_lookup, ColourSource.VI_LOOKUP, vi, red),
+            (self.bv_lookup, ColourSource.BV_LOOKUP, bv, ~red),
+            (self.vi_lookup, ColourSource.VI_LOOKUP, vi, ~red),
+            (self.bv_lookup, ColourSource.BV_LOOKUP, bv, red),
+        ):
             m = todo & first & lookup.covers(x)
             take(m, code, lookup(x[m]))
             todo &= ~m

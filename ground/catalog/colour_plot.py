@@ -9,8 +9,13 @@ import numpy as np
 from ground.atomic_write import save_figure
 from ground.catalog.colour import ColourModel
 
-_LUM_STYLE = {1: ("I", "tab:purple", "v"), 2: ("II", "tab:brown", "<"), 3: ("III", "tab:red", "s"), 4: ("IV", "tab:green", ">"),
-              5: ("V", "tab:blue", "o")}
+_LUM_STYLE = {
+    1: ("I", "tab:purple", "v"),
+    2: ("II", "tab:brown", "<"),
+    3: ("III", "tab:red", "s"),
+    4: ("IV", "tab:green", ">"),
+    5: ("V", "tab:blue", "o"),
+}
 
 
 def plot_colour_ratios(model: ColourModel, path: str | Path) -> dict[str, tuple[float, float]]:

@@ -48,8 +48,9 @@ class CatalogDesign:
         self.validate()
 
     @classmethod
-    def for_field(cls, width_px: int, height_px: int, fov_deg: float, stars_in_view: float = 15.0,
-                  **overrides) -> "CatalogDesign":
+    def for_field(
+        cls, width_px: int, height_px: int, fov_deg: float, stars_in_view: float = 15.0, **overrides
+    ) -> "CatalogDesign":
         """A design for a camera known only by its array and horizontal field of view (deg, across
         the width): the minor half-angle from a pinhole, pairs up to the diagonal, and the limiting
         magnitude that puts about ``stars_in_view`` catalog stars in the field (star counts
@@ -65,9 +66,14 @@ class CatalogDesign:
         vertical = camera.fov_half_angle_minor if width_px >= height_px else camera.fov_half_angle_major
         area = fov_deg * 2.0 * math.degrees(vertical)  # deg^2, small-field
         m = (math.log10(stars_in_view * 41253.0 / area) - 0.63) / 0.515
-        design = {"theta_fov_deg": theta, "sensor_width_px": width_px, "sensor_height_px": height_px,
-                  "m_thresh": math.ceil(min(max(m, 4.0), 7.5) * 10.0) / 10.0, "phi_max_deg": diagonal,
-                  "phi_min_deg": theta / 100.0}
+        design = {
+            "theta_fov_deg": theta,
+            "sensor_width_px": width_px,
+            "sensor_height_px": height_px,
+            "m_thresh": math.ceil(min(max(m, 4.0), 7.5) * 10.0) / 10.0,
+            "phi_max_deg": diagonal,
+            "phi_min_deg": theta / 100.0,
+        }
         design.update(overrides)
         return cls(**design)
 
@@ -116,7 +122,11 @@ class CatalogDesign:
             if not ok:
                 raise DesignError(f"{name} = {getattr(self, name)!r}: {why}")
 
-        need(isinstance(self.theta_fov_deg, (int, float)) and 0 < self.theta_fov_deg < 45, "theta_fov_deg", "must be in (0, 45) degrees (half-angle)")
+        need(
+            isinstance(self.theta_fov_deg, (int, float)) and 0 < self.theta_fov_deg < 45,
+            "theta_fov_deg",
+            "must be in (0, 45) degrees (half-angle)",
+        )
         for name in ("sensor_width_px", "sensor_height_px"):
             need(isinstance(getattr(self, name), int) and getattr(self, name) >= 2, name, "must be an integer >= 2")
         need(math.isfinite(self.m_thresh) and -2 < self.m_thresh < 15, "m_thresh", "must be a magnitude in (-2, 15)")

@@ -29,9 +29,20 @@ def matched_sample(bsc5_path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(Hipparcos B-V, V_BSC5 - Hp) for clean one-to-one positional matches."""
     col = load_hipparcos_columns(hipparcos_path())
     n = len(col["HIP"])
-    hip = StarTable("hipparcos", col["HIP"].astype(np.int64), col["RArad"], col["DErad"], col["Hpmag"], col["B-V"],
-                    col["V-I"], np.full(n, "", object), col["VA"] == 2, col["pmRA"] * MAS, col["pmDE"] * MAS,
-                    HIPPARCOS_EPOCH).at_epoch(2000.0)
+    hip = StarTable(
+        "hipparcos",
+        col["HIP"].astype(np.int64),
+        col["RArad"],
+        col["DErad"],
+        col["Hpmag"],
+        col["B-V"],
+        col["V-I"],
+        np.full(n, "", object),
+        col["VA"] == 2,
+        col["pmRA"] * MAS,
+        col["pmDE"] * MAS,
+        HIPPARCOS_EPOCH,
+    ).at_epoch(2000.0)
     hip = hip.subset(hip.vmag < 8.0)  # vmag holds Hp here
     bsc = read_bsc5(bsc5_path)
     lines = Path(bsc5_path).read_text(encoding="ascii").splitlines()

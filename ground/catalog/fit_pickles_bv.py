@@ -23,8 +23,16 @@ import numpy as np
 
 from ground.atomic_write import write_text
 from ground.catalog.build import borrow_mk_types
-from ground.catalog.colour import ColourModel, default_qe, match_template, parse_mk, pickles_templates, photon_signals, \
-    ratios_from_signals, read_sed
+from ground.catalog.colour import (
+    ColourModel,
+    default_qe,
+    match_template,
+    parse_mk,
+    pickles_templates,
+    photon_signals,
+    ratios_from_signals,
+    read_sed,
+)
 from ground.catalog.sources import read_bsc5, read_hipparcos
 
 OUT = Path(__file__).with_name("data") / "pickles_templates.csv"
@@ -72,7 +80,9 @@ def main(argv=None) -> int:
     write_text(args.out, "\n".join(lines) + "\n")
     model = ColourModel(qe=qe, pickles_dir=args.pickles_dir)
     for lk in (model.bv_lookup, model.vi_lookup):
-        print(f"{lk.index} lookup: range {lk.lo:.3f} .. {lk.hi:.3f}, rms ln(rg) {lk.rms_ln[0]:.4f}, ln(bg) {lk.rms_ln[1]:.4f}")
+        print(
+            f"{lk.index} lookup: range {lk.lo:.3f} .. {lk.hi:.3f}, rms ln(rg) {lk.rms_ln[0]:.4f}, ln(bg) {lk.rms_ln[1]:.4f}"
+        )
     print(f"wrote {args.out}")
     return 0
 

@@ -83,7 +83,18 @@ class StarTable:
 # --- Hipparcos 2 (van Leeuwen 2007, VizieR I/311) ------------------------------------------------
 
 #: whitespace-separated columns of hip2.dat used here (0-based)
-_HIP_COLS = {"HIP": 0, "RArad": 4, "DErad": 5, "pmRA": 7, "pmDE": 8, "Hpmag": 19, "sHp": 21, "VA": 22, "B-V": 23, "V-I": 25}
+_HIP_COLS = {
+    "HIP": 0,
+    "RArad": 4,
+    "DErad": 5,
+    "pmRA": 7,
+    "pmDE": 8,
+    "Hpmag": 19,
+    "sHp": 21,
+    "VA": 22,
+    "B-V": 23,
+    "V-I": 25,
+}
 _HIP_NFIELDS = 41
 
 
@@ -126,7 +137,9 @@ def read_hipparcos(path: str | Path | None = None, epoch: float = HIPPARCOS_EPOC
     bad = np.flatnonzero((np.abs(col["DErad"]) > np.pi / 2) | (col["RArad"] < 0) | (col["RArad"] >= 2 * np.pi))
     if len(bad):
         k = bad[0]
-        raise CatalogFormatError(f"{path}: line {k + 1}: position out of range (RA {col['RArad'][k]}, Dec {col['DErad'][k]} rad)")
+        raise CatalogFormatError(
+            f"{path}: line {k + 1}: position out of range (RA {col['RArad'][k]}, Dec {col['DErad'][k]} rad)"
+        )
     n = len(col["HIP"])
     table = StarTable(
         source="hipparcos",
@@ -187,7 +200,9 @@ def read_bsc5(path: str | Path, epoch: float = BSC5_EPOCH) -> StarTable:
         if not line.strip():
             continue
         if len(line) < 147:
-            raise CatalogFormatError(f"{path}: line {lineno}: {len(line)} characters, need at least 147 (through SpType)")
+            raise CatalogFormatError(
+                f"{path}: line {lineno}: {len(line)} characters, need at least 147 (through SpType)"
+            )
 
         def num(name, a, b, kind=float):
             text = _field(line, a, b).strip()
@@ -196,7 +211,9 @@ def read_bsc5(path: str | Path, epoch: float = BSC5_EPOCH) -> StarTable:
             try:
                 return kind(text)
             except ValueError:
-                raise CatalogFormatError(f"{path}: line {lineno}: {name} (bytes {a}-{b}) is not a number: {text!r}") from None
+                raise CatalogFormatError(
+                    f"{path}: line {lineno}: {name} (bytes {a}-{b}) is not a number: {text!r}"
+                ) from None
 
         hr = num("HR", 1, 4, int)
         if hr is None:
@@ -209,7 +226,9 @@ def read_bsc5(path: str | Path, epoch: float = BSC5_EPOCH) -> StarTable:
         sign = _field(line, 84, 84)
         if sign not in "+-":
             raise CatalogFormatError(f"{path}: line {lineno}: Dec sign (byte 84) is {sign!r}")
-        if not (0 <= rah < 24 and 0 <= ram < 60 and 0 <= ras < 60 and 0 <= ded <= 90 and 0 <= dem < 60 and 0 <= des < 60):
+        if not (
+            0 <= rah < 24 and 0 <= ram < 60 and 0 <= ras < 60 and 0 <= ded <= 90 and 0 <= dem < 60 and 0 <= des < 60
+        ):
             raise CatalogFormatError(f"{path}: line {lineno}: position out of range: {_field(line, 76, 90)!r}")
         ra = np.radians(15.0 * (rah + ram / 60.0 + ras / 3600.0))
         dec = np.radians((ded + dem / 60.0 + des / 3600.0) * (-1.0 if sign == "-" else 1.0))
@@ -218,8 +237,17 @@ def read_bsc5(path: str | Path, epoch: float = BSC5_EPOCH) -> StarTable:
         pmde = num("pmDE", 155, 160) if len(line) >= 160 else None
         varid = _field(line, 52, 60).strip()
         rows.append(
-            (hr, ra, dec, vmag, np.nan if bv is None else bv, _field(line, 128, 147).strip(),
-             bool(varid) and varid != "Var?", 0.0 if pmra is None else pmra, 0.0 if pmde is None else pmde)
+            (
+                hr,
+                ra,
+                dec,
+                vmag,
+                np.nan if bv is None else bv,
+                _field(line, 128, 147).strip(),
+                bool(varid) and varid != "Var?",
+                0.0 if pmra is None else pmra,
+                0.0 if pmde is None else pmde,
+            )
         )
     if not rows:
         raise CatalogFormatError(f"{path}: no stars with position and V")
@@ -267,7 +295,9 @@ def merge_close_doubles(table: StarTable, resolve_angle: float) -> tuple[StarTab
     return table.subset(keep), int(removed.sum())
 
 
-def select_stars(table: StarTable, m_thresh: float, resolve_angle: float, drop_variable: bool = False) -> tuple[StarTable, dict]:
+def select_stars(
+    table: StarTable, m_thresh: float, resolve_angle: float, drop_variable: bool = False
+) -> tuple[StarTable, dict]:
     """Stars with ``V <= m_thresh``, close doubles merged, optionally variables dropped.
 
     Merging runs brightest first, so a selected star is removed only for a brighter neighbour and

@@ -76,4 +76,4 @@ def stderr_check(device: DeviceProcess, tally: Tally) -> None:
     n = tracebacks(text)
     if n:
         tally.tracebacks += n
-        tally.notes.append(f"tracebacks: {text[text.find('Traceback'):][:600]}")
+        tally.notes.append(f"tracebacks: {text[text.find('Traceback') :][:600]}")

@@ -41,8 +41,9 @@ def run(seed: int, kills: int) -> tuple[Tally, dict[str, int]]:
             with Client(device.path, timeout=5.0, retries=0) as c:
                 c.upload(0, new, progress=False, commit=False)
                 tally.messages += len(new) // 4096 + 2
-                c.write_raw(nsp.command(nsp.DEVICE_ADDRESS, nsp.HOST_ADDRESS, Code.XFER_COMMIT,
-                                        SlotRequest(0).pack()).frame())
+                c.write_raw(
+                    nsp.command(nsp.DEVICE_ADDRESS, nsp.HOST_ADDRESS, Code.XFER_COMMIT, SlotRequest(0).pack()).frame()
+                )
                 time.sleep(rng.uniform(0.0, WINDOW))
                 device.stop(signal.SIGKILL)
             tally.faults += 1

@@ -35,13 +35,12 @@ class DeviceProcess:
 
     def __init__(self, *args: str):
         self._err = tempfile.TemporaryFile(mode="w+")
-        self.proc = subprocess.Popen(device_command() + list(args), stdout=subprocess.PIPE, stderr=self._err,
-                                     text=True)
+        self.proc = subprocess.Popen(device_command() + list(args), stdout=subprocess.PIPE, stderr=self._err, text=True)
         line = self.proc.stdout.readline().strip()
         if not line.startswith("listening on "):
             self.proc.wait(START_TIMEOUT)
             raise RuntimeError(f"st16-device did not start (exit {self.proc.returncode}): {line!r} {self.stderr()!r}")
-        self.path = line[len("listening on "):]
+        self.path = line[len("listening on ") :]
 
     @property
     def alive(self) -> bool:

@@ -20,8 +20,9 @@ from .traffic import burst, sweep
 ERROR_COUNTERS = ("framing", "runt", "oversize", "bad_crc", "other_address")
 
 
-def run(seed: int, bursts: int, frames_per_burst: int = 10, timeout: float = 2.0,
-        device_args: tuple[str, ...] = ("--pty",)) -> tuple[Tally, dict[str, int]]:
+def run(
+    seed: int, bursts: int, frames_per_burst: int = 10, timeout: float = 2.0, device_args: tuple[str, ...] = ("--pty",)
+) -> tuple[Tally, dict[str, int]]:
     """Fuzz a fresh device (persistent state in a temporary directory) started with
     ``device_args`` (its link: ``--pty``, or ``--tcp 127.0.0.1:0``, and e.g. ``--pace --baud
     921600``). Returns the tally and the device's own error counters summed over the bursts

@@ -48,12 +48,22 @@ def _flip(path: Path, rng: random.Random) -> None:
     path.write_bytes(bytes(data))
 
 
-BAD_PARTIAL_JSON = ["[]", "{}", "null", '"x"', '{"length": "12", "crc32": 0, "ranges": []}',
-                    '{"length": 1e400, "crc32": 0, "ranges": []}', '{"length": -5, "crc32": 0, "ranges": []}',
-                    '{"length": 1099511627776, "crc32": 0, "ranges": []}', '{"length": 10, "crc32": -1, "ranges": []}',
-                    '{"length": 10, "crc32": 0, "ranges": [[0, 11]]}', '{"length": 10, "crc32": 0, "ranges": 5}',
-                    '{"length": 10, "crc32": 0, "ranges": [[3]]}', '{"length": 10, "crc32": 0, "ranges": {"ab": 1}}',
-                    "[" * 100_000 + "]" * 100_000]
+BAD_PARTIAL_JSON = [
+    "[]",
+    "{}",
+    "null",
+    '"x"',
+    '{"length": "12", "crc32": 0, "ranges": []}',
+    '{"length": 1e400, "crc32": 0, "ranges": []}',
+    '{"length": -5, "crc32": 0, "ranges": []}',
+    '{"length": 1099511627776, "crc32": 0, "ranges": []}',
+    '{"length": 10, "crc32": -1, "ranges": []}',
+    '{"length": 10, "crc32": 0, "ranges": [[0, 11]]}',
+    '{"length": 10, "crc32": 0, "ranges": 5}',
+    '{"length": 10, "crc32": 0, "ranges": [[3]]}',
+    '{"length": 10, "crc32": 0, "ranges": {"ab": 1}}',
+    "[" * 100_000 + "]" * 100_000,
+]
 
 
 def _img(root):
@@ -62,30 +72,57 @@ def _img(root):
 
 #: name -> (fn(root, rng), touches slot 0's committed image, touches slot 0's transfer)
 DAMAGE = {
-    "img_truncated": (lambda r, g: _img(r).write_bytes(_img(r).read_bytes()[: g.randrange(_img(r).stat().st_size)]),
-                      True, False),
+    "img_truncated": (
+        lambda r, g: _img(r).write_bytes(_img(r).read_bytes()[: g.randrange(_img(r).stat().st_size)]),
+        True,
+        False,
+    ),
     "img_bit_flips": (lambda r, g: _flip(_img(r), g), True, False),
     "img_garbage": (lambda r, g: _img(r).write_bytes(g.randbytes(g.randrange(1, 5000))), True, False),
     "img_empty": (lambda r, g: _img(r).write_bytes(b""), True, False),
-    "img_huge_length": (lambda r, g: _img(r).write_bytes(_img(r).read_bytes()[:8] + b"\xff" * 8 + _img(r).read_bytes()[16:]),
-                        True, False),
+    "img_huge_length": (
+        lambda r, g: _img(r).write_bytes(_img(r).read_bytes()[:8] + b"\xff" * 8 + _img(r).read_bytes()[16:]),
+        True,
+        False,
+    ),
     "img_is_a_directory": (lambda r, g: (_img(r).unlink(), _img(r).mkdir()), True, False),
     "img_symlink_loop": (lambda r, g: (_img(r).unlink(), _img(r).symlink_to(_img(r).name)), True, False),
     "img_not_a_catalog": (lambda r, g: _img(r).write_bytes(pack_image(g.randbytes(3000))), True, False),
     "partial_json_garbage": (lambda r, g: (r / "slot0" / "partial.json").write_bytes(g.randbytes(200)), False, True),
-    "partial_json_wrong": (lambda r, g: (r / "slot0" / "partial.json").write_text(g.choice(BAD_PARTIAL_JSON)),
-                           False, True),
+    "partial_json_wrong": (
+        lambda r, g: (r / "slot0" / "partial.json").write_text(g.choice(BAD_PARTIAL_JSON)),
+        False,
+        True,
+    ),
     "partial_bin_truncated": (lambda r, g: (r / "slot0" / "partial.bin").write_bytes(b"\0" * 10), False, True),
     "partial_bin_missing": (lambda r, g: (r / "slot0" / "partial.bin").unlink(), False, True),
     "partial_json_missing": (lambda r, g: (r / "slot0" / "partial.json").unlink(), False, True),
-    "unfinished_writes": (lambda r, g: [(r / "slot0" / n).write_bytes(g.randbytes(100))
-                                        for n in ("active.img.tmp", "partial.json.tmp")], False, False),
-    "old_layout_damaged": (lambda r, g: ((r / "slot2" / "active.img").unlink(),
-                                         (r / "slot2" / "active.json").write_text("{not json")), False, False),
-    "params_not_json": (lambda r, g: (r / "slot2" / "active.img").write_bytes(pack_image(b"\xff not json")), False, False),
-    "odd_entries": (lambda r, g: ((r / "slotX").mkdir(), (r / "slot4").write_text("x"), (r / "slot999").mkdir(),
-                                  (r / "slot7").mkdir(), (r / "slot7" / "active.img").write_bytes(pack_image(b"7"))),
-                    False, False),
+    "unfinished_writes": (
+        lambda r, g: [(r / "slot0" / n).write_bytes(g.randbytes(100)) for n in ("active.img.tmp", "partial.json.tmp")],
+        False,
+        False,
+    ),
+    "old_layout_damaged": (
+        lambda r, g: ((r / "slot2" / "active.img").unlink(), (r / "slot2" / "active.json").write_text("{not json")),
+        False,
+        False,
+    ),
+    "params_not_json": (
+        lambda r, g: (r / "slot2" / "active.img").write_bytes(pack_image(b"\xff not json")),
+        False,
+        False,
+    ),
+    "odd_entries": (
+        lambda r, g: (
+            (r / "slotX").mkdir(),
+            (r / "slot4").write_text("x"),
+            (r / "slot999").mkdir(),
+            (r / "slot7").mkdir(),
+            (r / "slot7" / "active.img").write_bytes(pack_image(b"7")),
+        ),
+        False,
+        False,
+    ),
 }
 
 
@@ -109,8 +146,16 @@ def _check_messages(text: str, damaged: bool, tally: Tally, names: list[str]) ->
         tally.fail("state_corruptions", f"{names}: damage ignored without a word")
 
 
-def _check_slots(info_active: bool, info_crc: int, xfer_state: int, catalog: bytes, names: list[str],
-                 touches_img: bool, touches_partial: bool, tally: Tally) -> None:
+def _check_slots(
+    info_active: bool,
+    info_crc: int,
+    xfer_state: int,
+    catalog: bytes,
+    names: list[str],
+    touches_img: bool,
+    touches_partial: bool,
+    tally: Tally,
+) -> None:
     if info_active and info_crc != crc32(catalog):
         tally.fail("state_corruptions", f"{names}: slot 0 holds another image (0x{info_crc:08X})")
     if not touches_img and not info_active:
@@ -162,8 +207,9 @@ def _process_trial(root, catalog, names, touches_img, touches_partial, tally) ->
                 try:
                     info, status = c.slot_info(0), c.xfer_status(0)
                     tally.messages += 2
-                    _check_slots(info.active, info.crc32, status.state, catalog, names, touches_img,
-                                 touches_partial, tally)
+                    _check_slots(
+                        info.active, info.crc32, status.state, catalog, names, touches_img, touches_partial, tally
+                    )
                 except LinkError as exc:
                     tally.fail("unanswered_pings", f"{names}: {exc}")
     finally:

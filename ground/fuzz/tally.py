@@ -5,8 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 
 #: Counts that must stay at zero.
-FAILURES = ("crashes", "hangs", "unanswered_pings", "state_corruptions", "tracebacks", "misattributed",
-            "bad_replies")
+FAILURES = ("crashes", "hangs", "unanswered_pings", "state_corruptions", "tracebacks", "misattributed", "bad_replies")
 
 
 @dataclass

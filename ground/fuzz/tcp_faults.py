@@ -25,7 +25,7 @@ TIMEOUT = 1.0  #: client reply timeout, s
 
 
 def _address(device: DeviceProcess) -> tuple[str, int]:
-    host, port = device.path[len("socket://"):].rsplit(":", 1)
+    host, port = device.path[len("socket://") :].rsplit(":", 1)
     return host, int(port)
 
 
@@ -82,11 +82,13 @@ def _silent(device: DeviceProcess, rng: random.Random, tally: Tally) -> None:
 
 def _cut(device: DeviceProcess, rng: random.Random, tally: Tally) -> None:
     """A client sends part of a frame (or a whole command) and vanishes; the next one is served."""
-    frame = nsp.command(nsp.DEVICE_ADDRESS, nsp.HOST_ADDRESS, rng.randrange(32), rng.randbytes(rng.randrange(30))).frame()
+    frame = nsp.command(
+        nsp.DEVICE_ADDRESS, nsp.HOST_ADDRESS, rng.randrange(32), rng.randbytes(rng.randrange(30))
+    ).frame()
     tally.faults += 1
     tally.messages += 1
     with _raw(device) as s:
-        s.sendall(frame[:rng.randrange(1, len(frame) + 1)])
+        s.sendall(frame[: rng.randrange(1, len(frame) + 1)])
         if rng.random() < 0.5:
             s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\0\0\0\0\0\0\0")  # reset, not FIN
     with Client(device.path, timeout=TIMEOUT, retries=0) as c:

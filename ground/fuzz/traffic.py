@@ -12,15 +12,36 @@ import random
 from protocol import nsp, slip
 from protocol.crc import crc16_mcrf4xx
 from protocol.commands import (
-    Combination, CrcRequest, DarkWindow, Go, Init, Peek, Poke, ReadFile, ReadRange, WriteEdac, WriteFile,
-    XferBegin, XferData,
+    Combination,
+    CrcRequest,
+    DarkWindow,
+    Go,
+    Init,
+    Peek,
+    Poke,
+    ReadFile,
+    ReadRange,
+    WriteEdac,
+    WriteFile,
+    XferBegin,
+    XferData,
 )
 
 HOST = nsp.HOST_ADDRESS
 
 #: Kinds of damaged frame :func:`fault_frame` makes.
-FAULTS = ("bad_crc", "runt", "bad_escape", "oversize", "wrong_address", "truncated", "bit_flip", "garbage",
-          "no_end", "huge_data")
+FAULTS = (
+    "bad_crc",
+    "runt",
+    "bad_escape",
+    "oversize",
+    "wrong_address",
+    "truncated",
+    "bit_flip",
+    "garbage",
+    "no_end",
+    "huge_data",
+)
 
 
 def _plausible_data(rng: random.Random, code: int) -> bytes:
@@ -51,8 +72,9 @@ def _plausible_data(rng: random.Random, code: int) -> bytes:
     return b""
 
 
-def command_frame(rng: random.Random, code: int | None = None, *, poll: bool | None = None,
-                  dst: int = nsp.DEVICE_ADDRESS) -> bytes:
+def command_frame(
+    rng: random.Random, code: int | None = None, *, poll: bool | None = None, dst: int = nsp.DEVICE_ADDRESS
+) -> bytes:
     """A well-formed command of ``code`` (random if None): Poll as given (random if None), B
     random, a plausible data field three times in four, else 0-64 random bytes."""
     code = rng.randrange(32) if code is None else code
@@ -63,7 +85,7 @@ def command_frame(rng: random.Random, code: int | None = None, *, poll: bool | N
 
 def _damaged_cut(rng: random.Random, raw: bytes, shortest: int) -> bytes:
     """``raw`` cut to a random shorter length whose last two bytes are not by chance a valid CRC."""
-    cut = raw[:rng.randrange(shortest, len(raw))]
+    cut = raw[: rng.randrange(shortest, len(raw))]
     if len(cut) >= nsp.MIN_MESSAGE and crc16_mcrf4xx(cut) == 0:  # 1 in 65 536: damage its last byte
         cut = cut[:-1] + bytes([cut[-1] ^ 0x01])
     return cut
@@ -76,7 +98,7 @@ def fault_frame(rng: random.Random, kind: str, *, dst: int = nsp.DEVICE_ADDRESS)
     if kind == "bad_crc":
         return slip.encode(raw[:-2] + bytes([raw[-2] ^ (1 + rng.randrange(255)), raw[-1]]))
     if kind == "runt":
-        return slip.encode(raw[:rng.randrange(1, nsp.MIN_MESSAGE)])
+        return slip.encode(raw[: rng.randrange(1, nsp.MIN_MESSAGE)])
     if kind == "bad_escape":
         body = slip.escape(raw)
         cut = rng.randrange(len(body) + 1)

@@ -40,9 +40,17 @@ def catalog_image(seed: int, n: int = 300) -> bytes:
 
     rng = np.random.default_rng(seed)
     vec = radec_to_vec(rng.uniform(0, 2 * np.pi, n), np.arcsin(rng.uniform(-1, 1, n)))
-    cat = OnboardCatalog.build(np.arange(1, n + 1), vec, rng.uniform(0, 5, n), rng.uniform(0.7, 1.3, n),
-                               rng.uniform(0.6, 1.1, n), phi_min=1e-3, phi_max=0.35, n_h=128,
-                               meta={"epoch": 2025.0, "source": "hipparcos", "colour_source": np.full(n, 2)})
+    cat = OnboardCatalog.build(
+        np.arange(1, n + 1),
+        vec,
+        rng.uniform(0, 5, n),
+        rng.uniform(0.7, 1.3, n),
+        rng.uniform(0.6, 1.1, n),
+        phi_min=1e-3,
+        phi_max=0.35,
+        n_h=128,
+        meta={"epoch": 2025.0, "source": "hipparcos", "colour_source": np.full(n, 2)},
+    )
     return catalog_to_image(cat, created_unix=1_700_000_000 + seed)
 
 
@@ -50,13 +58,13 @@ def wrong_version(image: bytes, version: int = 2) -> bytes:
     """``image`` claiming another format version, its header CRC re-signed."""
     out = bytearray(image)
     out[8:10] = struct.pack("<H", version)
-    out[HEADER_SIZE - 4:HEADER_SIZE] = struct.pack("<I", crc32(bytes(out[:HEADER_SIZE - 4])))
+    out[HEADER_SIZE - 4 : HEADER_SIZE] = struct.pack("<I", crc32(bytes(out[: HEADER_SIZE - 4])))
     return bytes(out)
 
 
 def _send(c: Client, data: bytes, pieces: list[tuple[int, int]], tally: Tally) -> None:
     for off, n in pieces:
-        c.xfer_data(SLOT, off, data[off:off + n])
+        c.xfer_data(SLOT, off, data[off : off + n])
         tally.messages += 1
 
 
@@ -85,6 +93,7 @@ def _upload_expect(c: Client, tally: Tally, image: bytes, announced_crc: int, pi
 
 # Scenarios: fn(client, rng, tally, good image) -> "kept" or "replaced".
 
+
 def corrupted(c, rng, tally, image):
     bad = bytearray(image)
     bad[rng.randrange(len(bad))] ^= 1 << rng.randrange(8)
@@ -100,7 +109,7 @@ def corrupted_and_resigned(c, rng, tally, image):
 
 
 def truncated(c, rng, tally, image):
-    short = image[:rng.randrange(1, len(image))]
+    short = image[: rng.randrange(1, len(image))]
     _upload_expect(c, tally, short, crc32(short), _chunks(len(short)), tuple(Reason))
     return "kept"
 
@@ -125,7 +134,7 @@ def overlapping_conflicting(c, rng, tally, image):
     c.xfer_begin(SLOT, len(image), crc32(image))
     _send(c, image, _chunks(len(image)), tally)
     off = rng.randrange(len(image) - 16)
-    c.xfer_data(SLOT, off, bytes(b ^ 0xFF for b in image[off:off + rng.randrange(1, 3000)]))
+    c.xfer_data(SLOT, off, bytes(b ^ 0xFF for b in image[off : off + rng.randrange(1, 3000)]))
     tally.messages += 2
     _expect_nack(tally, (NackReason.CRC_MISMATCH,), c.xfer_commit, SLOT)
     return "kept"
@@ -159,8 +168,13 @@ def out_of_range(c, rng, tally, image):
 
 def raw_damage(c, rng, tally, image):
     """Transfer commands with data fields of the wrong size (refused as BAD_LENGTH)."""
-    for code, data in ((Code.XFER_BEGIN, XferBegin(SLOT, 5, 0).pack()[:-1]), (Code.XFER_DATA, XferData(SLOT, 0, b"").pack()),
-                       (Code.XFER_COMMIT, b""), (Code.XFER_ABORT, b"\0\0"), (Code.SLOT_INFO, b"")):
+    for code, data in (
+        (Code.XFER_BEGIN, XferBegin(SLOT, 5, 0).pack()[:-1]),
+        (Code.XFER_DATA, XferData(SLOT, 0, b"").pack()),
+        (Code.XFER_COMMIT, b""),
+        (Code.XFER_ABORT, b"\0\0"),
+        (Code.SLOT_INFO, b""),
+    ):
         _expect_nack(tally, (NackReason.BAD_LENGTH,), c.transact, code, data)
     return "kept"
 
@@ -191,9 +205,22 @@ def overlapping(c, rng, tally, image):
     return _commit_pieces(c, rng, tally, image, pieces)
 
 
-SCENARIOS = {f.__name__: f for f in (corrupted, corrupted_and_resigned, truncated, wrong_version_image,
-                                      commit_incomplete, overlapping_conflicting, interrupted, out_of_range,
-                                      raw_damage, out_of_order, overlapping)}
+SCENARIOS = {
+    f.__name__: f
+    for f in (
+        corrupted,
+        corrupted_and_resigned,
+        truncated,
+        wrong_version_image,
+        commit_incomplete,
+        overlapping_conflicting,
+        interrupted,
+        out_of_range,
+        raw_damage,
+        out_of_order,
+        overlapping,
+    )
+}
 REPLACING = ("out_of_order", "overlapping")
 
 
