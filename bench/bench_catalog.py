@@ -128,7 +128,10 @@ def colour_fallbacks() -> None:
     trg, tbg = blackbody_ratios(model.qe, ballesteros_temperature(np.clip(sel.bv, -0.4, 3.0)))
     print(f"{typed.sum()} stars; rms relative difference to the template ratios, rg / bg:")
     for label, mask in (("B-V < 1.0", typed & (sel.bv < 1.0)), ("B-V >= 1.0", typed & (sel.bv >= 1.0)), ("all", typed)):
-        e = lambda a, b: 100 * np.sqrt(np.mean((a[mask] / b[mask] - 1) ** 2))
+
+        def e(a, b, mask=mask):
+            return 100 * np.sqrt(np.mean((a[mask] / b[mask] - 1) ** 2))
+
         print(
             f"  {label:>10} (n={mask.sum():4d}): chosen lookup {e(frg, rg):5.2f} / {e(fbg, bg):5.2f} %   "
             f"Ballesteros blackbody {e(trg, rg):5.2f} / {e(tbg, bg):5.2f} %"

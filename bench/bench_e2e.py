@@ -116,8 +116,8 @@ def part_a(n: int, workers: int, seed: int, out: Path) -> None:
 
 
 def part_b(n: int, out: Path) -> None:
-    from firmware_model.catalog_image_io import catalog_to_image
     from firmware_model.camera import CameraModel
+    from firmware_model.catalog_image_io import catalog_to_image
     from ground.client import Client
     from ground.demo import pick_attitudes, start_device, stop_device
     from ground.frame_writer import write_frame

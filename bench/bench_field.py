@@ -53,7 +53,7 @@ def main(argv=None) -> int:
     from ground.catalog.design import CatalogDesign
     from ground.corrections import ColourCorrection
     from ground.frame_writer import write_rendered
-    from ground.replay import OfflineSolver, TABLE5_MODES, replay, table5
+    from ground.replay import TABLE5_MODES, OfflineSolver, replay, table5
     from ground.sensor_sim import DetectorModel, Stars, render_frame
     from ground.sky_model import sky_stars
 

@@ -181,9 +181,9 @@ def main() -> int:
     args = ap.parse_args()
     if args.write_tetra3_reference:
         return write_tetra3_reference()
+    from firmware_model.frame_io import read_frame
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
-    from firmware_model.frame_io import read_frame
 
     jobs = frames()
     if not jobs:

@@ -67,7 +67,7 @@ class CameraModel:
 
     # ---------------------------------------------------------------- constructors
     @classmethod
-    def from_fov(cls, width: int, height: int, half_fov_minor_deg: float, **distortion) -> "CameraModel":
+    def from_fov(cls, width: int, height: int, half_fov_minor_deg: float, **distortion) -> CameraModel:
         """Distortion-free camera whose half field of view across the minor axis (from the
         array centre to the outer edge of the edge pixels) is ``half_fov_minor_deg``."""
         if not 0.0 < half_fov_minor_deg < 90.0:
@@ -77,7 +77,7 @@ class CameraModel:
         return cls(width, height, float(f), (width - 1) / 2.0, (height - 1) / 2.0, **distortion)
 
     @classmethod
-    def from_horizontal_fov(cls, width: int, height: int, fov_deg: float) -> "CameraModel":
+    def from_horizontal_fov(cls, width: int, height: int, fov_deg: float) -> CameraModel:
         """Distortion-free camera whose full field of view across the array width (outer pixel
         edges) is ``fov_deg``, principal point at the array centre: what a plate solver's
         field-of-view estimate gives."""
@@ -87,7 +87,7 @@ class CameraModel:
         return cls(width, height, float(f), (width - 1) / 2.0, (height - 1) / 2.0)
 
     @classmethod
-    def from_focal(cls, width: int, height: int, focal_mm: float, pixel_um: float, **distortion) -> "CameraModel":
+    def from_focal(cls, width: int, height: int, focal_mm: float, pixel_um: float, **distortion) -> CameraModel:
         """Camera from a focal length in mm and a pixel pitch in micrometres; principal
         point at the array centre."""
         if focal_mm <= 0 or pixel_um <= 0:
@@ -96,7 +96,7 @@ class CameraModel:
         return cls(width, height, float(f), (width - 1) / 2.0, (height - 1) / 2.0, **distortion)
 
     @classmethod
-    def reference_design(cls) -> "CameraModel":
+    def reference_design(cls) -> CameraModel:
         """Seed 000 reference design: 2592 x 1944, 7.5 deg half FOV on the minor axis
         (f = 972 / tan 7.5 deg = 7383.1 px, i.e. 16.24 mm at 2.2 um)."""
         return cls.from_fov(REFERENCE_WIDTH, REFERENCE_HEIGHT, REFERENCE_HALF_FOV_MINOR_DEG)
@@ -106,7 +106,7 @@ class CameraModel:
         return {k: (int(v) if k in ("width", "height") else float(v)) for k, v in asdict(self).items()}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "CameraModel":
+    def from_dict(cls, d: dict) -> CameraModel:
         """Inverse of ``to_dict``; unknown keys are an error, missing distortion terms default to 0."""
         names = {f.name for f in fields(cls)}
         unknown = set(d) - names

@@ -33,7 +33,7 @@ import numpy as np
 from scipy.special import erf
 
 from firmware_model.detect import Detections
-from firmware_model.frame import Frame, pattern_codes, RED, GREEN, BLUE
+from firmware_model.frame import BLUE, GREEN, RED, Frame, pattern_codes
 from firmware_model.star_flags import StarFlag
 
 _SQRT2 = np.sqrt(2.0)

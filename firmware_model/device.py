@@ -120,7 +120,10 @@ def _params_validate(data: bytes) -> None:
 def default_slots() -> dict[int, SlotHandler]:
     """Handlers used until the real catalog/frame validators are plugged in: slots 0 and 1 accept
     any non-empty image (kept as bytes); slot 2 accepts a JSON object (activated as a dict)."""
-    blob = lambda data, obj: json.dumps({"length": len(data)}).encode()
+
+    def blob(data, obj):
+        return json.dumps({"length": len(data)}).encode()
+
     return {
         0: SlotHandler(_reject_empty, bytes, blob),
         1: SlotHandler(_reject_empty, bytes, blob),
@@ -335,7 +338,7 @@ class Device:
         self.counters.replies += len(replies)
         return replies
 
-    def _answer_late(self, msg: nsp.Message, pending: "_Pending") -> None:
+    def _answer_late(self, msg: nsp.Message, pending: _Pending) -> None:
         """Wait for ``pending`` (the lock is released while waiting) and hand its replies to
         :attr:`late_reply`."""
         with self._lock:
@@ -343,7 +346,7 @@ class Device:
         if replies and self.late_reply is not None:
             self.late_reply([m.frame() for m in replies])
 
-    def _dispatch(self, msg: nsp.Message) -> "list[bytes] | _Pending":
+    def _dispatch(self, msg: nsp.Message) -> list[bytes] | _Pending:
         code = msg.code
         if code in UNASSIGNED:
             raise _Nack(NackReason.UNKNOWN_COMMAND, f"command code 0x{code:02X} is not assigned")
@@ -550,7 +553,7 @@ class Device:
         self._dark[win.buffer].append(win)
         return data
 
-    def _cmd_combination(self, data: bytes) -> "list[bytes] | _Pending":
+    def _cmd_combination(self, data: bytes) -> list[bytes] | _Pending:
         req = Combination.unpack(data)
         if req.mask & result.SELF_TEST_SECTION:
             raise _Nack(NackReason.NOT_SUPPORTED, "the self-test result section (0x0800) is not emulated")

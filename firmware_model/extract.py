@@ -31,8 +31,7 @@ from firmware_model.camera import CameraModel
 from firmware_model.centroid import FitParams, FitResults, fit_stars
 from firmware_model.detect import DetectParams, bound_notes, detect_stars
 from firmware_model.frame import Frame
-from firmware_model.star_flags import StarFlag, UNTRUSTED
-
+from firmware_model.star_flags import UNTRUSTED, StarFlag
 
 #: Accepted range of a set PSF sigma (px): [low, high).
 PSF_SIGMA_RANGE_PX = (0.1, 20.0)

@@ -16,8 +16,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from firmware_model.camera import CameraModel
 from firmware_model import scale_free
+from firmware_model.camera import CameraModel
 from firmware_model.camera_fit import StarObservations, fit_frame
 from firmware_model.extract import ExtractParams, StarList, extract_stars
 from firmware_model.frame import Frame

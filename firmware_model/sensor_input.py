@@ -16,17 +16,18 @@ import glob
 import importlib
 import json
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from importlib.metadata import entry_points
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
+from firmware_model import scale_free
 from firmware_model.camera import CameraModel
 from firmware_model.device import FrameUnavailable, SlotHandler, SolveContext
+from firmware_model.extract import PSF_SIGMA_RANGE_PX
 from firmware_model.frame import Frame, frame_from_bytes
 from firmware_model.frame_io import FrameReadError, frame_files, read_frame
-from firmware_model.extract import PSF_SIGMA_RANGE_PX
-from firmware_model import scale_free
 from firmware_model.pipeline import PipelineParams, result_fields, run_pipeline, with_psf_sigma
 from protocol.commands import SlotRejected
 
@@ -108,7 +109,7 @@ class DeviceParams:
     )
 
     @classmethod
-    def load(cls, path) -> "DeviceParams":
+    def load(cls, path) -> DeviceParams:
         """A parameter file (``st16-device --params``, the offline ``--params``); ValueError with a
         one-line reason for an unreadable or invalid one."""
         try:
@@ -119,7 +120,7 @@ class DeviceParams:
             raise ValueError(f"--params {path}: {exc.message}") from None
 
     @classmethod
-    def from_json(cls, data: bytes) -> "DeviceParams":
+    def from_json(cls, data: bytes) -> DeviceParams:
         try:
             obj = json.loads(data.decode("utf-8"))
         except (UnicodeDecodeError, ValueError) as exc:

@@ -99,7 +99,7 @@ def _slot_number(name: str) -> int | None:
     return int(digits)
 
 
-def _transfer_from_meta(slot: int, meta) -> "Transfer":
+def _transfer_from_meta(slot: int, meta) -> Transfer:
     """A Transfer from ``partial.json``'s content; ValueError for anything but
     ``{"length": 1..MAX_SLOT_BYTES, "crc32": u32, "ranges": [[a, b], ...] within the length}``."""
     if not isinstance(meta, dict):

@@ -99,7 +99,7 @@ def _offline_solver(args):
             parts = [float(v) for v in args.site.split(",")]
             site = Site(*parts[:3], pressure_hpa=args.pressure, temperature_c=args.temperature)
         except (ValueError, TypeError):
-            raise InputError(f"--site wants LAT,LON[,HEIGHT_M] in degrees/metres, got {args.site!r}")
+            raise InputError(f"--site wants LAT,LON[,HEIGHT_M] in degrees/metres, got {args.site!r}") from None
     try:
         catalog = _load_catalog(args.catalog)
     except (OSError, ValueError) as exc:

@@ -151,7 +151,7 @@ class Client:
         if self._own_log and self.log is not None:
             self.log.close()
 
-    def __enter__(self) -> "Client":
+    def __enter__(self) -> Client:
         return self
 
     def __exit__(self, *exc) -> None:

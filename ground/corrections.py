@@ -120,7 +120,7 @@ class ColourCorrection:
         )
 
     @classmethod
-    def from_json(cls, text: str) -> "ColourCorrection":
+    def from_json(cls, text: str) -> ColourCorrection:
         data = json.loads(text)
         if data.get("kind") != PARAMETER_KIND:
             raise ValueError(f"not a colour correction parameter set (kind={data.get('kind')!r})")
@@ -154,8 +154,8 @@ class Site:
     wavelength_um: float = 0.55
 
     def location(self):
-        from astropy.coordinates import EarthLocation
         import astropy.units as u
+        from astropy.coordinates import EarthLocation
 
         return EarthLocation(lat=self.lat_deg * u.deg, lon=self.lon_deg * u.deg, height=self.height_m * u.m)
 
@@ -198,7 +198,7 @@ def correct_refraction(vec_sensor, a_icrs_to_sensor, site: Site, time, iteration
     depends only on each star's altitude. ``time`` is an astropy ``Time``.
     """
     import astropy.units as u
-    from astropy.coordinates import ICRS, SkyCoord, CartesianRepresentation
+    from astropy.coordinates import ICRS, CartesianRepresentation, SkyCoord
 
     v = np.atleast_2d(np.asarray(vec_sensor, dtype=float))
     a = np.asarray(a_icrs_to_sensor, dtype=float)

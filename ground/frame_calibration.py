@@ -21,12 +21,12 @@ import numpy as np
 from tqdm import tqdm
 
 from firmware_model.camera import CameraModel
+from firmware_model.camera_fit import CalibrationResult, StarObservations, calibrate
 from firmware_model.extract import StarList, extract_stars
 from firmware_model.frame import Frame
 from firmware_model.ident.consensus import Outcome
 from firmware_model.onboard_catalog import OnboardCatalog
 from firmware_model.pipeline import OpticsSearch, PipelineOutput, PipelineParams, identify_stars
-from firmware_model.camera_fit import CalibrationResult, StarObservations, calibrate
 
 
 @dataclass

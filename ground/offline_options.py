@@ -12,7 +12,8 @@ Bad values fail before any work with an :class:`~ground.cli_types.InputError` (o
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Callable
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from ground.cli_types import InputError
 

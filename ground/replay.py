@@ -21,9 +21,9 @@ from __future__ import annotations
 import json
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from tqdm import tqdm
@@ -55,7 +55,7 @@ class Truth:
     y: np.ndarray
 
     @classmethod
-    def for_frame(cls, frame_path, frame: Frame | None = None, warn=None) -> "Truth | None":
+    def for_frame(cls, frame_path, frame: Frame | None = None, warn=None) -> Truth | None:
         """The truth beside a rendered frame (``NAME.truth.json``), or None: absent, unreadable, or
         (with ``frame``) written for another frame (its camera size or render seed differ). The
         last two are said through ``warn`` (default: one line on stderr): the frame is then not

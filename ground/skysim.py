@@ -25,8 +25,8 @@ import multiprocessing
 import os
 import signal
 import time
-from functools import partial
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 
@@ -358,7 +358,8 @@ def execute(
     parts = []
     bar = tqdm(total=n_poses, unit="pose", disable=not progress, desc=f"sim {kind}")
     if scheduler:
-        from dask.distributed import Client, as_completed as dask_completed
+        from dask.distributed import Client
+        from dask.distributed import as_completed as dask_completed
 
         with Client(scheduler) as client:
             remote = client.scatter(payload, broadcast=True)

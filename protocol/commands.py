@@ -111,7 +111,7 @@ class NackInfo:
         return struct.pack("<H", self.reason) + self.text.encode("utf-8")[:200]
 
     @classmethod
-    def unpack(cls, data: bytes) -> "NackInfo":
+    def unpack(cls, data: bytes) -> NackInfo:
         if len(data) < 2:
             return cls(0, data.hex())
         return cls(struct.unpack_from("<H", data)[0], bytes(data[2:]).decode("utf-8", "replace"))
@@ -135,7 +135,7 @@ class Init:
         return struct.pack("<I", self.address)
 
     @classmethod
-    def unpack(cls, data: bytes) -> "Init":
+    def unpack(cls, data: bytes) -> Init:
         _need(data, (4,), "INIT")
         return cls(struct.unpack("<I", data)[0])
 
@@ -151,7 +151,7 @@ class Peek:
         return struct.pack("<IH", self.address, self.count)
 
     @classmethod
-    def unpack(cls, data: bytes) -> "Peek":
+    def unpack(cls, data: bytes) -> Peek:
         _need(data, (6,), "PEEK")
         return cls(*struct.unpack("<IH", data))
 
@@ -167,7 +167,7 @@ class Poke:
         return struct.pack("<I", self.address) + bytes(self.data)
 
     @classmethod
-    def unpack(cls, data: bytes) -> "Poke":
+    def unpack(cls, data: bytes) -> Poke:
         _at_least(data, 5, "POKE")
         return cls(struct.unpack_from("<I", data)[0], bytes(data[4:]))
 
@@ -184,7 +184,7 @@ class AddressedBytes:
         return self.address.to_bytes(self.width, "little") + bytes(self.data)
 
     @classmethod
-    def unpack(cls, data: bytes, width: int = 2) -> "AddressedBytes":
+    def unpack(cls, data: bytes, width: int = 2) -> AddressedBytes:
         _at_least(data, width, "addressed reply")
         return cls(int.from_bytes(data[:width], "little"), bytes(data[width:]), width)
 
@@ -201,7 +201,7 @@ class WriteAck:
         return self.address.to_bytes(self.width, "little") + struct.pack("<H", self.count)
 
     @classmethod
-    def unpack(cls, data: bytes, width: int = 2) -> "WriteAck":
+    def unpack(cls, data: bytes, width: int = 2) -> WriteAck:
         _need(data, (width + 2,), "write reply")
         return cls(int.from_bytes(data[:width], "little"), struct.unpack_from("<H", data, width)[0], width)
 
@@ -226,7 +226,7 @@ class CrcRequest:
         return struct.pack("<BII", self.space, self.address, self.length)
 
     @classmethod
-    def unpack(cls, data: bytes) -> "CrcRequest":
+    def unpack(cls, data: bytes) -> CrcRequest:
         _need(data, (9,), "CRC")
         return cls(*struct.unpack("<BII", data))
 
@@ -242,7 +242,7 @@ class CrcReply:
         return struct.pack("<BIIH", self.space, self.address, self.length, self.crc)
 
     @classmethod
-    def unpack(cls, data: bytes) -> "CrcReply":
+    def unpack(cls, data: bytes) -> CrcReply:
         _need(data, (11,), "CRC reply")
         return cls(*struct.unpack("<BIIH", data))
 
@@ -259,7 +259,7 @@ class ReadFile:
         return struct.pack("<H", self.address) if self.long else struct.pack("<B", self.address // 4)
 
     @classmethod
-    def unpack(cls, data: bytes) -> "ReadFile":
+    def unpack(cls, data: bytes) -> ReadFile:
         _need(data, (1, 2), "READ FILE")
         if len(data) == 1:
             return cls(data[0] * 4, False)
@@ -279,7 +279,7 @@ class WriteFile:
         return head + bytes(self.value)
 
     @classmethod
-    def unpack(cls, data: bytes) -> "WriteFile":
+    def unpack(cls, data: bytes) -> WriteFile:
         _need(data, (5, 6), "WRITE FILE")
         if len(data) == 5:
             return cls(data[0] * 4, bytes(data[1:]), False)
@@ -303,7 +303,7 @@ class ReadRange:
         return struct.pack("<HB", self.address, self.count & 0xFF)
 
     @classmethod
-    def unpack(cls, data: bytes) -> "ReadRange":
+    def unpack(cls, data: bytes) -> ReadRange:
         _need(data, (3, 4), "read")
         if len(data) == 3:
             address, count = struct.unpack("<HB", data)
@@ -322,7 +322,7 @@ class WriteEdac:
         return struct.pack("<H", self.address) + bytes(self.data)
 
     @classmethod
-    def unpack(cls, data: bytes) -> "WriteEdac":
+    def unpack(cls, data: bytes) -> WriteEdac:
         _at_least(data, 3, "WRITE EDAC")
         return cls(struct.unpack_from("<H", data)[0], bytes(data[2:]))
 
@@ -349,7 +349,7 @@ class Go:
         return bytes([self.code])
 
     @classmethod
-    def unpack(cls, data: bytes) -> "Go":
+    def unpack(cls, data: bytes) -> Go:
         _need(data, (1,), "GO")
         return cls(data[0])
 
@@ -371,7 +371,7 @@ class DarkWindow:
         return struct.pack("<BBHHHH8H", 0, self.buffer, self.row, self.col, self.rows, self.cols, *self.values)
 
     @classmethod
-    def unpack(cls, data: bytes) -> "DarkWindow":
+    def unpack(cls, data: bytes) -> DarkWindow:
         _need(data, (26,), "IMAGE dark window")
         sub, buf, row, col, rows, cols, *values = struct.unpack("<BBHHHH8H", data)
         return cls(buf, row, col, rows, cols, tuple(values))
@@ -390,7 +390,7 @@ class Combination:
         return bytes([self.go_code]) + self.mask.to_bytes(self.mask_bytes, "little")
 
     @classmethod
-    def unpack(cls, data: bytes) -> "Combination":
+    def unpack(cls, data: bytes) -> Combination:
         _need(data, (4, 5), "COMBINATION")
         return cls(data[0], int.from_bytes(data[1:], "little"), len(data) - 1)
 
@@ -427,7 +427,7 @@ class Diagnostics:
         return struct.pack("<10I32I", *(v & 0xFFFFFFFF for v in values), *(v & 0xFFFFFFFF for v in self.per_code))
 
     @classmethod
-    def unpack(cls, data: bytes) -> "Diagnostics":
+    def unpack(cls, data: bytes) -> Diagnostics:
         _need(data, (cls.SIZE,), "DIAGNOSTIC reply")
         values = struct.unpack("<10I32I", data)
         return cls(*values[:10], per_code=tuple(values[10:]))
@@ -464,7 +464,7 @@ class XferBegin:
         return struct.pack("<BII", self.slot, self.length, self.crc32)
 
     @classmethod
-    def unpack(cls, data: bytes) -> "XferBegin":
+    def unpack(cls, data: bytes) -> XferBegin:
         _need(data, (9,), "XFER BEGIN")
         return cls(*struct.unpack("<BII", data))
 
@@ -481,7 +481,7 @@ class XferData:
         return struct.pack("<BI", self.slot, self.offset) + bytes(self.data)
 
     @classmethod
-    def unpack(cls, data: bytes) -> "XferData":
+    def unpack(cls, data: bytes) -> XferData:
         _at_least(data, 6, "XFER DATA")
         slot, offset = struct.unpack_from("<BI", data)
         return cls(slot, offset, bytes(data[5:]))
@@ -496,7 +496,7 @@ class XferDataAck:
         return struct.pack("<BI", self.slot, self.contiguous)
 
     @classmethod
-    def unpack(cls, data: bytes) -> "XferDataAck":
+    def unpack(cls, data: bytes) -> XferDataAck:
         _need(data, (5,), "XFER DATA reply")
         return cls(*struct.unpack("<BI", data))
 
@@ -511,7 +511,7 @@ class SlotRequest:
         return bytes([self.slot])
 
     @classmethod
-    def unpack(cls, data: bytes) -> "SlotRequest":
+    def unpack(cls, data: bytes) -> SlotRequest:
         _need(data, (1,), "slot request")
         return cls(data[0])
 
@@ -547,7 +547,7 @@ class XferStatus:
         return head + b"".join(struct.pack("<II", o, n) for o, n in shown)
 
     @classmethod
-    def unpack(cls, data: bytes) -> "XferStatus":
+    def unpack(cls, data: bytes) -> XferStatus:
         _at_least(data, 20, "XFER STATUS reply")
         head = struct.unpack_from("<BBIIIIH", data)
         rest = data[20:]
@@ -572,7 +572,7 @@ class SlotImage:
         return struct.pack("<BBII", self.slot, int(self.active), self.length, self.crc32) + bytes(self.info)
 
     @classmethod
-    def unpack(cls, data: bytes) -> "SlotImage":
+    def unpack(cls, data: bytes) -> SlotImage:
         _at_least(data, 10, "slot reply")
         slot, active, length, crc = struct.unpack_from("<BBII", data)
         return cls(slot, bool(active), length, crc, bytes(data[10:]))

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from firmware_model.camera import CameraModel
-from firmware_model.frames import attitude_from_radec_roll
 from firmware_model.camera_fit import StarObservations, calibrate
+from firmware_model.frames import attitude_from_radec_roll
 
 TRUE = CameraModel.from_fov(2592, 1944, 7.5, k1=0.12, k2=-0.4, p1=2e-4, p2=-1e-4)
 TRUE = CameraModel(**{**TRUE.to_dict(), "cx": 1301.2, "cy": 965.8})

@@ -75,7 +75,8 @@ def test_no_inverse_beyond_a_fold_gives_nan():
     assert np.allclose(v[0], [0, 0, 1]) and np.all(np.isnan(v[1]))
 
 
-from hypothesis import given, settings, strategies as st  # noqa: E402
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
 
 
 @settings(max_examples=60, deadline=None)

@@ -12,7 +12,8 @@ from firmware_model.link import PtyLink, serve
 from firmware_model.state import SlotStore
 from ground.cli import main as cli_main
 from ground.client import Client, Nack
-from ground.fuzz.upload_faults import catalog_image as _image, wrong_version
+from ground.fuzz.upload_faults import catalog_image as _image
+from ground.fuzz.upload_faults import wrong_version
 from protocol.catalog_image import Reason
 from protocol.crc import crc32
 

@@ -46,7 +46,7 @@ def test_analytic_jacobian_matches_finite_differences():
     wm = _WindowModel(rows, cols, chan, 3, 1.0 / rng.uniform(1, 3, len(rows)))
     p = np.array([24.3, 14.6, 1.2, 900.0, 1500.0, 700.0, 5.0, 6.0, 7.0])
     data = wm.model(p) + rng.normal(0, 2, len(rows))
-    num = np.array([approx_fprime(p, lambda q: wm.residuals(q, data)[k], 1e-6) for k in range(len(rows))])
+    num = np.array([approx_fprime(p, lambda q, k=k: wm.residuals(q, data)[k], 1e-6) for k in range(len(rows))])
     assert np.allclose(wm.jacobian(p), num, rtol=1e-4, atol=1e-4)
 
 

@@ -50,6 +50,7 @@ def test_correct_refraction_restores_true_geometry():
     """Refract true vectors with astropy, then correct them: the arcs come back."""
     import astropy.units as u
     from astropy.coordinates import ICRS, SkyCoord
+
     from ground.corrections import _altaz_frames
 
     vacuum, air = _altaz_frames(SITE, TIME)
@@ -65,7 +66,10 @@ def test_correct_refraction_restores_true_geometry():
     app = true_icrs.transform_to(air)
     refracted = SkyCoord(az=app.az, alt=app.alt, frame=vacuum).transform_to(ICRS())
     s_obs = frames.radec_to_vec(refracted.ra.rad, refracted.dec.rad) @ a.T
-    arcs = lambda s: np.arccos(np.clip(s @ s.T, -1, 1))
+
+    def arcs(s):
+        return np.arccos(np.clip(s @ s.T, -1, 1))
+
     before = np.abs(arcs(s_obs) - arcs(s_true)).max()
     exact = np.abs(arcs(correct_refraction(s_obs, a, SITE, TIME)) - arcs(s_true)).max()
     # an attitude off by ~0.5 deg, as in the paper's procedure, costs a little accuracy

@@ -2,7 +2,8 @@
 
 import zlib
 
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 
 from protocol.crc import crc16_mcrf4xx, crc32
 

@@ -3,7 +3,8 @@ injected faults, and random byte streams interleaved with good commands."""
 
 import struct
 
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 
 from firmware_model.device import Device

@@ -228,7 +228,6 @@ def test_refused_frame_is_an_answer_not_silence(device, scene, tmp_path):
 
 
 def test_replay_refuses_to_mix_runs_and_resumes_where_it_stopped(scene, tmp_path):
-    from firmware_model.camera import CameraModel
     from firmware_model.catalog_image_io import catalog_from_image
     from ground.replay import OfflineSolver
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from firmware_model.frame import Frame, frame_from_bytes, frame_to_bytes, pattern_codes, RED, GREEN, BLUE
+from firmware_model.frame import BLUE, GREEN, RED, Frame, frame_from_bytes, frame_to_bytes, pattern_codes
 from firmware_model.frame_io import FrameReadError, read_frame
 from ground.frame_writer import write_dng, write_frame
 

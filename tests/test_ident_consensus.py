@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from ident_sky import random_attitude, random_catalog, scene
 
 from firmware_model.camera import CameraModel
 from firmware_model.ident.consensus import ConsensusParams, Outcome, detection_angles, grow, match_scene
@@ -9,7 +10,6 @@ from firmware_model.ident.pair_match import PairNoise, consistency_tolerance, cr
 from firmware_model.ident.solver import SolveParams, solve
 from firmware_model.ident.verify import FieldOfView, VerifyParams, verify
 from firmware_model.onboard_catalog import OnboardCatalog, angle_between
-from ident_sky import random_attitude, random_catalog, scene
 
 CAM = CameraModel.reference_design()
 SIG = 0.2 / CAM.f
@@ -95,7 +95,10 @@ def test_backtracking_recovers_a_colour_swapped_seed_pair():
     bg = np.array([0.78, 0.80, 0.4])
     noise = PairNoise(1e-5, 0.05, 0.05)
     fov = FieldOfView.cone(0.1)
-    chk = lambda d, c: verify(d, c, v, rg, bg, np.full(3, 5e-6), cat, fov, 0.05, 0.05, VerifyParams())
+
+    def chk(d, c):
+        return verify(d, c, v, rg, bg, np.full(3, 5e-6), cat, fov, 0.05, 0.05, VerifyParams())
+
     # one seed attempt isolates backtracking from simply trying another seed pair
     paper = match_scene(
         v, rg, bg, cat, noise, ConsensusParams(k_best=1, k_best_sparse=1, anchors=1, max_attempts=1), chk

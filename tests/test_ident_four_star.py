@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from ident_sky import random_attitude, random_catalog
 
 from firmware_model.ident.four_star import (
     GROUP_PAIRS,
@@ -12,7 +13,6 @@ from firmware_model.ident.four_star import (
     vote_matrix,
 )
 from firmware_model.onboard_catalog import angle_between
-from ident_sky import random_attitude, random_catalog
 
 EPS = np.radians(0.01)
 

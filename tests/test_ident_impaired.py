@@ -6,6 +6,7 @@ from itertools import combinations
 
 import numpy as np
 import pytest
+from ident_sky import random_attitude, random_catalog, scene
 
 from firmware_model.camera import CameraModel
 from firmware_model.ident.consensus import ConsensusParams, Outcome, SeedOrder, confident, match_scene, seed_pairs
@@ -13,8 +14,7 @@ from firmware_model.ident.pair_match import PairNoise
 from firmware_model.ident.solver import SolveParams, check_hypothesis, solve
 from firmware_model.ident.triangle import TriadOrder, triangles
 from firmware_model.ident.verify import FieldOfView, VerifyParams, chance_alignment, coverage_ok, miss_tail, verify
-from firmware_model.onboard_catalog import OnboardCatalog, angle_between
-from ident_sky import random_attitude, random_catalog, scene
+from firmware_model.onboard_catalog import angle_between
 
 CAM = CameraModel.reference_design()
 SIG = 0.2 / CAM.f
@@ -127,7 +127,10 @@ def test_scene_whose_brightest_detections_are_false_is_solved(cat):
     solved = {"adaptive": 0, "paper order": 0}
     for _ in range(6):
         v, rg, bg, truth = _impaired_frame(cat, rng, drop=0, n_false=10, min_true=6)
-        chk = lambda d, c: verify(d, c, v, rg, bg, np.full(len(v), SIG), cat, FOV, 0.05, 0.05, VerifyParams())
+
+        def chk(d, c, v=v, rg=rg, bg=bg):
+            return verify(d, c, v, rg, bg, np.full(len(v), SIG), cat, FOV, 0.05, 0.05, VerifyParams())
+
         for name, cp in (
             ("adaptive", ConsensusParams()),
             ("paper order", ConsensusParams(adaptive_seeds=False, attempts_per_star=3.0)),

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from ident_sky import random_catalog
 
 from firmware_model.ident.pair_match import (
     PairNoise,
@@ -13,7 +14,6 @@ from firmware_model.ident.pair_match import (
     sigma_phi_from_centroid,
 )
 from firmware_model.onboard_catalog import OnboardCatalog
-from ident_sky import random_catalog
 
 
 def test_critical_distance_is_papers_value():

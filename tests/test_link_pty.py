@@ -267,9 +267,8 @@ def test_link_is_served_while_a_combination_waits_for_its_sequence():
 def test_ctrl_c_during_an_upload_keeps_what_was_sent_and_the_next_upload_resumes(tmp_path):
     """``st16-ground upload`` interrupted half-way over a paced line: exit 130 with one line, the
     device keeps the bytes received, and the next upload sends only the rest."""
-    import time
-
     import json
+    import time
 
     image = _small_catalog_image(600)
     (tmp_path / "cat.img").write_bytes(image)

@@ -1,10 +1,11 @@
 """NSP message layer: MCF bits, encode/decode, and the research notes' worked byte examples."""
 
 import pytest
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 
 from protocol import nsp, slip
-from protocol.commands import Code, Init, ReadRange, Go
+from protocol.commands import Code, Go, Init, ReadRange
 
 WORKED = [  # research notes section 2.5: (message, wire bytes)
     (nsp.command(0x0E, 0x11, Code.PING), "C00E11806921C0"),

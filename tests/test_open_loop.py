@@ -15,7 +15,7 @@ import pytest
 from firmware_model.camera import CameraModel
 from firmware_model.extract import PSF_FAIL_FRACTION, ExtractParams, _detect_and_fit, extract_stars, failed_fit_fraction
 from firmware_model.frame import Frame
-from firmware_model.frames import attitude_from_radec_roll, rotation_angle, quat_to_matrix, vec_to_radec
+from firmware_model.frames import attitude_from_radec_roll, quat_to_matrix, rotation_angle, vec_to_radec
 from firmware_model.pipeline import PipelineParams, run_pipeline
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign

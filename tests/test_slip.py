@@ -1,6 +1,7 @@
 """SLIP encoder and streaming decoder, including hypothesis properties on arbitrary splits."""
 
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from protocol import slip
 

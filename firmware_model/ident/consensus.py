@@ -34,9 +34,9 @@ Beyond the paper (every knob in ``ConsensusParams``):
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Callable
 
 import numpy as np
 

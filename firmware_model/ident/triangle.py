@@ -12,9 +12,9 @@ detections, coverage). The largest verified set wins; work is bounded by ``max_t
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from itertools import combinations
-from typing import Callable
 
 import numpy as np
 

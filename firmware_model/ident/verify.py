@@ -61,7 +61,7 @@ class FieldOfView:
     edge_margin_px: float = 3.0
 
     @classmethod
-    def from_camera(cls, camera: CameraModel, edge_margin_px: float = 3.0) -> "FieldOfView":
+    def from_camera(cls, camera: CameraModel, edge_margin_px: float = 3.0) -> FieldOfView:
         xs = np.array([-0.5, camera.width - 0.5, -0.5, camera.width - 0.5])
         ys = np.array([-0.5, -0.5, camera.height - 0.5, camera.height - 0.5])
         v = camera.pixel_to_vector(xs, ys)
@@ -69,7 +69,7 @@ class FieldOfView:
         return cls(radius * 1.02 + 1e-4, camera, float(edge_margin_px))
 
     @classmethod
-    def cone(cls, half_angle: float) -> "FieldOfView":
+    def cone(cls, half_angle: float) -> FieldOfView:
         return cls(float(half_angle))
 
     @property
@@ -165,7 +165,7 @@ def chance_alignment(n_det: int, n_pred: int, n_matched: int, gate_rad: float, s
     return float(sum(comb(trials, j) * p**j * (1.0 - p) ** (trials - j) for j in range(k, trials + 1)))
 
 
-def coverage_ok(n_pred: int, n_matched: int, params: "VerifyParams") -> bool:
+def coverage_ok(n_pred: int, n_matched: int, params: VerifyParams) -> bool:
     """The coverage test of step 3 (module docstring)."""
     if n_pred == 0 or n_matched >= params.min_coverage * n_pred:
         return True

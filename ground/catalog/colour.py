@@ -357,7 +357,7 @@ class IndexLookup:
     rms_ln: tuple[float, float]
 
     @classmethod
-    def fit(cls, index: str, x, rg, bg, degree: int) -> "IndexLookup":
+    def fit(cls, index: str, x, rg, bg, degree: int) -> IndexLookup:
         x, lrg, lbg = np.asarray(x, float), np.log(rg), np.log(bg)
         crg = np.polynomial.polynomial.polyfit(x, lrg, degree)
         cbg = np.polynomial.polynomial.polyfit(x, lbg, degree)

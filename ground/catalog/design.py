@@ -9,9 +9,10 @@ seed 000 eq. 18: ``sigma_phi = 2 sigma_pix / f_px``.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
+
+import tomllib
 
 SOURCES = ("hipparcos", "bsc5")
 
@@ -50,7 +51,7 @@ class CatalogDesign:
     @classmethod
     def for_field(
         cls, width_px: int, height_px: int, fov_deg: float, stars_in_view: float = 15.0, **overrides
-    ) -> "CatalogDesign":
+    ) -> CatalogDesign:
         """A design for a camera known only by its array and horizontal field of view (deg, across
         the width): the minor half-angle from a pinhole, pairs up to the diagonal, and the limiting
         magnitude that puts about ``stars_in_view`` catalog stars in the field (star counts
@@ -152,7 +153,7 @@ class CatalogDesign:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict, origin: str = "design") -> "CatalogDesign":
+    def from_dict(cls, data: dict, origin: str = "design") -> CatalogDesign:
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:
@@ -165,7 +166,7 @@ class CatalogDesign:
             raise DesignError(f"{origin}: {exc}") from None
 
     @classmethod
-    def from_toml(cls, path: str | Path) -> "CatalogDesign":
+    def from_toml(cls, path: str | Path) -> CatalogDesign:
         """Read a design file; parameters at top level or under a ``[design]`` table."""
         path = Path(path)
         try:

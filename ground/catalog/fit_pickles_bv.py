@@ -28,8 +28,8 @@ from ground.catalog.colour import (
     default_qe,
     match_template,
     parse_mk,
-    pickles_templates,
     photon_signals,
+    pickles_templates,
     ratios_from_signals,
     read_sed,
 )

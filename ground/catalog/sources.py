@@ -57,12 +57,12 @@ class StarTable:
         """ICRS unit vectors, shape (n, 3)."""
         return radec_to_vec(self.ra, self.dec)
 
-    def subset(self, index) -> "StarTable":
+    def subset(self, index) -> StarTable:
         """Rows ``index`` (boolean mask or integer array) as a new table."""
         names = ("star_id", "ra", "dec", "vmag", "bv", "vi", "sptype", "variable", "pm_ra", "pm_dec")
         return replace(self, **{n: getattr(self, n)[index] for n in names})
 
-    def at_epoch(self, epoch: float) -> "StarTable":
+    def at_epoch(self, epoch: float) -> StarTable:
         """Positions propagated linearly in the tangent plane by ``epoch - self.epoch`` years.
 
         Radial velocity and parallax are ignored (error ~ (mu dt)^2, far below a pixel).
@@ -204,7 +204,7 @@ def read_bsc5(path: str | Path, epoch: float = BSC5_EPOCH) -> StarTable:
                 f"{path}: line {lineno}: {len(line)} characters, need at least 147 (through SpType)"
             )
 
-        def num(name, a, b, kind=float):
+        def num(name, a, b, kind=float, line=line, lineno=lineno):
             text = _field(line, a, b).strip()
             if not text:
                 return None

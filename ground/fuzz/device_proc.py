@@ -63,7 +63,7 @@ class DeviceProcess:
         self.proc.stdout.close()
         return rc
 
-    def __enter__(self) -> "DeviceProcess":
+    def __enter__(self) -> DeviceProcess:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -29,7 +29,7 @@ class Tally:
         if len(self.notes) < 50:
             self.notes.append(f"{kind}: {note}")
 
-    def add(self, other: "Tally") -> "Tally":
+    def add(self, other: Tally) -> Tally:
         for f in fields(self):
             if f.name != "notes":
                 setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))

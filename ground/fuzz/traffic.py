@@ -10,7 +10,6 @@ from __future__ import annotations
 import random
 
 from protocol import nsp, slip
-from protocol.crc import crc16_mcrf4xx
 from protocol.commands import (
     Combination,
     CrcRequest,
@@ -26,6 +25,7 @@ from protocol.commands import (
     XferBegin,
     XferData,
 )
+from protocol.crc import crc16_mcrf4xx
 
 HOST = nsp.HOST_ADDRESS
 
