@@ -22,6 +22,7 @@ import sys
 import threading
 from pathlib import Path
 
+import protocol
 from protocol import nsp
 
 from .camera import CameraModel
@@ -44,6 +45,7 @@ DEFAULT_PACED_TURNAROUND_MS = 1.0  #: ours; the research documents no turnaround
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="st16-device", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"%(prog)s {protocol.__version__}")
     where = parser.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", action="store_true", help="create a pseudo-terminal and print its path")
     where.add_argument("--port", help="serve on this serial device (pyserial URL or path)")

@@ -21,6 +21,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+import protocol
 from protocol import nsp, result, slip
 from protocol.commands import (
     APP_START_ADDRESS,
@@ -61,7 +62,7 @@ from protocol.crc import crc16_mcrf4xx, crc32
 
 from .state import SlotStore
 
-VERSION = "0.1"
+VERSION = protocol.__version__  #: in the PING banner
 EDAC_SIZE = 512
 EDAC_SCRATCH = (0x0100, 0x0200)  #: writable user scratch [start, end)
 EDAC_RESULT_LENGTH = 0x004C

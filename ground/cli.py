@@ -95,6 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=HelpFormatter,
         epilog="exit codes:\n" + "\n".join(f"  {code:>3}  {text}" for code, text in EXIT_CODES.items()),
     )
+    from protocol import __version__  # package metadata only: start-up stays fast
+
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     _global_options(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True

@@ -51,3 +51,17 @@ def test_every_option_with_a_default_shows_it():
     assert shown["st16-ground catalog build m_thresh"].endswith("(default: 5.0, or the --design file's)")
     assert "(default: 115200)" in shown["st16-ground ping baud"]  # the global options after the command too
     assert not [k for k, text in shown.items() if "default: None" in text or "default: False" in text]
+
+
+def test_one_version_number_in_both_command_lines_and_the_ping_banner():
+    import subprocess
+    import sys
+
+    from firmware_model.device import Device
+    from protocol import __version__
+
+    assert __version__ != "0+unknown"  # read from the installed package's metadata
+    for module, prog in (("ground.cli", "st16-ground"), ("firmware_model.cli", "st16-device")):
+        run = subprocess.run([sys.executable, "-m", module, "--version"], capture_output=True, text=True, timeout=60)
+        assert run.returncode == 0 and run.stdout.strip() == f"{prog} {__version__}", run
+    assert f" {__version__} " in Device().boot_banner
