@@ -46,12 +46,54 @@ STAR_COLOUR_SOURCE_MASK = 0xFF
 MAX_COLOUR_SOURCE = 4
 STAR_FLAG_VARIABLE = 0x100
 
-# magic, version, header_size, flags, total_size, n_stars, n_pairs, n_h, source_id,
-# epoch, phi_min, phi_max, dphi_star, kv_m, kv_q, theta_fov, m_thresh, sigma_phi, sigma_rg, sigma_bg,
-# created_unix, 4 x (offset, size, crc32), reserved, data_crc32, header_crc32
-_HEADER = struct.Struct("<8sHHIIIIII11dq12I4xII")
-HEADER_SIZE = _HEADER.size
+#: The header, declared once: packing fills a record of it, parsing reads one (192 bytes).
+#: ``sections``: (offset, size, CRC-32) of each of :data:`SECTIONS`, in order.
+HEADER_DTYPE = np.dtype(
+    [
+        ("magic", "S8"),
+        ("version", "<u2"),
+        ("header_size", "<u2"),
+        ("flags", "<u4"),
+        ("total_size", "<u4"),
+        ("n_stars", "<u4"),
+        ("n_pairs", "<u4"),
+        ("n_h", "<u4"),
+        ("source_id", "<u4"),
+        ("epoch", "<f8"),
+        ("phi_min", "<f8"),
+        ("phi_max", "<f8"),
+        ("dphi_star", "<f8"),
+        ("kv_m", "<f8"),
+        ("kv_q", "<f8"),
+        ("theta_fov", "<f8"),
+        ("m_thresh", "<f8"),
+        ("sigma_phi", "<f8"),
+        ("sigma_rg", "<f8"),
+        ("sigma_bg", "<f8"),
+        ("created_unix", "<i8"),
+        ("sections", "<u4", (4, 3)),
+        ("reserved", "<u4"),
+        ("data_crc32", "<u4"),
+        ("header_crc32", "<u4"),
+    ]
+)
+HEADER_SIZE = HEADER_DTYPE.itemsize
 assert HEADER_SIZE % ALIGN == 0
+#: ImageParams fields stored as floats and as integers in the header (same names).
+_FLOAT_PARAMS = (
+    "epoch",
+    "phi_min",
+    "phi_max",
+    "dphi_star",
+    "kv_m",
+    "kv_q",
+    "theta_fov",
+    "m_thresh",
+    "sigma_phi",
+    "sigma_rg",
+    "sigma_bg",
+)
+_INT_PARAMS = ("n_h", "source_id", "flags", "created_unix")
 
 
 class Reason(IntEnum):
@@ -165,34 +207,14 @@ def pack_image(params: ImageParams, stars: np.ndarray, pairs: np.ndarray, hash_i
     return header + bytes(body)
 
 
-def _pack_header(p: ImageParams, n_stars: int, n_pairs: int, total: int, entries: list, data_crc: int) -> bytes:
-    values = (
-        MAGIC,
-        VERSION,
-        HEADER_SIZE,
-        p.flags,
-        total,
-        n_stars,
-        n_pairs,
-        p.n_h,
-        p.source_id,
-        p.epoch,
-        p.phi_min,
-        p.phi_max,
-        p.dphi_star,
-        p.kv_m,
-        p.kv_q,
-        p.theta_fov,
-        p.m_thresh,
-        p.sigma_phi,
-        p.sigma_rg,
-        p.sigma_bg,
-        p.created_unix,
-        *entries,
-        data_crc,
-        0,
-    )
-    raw = _HEADER.pack(*values)
+def _pack_header(p: ImageParams, n_stars: int, n_pairs: int, total: int, entries: list[int], data_crc: int) -> bytes:
+    h = np.zeros((), HEADER_DTYPE)
+    h["magic"], h["version"], h["header_size"] = MAGIC, VERSION, HEADER_SIZE
+    h["total_size"], h["n_stars"], h["n_pairs"], h["data_crc32"] = total, n_stars, n_pairs, data_crc
+    for name in _FLOAT_PARAMS + _INT_PARAMS:
+        h[name] = getattr(p, name)
+    h["sections"] = np.reshape(entries, (len(SECTIONS), 3))
+    raw = h.tobytes()
     return raw[:-4] + struct.pack("<I", crc32(raw[:-4]))
 
 
@@ -204,13 +226,14 @@ def parse_image(data) -> CatalogImage:
         raise CatalogImageError(Reason.TRUNCATED, f"{n} bytes, the header alone is {HEADER_SIZE}")
     if bytes(buf[:8]) != MAGIC:
         raise CatalogImageError(Reason.BAD_MAGIC, f"magic {bytes(buf[:8])!r}, expected {MAGIC!r}")
-    v = _HEADER.unpack_from(buf)
-    version, header_size, flags, total, n_stars, n_pairs, n_h, source_id = v[1:9]
+    h = np.frombuffer(buf, HEADER_DTYPE, 1)[0]
+    version, header_size, total = int(h["version"]), int(h["header_size"]), int(h["total_size"])
+    n_stars, n_pairs, n_h, header_crc = int(h["n_stars"]), int(h["n_pairs"]), int(h["n_h"]), int(h["header_crc32"])
     if version != VERSION:
         raise CatalogImageError(Reason.BAD_VERSION, f"version {version}, this device reads version {VERSION}")
-    if crc32(buf[: HEADER_SIZE - 4]) != v[-1]:
+    if crc32(buf[: HEADER_SIZE - 4]) != header_crc:
         raise CatalogImageError(
-            Reason.HEADER_CRC, f"header CRC-32 0x{v[-1]:08X} != computed 0x{crc32(buf[: HEADER_SIZE - 4]):08X}"
+            Reason.HEADER_CRC, f"header CRC-32 0x{header_crc:08X} != computed 0x{crc32(buf[: HEADER_SIZE - 4]):08X}"
         )
     if header_size != HEADER_SIZE:
         raise CatalogImageError(Reason.SIZE_MISMATCH, f"header_size {header_size}, expected {HEADER_SIZE}")
@@ -218,9 +241,9 @@ def parse_image(data) -> CatalogImage:
         raise CatalogImageError(Reason.TRUNCATED, f"{n} bytes, header declares {total}")
     if n > total:
         raise CatalogImageError(Reason.SIZE_MISMATCH, f"{n} bytes, header declares {total} ({n - total} trailing)")
-    params = ImageParams(*v[9:15], n_h, *v[15:20], source_id=source_id, flags=flags, created_unix=v[20])
-    sec = {name: SectionEntry(*v[21 + 3 * k : 24 + 3 * k]) for k, name in enumerate(SECTIONS)}
-    data_crc = v[33]
+    params = ImageParams(**{f: float(h[f]) for f in _FLOAT_PARAMS}, **{f: int(h[f]) for f in _INT_PARAMS})
+    sec = {name: SectionEntry(*(int(x) for x in h["sections"][k])) for k, name in enumerate(SECTIONS)}
+    data_crc = int(h["data_crc32"])
     _check_sections(sec, total, n_stars, n_pairs, n_h)
     for name, e in sec.items():
         got = crc32(buf[e.offset : e.offset + e.size])
@@ -241,7 +264,7 @@ def parse_image(data) -> CatalogImage:
         sections=sec,
         total_size=total,
         data_crc32=data_crc,
-        header_crc32=v[-1],
+        header_crc32=header_crc,
         stars=np.frombuffer(buf, STAR_DTYPE, n_stars, sec["stars"].offset),
         pairs=np.frombuffer(buf, PAIR_DTYPE, n_pairs, sec["pairs"].offset),
         hash_index=np.frombuffer(buf, INDEX_DTYPE, n_h + 1, sec["hash"].offset),
