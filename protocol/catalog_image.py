@@ -17,6 +17,7 @@ import struct
 import zlib
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import Any
 
 import numpy as np
 
@@ -174,7 +175,7 @@ class CatalogImage:
     kvector: np.ndarray  # n_pairs entries (empty if fewer than two pairs)
 
 
-def crc32(data) -> int:
+def crc32(data: bytes | bytearray | memoryview) -> int:
     """CRC-32 (zlib / ISO-HDLC) of bytes-like ``data``."""
     return zlib.crc32(data) & 0xFFFFFFFF
 
@@ -188,7 +189,9 @@ def _align(n: int) -> int:
     return (n + ALIGN - 1) // ALIGN * ALIGN
 
 
-def pack_image(params: ImageParams, stars: np.ndarray, pairs: np.ndarray, hash_index, kvector) -> bytes:
+def pack_image(
+    params: ImageParams, stars: np.ndarray, pairs: np.ndarray, hash_index: np.ndarray, kvector: np.ndarray
+) -> bytes:
     """Serialise an image. ``stars``/``pairs`` are STAR_DTYPE/PAIR_DTYPE arrays (or castable)."""
     blobs = {
         "stars": np.ascontiguousarray(stars, dtype=STAR_DTYPE).tobytes(),
@@ -218,7 +221,7 @@ def _pack_header(p: ImageParams, n_stars: int, n_pairs: int, total: int, entries
     return raw[:-4] + struct.pack("<I", crc32(raw[:-4]))
 
 
-def parse_image(data) -> CatalogImage:
+def parse_image(data: bytes | bytearray | memoryview) -> CatalogImage:
     """Validate ``data`` (bytes-like) and return views into it; raise :class:`CatalogImageError`."""
     buf = memoryview(data).cast("B")
     n = len(buf)
@@ -241,7 +244,8 @@ def parse_image(data) -> CatalogImage:
         raise CatalogImageError(Reason.TRUNCATED, f"{n} bytes, header declares {total}")
     if n > total:
         raise CatalogImageError(Reason.SIZE_MISMATCH, f"{n} bytes, header declares {total} ({n - total} trailing)")
-    params = ImageParams(**{f: float(h[f]) for f in _FLOAT_PARAMS}, **{f: int(h[f]) for f in _INT_PARAMS})
+    values: dict[str, Any] = {f: float(h[f]) for f in _FLOAT_PARAMS} | {f: int(h[f]) for f in _INT_PARAMS}
+    params = ImageParams(**values)
     sec = {name: SectionEntry(*(int(x) for x in h["sections"][k])) for k, name in enumerate(SECTIONS)}
     data_crc = int(h["data_crc32"])
     _check_sections(sec, total, n_stars, n_pairs, n_h)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass, field
 from enum import IntEnum
+from typing import Any
 
 
 class Code(IntEnum):
@@ -308,7 +309,8 @@ class ReadRange:
         if len(data) == 3:
             address, count = struct.unpack("<HB", data)
             return cls(address, count or 256, False)
-        return cls(*struct.unpack("<HH", data), True)
+        address, count = struct.unpack("<HH", data)
+        return cls(address, count, True)
 
 
 @dataclass(frozen=True)
@@ -430,9 +432,10 @@ class Diagnostics:
     def unpack(cls, data: bytes) -> Diagnostics:
         _need(data, (cls.SIZE,), "DIAGNOSTIC reply")
         values = struct.unpack("<10I32I", data)
-        return cls(*values[:10], per_code=tuple(values[10:]))
+        counters = dict(zip(DIAG_ERROR_FIELDS + DIAG_COUNT_FIELDS, values[:10]))
+        return cls(**counters, per_code=tuple(values[10:]))
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         out = {name: getattr(self, name) for name in DIAG_ERROR_FIELDS + DIAG_COUNT_FIELDS}
         out["per_code"] = {f"0x{c:02X}": n for c, n in enumerate(self.per_code) if n}
         return out
@@ -549,12 +552,12 @@ class XferStatus:
     @classmethod
     def unpack(cls, data: bytes) -> XferStatus:
         _at_least(data, 20, "XFER STATUS reply")
-        head = struct.unpack_from("<BBIIIIH", data)
+        slot, state, length, crc, contiguous, received, n_missing = struct.unpack_from("<BBIIIIH", data)
         rest = data[20:]
         if len(rest) % 8:
             raise PayloadError(NackReason.BAD_LENGTH, "XFER STATUS reply: ranges not a multiple of 8 bytes")
         ranges = tuple(struct.unpack_from("<II", rest, i) for i in range(0, len(rest), 8))
-        return cls(*head, missing=ranges)
+        return cls(slot, state, length, crc, contiguous, received, n_missing, missing=ranges)
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 
-def _struct(fields: list[tuple[str, str, int]], itemsize: int) -> np.dtype:
+def _struct(fields: list[tuple[str, str | np.dtype[Any], int]], itemsize: int) -> np.dtype[np.void]:
     names, formats, offsets = zip(*fields)
     return np.dtype({"names": list(names), "formats": list(formats), "offsets": list(offsets), "itemsize": itemsize})
 
@@ -274,7 +274,7 @@ def empty() -> np.ndarray:
     return np.zeros((), dtype=RESULT)
 
 
-def _target(rec: np.ndarray, path: str):
+def _target(rec: np.ndarray, path: str) -> tuple[Any, str]:
     parts = path.split(".")
     obj = rec
     for part in parts[:-1]:
@@ -308,4 +308,5 @@ def parse(data: bytes) -> np.ndarray:
     if len(data) not in (STANDARD_LENGTH, TOTAL_LENGTH):
         raise ValueError(f"result of {len(data)} bytes; expected {STANDARD_LENGTH} or {TOTAL_LENGTH}")
     buf = bytes(data) + bytes(TOTAL_LENGTH - len(data))
-    return np.frombuffer(buf, dtype=RESULT)[0].copy()
+    rec: np.ndarray = np.frombuffer(buf, dtype=RESULT)[0].copy()
+    return rec

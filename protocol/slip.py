@@ -109,7 +109,7 @@ class Decoder:
             start = end + 1
         return events
 
-    def _append(self, piece: bytes, events: list) -> None:
+    def _append(self, piece: bytes, events: list[Frame | FramingError | Oversize]) -> None:
         if self._discarding or not piece:
             return
         self._buf += piece
@@ -119,7 +119,7 @@ class Decoder:
             self._buf.clear()
             self._discarding = True
 
-    def _finish(self, events: list) -> None:
+    def _finish(self, events: list[Frame | FramingError | Oversize]) -> None:
         if self._discarding:
             self._discarding = False
             return
