@@ -12,7 +12,6 @@ link keeps being served meanwhile), else the call returns only when the sequence
 from __future__ import annotations
 
 import json
-import struct
 import sys
 import threading
 import time
@@ -21,8 +20,10 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+import numpy as np
+
 import protocol
-from protocol import nsp, result, slip
+from protocol import edac, nsp, result, slip
 from protocol.commands import (
     APP_START_ADDRESS,
     MAX_SLOT_BYTES,
@@ -63,10 +64,8 @@ from protocol.crc import crc16_mcrf4xx, crc32
 from .state import SlotStore
 
 VERSION = protocol.__version__  #: in the PING banner
-EDAC_SIZE = 512
-EDAC_SCRATCH = (0x0100, 0x0200)  #: writable user scratch [start, end)
-EDAC_RESULT_LENGTH = 0x004C
-EDAC_TOTAL_LENGTH = 0x0050
+EDAC_SIZE = edac.SIZE
+EDAC_SCRATCH = edac.SCRATCH  #: writable user scratch [start, end)
 RESULT_PART = 1024  #: result bytes per message of a multi-part reply (ours)
 MAX_PEEK = 1024
 MAX_CRC_SPAN = 1 << 20
@@ -430,38 +429,24 @@ class Device:
         return CrcReply(req.space, req.address, req.length, crc16_mcrf4xx(span)).pack()
 
     def edac_image(self) -> bytes:
-        """The 512 EDAC bytes as READ EDAC sees them now (docs/ICD.md, EDAC map)."""
-        c = self.counters
-        status = (1 if self.app_mode else 0) | (2 if self.busy else 0) | (4 if self._result_ready else 0)
-        head = struct.pack(
-            "<I8f10I",
-            status,
-            *ANALOG_FRAME,
-            c.framing,
-            c.runt,
-            c.oversize,
-            c.bad_crc,
-            c.fifo_overflow,
-            c.accepted,
-            c.nacked,
-            c.silent,
-            c.other_address,
-            c.replies,
-        )
+        """The 512 EDAC bytes as READ EDAC sees them now (:data:`protocol.edac.EDAC_DTYPE`)."""
+        rec = np.zeros((), edac.EDAC_DTYPE)
         ready = self._result_ready
-        head += struct.pack(
-            "<IIIBBBB",
-            result.STANDARD_LENGTH if ready else 0,
-            result.TOTAL_LENGTH if ready else 0,
-            self._sequence,
-            self.address,
-            int(self.app_mode),
-            int(self.busy),
-            0,
+        rec["status"] = (
+            (edac.STATUS_APP_MODE if self.app_mode else 0)
+            | (edac.STATUS_BUSY if self.busy else 0)
+            | (edac.STATUS_RESULT_READY if ready else 0)
         )
-        ident = self.boot_banner.encode()[:64].ljust(64, b"\0")
-        head += ident
-        return head.ljust(EDAC_SCRATCH[0], b"\0") + bytes(self._scratch)
+        rec["analog"] = ANALOG_FRAME
+        for name in edac.COUNTERS:
+            rec[name] = getattr(self.counters, name)
+        rec["result_length"] = result.STANDARD_LENGTH if ready else 0
+        rec["total_length"] = result.TOTAL_LENGTH if ready else 0
+        rec["sequence"], rec["address"] = self._sequence, self.address
+        rec["app_mode"], rec["busy"] = int(self.app_mode), int(self.busy)
+        rec["banner"] = self.boot_banner.encode()[:64]
+        rec["scratch"] = np.frombuffer(bytes(self._scratch), np.uint8)
+        return rec.tobytes()
 
     def _edac_read(self, address: int, count: int) -> bytes:
         if count < 1 or address + count > EDAC_SIZE:

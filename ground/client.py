@@ -23,7 +23,7 @@ import numpy as np
 import serial
 from tqdm import tqdm
 
-from protocol import nsp, result, slip
+from protocol import edac, nsp, result, slip
 from protocol.commands import (
     APP_START_ADDRESS,
     GO_OPERATIONAL,
@@ -63,7 +63,6 @@ try:
 except ImportError:  # pragma: no cover - not POSIX
     _TermiosError = OSError
 
-EDAC_RESULT_LENGTH = 0x004C
 _PORT_ERRORS = (serial.SerialException, OSError, _TermiosError)
 READ_SLICE = 0.02  #: seconds one port read may block
 SYNC_QUIET = 0.05  #: seconds of silence that end the drain before a client's first command
@@ -389,7 +388,7 @@ class Client:
 
     def result_length(self) -> int:
         """EDAC 0x004C: 2616 when a result is ready, 0 while a sequence runs."""
-        return struct.unpack("<I", self.read_edac(EDAC_RESULT_LENGTH, 4))[0]
+        return struct.unpack("<I", self.read_edac(edac.RESULT_LENGTH, 4))[0]
 
     def read_result(self, address: int = 0, count: int = result.TOTAL_LENGTH) -> bytes:
         """Result bytes [address, address+count), assembled from the Final-flagged parts."""
