@@ -24,10 +24,11 @@ from pathlib import Path
 
 import protocol
 from protocol import nsp
+from protocol.commands import Slot
 
 from .camera import CameraModel
 from .catalog_image_io import catalog_slot_handler
-from .device import FRAME_SLOT, Device
+from .device import Device
 from .link import DEFAULT_IDLE_TIMEOUT, PtyLink, SerialLink, TcpLink, parse_tcp, serve
 from .pipeline import PipelineParams
 from .sensor_input import (
@@ -114,10 +115,14 @@ def build_device(args: argparse.Namespace) -> Device:
         source = FileFrames(args.frames, camera, loop=args.loop)
     elif args.sky:
         source = load_frame_source("sky", args.sky, camera)
-    store = SlotStore(args.state, volatile={FRAME_SLOT}) if args.state else None
+    store = SlotStore(args.state, volatile={Slot.FRAME}) if args.state else None
     params = DeviceParams.load(args.params).apply(PipelineParams()) if args.params else PipelineParams()
     solver = PipelineSolver(camera, params)
-    slots = {0: catalog_slot_handler(prepare=solver.prepare), 1: frame_slot_handler(camera), 2: params_slot_handler()}
+    slots = {
+        Slot.CATALOG: catalog_slot_handler(prepare=solver.prepare),
+        Slot.FRAME: frame_slot_handler(camera),
+        Slot.PARAMS: params_slot_handler(),
+    }
     return Device(
         args.address,
         store=store,

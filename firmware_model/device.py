@@ -47,6 +47,7 @@ from protocol.commands import (
     Poke,
     ReadFile,
     ReadRange,
+    Slot,
     SlotImage,
     SlotRejected,
     SlotRequest,
@@ -71,7 +72,6 @@ MAX_PEEK = 1024
 MAX_CRC_SPAN = 1 << 20
 MAX_DARK_WINDOWS = 32  #: per image buffer
 COMBINATION_TIMEOUT = 60.0  #: seconds COMBINATION waits for its sequence
-FRAME_SLOT = 1  #: a frame committed here is consumed by the next GO before the capture source
 
 
 class FrameUnavailable(Exception):
@@ -125,9 +125,9 @@ def default_slots() -> dict[int, SlotHandler]:
         return json.dumps({"length": len(data)}).encode()
 
     return {
-        0: SlotHandler(_reject_empty, bytes, blob),
-        1: SlotHandler(_reject_empty, bytes, blob),
-        2: SlotHandler(
+        Slot.CATALOG: SlotHandler(_reject_empty, bytes, blob),
+        Slot.FRAME: SlotHandler(_reject_empty, bytes, blob),
+        Slot.PARAMS: SlotHandler(
             _params_validate,
             lambda d: json.loads(d.decode("utf-8")),
             lambda d, obj: json.dumps({"keys": sorted(obj)}).encode(),
@@ -572,9 +572,9 @@ class Device:
             go_code=code,
             sequence=self._sequence,
             started=self.clock(),
-            catalog=self._objects.get(0),
-            frame=self._objects.get(1),
-            params=self._objects.get(2),
+            catalog=self._objects.get(Slot.CATALOG),
+            frame=self._objects.get(Slot.FRAME),
+            params=self._objects.get(Slot.PARAMS),
             catalog_crc32=crc32(self.store.active(0) or b""),
             frame_crc32=crc32(self.store.active(1) or b""),
             dark_windows=tuple(self._dark[0] + self._dark[1]),
@@ -741,7 +741,7 @@ class Device:
         except OSError as exc:
             raise _Nack(NackReason.STORAGE_ERROR, str(exc)) from None
         self._objects[req.slot] = obj
-        if req.slot == FRAME_SLOT:
+        if req.slot == Slot.FRAME:  # consumed by the next GO before the capture source
             self._frame_pending = True
         self.store.drop_transfer(req.slot)
         return SlotImage(req.slot, True, len(image), crc32(image)).pack()

@@ -10,8 +10,7 @@ from pathlib import Path
 from ground import atomic_write, json_text
 from ground.catalog.design import CatalogDesign, DesignError
 from ground.cli_types import SENSOR_PX, output_file, progress_on
-
-CATALOG_SLOT = 0
+from protocol.commands import Slot
 
 #: CLI flag -> CatalogDesign field
 _DESIGN_FLAGS = {
@@ -193,8 +192,8 @@ def _upload(args) -> int:
         return _fail(f"{args.file}: {exc}")
     with open_client(args) as client:
         try:
-            report = client.upload(CATALOG_SLOT, data, progress=progress_on(args))
-            info = client.slot_info(CATALOG_SLOT)
+            report = client.upload(Slot.CATALOG, data, progress=progress_on(args))
+            info = client.slot_info(Slot.CATALOG)
         except LinkError as exc:
             return report_error(exc, args.json)
     if not info.active or info.crc32 != report.crc32 or info.length != len(data):
@@ -202,7 +201,7 @@ def _upload(args) -> int:
             f"device holds length {info.length} CRC-32 0x{info.crc32:08X}, sent {len(data)} 0x{report.crc32:08X}"
         )
     out = {
-        "slot": CATALOG_SLOT,
+        "slot": Slot.CATALOG,
         "bytes": len(data),
         "crc32": f"0x{report.crc32:08X}",
         "resumed_from": report.resumed_from,
@@ -220,7 +219,7 @@ def _info(args) -> int:
 
     with open_client(args) as client:
         try:
-            info = client.slot_info(CATALOG_SLOT)
+            info = client.slot_info(Slot.CATALOG)
         except LinkError as exc:
             return report_error(exc, args.json)
     out = {"active": info.active, "bytes": info.length, "crc32": f"0x{info.crc32:08X}"}

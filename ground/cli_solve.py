@@ -20,6 +20,7 @@ from pathlib import Path
 from ground import json_text
 from ground.atomic_write import write_text
 from ground.cli_types import InputError, output_file, progress_on
+from protocol.commands import Slot
 
 DEFAULT_RESULTS = "st16-results"
 
@@ -198,8 +199,8 @@ def _params_upload(args) -> int:
         return 2
     with open_client(args) as client:
         try:
-            client.upload(2, data, progress=progress_on(args))
-            info = client.slot_info(2)
+            client.upload(Slot.PARAMS, data, progress=progress_on(args))
+            info = client.slot_info(Slot.PARAMS)
         except LinkError as exc:
             return report_error(exc, args.json)
     print(json_text.dumps({"slot": 2, "active": info.active, "length": info.length, "crc32": f"0x{info.crc32:08X}"}))

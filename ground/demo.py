@@ -27,6 +27,7 @@ from ground.frame_writer import write_rendered
 from ground.replay import LinkSolver, replay
 from ground.sensor_sim import DetectorModel, render_frame
 from ground.sky_model import sky_stars
+from protocol.commands import Slot
 
 #: A demo frame shows at least this many catalog stars (a "well-populated field").
 MIN_CATALOG_STARS = 8
@@ -110,8 +111,8 @@ def run_demo(out, n_frames: int = 6, seed: int = 2026, progress: bool = True) ->
                 print(f"  {client.ping()}", flush=True)
                 client.init()
                 print(f"  {client.ping()}", flush=True)
-                report = client.upload(0, image, progress=progress)
-                info = client.slot_info(0)
+                report = client.upload(Slot.CATALOG, image, progress=progress)
+                info = client.slot_info(Slot.CATALOG)
                 print(
                     f"catalog uploaded: {report.sent} bytes, device CRC-32 0x{info.crc32:08X} "
                     f"({'verified' if info.active else 'NOT ACTIVE'})",

@@ -39,11 +39,11 @@ from ground.atomic_write import write_text
 from ground.frame_writer import truth_path_for
 from ground.results_log import ResultsLog, plot_summary, summarize
 from ground.solve_report import matched_stars, record_from_output, solve_record
+from protocol.commands import Slot
 from protocol.result import Status
 
 CORRECT_DEG = 0.1  #: attitude error bound of a correct solve (peer_solvers.md section 5)
 MATCH_RADIUS_PX = 2.0  #: detection <-> truth association radius
-FRAME_SLOT = 1
 LOOSE_SIGMA_PX = 3.0  #: centroid noise assumed for the approximate attitude before refraction correction
 
 
@@ -244,7 +244,7 @@ class LinkSolver:
                 if self.client is None:
                     self._connect()
                 if data is not None:
-                    self.client.upload(FRAME_SLOT, data, progress=self.upload_progress)
+                    self.client.upload(Slot.FRAME, data, progress=self.upload_progress)
                 return solve_record(self.client.go_and_wait(timeout=self.go_timeout))
             except Nack:
                 raise
