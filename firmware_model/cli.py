@@ -17,6 +17,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse
 import json
+import logging
 import signal
 import sys
 import threading
@@ -92,6 +93,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--loop", action="store_true", help="with --frames, start again after the last file")
     parser.add_argument("--params", help="default parameter set JSON (the slot-2 schema); an uploaded set wins")
+    parser.add_argument(
+        "--log-level",
+        choices=("debug", "info", "warning", "error"),
+        default="warning",
+        help="messages on stderr from this level up (state damage, link faults, bugs: warning)",
+    )
     return parser
 
 
@@ -154,6 +161,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--turnaround-ms must be >= 0")
     if not args.tcp_idle > 0:
         parser.error("--tcp-idle must be > 0")
+    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr, format="%(message)s")
     try:
         device = build_device(args)
         link = build_link(args)

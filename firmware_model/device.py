@@ -12,10 +12,9 @@ link keeps being served meanwhile), else the call returns only when the sequence
 from __future__ import annotations
 
 import json
-import sys
+import logging
 import threading
 import time
-import traceback
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -63,6 +62,8 @@ from protocol.commands import (
 from protocol.crc import crc16_mcrf4xx, crc32
 
 from .state import SlotStore
+
+log = logging.getLogger(__name__)
 
 VERSION = protocol.__version__  #: in the PING banner
 EDAC_SIZE = edac.SIZE
@@ -239,16 +240,12 @@ class Device:
         for slot in self.store.active_slots():
             data = self.store.active(slot)
             if slot not in self.slots:
-                print(
-                    f"device: slot {slot} in the state directory is not a slot of this device; ignored", file=sys.stderr
-                )
+                log.warning("device: slot %d in the state directory is not a slot of this device; ignored", slot)
                 continue
             try:
                 self._install(slot, data)
             except Exception as exc:  # a persisted image the current validator refuses
-                print(
-                    f"device: slot {slot} image not activated at start: {' '.join(str(exc).split())}", file=sys.stderr
-                )
+                log.warning("device: slot %d image not activated at start: %s", slot, " ".join(str(exc).split()))
 
     # ------------------------------------------------------------------ identity
 
@@ -327,7 +324,7 @@ class Device:
             text = exc.text if isinstance(exc, _Nack) else exc.message
             return [nsp.reply_to(msg, NackInfo(reason, text).pack(), ack=False)]
         except Exception as exc:  # never crash the link on a bug: NACK and report
-            traceback.print_exc(file=sys.stderr)
+            log.exception("device: bug while handling a command or sequence")
             self.counters.nacked += 1
             return [nsp.reply_to(msg, NackInfo(NackReason.INTERNAL, repr(exc)).pack(), ack=False)]
 
@@ -624,7 +621,7 @@ class Device:
         try:
             data = result.build(self._sequence_fields(ctx, uploaded), ctx.sequence)
         except Exception as exc:
-            traceback.print_exc(file=sys.stderr)
+            log.exception("device: bug while handling a command or sequence")
             data = result.build(
                 {
                     "epoch": ctx.started,
@@ -638,6 +635,9 @@ class Device:
             self._result_ready = True
             self._busy = None
             self._done.notify_all()
+        if log.isEnabledFor(logging.INFO):
+            rc = int(result.parse(data)["return_code"])
+            log.info("device: sequence %d done: %s", ctx.sequence, result.status_of(rc).name)
 
     def wait_idle(self, timeout: float | None = None) -> bool:
         """Block until no sequence runs; False on timeout."""
@@ -655,6 +655,7 @@ class Device:
         handler = self.slots[slot]
         handler.validate(data)
         self._objects[slot] = handler.activate(data)
+        log.info("device: slot %d: image of %d bytes activated", slot, len(data))
 
     def _status(self, slot: int) -> XferStatus:
         tr = self.store.transfer(slot)

@@ -10,15 +10,17 @@ line rate.
 
 from __future__ import annotations
 
+import logging
 import os
 import select
 import socket
-import sys
 import threading
 import time
 import tty
 
 import serial
+
+log = logging.getLogger(__name__)
 
 WRITE_TIMEOUT = 2.0  #: seconds a reply may wait for the peer to drain; then it is dropped
 DEFAULT_IDLE_TIMEOUT = 60.0  #: seconds of silence after which a TCP client is closed
@@ -170,7 +172,7 @@ class TcpLink:
             except (BlockingIOError, InterruptedError):
                 break
             except OSError as exc:  # e.g. out of file descriptors: refuse this one, keep serving
-                print(f"link: accept failed: {exc}", file=sys.stderr)
+                log.warning("link: accept failed: %s", exc)
                 break
             if self._conn is not None:
                 self.taken_over += 1
@@ -289,7 +291,7 @@ def serve(
             try:
                 chunk = link.read(poll)
             except OSError as exc:
-                print(f"link: read failed: {exc}", file=sys.stderr)
+                log.warning("link: read failed: %s", exc)
                 time.sleep(poll)
                 continue
             if not chunk:

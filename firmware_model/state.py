@@ -15,14 +15,16 @@ written. Committed images are fsynced. Without ``root`` everything is kept in me
 from __future__ import annotations
 
 import json
+import logging
 import os
 import struct
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from protocol.commands import MAX_SLOT_BYTES
 from protocol.crc import crc32
+
+log = logging.getLogger(__name__)
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
@@ -82,7 +84,7 @@ def _merge(ranges: list[list[int]], start: int, end: int) -> list[list[int]]:
 
 
 def _warn(text: str) -> None:
-    print(f"state: {' '.join(text.split())}", file=sys.stderr)  # one line, whatever the text held
+    log.warning("state: %s", " ".join(text.split()))  # one line, whatever the text held
 
 
 def _remove(path: Path) -> None:

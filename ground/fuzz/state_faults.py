@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import logging
 import random
 import shutil
 import tempfile
@@ -131,8 +132,15 @@ def start_in_process(root: Path) -> tuple[object, str]:
     from firmware_model.cli import build_device, build_parser
 
     err = io.StringIO()
-    with contextlib.redirect_stderr(err):
-        device = build_device(build_parser().parse_args(["--pty", "--state", str(root)]))
+    handler = logging.StreamHandler(err)  # what st16-device's logging set-up writes to stderr
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    handler.setLevel(logging.WARNING)
+    logging.getLogger().addHandler(handler)
+    try:
+        with contextlib.redirect_stderr(err):
+            device = build_device(build_parser().parse_args(["--pty", "--state", str(root)]))
+    finally:
+        logging.getLogger().removeHandler(handler)
     return device, err.getvalue()
 
 
