@@ -9,9 +9,9 @@ Each payload class has ``pack() -> bytes`` and ``unpack(data) -> instance``; ``u
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from enum import IntEnum
-from typing import Any
+from typing import Any, ClassVar, TypeVar
 
 
 class Code(IntEnum):
@@ -100,6 +100,41 @@ def _at_least(data: bytes, size: int, what: str) -> None:
         raise PayloadError(NackReason.BAD_LENGTH, f"{what}: {len(data)} data bytes, expected at least {size}")
 
 
+_L = TypeVar("_L", bound="_Layout")
+
+
+class _Layout:
+    """A payload declared once: ``HEAD`` (a struct format) packs the dataclass's leading fields in
+    declaration order, one item each; ``TAIL``, when set, names a final ``bytes`` field carried
+    raw after the head (at least one byte). ``NAME`` labels length errors. ``pack`` and
+    ``unpack`` both come from this declaration."""
+
+    HEAD: ClassVar[str]
+    TAIL: ClassVar[str | None] = None
+    NAME: ClassVar[str]
+
+    @classmethod
+    def _head_names(cls) -> list[str]:
+        n = len(struct.unpack(cls.HEAD, bytes(struct.calcsize(cls.HEAD))))
+        return [f.name for f in fields(cls) if f.name != cls.TAIL][:n]  # type: ignore[arg-type]
+
+    def pack(self) -> bytes:
+        head = struct.pack(self.HEAD, *(getattr(self, name) for name in self._head_names()))
+        return head + bytes(getattr(self, self.TAIL)) if self.TAIL else head
+
+    @classmethod
+    def unpack(cls: type[_L], data: bytes) -> _L:
+        size = struct.calcsize(cls.HEAD)
+        if cls.TAIL:
+            _at_least(data, size + 1, cls.NAME)
+        else:
+            _need(data, (size,), cls.NAME)
+        values: dict[str, Any] = dict(zip(cls._head_names(), struct.unpack_from(cls.HEAD, data)))
+        if cls.TAIL:
+            values[cls.TAIL] = bytes(data[size:])
+        return cls(**values)
+
+
 # ----------------------------------------------------------------------------- NACK
 
 
@@ -129,48 +164,34 @@ class NackInfo:
 
 
 @dataclass(frozen=True)
-class Init:
+class Init(_Layout):
     address: int = APP_START_ADDRESS
 
-    def pack(self) -> bytes:
-        return struct.pack("<I", self.address)
-
-    @classmethod
-    def unpack(cls, data: bytes) -> Init:
-        _need(data, (4,), "INIT")
-        return cls(struct.unpack("<I", data)[0])
+    HEAD = "<I"
+    NAME = "INIT"
 
 
 @dataclass(frozen=True)
-class Peek:
+class Peek(_Layout):
     """PEEK (ours): u32 address, u16 count -> reply u32 address + bytes."""
 
     address: int
     count: int
 
-    def pack(self) -> bytes:
-        return struct.pack("<IH", self.address, self.count)
-
-    @classmethod
-    def unpack(cls, data: bytes) -> Peek:
-        _need(data, (6,), "PEEK")
-        return cls(*struct.unpack("<IH", data))
+    HEAD = "<IH"
+    NAME = "PEEK"
 
 
 @dataclass(frozen=True)
-class Poke:
+class Poke(_Layout):
     """POKE (ours): u32 address + bytes -> reply u32 address, u16 count."""
 
     address: int
     data: bytes
 
-    def pack(self) -> bytes:
-        return struct.pack("<I", self.address) + bytes(self.data)
-
-    @classmethod
-    def unpack(cls, data: bytes) -> Poke:
-        _at_least(data, 5, "POKE")
-        return cls(struct.unpack_from("<I", data)[0], bytes(data[4:]))
+    HEAD = "<I"
+    TAIL = "data"
+    NAME = "POKE"
 
 
 @dataclass(frozen=True)
@@ -216,36 +237,26 @@ class MemorySpace(IntEnum):
 
 
 @dataclass(frozen=True)
-class CrcRequest:
+class CrcRequest(_Layout):
     """CRC (ours): u8 space, u32 address, u32 length -> reply: same + u16 CRC-16/MCRF4XX."""
 
     space: int
     address: int
     length: int
 
-    def pack(self) -> bytes:
-        return struct.pack("<BII", self.space, self.address, self.length)
-
-    @classmethod
-    def unpack(cls, data: bytes) -> CrcRequest:
-        _need(data, (9,), "CRC")
-        return cls(*struct.unpack("<BII", data))
+    HEAD = "<BII"
+    NAME = "CRC"
 
 
 @dataclass(frozen=True)
-class CrcReply:
+class CrcReply(_Layout):
     space: int
     address: int
     length: int
     crc: int
 
-    def pack(self) -> bytes:
-        return struct.pack("<BIIH", self.space, self.address, self.length, self.crc)
-
-    @classmethod
-    def unpack(cls, data: bytes) -> CrcReply:
-        _need(data, (11,), "CRC reply")
-        return cls(*struct.unpack("<BIIH", data))
+    HEAD = "<BIIH"
+    NAME = "CRC reply"
 
 
 @dataclass(frozen=True)
@@ -314,19 +325,15 @@ class ReadRange:
 
 
 @dataclass(frozen=True)
-class WriteEdac:
+class WriteEdac(_Layout):
     """WRITE EDAC (ours): u16 address + bytes -> reply u16 address, u16 count."""
 
     address: int
     data: bytes
 
-    def pack(self) -> bytes:
-        return struct.pack("<H", self.address) + bytes(self.data)
-
-    @classmethod
-    def unpack(cls, data: bytes) -> WriteEdac:
-        _at_least(data, 3, "WRITE EDAC")
-        return cls(struct.unpack_from("<H", data)[0], bytes(data[2:]))
+    HEAD = "<H"
+    TAIL = "data"
+    NAME = "WRITE EDAC"
 
 
 class GoBits(IntEnum):
@@ -455,7 +462,7 @@ UPLOAD_CHUNK = 4096  #: XFER DATA payload size the ground client uses
 
 
 @dataclass(frozen=True)
-class XferBegin:
+class XferBegin(_Layout):
     """XFER BEGIN: u8 slot, u32 total length, u32 CRC-32 of the whole image. Reply: XferStatus.
     Begin with the same length and CRC as a pending transfer resumes it."""
 
@@ -463,45 +470,30 @@ class XferBegin:
     length: int
     crc32: int
 
-    def pack(self) -> bytes:
-        return struct.pack("<BII", self.slot, self.length, self.crc32)
-
-    @classmethod
-    def unpack(cls, data: bytes) -> XferBegin:
-        _need(data, (9,), "XFER BEGIN")
-        return cls(*struct.unpack("<BII", data))
+    HEAD = "<BII"
+    NAME = "XFER BEGIN"
 
 
 @dataclass(frozen=True)
-class XferData:
+class XferData(_Layout):
     """XFER DATA: u8 slot, u32 offset, bytes. Reply (if polled): u8 slot, u32 contiguous bytes."""
 
     slot: int
     offset: int
     data: bytes
 
-    def pack(self) -> bytes:
-        return struct.pack("<BI", self.slot, self.offset) + bytes(self.data)
-
-    @classmethod
-    def unpack(cls, data: bytes) -> XferData:
-        _at_least(data, 6, "XFER DATA")
-        slot, offset = struct.unpack_from("<BI", data)
-        return cls(slot, offset, bytes(data[5:]))
+    HEAD = "<BI"
+    TAIL = "data"
+    NAME = "XFER DATA"
 
 
 @dataclass(frozen=True)
-class XferDataAck:
+class XferDataAck(_Layout):
     slot: int
     contiguous: int
 
-    def pack(self) -> bytes:
-        return struct.pack("<BI", self.slot, self.contiguous)
-
-    @classmethod
-    def unpack(cls, data: bytes) -> XferDataAck:
-        _need(data, (5,), "XFER DATA reply")
-        return cls(*struct.unpack("<BI", data))
+    HEAD = "<BI"
+    NAME = "XFER DATA reply"
 
 
 @dataclass(frozen=True)
