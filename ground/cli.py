@@ -122,6 +122,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from ground.client import LinkError, Nack
     from ground.exchange_log import LogWriteError
+    from ground.optional import MissingExtra
 
     try:
         return int(args.func(args) or 0)
@@ -130,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print("st16-ground: interrupted", file=sys.stderr)
         return 130
-    except (InputError, LogWriteError) as exc:  # a bad value or file, or a --log that cannot be written
+    except (InputError, LogWriteError, MissingExtra) as exc:  # bad input, an unwritable --log, a part not installed
         if args.debug:
             raise
         print(f"st16-ground: {exc}", file=sys.stderr)

@@ -18,10 +18,9 @@ from ground.atomic_write import save_figure
 
 
 def plot_detections(frame: Frame, stars: StarList, path, truth: dict | None = None, title: str = "") -> Path:
-    import matplotlib
+    from ground.optional import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     sig = frame.signal()
     h2, w2 = frame.height // 2, frame.width // 2

@@ -37,6 +37,7 @@ from firmware_model.onboard_catalog import OnboardCatalog
 from firmware_model.pipeline import PipelineParams, identify_stars, run_pipeline
 from ground.atomic_write import write_text
 from ground.frame_writer import truth_path_for
+from ground.optional import MissingExtra
 from ground.results_log import ResultsLog, plot_summary, summarize
 from ground.solve_report import matched_stars, record_from_output, solve_record
 from protocol.commands import Slot
@@ -298,7 +299,12 @@ def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool =
         bar.set_postfix_str(record["outcome"])
     records = log.records()
     summary = summarize(records)
-    summary["plots"] = [str(p) for p in plot_summary(records, out_dir)] if make_plots else []
+    summary["plots"] = []
+    if make_plots:
+        try:
+            summary["plots"] = [str(p) for p in plot_summary(records, out_dir)]
+        except MissingExtra as exc:  # the results are kept; only the pictures are missing
+            say(f"plots skipped: {exc}")
     write_text(Path(out_dir) / "summary.json", json.dumps(summary, indent=2))
     return summary
 

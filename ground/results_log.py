@@ -143,10 +143,9 @@ def summarize(records: list[dict]) -> dict:
 
 def plot_summary(records: list[dict], out_dir) -> list[Path]:
     """Error CDF and per-star residual histogram PNGs; returns the paths written."""
-    import matplotlib
+    from ground.optional import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -358,8 +358,10 @@ def execute(
     parts = []
     bar = tqdm(total=n_poses, unit="pose", disable=not progress, desc=f"sim {kind}")
     if scheduler:
-        from dask.distributed import Client
-        from dask.distributed import as_completed as dask_completed
+        from ground.optional import dask_distributed
+
+        dd = dask_distributed()
+        Client, dask_completed = dd.Client, dd.as_completed
 
         with Client(scheduler) as client:
             remote = client.scatter(payload, broadcast=True)
@@ -453,10 +455,9 @@ def fourstar_summary(rows: np.ndarray) -> dict:
 
 def plot_error_cdf(rows: np.ndarray, path) -> None:
     """Seed 000 fig. 9: cumulative distribution of the attitude error (unsolved poses count as failures)."""
-    import matplotlib
+    from ground.optional import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     err = np.sort(np.where(rows["status"] > 0, rows["err_deg"], np.inf))
     frac = np.arange(1, len(err) + 1) / max(len(err), 1)
@@ -495,10 +496,9 @@ def worst_per_boresight(rows: np.ndarray, n_boresights: int, poor_fraction: floa
 
 def plot_mollweide(rows: np.ndarray, boresights: np.ndarray, path) -> None:
     """Seed 000 fig. 10: worst result per boresight on a Mollweide map (RA increasing left)."""
-    import matplotlib
+    from ground.optional import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     worst = worst_per_boresight(rows, len(boresights))
     ra, dec = vec_to_radec(boresights)

@@ -225,10 +225,9 @@ def table_row(r: AnalysisResult) -> str:
 
 def plot_views(path: str | Path, views: np.ndarray, colour: ViewStats, mono: ViewStats, title: str = "") -> None:
     """Mollweide sky map (RA increasing to the left) of bad and unresolvable views, PNG."""
-    import matplotlib
+    from ground.optional import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     ra, dec = vec_to_radec(views)
     lon = -np.angle(np.exp(1j * ra))  # RA in (-pi, pi], mirrored so east is left as on the sky

@@ -23,10 +23,9 @@ def plot_colour_ratios(model: ColourModel, path: str | Path) -> dict[str, tuple[
 
     Returns the plotted template ratios (name -> (rg, bg)).
     """
-    import matplotlib
+    from ground.optional import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     names = sorted(model.templates, key=lambda n: (model.templates[n].temp_index, model.templates[n].lum))
     ratios = {n: model.template_ratios(n) for n in names}
