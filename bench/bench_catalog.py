@@ -1,10 +1,10 @@
-"""Catalog benchmarks: seed-001 counts, seed-000 table 1 (BSC5 and Hipparcos), build and upload times.
+"""Catalog benchmarks: Dong et al. counts, Enright & McVittie table 1 (BSC5 and Hipparcos), build and upload times.
 
 Prints figures only (no asserts):
 
-1. Seed 001: guide stars with V <= 5.0 and pairs with 0.05 deg <= theta <= 24.5 deg, against the
+1. Dong et al.: guide stars with V <= 5.0 and pairs with 0.05 deg <= theta <= 24.5 deg, against the
    paper's 1631 stars and 65 890 pairs (SKY2000).
-2. Seed 000 table 1, every row, built from the Yale BSC5 (as in the paper) and from Hipparcos,
+2. Enright & McVittie table 1, every row, built from the Yale BSC5 (as in the paper) and from Hipparcos,
    next to the paper's numbers; N views on the generalized spiral (1e5 as in the paper).
 3. Colour fallbacks (B-V / V-I lookups, blackbody) against the Pickles-by-MK-type ratios.
 4. Build time of the default catalog (Hipparcos, M 5.0, theta_FOV 7.5 deg) and of table 1's
@@ -36,7 +36,7 @@ from ground.catalog.design import CatalogDesign
 from ground.catalog.sources import read_hipparcos, select_stars
 from ground.client import Client
 
-#: seed 000 table 1: (M_thresh, theta_FOV, sigma_pix, sigma_colour, pairs e3, bad %, amb %, unres, mono amb %, mono unres)
+#: Enright & McVittie table 1: (M_thresh, theta_FOV, sigma_pix, sigma_colour, pairs e3, bad %, amb %, unres, mono amb %, mono unres)
 PAPER_TABLE1 = [
     (4.5, 7.5, 0.200, 0.020, 7.8, 15.92, 0.26, 0, 99.77, 44),
     (4.5, 7.5, 0.408, 0.020, 7.8, 15.92, 0.84, 0, 99.99, 187),
@@ -53,7 +53,7 @@ PAPER_TABLE1 = [
 
 def seed001(epoch: float = 2000.0) -> None:
     print(
-        "\n== Seed 001: V <= 5.0 guide stars, pairs 0.05 deg <= theta <= 24.5 deg (paper: 1631 stars, 65 890 pairs) =="
+        "\n== Dong et al.: V <= 5.0 guide stars, pairs 0.05 deg <= theta <= 24.5 deg (paper: 1631 stars, 65 890 pairs) =="
     )
     for source in ("hipparcos", "bsc5"):
         if source == "bsc5" and not DEFAULT_BSC5.is_file():
@@ -78,7 +78,7 @@ def seed001(epoch: float = 2000.0) -> None:
 
 
 def table1(n_views: int, out: Path) -> None:
-    print(f"\n== Seed 000 table 1 ({n_views} spiral views; epoch 2000; paper values in brackets) ==")
+    print(f"\n== Enright & McVittie table 1 ({n_views} spiral views; epoch 2000; paper values in brackets) ==")
     sources = ["bsc5", "hipparcos"] if DEFAULT_BSC5.is_file() else ["hipparcos"]
     for source in sources:
         table = load_source(CatalogDesign(source=source, epoch=2000.0))

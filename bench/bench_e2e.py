@@ -1,7 +1,7 @@
 """End-to-end figures of issue 6 (printed; nothing here is a unit test).
 
 A. Solve rate and attitude error over N rendered frames at uniformly random attitudes with the
-   seed 000 reference design (2592 x 1944, 7.5 deg half-angle minor axis, 100 ms), by method:
+   Enright & McVittie reference design (2592 x 1944, 7.5 deg half-angle minor axis, 100 ms), by method:
    RGGB frames (colour method) and MONO frames (geometric), through the device pipeline
    in-process (the code the device runs), frames rendered from the real sky to V 6.5.
 B. GO to result ready on full-size frames on the device over a pty (capture source --frames,

@@ -1,4 +1,4 @@
-"""Benchmark of the raw-frame pipeline against rendered truth (seed 000 reference design).
+"""Benchmark of the raw-frame pipeline against rendered truth (Enright & McVittie reference design).
 
 Prints, and plots under ``--out``:
 
@@ -41,7 +41,7 @@ from firmware_model.extract import extract_stars  # noqa: E402
 from firmware_model.frames import attitude_from_radec_roll  # noqa: E402
 from ground.sensor_sim import DetectorModel, random_star_field, render_frame  # noqa: E402
 
-SEED_CENTROID_PX = 0.2  # seed 000 section 2.2: companion-paper figures
+SEED_CENTROID_PX = 0.2  # Enright & McVittie section 2.2: companion-paper figures
 SEED_COLOUR_RMS = 0.05
 MAG_BINS = np.arange(0.0, 8.01, 0.5)
 SNR_BANDS = [(200, np.inf), (100, 200), (50, 100), (20, 50), (10, 20), (5, 10), (0, 5)]

@@ -1,4 +1,4 @@
-"""Seed 000 section 5.3 field test, re-enacted on rendered frames with known truth.
+"""Enright & McVittie section 5.3 field test, re-enacted on rendered frames with known truth.
 
 The paper imaged Orion's belt 70 times through the atmosphere with a prototype whose colours
 were biased (atmospheric extinction and dispersion) and whose geometry was distorted by

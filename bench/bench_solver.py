@@ -1,7 +1,7 @@
 """Solve time from star vectors and whole-sky throughput.
 
 Prints p50 / p99 / max solve time per frame (serial, one process, scenes generated beforehand)
-for: the seed 000 reference scenes in colour mode; the same scenes with the paper's plain
+for: the Enright & McVittie reference scenes in colour mode; the same scenes with the paper's plain
 consensus (``k_best=1``, ``anchors=1``, no verification) as the in-run baseline; geometric mode;
 and stress scenes (hundreds of detections, all-false frames). Then the whole-sky simulation
 throughput in poses/s on 1 process and on all cores (ratio = parallel speed-up).

@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
-#: Reference design of seed 000 section 2: MT9P031-class 2592 x 1944 array, 2.2 um pixels.
+#: Reference design of Enright & McVittie section 2: MT9P031-class 2592 x 1944 array, 2.2 um pixels.
 REFERENCE_WIDTH = 2592
 REFERENCE_HEIGHT = 1944
 REFERENCE_PIXEL_UM = 2.2
@@ -97,7 +97,7 @@ class CameraModel:
 
     @classmethod
     def reference_design(cls) -> CameraModel:
-        """Seed 000 reference design: 2592 x 1944, 7.5 deg half FOV on the minor axis
+        """Enright & McVittie reference design: 2592 x 1944, 7.5 deg half FOV on the minor axis
         (f = 972 / tan 7.5 deg = 7383.1 px, i.e. 16.24 mm at 2.2 um)."""
         return cls.from_fov(REFERENCE_WIDTH, REFERENCE_HEIGHT, REFERENCE_HALF_FOV_MINOR_DEG)
 

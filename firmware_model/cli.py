@@ -81,7 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--camera",
-        help="camera model JSON (CameraModel.to_dict); default: the seed 000 "
+        help="camera model JSON (CameraModel.to_dict); default: the Enright & McVittie "
         "reference design, 2592 x 1944 at f = 7383 px",
     )
     capture = parser.add_mutually_exclusive_group()

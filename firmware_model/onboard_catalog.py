@@ -2,10 +2,10 @@
 
 One pair table serves both matching designs:
 
-* seed 000 (Enright & McVittie): pairs with ``phi_min < phi <= phi_max`` sorted by angle, with
+* Enright & McVittie: pairs with ``phi_min < phi <= phi_max`` sorted by angle, with
   the hash index ``P_h`` of eqs 15-16 (``h = floor(H phi)``, ``H = N_h / phi_max``, ``P_h`` the
   smallest pair index with ``phi_p >= h / H - dphi_star``);
-* seed 001 (Dong, Xing & You): Mortari's K-vector over ``cos(theta)`` (eqs 5-7). The K-vector is
+* Dong, Xing & You: Mortari's K-vector over ``cos(theta)`` (eqs 5-7). The K-vector is
   defined on the cosines in ascending order, i.e. on the pair table read backwards; query results
   are mapped back to indices of the angle-sorted table.
 
@@ -55,7 +55,7 @@ def build_pair_table(vec: np.ndarray, phi_min: float, phi_max: float):
 
 
 def build_hash_index(pair_phi: np.ndarray, n_h: int, phi_max: float, dphi_star: float = 0.0) -> np.ndarray:
-    """Hash index ``P_h`` (seed 000 eq. 16) with one extra entry ``P_{N_h} = len(pair_phi)``."""
+    """Hash index ``P_h`` (Enright & McVittie eq. 16) with one extra entry ``P_{N_h} = len(pair_phi)``."""
     if n_h < 1:
         raise ValueError(f"N_h must be >= 1, got {n_h}")
     h = np.arange(n_h + 1, dtype=float)
@@ -66,7 +66,7 @@ def build_hash_index(pair_phi: np.ndarray, n_h: int, phi_max: float, dphi_star: 
 
 
 def build_kvector(pair_phi: np.ndarray):
-    """Mortari K-vector over ``y = cos(phi)`` ascending (seed 001 eq. 5).
+    """Mortari K-vector over ``y = cos(phi)`` ascending (Dong et al. eq. 5).
 
     Returns ``(k, m, q)``: ``k[i]`` (i = 0..n-1, 0-based) is the number of cosines ``<= z(i+1)``
     with the line ``z(x) = m x + q`` through ``(1, y_min - xi)`` and ``(n, y_max + xi)``.
@@ -162,7 +162,7 @@ class OnboardCatalog:
         return a + int(np.searchsorted(window, lo, "left")), a + int(np.searchsorted(window, hi, "right"))
 
     def kvector_candidates(self, phi: float, tol: float) -> tuple[int, int]:
-        """Raw K-vector range of seed 001 eqs 6-7, as rows ``[start, stop)`` of the pair table.
+        """Raw K-vector range of Dong et al. eqs 6-7, as rows ``[start, stop)`` of the pair table.
 
         A superset of the exact range (it may hold a few pairs just outside the tolerance).
         """

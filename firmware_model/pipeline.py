@@ -47,7 +47,7 @@ MAX_CENTROID_SIGMA_PX = 3.0
 #: Fewest detections given to the geometric matcher.
 MIN_GEOMETRIC_DETECTIONS = 8
 #: Brightest-detection counts tried in turn by the 4-star matcher before the density cap: a
-#: small set of bright stars is most likely all in the catalog (beyond seed 001, which takes
+#: small set of bright stars is most likely all in the catalog (beyond Dong et al., which takes
 #: its groups from the frame centre whatever their brightness).
 GEOMETRIC_STEPS = (4, 6, 8)
 
@@ -109,7 +109,7 @@ class PipelineParams:
     the fit covariance (with the floor ``centroid_floor_px``) unless ``fixed_sigma_px`` is set.
 
     ``photometric_gate`` (mag, or None to disable): a low-confidence consensus may be caused by
-    detections fainter than the catalog holds, which the eta test of seed 000 counts against the
+    detections fainter than the catalog holds, which the eta test of Enright & McVittie counts against the
     match. The pipeline then estimates every detection's magnitude from the zero point of the
     matched stars, drops those fainter than the catalog limit plus this margin, and solves
     again; the second answer is taken only if it is high-confidence and agrees with the first.
@@ -117,7 +117,7 @@ class PipelineParams:
     ``geometric_density_factor``: the geometric (4-star) method sees only the brightest
     detections: first :data:`GEOMETRIC_STEPS` of them, then this factor times the catalog
     stars expected in the field (:func:`geometric_detection_cap`). ``geometric_fallback``: when that 4-star match finds
-    nothing, the consensus matcher of seed 000 runs on geometry alone (colours unknown), which
+    nothing, the consensus matcher of Enright & McVittie runs on geometry alone (colours unknown), which
     tolerates missing and extra stars far better; its answers are labelled
     ``geometric-consensus``. ``colour_fallback``: in ``auto`` mode a colour frame that the colour
     matcher cannot solve with high confidence (colours biased beyond the catalog's noise model,

@@ -242,14 +242,14 @@ def register(sub) -> None:
     p.add_argument("-o", "--output", type=output_file, default="catalog.st16cat", help="image file to write")
     p.set_defaults(func=_build)
 
-    p = csub.add_parser("analyze", help="seed-000 table 1: ambiguity and availability of a design")
+    p = csub.add_parser("analyze", help="Enright & McVittie table 1: ambiguity and availability of a design")
     _design_args(p)
     p.add_argument("--views", type=int, default=100_000, help="boresights on the generalized spiral")
     p.add_argument("--json-out", type=output_file, help="write the result as JSON")
     p.add_argument("--plot", type=output_file, help="write a Mollweide PNG of bad/unresolvable views")
     p.set_defaults(func=_analyze)
 
-    p = csub.add_parser("colours", help="plot colour ratios against spectral type (seed 000 fig. 7)")
+    p = csub.add_parser("colours", help="plot colour ratios against spectral type (Enright & McVittie fig. 7)")
     p.add_argument("--qe", help="QE CSV; default the shipped MT9P031-like model")
     p.add_argument("--pickles", help="directory of Pickles .sed spectra")
     p.add_argument("--plot", type=output_file, default="colour_ratios.png", help="PNG to write")

@@ -50,7 +50,7 @@ def register(sub) -> None:
         metavar=("BRIGHT", "FAINT"),
         help="V magnitudes of the random stars",
     )
-    cam = p.add_argument_group("camera (default: seed 000 reference design)")
+    cam = p.add_argument_group("camera (default: Enright & McVittie reference design)")
     cam.add_argument("--camera", help="CameraModel JSON (to_dict keys)")
     cam.add_argument("--width", type=SENSOR_PX, help="sensor width, px (default: the reference design's)")
     cam.add_argument("--height", type=SENSOR_PX, help="sensor height, px (default: the reference design's)")

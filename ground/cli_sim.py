@@ -1,8 +1,8 @@
-"""``st16-ground sim ...``: whole-sky identification simulations (seed 000 and seed 001).
+"""``st16-ground sim ...``: whole-sky identification simulations (Enright & McVittie and Dong et al.).
 
-``sim colour``: spiral boresights x rolls on the reference array, seed 000 eqs 19-21 noise; prints
+``sim colour``: spiral boresights x rolls on the reference array, Enright & McVittie eqs 19-21 noise; prints
 the table 3 breakdown next to the paper's figures and writes rows (.npy), summary (.json), the
-error CDF (fig. 9) and the Mollweide map (fig. 10). ``sim fourstar``: seed 001's 5 deg grid at one or
+error CDF (fig. 9) and the Mollweide map (fig. 10). ``sim fourstar``: Dong et al.'s 5 deg grid at one or
 more tolerances. Both run on local cores (``--workers``) or a Dask cluster (``--scheduler``).
 """
 
@@ -16,7 +16,7 @@ from ground.atomic_write import atomic_path, write_text
 from ground.cli_types import SEED, SENSOR_PX, progress_on
 from ground.optional import MissingExtra
 
-#: Seed 000 section 5.2 (table 3, fig. 9) for 1e6 poses.
+#: Enright & McVittie section 5.2 (table 3, fig. 9) for 1e6 poses.
 PAPER_COLOUR = {
     "poses": 1_000_000,
     "problem_orientations": 7078,
@@ -26,7 +26,7 @@ PAPER_COLOUR = {
     "fraction_within_0.01deg": 0.90,
     "fraction_within_1deg": 0.993,
 }
-#: Seed 001 section 3 (2664 observations).
+#: Dong et al. section 3 (2664 observations).
 PAPER_FOURSTAR = {
     "observations": 2664,
     "fovs_fewer_than_4_stars": 2,
@@ -49,7 +49,7 @@ def register(subparsers) -> None:
     sim = subparsers.add_parser("sim", help="whole-sky identification simulations")
     sub = sim.add_subparsers(dest="sim_command", metavar="KIND")
     sub.required = True
-    c = sub.add_parser("colour", help="seed 000 colour consensus matching over the whole sky")
+    c = sub.add_parser("colour", help="Enright & McVittie colour consensus matching over the whole sky")
     c.add_argument("--boresights", type=int, default=10000, help="spiral boresight directions")
     c.add_argument("--rolls", type=int, default=10, help="roll angles per boresight")
     c.add_argument("--m-thresh", type=float, default=5.0, help="limiting V magnitude")
@@ -67,7 +67,7 @@ def register(subparsers) -> None:
     )
     _common(c)
     c.set_defaults(func=run_colour)
-    f = sub.add_parser("fourstar", help="seed 001 4-star matching test on a 5 deg grid")
+    f = sub.add_parser("fourstar", help="Dong et al. 4-star matching test on a 5 deg grid")
     f.add_argument("--step", type=float, default=5.0, help="grid step, deg")
     f.add_argument("--radius", type=float, default=12.25, help="FOV radius, deg")
     f.add_argument("--m-thresh", type=float, default=5.0, help="limiting V magnitude")
@@ -151,7 +151,7 @@ def run_colour(args) -> int:
     lines = [
         f"{n} poses ({args.boresights} boresights x {args.rolls} rolls), {catalog.n_stars} stars, "
         f"{catalog.n_pairs} pairs; {wall:.1f} s, {n / wall:.0f} poses/s",
-        f"{'':32s}{'this run':>14s}{'seed 000 (1e6)':>16s}",
+        f"{'':32s}{'this run':>14s}{'paper (1e6)':>16s}",
     ]
     for key in ("problem_orientations", "no_solution", "poor_match", "incorrect"):
         lines.append(f"{key:32s}{summary[key] / n * 100:13.3f}%{PAPER_COLOUR[key] / 1e4:15.3f}%")
@@ -197,7 +197,7 @@ def run_fourstar(args) -> int:
     n = len(skysim.grid_boresights(args.step))
     results, lines = (
         {},
-        [f"{n} observations, {catalog.n_stars} stars, {catalog.n_pairs} pairs (seed 001: 2664, 1631, 65890)"],
+        [f"{n} observations, {catalog.n_stars} stars, {catalog.n_pairs} pairs (paper: 2664, 1631, 65890)"],
     )
     for eps in args.epsilon:
         cfg = skysim.FourStarSimConfig(

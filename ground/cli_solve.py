@@ -4,7 +4,7 @@
   result (``--json`` for the full record) and append it to the results log.
 * ``replay DIR``: every frame of a directory over the link (or ``--offline`` in-process),
   scored against ``NAME.truth.json`` when present; log, summary and plots in ``--out``.
-* ``table5 DIR``: seed 000 table 5 (basic / ideal colour / chromatic / both) on frames with truth.
+* ``table5 DIR``: Enright & McVittie table 5 (basic / ideal colour / chromatic / both) on frames with truth.
 * ``colour fit RESULTS.jsonl``: the eq. 24 colour correction from matched stars of a run.
 * ``params upload FILE``: send a device parameter set (JSON, slot 2), e.g. a colour correction.
 * ``demo``: the end-to-end demonstration (README's first command).
@@ -247,13 +247,13 @@ def register(sub) -> None:
     p.add_argument("--reconnect-timeout", type=float, default=120.0, help="wait this long for a silent device, s")
     p.set_defaults(func=_replay)
 
-    p = sub.add_parser("table5", help="seed 000 table 5 on frames with truth (offline)")
+    p = sub.add_parser("table5", help="Enright & McVittie table 5 on frames with truth (offline)")
     p.add_argument("directory", help="frames with NAME.truth.json beside them")
     p.add_argument("--catalog", required=True, help="catalog image")
     p.add_argument("--camera", help="camera model JSON (default: the reference design)")
     p.set_defaults(func=_table5)
 
-    colour = sub.add_parser("colour", help="field colour calibration (seed 000 eq. 24)")
+    colour = sub.add_parser("colour", help="field colour calibration (Enright & McVittie eq. 24)")
     csub = colour.add_subparsers(dest="colour_command", metavar="ACTION")
     csub.required = True
     p = csub.add_parser("fit", help="fit eq. 24 from the matched stars of a results log")

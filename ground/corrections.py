@@ -1,4 +1,4 @@
-"""Field-test corrections of seed 000 section 5.3: bilinear colour calibration and refraction.
+"""Field-test corrections of Enright & McVittie section 5.3: bilinear colour calibration and refraction.
 
 * :class:`ColourCorrection` is the six-parameter bilinear map of eq. 24,
   ``[rg', bg'] = B @ [rg, bg] + c``, fitted by least squares on matched stars with iterative

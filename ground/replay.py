@@ -117,7 +117,7 @@ class OfflineSolver:
     """The device pipeline in-process (``replay --offline``).
 
     With a ``site`` (``ground.corrections.Site``) and a frame timestamp, star vectors are
-    corrected for atmospheric refraction before the final match (seed 000 section 5.3.2): a
+    corrected for atmospheric refraction before the final match (Enright & McVittie section 5.3.2): a
     first solve (with a loose :data:`LOOSE_SIGMA_PX` noise model if the rigorous one fails: the
     paper used a manual match) gives the approximate attitude that places each star in the
     sky, the vectors are corrected (``correct_refraction``) and the stars identified again at
@@ -309,7 +309,7 @@ def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool =
     return summary
 
 
-# --------------------------------------------------------------------------- table 5 (seed 000)
+# --------------------------------------------------------------------------- table 5 (Enright & McVittie)
 
 TABLE5_MODES = ("basic", "ideal colour", "chromatic correction", "ideal colour + chromatic")
 
@@ -331,7 +331,7 @@ def table5(
     params: PipelineParams = PipelineParams(),
     progress: bool = True,
 ) -> dict:
-    """Seed 000 table 5 on frames with truth: correct/incorrect matches for the basic pipeline,
+    """Enright & McVittie table 5 on frames with truth: correct/incorrect matches for the basic pipeline,
     with idealised colour (each star's mean colour error over the run removed), with
     idealised geometry (each star's mean centroid error removed: the paper's chromatic
     correction) and with both."""

@@ -44,7 +44,7 @@ PHI_V0 = 1004.0
 
 @dataclass(frozen=True)
 class DetectorModel:
-    """Optics + detector parameters; defaults are the seed 000 reference design with an
+    """Optics + detector parameters; defaults are the Enright & McVittie reference design with an
     MT9P031-class colour CMOS (docs/pipeline.md)."""
 
     pattern: str = "RGGB"

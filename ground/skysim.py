@@ -1,6 +1,6 @@
-"""Whole-sky identification simulation (seed 000 section 5.2 and seed 001 section 3).
+"""Whole-sky identification simulation (Enright & McVittie section 5.2 and Dong et al. section 3).
 
-Seed 000 ("colour" run): boresights on Saff & Kuijlaars' generalized spiral (seed 000 ref. 20),
+Enright & McVittie ("colour" run): boresights on Saff & Kuijlaars' generalized spiral (Enright & McVittie ref. 20),
 ``n_roll`` roll angles each, the real rectangular field of a ``CameraModel``. Every catalog star
 that projects onto the array is observed with the error model of eqs 19-21: ``s~ = (s + n)/|s + n|``
 with ``n`` isotropic Gaussian of ``sigma_pix / f`` per axis (so the perpendicular error is
@@ -8,7 +8,7 @@ Gaussian with that sigma per axis) and zero-mean Gaussian colour noise. Optional
 (uniform over the array, colours drawn from the catalog) and dropped stars. The solver's
 quaternion is scored by eqs 22-23: ``q_err = q_true (x) q_est^-1``, ``phi_err = 2 acos|q_err,s|``.
 
-Seed 001 ("fourstar" run): boresights on a 5 deg RA x Dec grid (72 x 37 = 2664 observations),
+Dong et al. ("fourstar" run): boresights on a 5 deg RA x Dec grid (72 x 37 = 2664 observations),
 catalog stars within 12.25 deg of the boresight, per-axis direction noise ``eps / (3 sqrt 2)`` so
 that ``|theta' - theta| < eps`` holds at three sigma; each star of the 4-star procedure is
 identified, unidentified or misidentified.
@@ -86,7 +86,7 @@ def spiral_boresights(n: int) -> np.ndarray:
 
 
 def grid_boresights(step_deg: float = 5.0) -> np.ndarray:
-    """Seed 001's RA x Dec grid: RA 0..360 (exclusive) by ``step``, Dec -90..+90 inclusive."""
+    """Dong et al.'s RA x Dec grid: RA 0..360 (exclusive) by ``step``, Dec -90..+90 inclusive."""
     ra = np.radians(np.arange(0.0, 360.0, step_deg))
     dec = np.radians(np.arange(-90.0, 90.0 + 1e-9, step_deg))
     rr, dd = np.meshgrid(ra, dec)
@@ -102,7 +102,7 @@ def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 
 def attitude_error(q_true: np.ndarray, q_est: np.ndarray) -> float:
-    """Seed 000 eqs 22-23: rotation angle (rad) of ``q_err = q_true (x) q_est^-1``."""
+    """Enright & McVittie eqs 22-23: rotation angle (rad) of ``q_err = q_true (x) q_est^-1``."""
     q_inv = np.array([q_est[0], -q_est[1], -q_est[2], -q_est[3]])
     qe = quat_multiply(np.asarray(q_true, float), q_inv)
     return float(2.0 * np.arccos(min(1.0, abs(qe[0]) / np.linalg.norm(qe))))
@@ -181,7 +181,7 @@ def _field_radius(camera: CameraModel) -> float:
     return FieldOfView.from_camera(camera, 0.0).radius
 
 
-# ------------------------------------------------------------------ seed 000 whole-sky run
+# ------------------------------------------------------------------ Enright & McVittie whole-sky run
 @dataclass(frozen=True)
 class ColourSimConfig:
     """A whole-sky colour run: ``n_boresights`` spiral directions x ``n_roll`` rolls.
@@ -259,7 +259,7 @@ def no_solution_cause(
     return CAUSES.index("matcher_missed")
 
 
-# ------------------------------------------------------------------ seed 001 4-star run
+# ------------------------------------------------------------------ Dong et al. 4-star run
 FOURSTAR_DTYPE = np.dtype(
     [
         ("boresight", np.int32),
@@ -275,7 +275,7 @@ FOURSTAR_DTYPE = np.dtype(
 
 @dataclass(frozen=True)
 class FourStarSimConfig:
-    """Seed 001 test: 5 deg grid, 12.25 deg radius FOV, tolerance ``epsilon_deg``."""
+    """Dong et al. test: 5 deg grid, 12.25 deg radius FOV, tolerance ``epsilon_deg``."""
 
     step_deg: float = 5.0
     radius_deg: float = 12.25
@@ -287,7 +287,7 @@ class FourStarSimConfig:
 
 
 def run_fourstar(catalog: OnboardCatalog, cfg: FourStarSimConfig, pose_ids: np.ndarray) -> np.ndarray:
-    """Evaluate boresights ``pose_ids`` of the seed 001 grid; returns FOURSTAR_DTYPE rows."""
+    """Evaluate boresights ``pose_ids`` of the Dong et al. grid; returns FOURSTAR_DTYPE rows."""
     boresights = grid_boresights(cfg.step_deg)
     eps = np.radians(cfg.epsilon_deg)
     params = FourStarParams(
@@ -393,7 +393,7 @@ def execute(
 
 # ------------------------------------------------------------------ summaries and plots
 def colour_summary(rows: np.ndarray, poor_fraction: float = 0.4, high_error_deg: float = 1.0) -> dict:
-    """Seed 000 table 3 breakdown and headline figures of a colour run.
+    """Enright & McVittie table 3 breakdown and headline figures of a colour run.
 
     Problem orientations (exclusive, in this order): no solution; incorrectly matched stars
     (any wrong star, broken down as "wrong of visible"); poor match (fewer than ``poor_fraction``
@@ -436,7 +436,7 @@ def colour_summary(rows: np.ndarray, poor_fraction: float = 0.4, high_error_deg:
 
 
 def fourstar_summary(rows: np.ndarray) -> dict:
-    """Seed 001 section 3 counts: stars identified / unidentified / misidentified, FOV success."""
+    """Dong et al. section 3 counts: stars identified / unidentified / misidentified, FOV success."""
     ok2 = rows["identified"] + rows["misidentified"] >= 2
     return {
         "observations": len(rows),
@@ -454,7 +454,7 @@ def fourstar_summary(rows: np.ndarray) -> dict:
 
 
 def plot_error_cdf(rows: np.ndarray, path) -> None:
-    """Seed 000 fig. 9: cumulative distribution of the attitude error (unsolved poses count as failures)."""
+    """Enright & McVittie fig. 9: cumulative distribution of the attitude error (unsolved poses count as failures)."""
     from ground.optional import pyplot
 
     plt = pyplot()
@@ -469,7 +469,7 @@ def plot_error_cdf(rows: np.ndarray, path) -> None:
         ax.text(x, 0.02, f" {np.mean(err <= x) * 100:.2f}% <= {x:g} deg", rotation=90, va="bottom", fontsize=8)
     ax.set_xlabel("attitude error phi_err (deg), eqs 22-23")
     ax.set_ylabel("cumulative fraction of poses")
-    ax.set_title(f"Error CDF, {len(rows)} poses (cf. seed 000 fig. 9)")
+    ax.set_title(f"Error CDF, {len(rows)} poses (cf. Enright & McVittie fig. 9)")
     ax.set_ylim(0, 1.01)
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
@@ -495,7 +495,7 @@ def worst_per_boresight(rows: np.ndarray, n_boresights: int, poor_fraction: floa
 
 
 def plot_mollweide(rows: np.ndarray, boresights: np.ndarray, path) -> None:
-    """Seed 000 fig. 10: worst result per boresight on a Mollweide map (RA increasing left)."""
+    """Enright & McVittie fig. 10: worst result per boresight on a Mollweide map (RA increasing left)."""
     from ground.optional import pyplot
 
     plt = pyplot()
@@ -517,6 +517,6 @@ def plot_mollweide(rows: np.ndarray, boresights: np.ndarray, path) -> None:
     ax.set_xticklabels([f"{int(round(np.degrees(-t) % 360 / 15))}h" for t in ticks])
     ax.grid(True, alpha=0.3)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.05), ncol=3, fontsize=8, markerscale=2)
-    ax.set_title("Worst result per boresight (cf. seed 000 fig. 10)", pad=18)
+    ax.set_title("Worst result per boresight (cf. Enright & McVittie fig. 10)", pad=18)
     save_figure(fig, path, dpi=120, bbox_inches="tight")
     plt.close(fig)

@@ -147,7 +147,7 @@ def test_cli_runs_both_simulations(tmp_path, capsys):
         == 0
     )
     out = capsys.readouterr().out
-    assert "problem_orientations" in out and "seed 000" in out and "no solution by cause" in out
+    assert "problem_orientations" in out and "paper (1e6)" in out and "no solution by cause" in out
     assert (tmp_path / "error_cdf.png").exists() and (tmp_path / "problem_map.png").exists()
     assert (
         main(["--json", "sim", "fourstar", "--step", "45", "--epsilon", "0.01", "--workers", "1", "--no-progress"]) == 0

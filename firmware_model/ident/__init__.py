@@ -1,2 +1,2 @@
-"""Star identification and attitude: colour pair/consensus matching (seed 000), 4-star K-vector
-matching (seed 001), q-method attitude, and the solver front. Pure functions on arrays."""
+"""Star identification and attitude: colour pair/consensus matching (Enright & McVittie), 4-star K-vector
+matching (Dong et al.), q-method attitude, and the solver front. Pure functions on arrays."""

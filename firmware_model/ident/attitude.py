@@ -5,7 +5,7 @@ minimising ``sum_i w_i |b_i - A r_i|^2`` for sensor-frame unit vectors ``b_i`` a
 unit vectors ``r_i``. Weights are ``w_i = 1 / sigma_i^2`` with ``sigma_i`` the per-axis direction
 noise of detection ``i`` in radians (QUEST measurement model, Shuster & Oh 1981).
 
-* ``davenport_q``: the largest eigenvector of Davenport's 4x4 ``K`` matrix (seed 000 ref. 21),
+* ``davenport_q``: the largest eigenvector of Davenport's 4x4 ``K`` matrix (Enright & McVittie ref. 21),
   returned as the scalar-first quaternion ``q_icrs_to_sensor`` with ``w >= 0``.
 * ``svd_attitude``: Markley's SVD solution, an independent algorithm for cross-checks.
 * ``attitude_covariance``: ``P = [sum_i sigma_i^-2 (I - b_i b_i^T)]^-1`` (rad^2), the covariance

@@ -1,4 +1,4 @@
-"""Consensus scene matching of seed 000 section 3.3, with bounded backtracking.
+"""Consensus scene matching of Enright & McVittie section 3.3, with bounded backtracking.
 
 Paper algorithm (greedy RANSAC-style):
 
@@ -45,7 +45,7 @@ from firmware_model.onboard_catalog import OnboardCatalog, angle_between
 
 
 class Outcome(str, Enum):
-    """The three result classes of seed 000 section 3.3."""
+    """The three result classes of Enright & McVittie section 3.3."""
 
     HIGH_CONFIDENCE = "HIGH_CONFIDENCE"
     LOW_CONFIDENCE = "LOW_CONFIDENCE"
@@ -54,7 +54,7 @@ class Outcome(str, Enum):
 
 @dataclass(frozen=True)
 class ConsensusParams:
-    """Consensus matching knobs (defaults: seed 000 values where it gives them).
+    """Consensus matching knobs (defaults: Enright & McVittie values where it gives them).
 
     p_correct: pair-match success probability defining ``Delta*`` (eq. 7; 0.99 -> 4.65).
     eta: consensus fraction for a high-confidence match (paper: 0.6-0.7).

@@ -1,4 +1,4 @@
-"""Brightness-independent 4-star matching of seed 001 (Dong, Xing & You 2006, section 2).
+"""Brightness-independent 4-star matching of Dong et al. (Dong, Xing & You 2006, section 2).
 
 For a group of four detections ``S1..S4`` the six pair angles are ``p1 = (S1,S2), p2 = (S1,S3),
 p3 = (S1,S4), p4 = (S2,S3), p5 = (S2,S4), p6 = (S3,S4)``. Each angle's candidate catalog pairs
@@ -31,7 +31,7 @@ from firmware_model.onboard_catalog import OnboardCatalog, angle_between
 
 #: Pair columns p1..p6 as detection positions within the group.
 GROUP_PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
-#: Row signature of S1..S4 (seed 001 step 5).
+#: Row signature of S1..S4 (Dong et al. step 5).
 SIGNATURES = np.array([[1, 1, 1, 0, 0, 0], [1, 0, 0, 1, 1, 0], [0, 1, 0, 1, 0, 1], [0, 0, 1, 0, 1, 1]])
 
 

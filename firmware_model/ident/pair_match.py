@@ -1,4 +1,4 @@
-"""Colour star-pair matching of seed 000 (Enright & McVittie 2013, section 3.1-3.2).
+"""Colour star-pair matching of Enright & McVittie (Enright & McVittie 2013, section 3.1-3.2).
 
 An observed pair ``(k, l)`` gives the tuple of eq. 1, ``T = [rg_k, bg_k, phi_kl, rg_l, bg_l]``
 (colour ratios ``rg = S_r/S_g``, ``bg = S_b/S_g``; ``phi`` in radians). It is compared with the
@@ -25,19 +25,19 @@ from firmware_model.onboard_catalog import OnboardCatalog
 
 @lru_cache(maxsize=64)
 def critical_distance(p_correct: float) -> float:
-    """``Delta* = -2 sqrt(2) erfinv(1 - 2 P_correct)`` (seed 000 eq. 7); 4.65 for P = 0.99."""
+    """``Delta* = -2 sqrt(2) erfinv(1 - 2 P_correct)`` (Enright & McVittie eq. 7); 4.65 for P = 0.99."""
     if not 0.5 < p_correct < 1.0:
         raise ValueError(f"P_correct must be in (0.5, 1), got {p_correct}")
     return float(-2.0 * np.sqrt(2.0) * erfinv(1.0 - 2.0 * p_correct))
 
 
 def consistency_tolerance(sigma_phi: float, delta_star: float) -> float:
-    """Geometric consistency bound ``delta_phi* = sigma_phi Delta* / 2`` (seed 000 eq. 9), radians."""
+    """Geometric consistency bound ``delta_phi* = sigma_phi Delta* / 2`` (Enright & McVittie eq. 9), radians."""
     return 0.5 * sigma_phi * delta_star
 
 
 def sigma_phi_from_centroid(sigma_pix: float, focal_px: float) -> float:
-    """Arc-length noise ``sigma_phi ~ 2 sigma_pix / f`` (seed 000 eq. 18, ``gamma = 1`` px), radians."""
+    """Arc-length noise ``sigma_phi ~ 2 sigma_pix / f`` (Enright & McVittie eq. 18, ``gamma = 1`` px), radians."""
     return 2.0 * sigma_pix / focal_px
 
 

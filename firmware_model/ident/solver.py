@@ -1,8 +1,8 @@
 """Solver front: sensor-frame star vectors (+ colours) and the on-board catalog -> attitude.
 
 ``solve(vectors, rg, bg, catalog, params)`` picks the method per frame: colour consensus
-(seed 000 + backtracking + verification) when the frame and the catalog both carry colour,
-4-star K-vector matching (seed 001) with a verified triangle fallback (``triangle``) otherwise,
+(Enright & McVittie + backtracking + verification) when the frame and the catalog both carry colour,
+4-star K-vector matching (Dong et al.) with a verified triangle fallback (``triangle``) otherwise,
 or the one forced by ``params.mode``. It never
 raises on bad input: malformed arrays, no usable detections or an impossible geometry give
 ``status = NO_MATCH`` with a reason.
@@ -31,7 +31,7 @@ from firmware_model.ident.triangle import TriangleParams, match_triangles
 from firmware_model.ident.verify import FieldOfView, VerifiedMatch, VerifyParams, verify
 from firmware_model.onboard_catalog import OnboardCatalog, angle_between
 
-#: Per-axis direction noise of the seed 000 reference design: 0.2 px at f = 7383 px (rad).
+#: Per-axis direction noise of the Enright & McVittie reference design: 0.2 px at f = 7383 px (rad).
 REFERENCE_SIGMA_VEC = 0.2 / 7383.1
 
 
@@ -42,7 +42,7 @@ class SolveParams:
     mode: "auto" (colour when available, else geometric), "colour" or "geometric".
     sigma_vec: per-axis direction noise of a detection (rad), scalar or one per detection;
         it weights the q-method and sets the verification gates.
-    sigma_phi: pair arc-length noise (rad); None means seed 000 eq. 18, ``2 sigma_vec``.
+    sigma_phi: pair arc-length noise (rad); None means Enright & McVittie eq. 18, ``2 sigma_vec``.
     sigma_rg, sigma_bg: colour-ratio noise.
     fov: the sensor's field of view for the coverage test; None means a cone through the
         outermost detection.
@@ -74,7 +74,7 @@ class SolveParams:
 class SolveResult:
     """Solution of one frame.
 
-    status: HIGH_CONFIDENCE, LOW_CONFIDENCE or NO_MATCH (seed 000's three classes);
+    status: HIGH_CONFIDENCE, LOW_CONFIDENCE or NO_MATCH (Enright & McVittie's three classes);
     reason: why it is not high confidence (empty otherwise);
     q_icrs_to_sensor: scalar-first unit quaternion, ``v_sensor = A(q) @ v_icrs`` (None if no match);
     covariance: 3x3 attitude-error covariance about the sensor axes (rad^2);
@@ -304,7 +304,7 @@ def check_hypothesis(
 
 
 def _solve_geometric(v, catalog, noise, params, check, n, t0, t1, timings, verify_time, index_map):
-    """4-star matching (seed 001), then the triangle fallback when it is not conclusive."""
+    """4-star matching (Dong et al.), then the triangle fallback when it is not conclusive."""
     if n < 3:
         return f"geometric mode needs at least three detections, got {n}"
     eps = params.four_star.epsilon or params.four_star.epsilon_sigmas * noise.sigma_phi

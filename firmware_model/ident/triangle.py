@@ -1,6 +1,6 @@
 """Geometric fallback beyond the papers: triangle candidates checked by verification.
 
-Seed 001's 4-star voting needs pair-angle errors of about 0.01 deg; with larger errors every
+Dong et al.'s 4-star voting needs pair-angle errors of about 0.01 deg; with larger errors every
 angle has hundreds of candidate pairs and no signature row is unique. This matcher keeps the
 K-vector look-up but lets the whole frame decide: for a triad of bright detections ``(i, j, k)``
 it joins the candidate pairs of the three sides into catalog triangles (``a-b`` for ``i-j``,

@@ -1,4 +1,4 @@
-"""Verification of an identification hypothesis over all detections (beyond seed 000).
+"""Verification of an identification hypothesis over all detections (beyond Enright & McVittie).
 
 A hypothesis (detections matched to catalog stars) is accepted only if the attitude it implies
 explains the whole frame:

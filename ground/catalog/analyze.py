@@ -1,4 +1,4 @@
-"""Catalog ambiguity and sky availability (seed 000 sections 3.2 and 5.1, table 1).
+"""Catalog ambiguity and sky availability (Enright & McVittie sections 3.2 and 5.1, table 1).
 
 * Ambiguous pairs: catalog pairs p, q with Mahalanobis distance (eq. 4, the smaller of the two
   star orderings) below Delta* of eq. 7. The search walks the angle-sorted pair table by offset:
@@ -155,7 +155,7 @@ def view_availability(
 
 @dataclass
 class AnalysisResult:
-    """One table-1 row (seed 000): design, pair counts, ambiguity and availability."""
+    """One table-1 row (Enright & McVittie): design, pair counts, ambiguity and availability."""
 
     m_thresh: float
     theta_fov_deg: float
@@ -179,7 +179,7 @@ class AnalysisResult:
 
 
 def analyze(cat: OnboardCatalog, design, n_views: int = 100_000, progress: bool = False, return_views: bool = False):
-    """Seed 000 table-1 figures for ``cat`` built with ``design`` (a CatalogDesign)."""
+    """Enright & McVittie table-1 figures for ``cat`` built with ``design`` (a CatalogDesign)."""
     sp, dstar = design.sigma_phi, design.delta_star
     amb_c = ambiguous_pairs(cat, sp, dstar, design.sigma_rg, design.sigma_bg, progress=progress)
     amb_m = ambiguous_pairs(cat, sp, dstar, progress=progress)
@@ -215,7 +215,7 @@ TABLE_HEADER = (
 
 
 def table_row(r: AnalysisResult) -> str:
-    """One line in the layout of seed 000 table 1 (colour columns, then monochrome)."""
+    """One line in the layout of Enright & McVittie table 1 (colour columns, then monochrome)."""
     col = f"{r.sigma_rg:.3f}" if r.sigma_rg == r.sigma_bg else f"{r.sigma_rg:.2f}/{r.sigma_bg:.2f}"
     return (
         f"{r.m_thresh:5.2f} {r.theta_fov_deg:5.1f} {r.sigma_pix:5.3f} {col:>5} | {r.n_pairs / 1e3:8.1f} {r.bad_views_pct:6.2f} "

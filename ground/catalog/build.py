@@ -1,6 +1,6 @@
 """Build an on-board catalog from a :class:`CatalogDesign`: source -> selection -> colour -> pairs.
 
-Stars are ordered by right ascension (seed 001 sec. 1.2). Per-star provenance (colour source,
+Stars are ordered by right ascension (Dong et al. sec. 1.2). Per-star provenance (colour source,
 Pickles template) and the selection counts go into ``OnboardCatalog.meta``.
 """
 

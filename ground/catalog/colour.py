@@ -1,4 +1,4 @@
-"""Colour model: detector QE x stellar spectrum -> colour ratios (seed 000 eqs 10-11).
+"""Colour model: detector QE x stellar spectrum -> colour ratios (Enright & McVittie eqs 10-11).
 
 ``Lambda_rg = S_r / S_g`` and ``Lambda_bg = S_b / S_g`` with photon-counting integrals
 ``S_c = int chi_c(lambda) F_lambda(lambda) lambda dlambda`` over the detector band (wavelengths in

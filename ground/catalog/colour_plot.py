@@ -1,4 +1,4 @@
-"""Seed 000 fig. 7 for a detector: colour ratios of the Pickles templates against spectral type."""
+"""Enright & McVittie fig. 7 for a detector: colour ratios of the Pickles templates against spectral type."""
 
 from __future__ import annotations
 

@@ -1,9 +1,9 @@
-"""Catalog design parameters (seed 000 sections 4-5.1), from code, the command line or TOML.
+"""Catalog design parameters (Enright & McVittie sections 4-5.1), from code, the command line or TOML.
 
 Angles are degrees at this interface (names end ``_deg``) and radians in the derived properties.
 ``theta_fov_deg`` is the half-angle of the field of view along the sensor's minor axis; the focal
 length in pixels follows from it and the minor sensor dimension, and the pair-angle noise from
-seed 000 eq. 18: ``sigma_phi = 2 sigma_pix / f_px``.
+Enright & McVittie eq. 18: ``sigma_phi = 2 sigma_pix / f_px``.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ class DesignError(ValueError):
 
 @dataclass
 class CatalogDesign:
-    """Optical and catalog design; defaults are the seed-000 baseline with M_thresh 5.0."""
+    """Optical and catalog design; defaults are the Enright & McVittie baseline with M_thresh 5.0."""
 
     theta_fov_deg: float = 7.5
     sensor_width_px: int = 2592
@@ -33,8 +33,8 @@ class CatalogDesign:
     sigma_rg: float = 0.02
     sigma_bg: float = 0.02
     p_correct: float = 0.99
-    phi_min_deg: float | None = None  # default theta_fov / 500 (seed 000 sec. 4.3)
-    phi_max_deg: float | None = None  # default 2 theta_fov (seed 000 eq. 13)
+    phi_min_deg: float | None = None  # default theta_fov / 500 (Enright & McVittie sec. 4.3)
+    phi_max_deg: float | None = None  # default 2 theta_fov (Enright & McVittie eq. 13)
     n_h: int = 1024
     epoch: float = 2025.0  # Julian year of the catalog positions
     source: str = "hipparcos"
@@ -102,19 +102,19 @@ class CatalogDesign:
 
     @property
     def sigma_phi(self) -> float:
-        """Pair-angle noise (rad), seed 000 eq. 18."""
+        """Pair-angle noise (rad), Enright & McVittie eq. 18."""
         return 2.0 * self.sigma_pix / self.focal_px
 
     @property
     def delta_star(self) -> float:
-        """Critical Mahalanobis distance, seed 000 eq. 7 (4.65 for P_correct = 0.99)."""
+        """Critical Mahalanobis distance, Enright & McVittie eq. 7 (4.65 for P_correct = 0.99)."""
         from scipy.special import erfinv  # here: the command line reads this module's defaults at start-up
 
         return float(-2.0 * math.sqrt(2.0) * erfinv(1.0 - 2.0 * self.p_correct))
 
     @property
     def dphi_star(self) -> float:
-        """Angle window of the pair search, seed 000 eq. 9: ``sigma_phi Delta* / 2``."""
+        """Angle window of the pair search, Enright & McVittie eq. 9: ``sigma_phi Delta* / 2``."""
         return self.sigma_phi * self.delta_star / 2.0
 
     # --- validation and I/O ------------------------------------------------------------------

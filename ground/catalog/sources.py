@@ -5,7 +5,7 @@ Both readers return a :class:`StarTable` with ICRS positions in radians at the r
 string where none) and a variability flag. Malformed lines raise :class:`CatalogFormatError`
 naming the file, the 1-based line and the offending value.
 
-Selection (:func:`select_stars`) follows seed 000 section 4.1 and seed 001 section 1.1: magnitude
+Selection (:func:`select_stars`) follows Enright & McVittie section 4.1 and Dong et al. section 1.1: magnitude
 threshold, close doubles merged into the brighter star using the resolvability angle of the optics,
 optional removal of variable stars. Novae and non-stellar BSC5 entries (no position or no V) are
 dropped by the reader.
