@@ -30,7 +30,7 @@ from protocol.commands import Slot
 from .camera import CameraModel
 from .catalog_image_io import catalog_slot_handler
 from .device import Device
-from .link import DEFAULT_IDLE_TIMEOUT, PtyLink, SerialLink, TcpLink, parse_tcp, serve
+from .link import DEFAULT_IDLE_TIMEOUT, Link, open_link, serve
 from .pipeline import PipelineParams
 from .sensor_input import (
     DeviceParams,
@@ -140,13 +140,9 @@ def build_device(args: argparse.Namespace) -> Device:
     )
 
 
-def build_link(args: argparse.Namespace):
-    if args.pty:
-        return PtyLink()
-    if args.port:
-        return SerialLink(args.port, args.baud)
-    host, port = parse_tcp(args.tcp)
-    return TcpLink(host, port, idle_timeout=args.tcp_idle)
+def build_link(args: argparse.Namespace) -> Link:
+    url = "pty://" if args.pty else args.port if args.port else f"tcp://{args.tcp}"
+    return open_link(url, baud=args.baud, tcp_idle=args.tcp_idle)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,7 +1,8 @@
 """Byte transports for the device (pty, serial port, TCP) and the serving loop with line pacing.
 
-A link offers ``read(timeout) -> bytes`` (``b""`` when nothing arrived), ``write(data)`` and
-``close()``. :func:`serve` moves bytes between a link and a :class:`~firmware_model.device.Device`
+A link (:class:`Link`) offers ``read(timeout) -> bytes`` (``b""`` when nothing arrived),
+``write(data) -> bool``, ``close()`` and ``describe()``; :func:`open_link` makes one from a URL, as
+pyserial's ``serial_for_url`` does for ports. :func:`serve` moves bytes between a link and a :class:`~firmware_model.device.Device`
 until a stop event is set. With pacing (``baud``), received bytes are handed to the device no
 earlier than a UART at ``baud`` (10 bits per byte) could have delivered them, each reply starts
 ``turnaround`` seconds after the command's last byte, and reply bytes leave no faster than the
@@ -17,6 +18,7 @@ import socket
 import threading
 import time
 import tty
+from typing import Protocol
 
 import serial
 
@@ -210,6 +212,30 @@ class TcpLink:
 
     def describe(self) -> str:
         return self.path
+
+
+class Link(Protocol):
+    """The one transport interface :func:`serve` uses."""
+
+    def read(self, timeout: float) -> bytes: ...
+
+    def write(self, data: bytes) -> bool: ...
+
+    def close(self) -> None: ...
+
+    def describe(self) -> str: ...
+
+
+def open_link(url: str, baud: int = 115200, tcp_idle: float | None = DEFAULT_IDLE_TIMEOUT) -> Link:
+    """A link from a URL: ``pty://`` (a new pseudo-terminal), ``tcp://HOST:PORT`` (a server for
+    one client at a time, idle clients closed after ``tcp_idle`` s), anything else a pyserial
+    URL or device path opened at ``baud``."""
+    if url in ("pty", "pty://"):
+        return PtyLink()
+    if url.startswith("tcp://"):
+        host, port = parse_tcp(url[len("tcp://") :])
+        return TcpLink(host, port, idle_timeout=tcp_idle)
+    return SerialLink(url, baud)
 
 
 def parse_tcp(text: str) -> tuple[str, int]:

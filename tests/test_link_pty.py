@@ -302,3 +302,18 @@ def test_ctrl_c_during_an_upload_keeps_what_was_sent_and_the_next_upload_resumes
             assert report.resumed_from == st.contiguous and c.slot_info(0).crc32 == crc32(image)
     finally:
         assert dev.stop() == 0
+
+
+def test_open_link_makes_each_transport_from_a_url():
+    from firmware_model.link import PtyLink, SerialLink, TcpLink, open_link
+
+    links = [open_link("pty://"), open_link("tcp://127.0.0.1:0", tcp_idle=5.0), open_link("loop://")]
+    try:
+        assert [type(link) for link in links] == [PtyLink, TcpLink, SerialLink]
+        assert links[0].describe().startswith("/dev/") and links[1].describe().startswith("socket://127.0.0.1:")
+        assert links[2].write(b"\xc0") and links[2].read(0.5) == b"\xc0"  # loop:// echoes
+    finally:
+        for link in links:
+            link.close()
+    with pytest.raises(ValueError, match="bad TCP address"):
+        open_link("tcp://nowhere")
