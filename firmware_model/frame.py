@@ -7,42 +7,23 @@
   (``black_level[2 * (r % 2) + (c % 2)]``); a mono frame has four equal values.
 * Signal above black is ``pixels - black``; ``white_level`` is the largest valid raw DN.
 
-Serialisation for upload over the link (``frame_to_bytes`` / ``frame_from_bytes``), all
-little-endian::
-
-    offset size  field
-    0      4     magic  b"STFR"
-    4      1     format version (1)
-    5      1     pattern code: 0 MONO, 1 RGGB, 2 BGGR, 3 GRBG, 4 GBRG
-    6      2     uint16 reserved (0)
-    8      4     uint32 width (columns)
-    12     4     uint32 height (rows)
-    16     16    4 x float32 black level per 2x2 position
-    32     4     float32 white level
-    36     8     float64 exposure (s), NaN when unknown
-    44     4     uint32 length L of the UTF-8 JSON block
-    48     L     JSON object: timestamp, site, camera, metadata
-    48+L   2WH   uint16 pixels, row-major
-    end    4     uint32 CRC-32 (zlib) of every preceding byte
+Serialisation for upload over the link (``frame_to_bytes`` / ``frame_from_bytes``): the blob
+format of :mod:`protocol.frame_blob` (declared there once).
 """
 
 from __future__ import annotations
 
 import json
-import struct
-import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
 
-PATTERNS = ("MONO", "RGGB", "BGGR", "GRBG", "GBRG")
+from protocol import frame_blob
+
+PATTERNS = frame_blob.PATTERNS
 #: Channel codes used by detection and fitting.
 RED, GREEN, BLUE = 0, 1, 2
 _LETTER_CODE = {"R": RED, "G": GREEN, "B": BLUE}
-
-_MAGIC = b"STFR"
-_VERSION = 1
-_HEADER = struct.Struct("<4sBBHII4ffdI")
 
 
 def normalise_pattern(pattern: str) -> str:
@@ -147,7 +128,7 @@ class Frame:
 
 
 def frame_to_bytes(frame: Frame) -> bytes:
-    """Serialise a frame with integer pixels in [0, 65535] (module docstring layout)."""
+    """Serialise a frame with integer pixels in [0, 65535] (the :mod:`protocol.frame_blob` layout)."""
     px = frame.pixels
     if not np.issubdtype(px.dtype, np.integer):
         if not np.all(px == np.round(px)):
@@ -155,53 +136,33 @@ def frame_to_bytes(frame: Frame) -> bytes:
     if px.min() < 0 or px.max() > 65535:
         raise ValueError("pixel values must lie in [0, 65535] to serialise as uint16")
     extras = {"timestamp": frame.timestamp, "site": frame.site, "camera": frame.camera, "metadata": frame.metadata}
-    blob = json.dumps(extras, separators=(",", ":")).encode("utf-8")
     exposure = float("nan") if frame.exposure_s is None else frame.exposure_s
-    header = _HEADER.pack(
-        _MAGIC,
-        _VERSION,
-        PATTERNS.index(frame.pattern),
-        0,
-        frame.width,
-        frame.height,
-        *frame.black_level,
-        frame.white_level,
-        exposure,
-        len(blob),
+    black = tuple(float(v) for v in frame.black_level)
+    return frame_blob.pack(
+        frame_blob.FrameBlob(
+            frame.pattern,
+            black,
+            frame.white_level,
+            exposure,
+            json.dumps(extras, separators=(",", ":")).encode("utf-8"),
+            px,
+        )
     )
-    body = header + blob + np.ascontiguousarray(px, dtype="<u2").tobytes()
-    return body + struct.pack("<I", zlib.crc32(body) & 0xFFFFFFFF)
 
 
 def frame_from_bytes(data: bytes) -> Frame:
     """Inverse of ``frame_to_bytes``; raises ValueError on any inconsistency."""
-    data = bytes(data)
-    if len(data) < _HEADER.size + 4:
-        raise ValueError(f"frame blob too short ({len(data)} bytes)")
-    magic, version, pcode, _, width, height, b0, b1, b2, b3, white, exposure, jlen = _HEADER.unpack_from(data)
-    if magic != _MAGIC:
-        raise ValueError(f"not a frame blob (magic {magic!r})")
-    if version != _VERSION:
-        raise ValueError(f"unsupported frame blob version {version}")
-    if pcode >= len(PATTERNS):
-        raise ValueError(f"unknown CFA pattern code {pcode}")
-    expected = _HEADER.size + jlen + 2 * width * height + 4
-    if len(data) != expected:
-        raise ValueError(f"frame blob is {len(data)} bytes, header implies {expected}")
-    (crc,) = struct.unpack_from("<I", data, len(data) - 4)
-    if zlib.crc32(data[:-4]) & 0xFFFFFFFF != crc:
-        raise ValueError("frame blob CRC-32 mismatch")
+    blob = frame_blob.unpack(data)
     try:
-        extras = json.loads(data[_HEADER.size : _HEADER.size + jlen].decode("utf-8"))
+        extras = json.loads(blob.extras_json.decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ValueError(f"frame blob metadata is not valid JSON: {exc}") from None
-    start = _HEADER.size + jlen
-    px = np.frombuffer(data, dtype="<u2", count=width * height, offset=start).reshape(height, width)
+    exposure = blob.exposure
     return Frame(
-        pixels=px.astype(np.uint16),
-        pattern=PATTERNS[pcode],
-        black_level=(b0, b1, b2, b3),
-        white_level=white,
+        pixels=blob.pixels,
+        pattern=blob.pattern,
+        black_level=blob.black,
+        white_level=blob.white,
         exposure_s=None if np.isnan(exposure) else exposure,
         timestamp=extras.get("timestamp"),
         site=extras.get("site"),

@@ -62,6 +62,7 @@ from pathlib import Path
 import numpy as np
 
 from firmware_model.frame import Frame, frame_from_bytes, normalise_pattern
+from protocol import frame_blob
 
 RAW_EXTENSIONS = {
     ".dng",
@@ -113,7 +114,7 @@ def read_frame(path) -> Frame:
             return read_npy(path)
         if head.startswith(b"SIMPLE  "):
             return read_fits(path)
-        if head.startswith(b"STFR"):
+        if head.startswith(frame_blob.MAGIC):
             return frame_from_bytes(path.read_bytes())
         if head.startswith(PNG_SIGNATURE) or head.startswith(JPEG_SIGNATURE):
             return read_image(path)
