@@ -28,6 +28,7 @@ from firmware_model.device import FrameUnavailable, SlotHandler, SolveContext
 from firmware_model.extract import PSF_SIGMA_RANGE_PX
 from firmware_model.frame import Frame, frame_from_bytes
 from firmware_model.frame_io import FrameReadError, frame_files, read_frame
+from firmware_model.ident.solver import MODES
 from firmware_model.pipeline import PipelineParams, result_fields, run_pipeline, with_psf_sigma
 from protocol.commands import SlotRejected
 
@@ -151,8 +152,10 @@ class DeviceParams:
             return number(key)
 
         mode = obj.get("mode")
-        if mode is not None and mode not in ("auto", "colour", "geometric"):
-            raise SlotRejected(REJECT_PARAMS_VALUE, f"mode must be auto, colour or geometric, got {mode!r}")
+        if mode is not None and mode not in MODES:
+            raise SlotRejected(
+                REJECT_PARAMS_VALUE, f"mode must be {', '.join(MODES[:-1])} or {MODES[-1]}, got {mode!r}"
+            )
         beta = None
         if "colour_correction" in obj:
             cc = obj["colour_correction"]

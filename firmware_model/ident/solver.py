@@ -35,6 +35,10 @@ from firmware_model.onboard_catalog import OnboardCatalog, angle_between
 REFERENCE_SIGMA_VEC = 0.2 / 7383.1
 
 
+#: Solver modes (``SolveParams.mode``, the parameter file's ``mode``).
+MODES = ("auto", "colour", "geometric")
+
+
 @dataclass(frozen=True)
 class SolveParams:
     """Solver configuration.
@@ -200,7 +204,7 @@ def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveP
         timings["total"] = time.perf_counter() - t0
         return SolveResult(Outcome.NO_MATCH, reason, method=method, n_used=n, timings=timings, notes=notes)
 
-    if params.mode not in ("auto", "colour", "geometric"):
+    if params.mode not in MODES:
         return no_match(f"unknown mode {params.mode!r}")
     if catalog.n_pairs == 0:
         return no_match("catalog has no star pairs")
