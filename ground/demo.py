@@ -120,7 +120,7 @@ def run_demo(out, n_frames: int = 6, seed: int = 2026, progress: bool = True) ->
                 )
             solver = LinkSolver(pty)
             try:
-                summary = replay(frames_dir, solver, out)
+                summary = replay(frames_dir, solver, out, progress=progress)
             finally:
                 solver.close()
         finally:
