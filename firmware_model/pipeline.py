@@ -22,7 +22,7 @@ from firmware_model.camera_fit import StarObservations, fit_frame
 from firmware_model.extract import ExtractParams, StarList, extract_stars
 from firmware_model.frame import Frame
 from firmware_model.frames import quat_to_matrix, rotation_angle
-from firmware_model.ident.consensus import Outcome
+from firmware_model.ident.consensus import Outcome, large_set
 from firmware_model.ident.solver import SolveParams, SolveResult, solution_from_match, solve
 from firmware_model.ident.verify import FieldOfView, verify
 from firmware_model.onboard_catalog import OnboardCatalog
@@ -233,15 +233,16 @@ def identify_stars(
         "vectors": stars.timings.get("vectors_s", 0.0),
     }
     out = _identify(stars, camera, catalog, params, timings)
+    frame_t0 = t0 - stars.timings.get("total_s", 0.0)  # the search's budget counts from extraction
     if params.optics is not None and out.status is not Status.TOO_FEW_STARS:
         if out.status is not Status.OK:
-            found = _search_optics(stars, camera, catalog, params, timings, t0 - stars.timings.get("total_s", 0.0))
+            found = _search_optics(stars, camera, catalog, params, timings, frame_t0)
             if found is not None and (found.status is Status.OK or _rank(found) > _rank(out)):
                 out = found
         elif (refined := _refine_optics(out, stars, camera, catalog, params, timings)) is not None:
             out = refined
         elif out.optics is None:  # too few stars matched to check the optics: a search may match more
-            found = _search_optics(stars, camera, catalog, params, timings, t0 - stars.timings.get("total_s", 0.0))
+            found = _search_optics(stars, camera, catalog, params, timings, frame_t0)
             if found is not None and found.status is Status.OK and _rank(found) > _rank(out):
                 out = found  # a high-confidence answer only: the search may now return a low one
     out.timings = timings
@@ -375,7 +376,7 @@ def _search_optics(
     scale_free.catalog_patterns(catalog, camera)  # once per catalog: not this frame's budget
     t0 += time.perf_counter() - t1
     tried: list[np.ndarray] = []
-    best = None
+    best: tuple[PipelineOutput, float] | None = None  # (answer, focal scale of its pattern)
     for hyp in _pattern_seeds(stars, camera, catalog, search, timings):
         if time.perf_counter() - t0 > search.budget_s:
             break
@@ -399,15 +400,21 @@ def _search_optics(
             out = (
                 pattern if pattern is not None and (pattern.status is Status.OK or _rank(pattern) > _rank(out)) else out
             )
-        if out.solution is not None:
-            out.optics = _fit_optics(out, catalog, search)
-            if out.optics is not None:
-                out.optics.focal_scale = hyp.f / camera.f
         if out.status is Status.OK:
-            return out
-        if out.solution is not None and _rank(out) > _rank(best):
-            best = out
-    return best
+            return _with_optics(out, hyp.f / camera.f, catalog, search)
+        if out.solution is not None and _rank(out) > _rank(best[0] if best else None):
+            best = (out, hyp.f / camera.f)
+    return _with_optics(*best, catalog=catalog, search=search) if best else None  # the optics of the answer only
+
+
+def _with_optics(
+    out: PipelineOutput, focal_scale: float, catalog: OnboardCatalog, search: OpticsSearch
+) -> PipelineOutput:
+    """``out`` with the optics fitted to its matched stars and the search's focal scale."""
+    out.optics = _fit_optics(out, catalog, search)
+    if out.optics is not None:
+        out.optics.focal_scale = focal_scale
+    return out
 
 
 def _rank(out: PipelineOutput | None) -> tuple[int, float]:
@@ -450,7 +457,7 @@ def _verify_pattern(
     if match is None:
         return None
     cp = sp.consensus
-    confident = match.n >= cp.confident_stars and match.coverage >= cp.confident_coverage
+    confident = large_set(match, cp)
     outcome, status = (
         (Outcome.HIGH_CONFIDENCE, Status.OK) if confident else (Outcome.LOW_CONFIDENCE, Status.LOW_CONFIDENCE)
     )

@@ -433,6 +433,12 @@ def confident(best, params: ConsensusParams) -> bool:
     verification's miss-rate test) (``ConsensusParams``)."""
     if best.n >= params.chance_stars and best.chance <= params.chance_alpha:
         return True
+    return large_set(best, params)
+
+
+def large_set(best, params: ConsensusParams) -> bool:
+    """At least ``confident_stars`` matched, covering at least ``confident_coverage`` of the
+    predicted stars (an unknown coverage counts as none)."""
     cov = best.coverage if np.isfinite(best.coverage) else 0.0
     return best.n >= params.confident_stars and cov >= params.confident_coverage
 
