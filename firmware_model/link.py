@@ -303,15 +303,17 @@ def serve(
     pacer = Pacer(baud, turnaround) if baud else None
     write_lock = threading.Lock()
 
-    def late(frames: list[bytes]) -> None:
+    def send(frames: list[bytes], ready_at: float) -> None:
+        """Write ``frames`` (paced: starting no earlier than ``ready_at``, monotonic s); one
+        writer at a time, the loop's replies and the late ones alike."""
         with write_lock:
             if pacer is None:
                 link.write(b"".join(frames))
             else:
                 for frame in frames:
-                    pacer.send(link, frame, time.monotonic() + pacer.turnaround)
+                    pacer.send(link, frame, ready_at)
 
-    device.late_reply = late
+    device.late_reply = lambda frames: send(frames, time.monotonic() + turnaround)
     try:
         while not stop.is_set():
             try:
@@ -327,14 +329,11 @@ def serve(
                 if replies:
                     if turnaround > 0:
                         time.sleep(turnaround)
-                    with write_lock:
-                        link.write(b"".join(replies))
+                    send(replies, 0.0)
                 continue
             for piece in _pieces(chunk):
                 done = pacer.arrived(len(piece))
                 _sleep_until(done)
-                for frame in device.receive(piece):
-                    with write_lock:
-                        pacer.send(link, frame, done + pacer.turnaround)
+                send(device.receive(piece), done + pacer.turnaround)
     finally:
         device.late_reply = None

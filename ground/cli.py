@@ -120,7 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from serial import SerialException  # after parsing: --help and usage errors stay fast
 
-    from ground.client import LinkError, Nack
+    from ground.cli_link import exit_code
+    from ground.client import LinkError
     from ground.exchange_log import LogWriteError
     from ground.optional import MissingExtra
 
@@ -142,9 +143,8 @@ def main(argv: list[str] | None = None) -> int:
     except (LinkError, SerialException, OSError) as exc:
         if args.debug:
             raise
-        code = 5 if isinstance(exc, Nack) else 4 if isinstance(exc, (LinkError, SerialException, TimeoutError)) else 2
         print(f"st16-ground: {exc}", file=sys.stderr)
-        return code
+        return exit_code(exc)
 
 
 if __name__ == "__main__":

@@ -294,7 +294,20 @@ def report_error(exc: LinkError, as_json: bool) -> int:
         raw = payload["raw"]
         seen = f" (received {len(exc.raw)} B: {raw[:64]}{'...' if len(raw) > 64 else ''})" if raw else ""
         print(f"st16-ground: {payload['error']}: {payload['message']}{seen}", file=sys.stderr)
-    return 5 if isinstance(exc, Nack) else 4
+    return exit_code(exc)
+
+
+def exit_code(exc: BaseException) -> int:
+    """The documented exit code of a failure (``ground.cli.EXIT_CODES``): 5 the device refused
+    (NACK), 4 the link (no reply, a garbled one, a port that fails or times out), 2 any other
+    file or system error."""
+    from serial import SerialException
+
+    from .client import LinkError, Nack
+
+    if isinstance(exc, Nack):
+        return 5
+    return 4 if isinstance(exc, (LinkError, SerialException, TimeoutError)) else 2
 
 
 def client_kwargs(args) -> dict:
