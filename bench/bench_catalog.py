@@ -25,16 +25,17 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from firmware_model.catalog_image_io import catalog_slot_handler, catalog_to_image
-from firmware_model.device import Device
-from firmware_model.link import PtyLink, serve
-from firmware_model.onboard_catalog import angle_between
+from firmware_model.catalog.image_io import catalog_to_image
+from firmware_model.catalog.onboard import angle_between
+from firmware_model.device.catalog_slot import catalog_slot_handler
+from firmware_model.device.device import Device
+from firmware_model.device.link import PtyLink, serve
 from ground.catalog.analyze import TABLE_HEADER, ambiguous_pairs, analyze, plot_views, table_row
 from ground.catalog.build import DEFAULT_BSC5, borrow_mk_types, build_catalog, load_source
 from ground.catalog.colour import SHARED_DATA, ColourModel, ColourSource, ballesteros_temperature, blackbody_ratios
 from ground.catalog.design import CatalogDesign
 from ground.catalog.sources import read_hipparcos, select_stars
-from ground.client import Client
+from ground.link.client import Client
 
 #: Enright & McVittie table 1: (M_thresh, theta_FOV, sigma_pix, sigma_colour, pairs e3, bad %, amb %, unres, mono amb %, mono unres)
 PAPER_TABLE1 = [

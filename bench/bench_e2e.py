@@ -30,13 +30,13 @@ from tqdm import tqdm  # noqa: E402
 
 def _one(args):
     k, pattern, seed = args
-    from firmware_model.camera import CameraModel
-    from firmware_model.frames import attitude_from_radec_roll, matrix_to_quat
-    from firmware_model.pipeline import run_pipeline
-    from ground.replay import Truth, score
-    from ground.sensor_sim import DetectorModel, render_frame
-    from ground.sky_model import sky_stars
-    from ground.solve_report import record_from_output
+    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.pipeline.run import run_pipeline
+    from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat
+    from ground.analysis.replay import Truth, score
+    from ground.link.solve_report import record_from_output
+    from ground.sim.sensor_sim import DetectorModel, render_frame
+    from ground.sim.sky_model import sky_stars
 
     cat = _catalog()
     cam = CameraModel.reference_design()
@@ -116,14 +116,14 @@ def part_a(n: int, workers: int, seed: int, out: Path) -> None:
 
 
 def part_b(n: int, out: Path) -> None:
-    from firmware_model.camera import CameraModel
-    from firmware_model.catalog_image_io import catalog_to_image
-    from ground.client import Client
-    from ground.demo import pick_attitudes, start_device, stop_device
-    from ground.frame_writer import write_frame
-    from ground.sensor_sim import DetectorModel, render_frame
-    from ground.sky_model import sky_stars
-    from ground.solve_report import solve_record
+    from firmware_model.catalog.image_io import catalog_to_image
+    from firmware_model.pipeline.camera import CameraModel
+    from ground.cli.demo import pick_attitudes, start_device, stop_device
+    from ground.link.client import Client
+    from ground.link.solve_report import solve_record
+    from ground.sim.frame_writer import write_frame
+    from ground.sim.sensor_sim import DetectorModel, render_frame
+    from ground.sim.sky_model import sky_stars
     from protocol import result
 
     cat = _catalog()

@@ -34,12 +34,12 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from firmware_model.camera import CameraModel  # noqa: E402
-from firmware_model.centroid import FitParams, fit_stars  # noqa: E402
-from firmware_model.detect import detect_stars  # noqa: E402
-from firmware_model.extract import extract_stars  # noqa: E402
-from firmware_model.frames import attitude_from_radec_roll  # noqa: E402
-from ground.sensor_sim import DetectorModel, random_star_field, render_frame  # noqa: E402
+from firmware_model.pipeline.camera import CameraModel  # noqa: E402
+from firmware_model.pipeline.centroid import FitParams, fit_stars  # noqa: E402
+from firmware_model.pipeline.detect import detect_stars  # noqa: E402
+from firmware_model.pipeline.extract import extract_stars  # noqa: E402
+from firmware_model.reference_frames import attitude_from_radec_roll  # noqa: E402
+from ground.sim.sensor_sim import DetectorModel, random_star_field, render_frame  # noqa: E402
 
 SEED_CENTROID_PX = 0.2  # Enright & McVittie section 2.2: companion-paper figures
 SEED_COLOUR_RMS = 0.05

@@ -45,17 +45,17 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="out/bench_field")
     args = ap.parse_args(argv)
 
-    from firmware_model.camera import CameraModel
-    from firmware_model.frame_io import frame_files
-    from firmware_model.frames import attitude_from_radec_roll, radec_to_vec
-    from firmware_model.pipeline import PipelineParams
+    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.pipeline.frame_readers import frame_files
+    from firmware_model.pipeline.run import PipelineParams
+    from firmware_model.reference_frames import attitude_from_radec_roll, radec_to_vec
+    from ground.analysis.replay import TABLE5_MODES, OfflineSolver, replay, table5
+    from ground.calibration.corrections import ColourCorrection
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
-    from ground.corrections import ColourCorrection
-    from ground.frame_writer import write_rendered
-    from ground.replay import TABLE5_MODES, OfflineSolver, replay, table5
-    from ground.sensor_sim import DetectorModel, Stars, render_frame
-    from ground.sky_model import sky_stars
+    from ground.sim.frame_writer import write_rendered
+    from ground.sim.sensor_sim import DetectorModel, Stars, render_frame
+    from ground.sim.sky_model import sky_stars
 
     out = Path(args.out)
     frames_dir = out / "frames"

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ground.client import Client, LinkError, Nack
+from ground.link.client import Client, LinkError, Nack
 from protocol import nsp, slip
 from protocol.commands import Code
 
@@ -56,7 +56,7 @@ def stop(proc: subprocess.Popen) -> None:
 
 def device_cmd(*extra: str) -> list[str]:
     script = Path(sys.executable).parent / "st16-device"
-    base = [str(script)] if script.exists() else [sys.executable, "-m", "firmware_model.cli"]
+    base = [str(script)] if script.exists() else [sys.executable, "-m", "firmware_model.device.cli"]
     return base + ["--pty", *extra]
 
 
@@ -117,8 +117,8 @@ def bench_upload(kib: int, baud: int = 115200) -> None:
     about ``kib`` KiB with a small camera model."""
     import tempfile
 
-    from firmware_model.camera import CameraModel
-    from firmware_model.frame import Frame, frame_to_bytes
+    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes
 
     width = 256
     height = max(2, (kib * 1024 // (2 * width)) // 2 * 2)

@@ -1,8 +1,8 @@
 """Open-loop validation bench (issue 9 item 3): frames rendered with optics, detector, sky and
 star colours the solver does NOT assume, solved with only what a user has.
 
-Rendering: the real sky (Hipparcos to V 6.5) through ``ground.sensor_sim.render_frame`` with the
-impairment models of ``ground.openloop``, one axis per cell, then all together (docs/openloop.md
+Rendering: the real sky (Hipparcos to V 6.5) through ``ground.sim.sensor_sim.render_frame`` with the
+impairment models of ``ground.sim.openloop``, one axis per cell, then all together (docs/openloop.md
 lists every cell's exact parameters). Solving: the public ``run_pipeline(frame, nominal_camera,
 catalog)`` with default ``PipelineParams()``, the datasheet camera
 (``CameraModel.reference_design()``, distortion-free) and the default catalog (V <= 5); the
@@ -89,8 +89,8 @@ def _uniform_dir(rng) -> tuple[float, float]:
 
 def build_scene(cell: str, pattern: str, rng: np.random.Generator, nominal, det_electrons):
     """Impairments of one frame of ``cell``: (render kwargs, bad columns, star transforms, params)."""
-    from ground import openloop as ol
-    from ground.sensor_sim import DetectorModel
+    from ground.sim import openloop as ol
+    from ground.sim.sensor_sim import DetectorModel
 
     axes = _axes(cell, rng)
     p: dict = {}
@@ -211,12 +211,12 @@ def _one(job):
     cell, k, seed = job
     from dataclasses import replace
 
-    from firmware_model.frames import attitude_from_radec_roll, matrix_to_quat, quat_to_matrix, rotation_angle
-    from firmware_model.pipeline import run_pipeline
-    from ground import openloop as ol
-    from ground.replay import MATCH_RADIUS_PX, Truth, score
-    from ground.sensor_sim import DetectorModel, render_frame
-    from ground.solve_report import record_from_output
+    from firmware_model.pipeline.run import run_pipeline
+    from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, quat_to_matrix, rotation_angle
+    from ground.analysis.replay import MATCH_RADIUS_PX, Truth, score
+    from ground.link.solve_report import record_from_output
+    from ground.sim import openloop as ol
+    from ground.sim.sensor_sim import DetectorModel, render_frame
 
     cat, nominal, sky, cat_ids = _context()
     cat_row = {int(i): n for n, i in enumerate(cat_ids)}
@@ -314,10 +314,10 @@ _BB = None
 def _context():
     global _CTX
     if _CTX is None:
-        from firmware_model.camera import CameraModel
+        from firmware_model.pipeline.camera import CameraModel
         from ground.catalog.build import build_catalog
         from ground.catalog.design import CatalogDesign
-        from ground.sky_model import sky_stars
+        from ground.sim.sky_model import sky_stars
 
         cat = build_catalog(CatalogDesign())
         _CTX = (cat, CameraModel.reference_design(), sky_stars(), np.asarray(cat.star_id, dtype=np.int64))
@@ -327,7 +327,7 @@ def _context():
 def _blackbody_sky():
     global _BB
     if _BB is None:
-        from ground.openloop import blackbody_sky_stars
+        from ground.sim.openloop import blackbody_sky_stars
 
         _BB = blackbody_sky_stars()
     return _BB

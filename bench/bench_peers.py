@@ -33,14 +33,14 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_model.camera import CameraModel
-from firmware_model.frames import attitude_from_radec_roll, quat_to_matrix, radec_to_vec, rotation_angle
 from firmware_model.ident.attitude import svd_attitude
 from firmware_model.ident.solver import SolveParams, solve
 from firmware_model.ident.verify import FieldOfView, VerifyParams
-from ground import skysim
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.reference_frames import attitude_from_radec_roll, quat_to_matrix, radec_to_vec, rotation_angle
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
+from ground.sim import whole_sky as skysim
 
 ROOT = Path(__file__).resolve().parents[1]
 PEER_PYTHON = ROOT / ".venv-peers" / "bin" / "python"

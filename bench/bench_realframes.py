@@ -77,7 +77,7 @@ def frames() -> list[dict]:
 
 
 def separation_px(ra, dec, job) -> float:
-    from firmware_model.frames import radec_to_vec
+    from firmware_model.reference_frames import radec_to_vec
 
     a = radec_to_vec(np.radians(ra), np.radians(dec))
     b = radec_to_vec(np.radians(job["ref"][0]), np.radians(job["ref"][1]))
@@ -85,11 +85,11 @@ def separation_px(ra, dec, job) -> float:
 
 
 def ours(job, catalogs) -> dict:
-    from firmware_model.camera import CameraModel
-    from firmware_model.frame_io import read_frame
-    from firmware_model.frames import quat_to_matrix, vec_to_radec
-    from firmware_model.pipeline import run_pipeline
-    from ground.solve_report import record_from_output
+    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.pipeline.frame_readers import read_frame
+    from firmware_model.pipeline.run import run_pipeline
+    from firmware_model.reference_frames import quat_to_matrix, vec_to_radec
+    from ground.link.solve_report import record_from_output
 
     t0 = time.perf_counter()
     frame = read_frame(job["path"])
@@ -181,7 +181,7 @@ def main() -> int:
     args = ap.parse_args()
     if args.write_tetra3_reference:
         return write_tetra3_reference()
-    from firmware_model.frame_io import read_frame
+    from firmware_model.pipeline.frame_readers import read_frame
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
 

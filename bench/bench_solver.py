@@ -18,14 +18,14 @@ from dataclasses import replace
 
 import numpy as np
 
-from firmware_model.camera import CameraModel
-from firmware_model.frames import attitude_from_radec_roll
 from firmware_model.ident.consensus import ConsensusParams
 from firmware_model.ident.solver import SolveParams, solve
 from firmware_model.ident.verify import FieldOfView, VerifyParams
-from ground import skysim
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.reference_frames import attitude_from_radec_roll
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
+from ground.sim import whole_sky as skysim
 
 
 def scenes(catalog, camera, n, seed, model):

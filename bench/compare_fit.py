@@ -1,5 +1,5 @@
 """Old versus new centroid fit in one run: the per-star fit of a git revision of
-``firmware_model/centroid.py`` (default aa69eb2, the last one with one
+``firmware_model/pipeline/centroid.py`` (default aa69eb2, the last one with one
 ``scipy.optimize.least_squares`` call per star) against the working tree's batched fit, on
 the same detections.
 
@@ -26,13 +26,13 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np  # noqa: E402
 
-from firmware_model import centroid as new  # noqa: E402
-from firmware_model.camera import CameraModel  # noqa: E402
-from firmware_model.detect import DetectParams, detect_stars  # noqa: E402
-from firmware_model.frame_io import read_frame  # noqa: E402
-from firmware_model.frames import attitude_from_radec_roll  # noqa: E402
-from firmware_model.star_flags import StarFlag  # noqa: E402
-from ground.sensor_sim import DetectorModel, random_star_field, render_frame  # noqa: E402
+from firmware_model.pipeline import centroid as new  # noqa: E402
+from firmware_model.pipeline.camera import CameraModel  # noqa: E402
+from firmware_model.pipeline.detect import DetectParams, detect_stars  # noqa: E402
+from firmware_model.pipeline.frame_readers import read_frame  # noqa: E402
+from firmware_model.reference_frames import attitude_from_radec_roll  # noqa: E402
+from ground.sim.sensor_sim import DetectorModel, random_star_field, render_frame  # noqa: E402
+from protocol.star_flags import StarFlag  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared/data/frames/tetra3-mono/2019-07-29T204726_Alt40_Azi135_Try1.tiff"
@@ -40,7 +40,7 @@ REAL = ROOT.parent / "shared/data/frames/tetra3-mono/2019-07-29T204726_Alt40_Azi
 
 def load_old(rev: str):
     src = subprocess.run(
-        ["git", "-C", str(ROOT), "show", f"{rev}:firmware_model/centroid.py"],
+        ["git", "-C", str(ROOT), "show", f"{rev}:firmware_model/pipeline/centroid.py"],
         check=True,
         capture_output=True,
         text=True,

@@ -8,7 +8,7 @@ header's own CRC-32), then the 8-byte aligned sections STARS, PAIRS, HASH and KV
 copies of the tables). Any inconsistency raises :class:`CatalogImageError` with one of the
 :class:`Reason` codes (0x0201-0x0212, inside the link's validator range 0x0100-0xFFFF).
 This module works on named arrays and header fields only; the conversion from and to the
-firmware's ``OnboardCatalog`` lives in ``firmware_model/catalog_image_io.py``.
+firmware's ``OnboardCatalog`` lives in ``firmware_model/catalog/image_io.py``.
 """
 
 from __future__ import annotations

@@ -16,8 +16,8 @@ SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 @pytest.fixture
 def served_device():
     """Path of a pty served by an in-process default Device (stopped after the test)."""
-    from firmware_model.device import Device
-    from firmware_model.link import PtyLink, serve
+    from firmware_model.device.device import Device
+    from firmware_model.device.link import PtyLink, serve
 
     link, stop = PtyLink(), threading.Event()
     thread = threading.Thread(target=serve, args=(Device(), link, stop), daemon=True)

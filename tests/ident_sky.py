@@ -2,9 +2,9 @@
 
 import numpy as np
 
-from firmware_model.camera import CameraModel
-from firmware_model.frames import attitude_from_radec_roll
-from firmware_model.onboard_catalog import OnboardCatalog
+from firmware_model.catalog.onboard import OnboardCatalog
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.reference_frames import attitude_from_radec_roll
 
 
 def random_catalog(n=1600, seed=0, phi_max_deg=15.0, phi_min_deg=0.015, colour=True):

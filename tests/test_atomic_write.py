@@ -8,7 +8,7 @@ import pathlib
 import pytest
 
 from ground import atomic_write
-from ground.cli import main
+from ground.cli.main import main
 
 
 def _fail_half_way(monkeypatch):

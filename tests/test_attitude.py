@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from firmware_model.frames import matrix_to_quat, quat_to_matrix
 from firmware_model.ident.attitude import (
     attitude_covariance,
     davenport_q,
@@ -13,6 +12,7 @@ from firmware_model.ident.attitude import (
     solve_attitude,
     svd_attitude,
 )
+from firmware_model.reference_frames import matrix_to_quat, quat_to_matrix
 
 
 def star_set(rng, n, radius=0.12):

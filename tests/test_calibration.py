@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from firmware_model.camera import CameraModel
-from firmware_model.camera_fit import StarObservations, calibrate
-from firmware_model.frames import attitude_from_radec_roll
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.camera_fit import StarObservations, calibrate
+from firmware_model.reference_frames import attitude_from_radec_roll
 
 TRUE = CameraModel.from_fov(2592, 1944, 7.5, k1=0.12, k2=-0.4, p1=2e-4, p2=-1e-4)
 TRUE = CameraModel(**{**TRUE.to_dict(), "cx": 1301.2, "cy": 965.8})
@@ -70,8 +70,8 @@ def test_bad_input():
 
 def test_end_to_end_from_rendered_frames():
     """Render frames through a distorted camera, extract stars, match truth ids, calibrate."""
-    from firmware_model.extract import extract_stars
-    from ground.sensor_sim import random_star_field, render_frame
+    from firmware_model.pipeline.extract import extract_stars
+    from ground.sim.sensor_sim import random_star_field, render_frame
 
     true = CameraModel.from_fov(640, 480, 10.0, k1=0.25, p2=5e-4)
     rng = np.random.default_rng(4)

@@ -5,7 +5,7 @@ import itertools
 import numpy as np
 import pytest
 
-from firmware_model.onboard_catalog import OnboardCatalog, angle_between
+from firmware_model.catalog.onboard import OnboardCatalog, angle_between
 from ground.catalog.analyze import ambiguous_pairs, spiral_points, view_availability
 
 

@@ -6,11 +6,11 @@ import math
 import numpy as np
 import pytest
 
-from firmware_model.catalog_image_io import catalog_from_image
+from firmware_model.catalog.image_io import catalog_from_image
 from ground.catalog.build import build_catalog
 from ground.catalog.colour import ColourSource
 from ground.catalog.design import CatalogDesign
-from ground.cli import main as cli_main
+from ground.cli.main import main as cli_main
 
 
 @pytest.fixture(scope="module")

@@ -5,9 +5,10 @@ import struct
 import numpy as np
 import pytest
 
-from firmware_model.catalog_image_io import catalog_from_image, catalog_slot_handler, catalog_to_image
-from firmware_model.frames import radec_to_vec
-from firmware_model.onboard_catalog import OnboardCatalog
+from firmware_model.catalog.image_io import catalog_from_image, catalog_to_image
+from firmware_model.catalog.onboard import OnboardCatalog
+from firmware_model.device.catalog_slot import catalog_slot_handler
+from firmware_model.reference_frames import radec_to_vec
 from protocol.catalog_image import (
     HEADER_SIZE,
     STAR_DTYPE,

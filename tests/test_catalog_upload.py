@@ -6,14 +6,14 @@ from contextlib import contextmanager
 
 import pytest
 
-from firmware_model.catalog_image_io import catalog_slot_handler
-from firmware_model.device import Device
-from firmware_model.link import PtyLink, serve
-from firmware_model.state import SlotStore
-from ground.cli import main as cli_main
-from ground.client import Client, Nack
+from firmware_model.device.catalog_slot import catalog_slot_handler
+from firmware_model.device.device import Device
+from firmware_model.device.link import PtyLink, serve
+from firmware_model.device.slots import SlotStore
+from ground.cli.main import main as cli_main
 from ground.fuzz.upload_faults import catalog_image as _image
 from ground.fuzz.upload_faults import wrong_version
+from ground.link.client import Client, Nack
 from protocol.catalog_image import Reason
 from protocol.crc import crc32
 

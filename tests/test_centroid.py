@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 from scipy.optimize import approx_fprime
 
-from firmware_model.camera import CameraModel
-from firmware_model.centroid import FitParams, _WindowModel, fit_stars
-from firmware_model.detect import detect_stars
-from firmware_model.extract import extract_stars
-from firmware_model.frame import Frame
-from firmware_model.frames import attitude_from_radec_roll
-from firmware_model.star_flags import StarFlag
-from ground.sensor_sim import DetectorModel, Stars, random_star_field, render_frame
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.centroid import FitParams, _WindowModel, fit_stars
+from firmware_model.pipeline.detect import detect_stars
+from firmware_model.pipeline.extract import extract_stars
+from firmware_model.pipeline.raw_frame import Frame
+from firmware_model.reference_frames import attitude_from_radec_roll
+from ground.sim.sensor_sim import DetectorModel, Stars, random_star_field, render_frame
+from protocol.star_flags import StarFlag
 
 CAM = CameraModel.from_fov(480, 360, 2.0)
 ATT = attitude_from_radec_roll(4.0, -0.2, 1.0)
@@ -133,7 +133,7 @@ def test_cog_method_is_coarser_than_the_fit_and_bad_method_rejected():
 
 def test_batched_windows_match_single_window_model():
     """The all-windows model, Jacobian and linear solve equal the one-window reference."""
-    from firmware_model.centroid import _Windows
+    from firmware_model.pipeline.centroid import _Windows
 
     stars = random_star_field(CAM, ATT, 6, vmag_range=(2.0, 4.0), seed=11, min_separation_px=25)
     res = render_frame(stars, ATT, CAM, seed=11)

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from ground.cli import main
+from ground.cli.main import main
 
 
 def _one_line_error(capsys) -> str:
@@ -47,8 +47,8 @@ def test_missing_or_garbage_files_are_one_line(files, capsys, argv, code, fragme
 def test_a_camera_file_that_is_not_a_camera_model_is_one_line(files, capsys):
     import numpy as np
 
-    from firmware_model.frame import Frame
-    from ground.frame_writer import write_frame
+    from firmware_model.pipeline.raw_frame import Frame
+    from ground.sim.frame_writer import write_frame
 
     write_frame(Frame(np.zeros((48, 64), np.uint16), "MONO", white_level=4095), files / "f.npy")
     rc = main(

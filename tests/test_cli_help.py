@@ -6,7 +6,7 @@ import json
 import subprocess
 import sys
 
-from ground.cli import HelpFormatter, _leaf_parsers, build_parser
+from ground.cli.main import HelpFormatter, _leaf_parsers, build_parser
 
 HEAVY = ("numpy", "scipy", "astropy", "matplotlib", "serial", "tqdm")
 
@@ -14,7 +14,7 @@ HEAVY = ("numpy", "scipy", "astropy", "matplotlib", "serial", "tqdm")
 def test_help_imports_no_heavy_package():
     script = f"""
 import json, sys
-from ground.cli import _leaf_parsers, build_parser, main
+from ground.cli.main import _leaf_parsers, build_parser, main
 parser = build_parser()
 for child in _leaf_parsers(parser):
     child.format_help()
@@ -57,11 +57,11 @@ def test_one_version_number_in_both_command_lines_and_the_ping_banner():
     import subprocess
     import sys
 
-    from firmware_model.device import Device
+    from firmware_model.device.device import Device
     from protocol import __version__
 
     assert __version__ != "0+unknown"  # read from the installed package's metadata
-    for module, prog in (("ground.cli", "st16-ground"), ("firmware_model.cli", "st16-device")):
+    for module, prog in (("ground.cli", "st16-ground"), ("firmware_model.device.cli", "st16-device")):
         run = subprocess.run([sys.executable, "-m", module, "--version"], capture_output=True, text=True, timeout=60)
         assert run.returncode == 0 and run.stdout.strip() == f"{prog} {__version__}", run
     assert f" {__version__} " in Device().boot_banner

@@ -5,8 +5,8 @@ import threading
 
 import pytest
 
-from firmware_model.link import PtyLink
-from ground.client import Client, MalformedReply, Nack, ReplyTimeout
+from firmware_model.device.link import PtyLink
+from ground.link.client import Client, MalformedReply, Nack, ReplyTimeout
 from protocol import nsp, slip
 from protocol.commands import Code, NackReason
 
@@ -156,7 +156,7 @@ def test_upload_progress_resumes_from_device_status(served_device):
 
 
 def test_dead_port_raises_link_down():
-    from ground.client import LinkDown
+    from ground.link.client import LinkDown
 
     link = PtyLink()
     c = Client(link.path, timeout=0.3, retries=0)
@@ -189,8 +189,8 @@ def test_a_closed_client_and_a_failing_log_are_named_for_what_they_are(tmp_path,
     port open."""
     import serial
 
-    from ground.client import Client, LinkDown
-    from ground.exchange_log import LogWriteError
+    from ground.link.client import Client, LinkDown
+    from ground.link.exchange_log import LogWriteError
 
     c = Client("loop://", timeout=0.05, retries=0)
     c.close()

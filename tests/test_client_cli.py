@@ -5,9 +5,9 @@ import json
 
 import pytest
 
-from ground.cli import main
-from ground.client import Client
-from ground.console import Console
+from ground.cli.main import main
+from ground.link.client import Client
+from ground.link.console import Console
 
 
 @pytest.fixture
@@ -127,8 +127,8 @@ def test_result_and_combination_print_decoded_fields(port, capsys):
 def test_combination_sections_decode_to_attitude_and_time():
     import numpy as np
 
-    from firmware_model.frames import attitude_from_radec_roll, matrix_to_quat
-    from ground.solve_report import combination_record, format_record
+    from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat
+    from ground.link.solve_report import combination_record, format_record
     from protocol import result
 
     q = matrix_to_quat(attitude_from_radec_roll(*np.radians([83.8, -5.4, 10.0])))
@@ -191,7 +191,7 @@ def test_console_history_survives_sessions_and_bad_files(port, capsys, tmp_path,
     import readline
     import sys
 
-    from ground.console import history_path
+    from ground.link.console import history_path
 
     monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path))
     history = history_path()

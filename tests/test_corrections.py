@@ -4,8 +4,14 @@ import numpy as np
 import pytest
 from astropy.time import Time
 
-from firmware_model import frames
-from ground.corrections import ColourCorrection, Site, bennett_refraction_deg, correct_refraction, refraction_angle
+from firmware_model import reference_frames as frames
+from ground.calibration.corrections import (
+    ColourCorrection,
+    Site,
+    bennett_refraction_deg,
+    correct_refraction,
+    refraction_angle,
+)
 
 
 def test_colour_fit_recovers_known_map_and_rejects_outliers():
@@ -51,7 +57,7 @@ def test_correct_refraction_restores_true_geometry():
     import astropy.units as u
     from astropy.coordinates import ICRS, SkyCoord
 
-    from ground.corrections import _altaz_frames
+    from ground.calibration.corrections import _altaz_frames
 
     vacuum, air = _altaz_frames(SITE, TIME)
     # a field centred at 25 deg altitude

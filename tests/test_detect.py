@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from firmware_model.camera import CameraModel
-from firmware_model.detect import _K121, DetectParams, detect_stars, matched_kernel
-from firmware_model.extract import extract_stars
-from firmware_model.frame import Frame
-from firmware_model.frames import attitude_from_radec_roll
-from firmware_model.star_flags import StarFlag
-from ground.sensor_sim import DetectorModel, FalseObject, Stars, random_star_field, render_frame
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.detect import _K121, DetectParams, detect_stars, matched_kernel
+from firmware_model.pipeline.extract import extract_stars
+from firmware_model.pipeline.raw_frame import Frame
+from firmware_model.reference_frames import attitude_from_radec_roll
+from ground.sim.sensor_sim import DetectorModel, FalseObject, Stars, random_star_field, render_frame
+from protocol.star_flags import StarFlag
 
 CAM = CameraModel.from_fov(640, 480, 2.5)
 ATT = attitude_from_radec_roll(2.0, 0.3, 0.0)
@@ -98,7 +98,7 @@ def test_nan_frame_is_a_clear_error():
 
 
 def test_real_mono_frames_detect_stars(shared_data):
-    from firmware_model.frame_io import read_frame
+    from firmware_model.pipeline.frame_readers import read_frame
 
     path = sorted((shared_data / "frames" / "tetra3-mono").glob("*.tiff"))[0]
     stars = extract_stars(read_frame(path))
@@ -123,7 +123,7 @@ def test_column_defects_are_not_detected_and_do_not_hide_a_trail_crossing_them(k
     neither a star nor elongated: hundreds of candidates along the trail filled the cap. A dead
     column (here barely below this dark sky) once made its block's noise estimate collapse when
     the background subsample kept hitting the same columns."""
-    from ground import openloop as ol
+    from ground.sim import openloop as ol
 
     cam = CameraModel.from_fov(640, 480, 3.0)
     trail = ol.streak(40.0, 400.0, 600.0, 80.0, 400.0)
@@ -174,7 +174,7 @@ def test_dense_clutter_is_bounded_work_with_a_clear_note():
     """20 000 overlapping blobs on a 640 x 480 frame form a few huge regions of thousands of peaks:
     the dip test between peaks keeps at most REGION_CAP_FACTOR x max_candidates of them (the
     brightest) and counts the rest as dropped; it used to compare every pair of a region's peaks."""
-    from firmware_model.detect import REGION_CAP_FACTOR
+    from firmware_model.pipeline.detect import REGION_CAP_FACTOR
 
     rng = np.random.default_rng(0)
     img = rng.normal(200.0, 5.0, (480, 640))

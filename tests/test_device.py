@@ -5,8 +5,8 @@ import threading
 
 import pytest
 
-from firmware_model.device import Device, SlotHandler
-from firmware_model.state import SlotStore
+from firmware_model.device.device import Device, SlotHandler
+from firmware_model.device.slots import SlotStore
 from protocol import nsp, result, slip
 from protocol.commands import (
     UNASSIGNED,

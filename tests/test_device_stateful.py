@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 
-from firmware_model.device import Device
+from firmware_model.device.device import Device
 from protocol import nsp, slip
 from protocol.commands import UNASSIGNED, Code, NackInfo, NackReason, ReadRange
 

@@ -8,21 +8,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware_model.camera import CameraModel
-from firmware_model.catalog_image_io import catalog_to_image
-from firmware_model.frame import frame_to_bytes
-from firmware_model.frame_io import frame_files, read_frame
-from firmware_model.frames import matrix_to_quat, quat_to_matrix, rotation_angle
+from firmware_model.catalog.image_io import catalog_to_image
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.frame_readers import frame_files, read_frame
+from firmware_model.pipeline.raw_frame import frame_to_bytes
+from firmware_model.reference_frames import matrix_to_quat, quat_to_matrix, rotation_angle
+from ground.analysis.replay import TABLE5_MODES, OfflineSolver, replay, table5
+from ground.calibration.corrections import ColourCorrection
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
-from ground.client import Client
-from ground.corrections import ColourCorrection
-from ground.demo import pick_attitudes, start_device, stop_device
-from ground.frame_writer import write_rendered
-from ground.replay import TABLE5_MODES, OfflineSolver, replay, table5
-from ground.sensor_sim import DetectorModel, Stars, render_frame
-from ground.sky_model import sky_stars
-from ground.solve_report import solve_record
+from ground.cli.demo import pick_attitudes, start_device, stop_device
+from ground.link.client import Client
+from ground.link.solve_report import solve_record
+from ground.sim.frame_writer import write_rendered
+from ground.sim.sensor_sim import DetectorModel, Stars, render_frame
+from ground.sim.sky_model import sky_stars
 
 CAMERA = CameraModel.reference_design()
 #: The "atmosphere" of these tests: observed rg, bg are a linear map of the catalog's.
@@ -65,7 +65,7 @@ def test_bad_schedule_is_refused(tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("qw,qx,qy,qz\n1,0,0,0.5\n")
     run = subprocess.run(
-        [sys.executable, "-m", "firmware_model.cli", "--pty", "--sky", str(bad)],
+        [sys.executable, "-m", "firmware_model.device.cli", "--pty", "--sky", str(bad)],
         capture_output=True,
         text=True,
         timeout=60,
@@ -149,9 +149,9 @@ def test_offline_replay_corrects_refraction(catalog, tmp_path):
     from astropy.coordinates import ICRS, SkyCoord
     from astropy.time import Time
 
-    from firmware_model.frames import attitude_from_radec_roll, radec_to_vec, vec_to_radec
-    from ground.corrections import Site, _altaz_frames
-    from ground.replay import OfflineSolver, Truth, score
+    from firmware_model.reference_frames import attitude_from_radec_roll, radec_to_vec, vec_to_radec
+    from ground.analysis.replay import OfflineSolver, Truth, score
+    from ground.calibration.corrections import Site, _altaz_frames
 
     site, when = Site(43.66, -79.38, 100.0, pressure_hpa=1010, temperature_c=0), "2012-02-10T03:00:00"
     vacuum, air = _altaz_frames(site, Time(when, scale="utc"))

@@ -13,17 +13,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware_model.camera import CameraModel
-from firmware_model.catalog_image_io import catalog_to_image
-from firmware_model.frame import Frame, frame_to_bytes
+from firmware_model.catalog.image_io import catalog_to_image
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes
+from ground.analysis.replay import LinkSolver, Truth, replay, score
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
-from ground.client import Client, Nack
-from ground.demo import pick_attitudes, start_device, stop_device
-from ground.frame_writer import write_rendered
-from ground.replay import LinkSolver, Truth, replay, score
-from ground.sensor_sim import DetectorModel, render_frame
-from ground.sky_model import sky_stars
+from ground.cli.demo import pick_attitudes, start_device, stop_device
+from ground.link.client import Client, Nack
+from ground.sim.frame_writer import write_rendered
+from ground.sim.sensor_sim import DetectorModel, render_frame
+from ground.sim.sky_model import sky_stars
 from protocol import result
 
 CAMERA = CameraModel.reference_design()
@@ -73,7 +73,7 @@ def test_colour_and_mono_solves_over_pty(device, scene):
     _upload_catalog(device, scene["image"])
     solver = LinkSolver(device)
     try:
-        from firmware_model.frame_io import read_frame
+        from firmware_model.pipeline.frame_readers import read_frame
 
         for path in sorted(scene["frames"].glob("*.dng")):
             rec = solver.solve(read_frame(path))
@@ -129,7 +129,7 @@ def test_replay_survives_device_restart(scene, tmp_path):
     """The device dies after the first solve; the ground side waits, resumes, loses nothing."""
     port = _free_port()
     state = tmp_path / "state"
-    args = [sys.executable, "-m", "firmware_model.cli", "--tcp", f"127.0.0.1:{port}", "--state", str(state)]
+    args = [sys.executable, "-m", "firmware_model.device.cli", "--tcp", f"127.0.0.1:{port}", "--state", str(state)]
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, text=True)
     assert proc.stdout.readline().startswith("listening on")
     url = f"socket://127.0.0.1:{port}"
@@ -194,7 +194,7 @@ def test_cli_solve_json_and_results_log(device, scene, tmp_path):
 def test_refused_frame_is_an_answer_not_silence(device, scene, tmp_path):
     """A frame of the wrong size is NACKed: `solve` ends at once with that one line (it used to
     wait for a 'silent' device and retry for minutes), and a replay logs it and goes on."""
-    from ground.frame_writer import write_dng
+    from ground.sim.frame_writer import write_dng
 
     _upload_catalog(device, scene["image"])
     small = tmp_path / "small.dng"
@@ -228,8 +228,8 @@ def test_refused_frame_is_an_answer_not_silence(device, scene, tmp_path):
 
 
 def test_replay_refuses_to_mix_runs_and_resumes_where_it_stopped(scene, tmp_path):
-    from firmware_model.catalog_image_io import catalog_from_image
-    from ground.replay import OfflineSolver
+    from firmware_model.catalog.image_io import catalog_from_image
+    from ground.analysis.replay import OfflineSolver
 
     solver = OfflineSolver(CAMERA, catalog_from_image(scene["image"]))
     frames = sorted(scene["frames"].glob("*.dng"))
@@ -249,7 +249,7 @@ def test_replay_refuses_to_mix_runs_and_resumes_where_it_stopped(scene, tmp_path
 
 
 def test_frame_upload_can_show_its_progress(device, scene, capsys):
-    from firmware_model.frame_io import read_frame
+    from firmware_model.pipeline.frame_readers import read_frame
 
     _upload_catalog(device, scene["image"])
     frame = read_frame(sorted(scene["frames"].glob("*rggb.dng"))[0])

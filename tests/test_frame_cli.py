@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 
-from ground.cli import main
+from ground.cli.main import main
 
 
 def test_render_then_inspect_json_and_plot(tmp_path, capsys):
@@ -78,10 +78,10 @@ def test_inspect_text_and_bad_file(tmp_path, capsys):
 
 
 def test_render_from_catalog_image(tmp_path):
-    from firmware_model.camera import CameraModel
-    from firmware_model.catalog_image_io import catalog_to_image
-    from firmware_model.frames import attitude_from_radec_roll, quat_to_matrix
-    from firmware_model.onboard_catalog import OnboardCatalog
+    from firmware_model.catalog.image_io import catalog_to_image
+    from firmware_model.catalog.onboard import OnboardCatalog
+    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.reference_frames import attitude_from_radec_roll, quat_to_matrix
 
     rng = np.random.default_rng(2)
     cam = CameraModel.from_fov(640, 480, 2.5)

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from firmware_model.frame import BLUE, GREEN, RED, Frame, frame_from_bytes, frame_to_bytes, pattern_codes
-from firmware_model.frame_io import FrameReadError, read_frame
-from ground.frame_writer import write_dng, write_frame
+from firmware_model.pipeline.frame_readers import FrameReadError, read_frame
+from firmware_model.pipeline.raw_frame import BLUE, GREEN, RED, Frame, frame_from_bytes, frame_to_bytes, pattern_codes
+from ground.sim.frame_writer import write_dng, write_frame
 
 
 def _frame(pattern="RGGB", shape=(48, 64), seed=0):
@@ -329,7 +329,7 @@ def test_bad_png_and_jpeg_files(tmp_path):
 
 
 def test_frame_files_takes_png_and_jpeg(tmp_path):
-    from firmware_model.frame_io import frame_files
+    from firmware_model.pipeline.frame_readers import frame_files
 
     for name in ("a.png", "b.JPG", "c.jpeg", "d.json", "e.txt"):
         (tmp_path / name).write_bytes(b"x")
@@ -339,7 +339,7 @@ def test_frame_files_takes_png_and_jpeg(tmp_path):
 def test_shared_real_colour_frames(shared_data):
     import json
 
-    from firmware_model.frame_io import frame_files
+    from firmware_model.pipeline.frame_readers import frame_files
 
     folder = shared_data / "frames" / "colour-real"
     if not folder.is_dir():

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from firmware_model import frames
+from firmware_model import reference_frames as frames
 
 
 def test_quaternion_round_trip_and_canonical_sign():

@@ -6,11 +6,11 @@ import time
 
 import pytest
 
-from firmware_model.link import PtyLink
-from ground.cli import main as cli_main
-from ground.client import Client, Nack, ReplyTimeout
+from firmware_model.device.link import PtyLink
+from ground.cli.main import main as cli_main
 from ground.fuzz import port_faults
 from ground.fuzz.port_faults import FakePort
+from ground.link.client import Client, Nack, ReplyTimeout
 from protocol import nsp, slip
 from protocol.commands import Code, NackInfo, NackReason
 

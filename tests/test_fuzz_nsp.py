@@ -34,7 +34,7 @@ def test_fuzzed_device_answers_a_ping_after_every_burst():
 
 
 def test_every_code_is_answered_when_polled_and_silent_when_not():
-    from firmware_model.device import Device
+    from firmware_model.device.device import Device
 
     dev, rng = Device(), random.Random(4)
     for _ in range(10):

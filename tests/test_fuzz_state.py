@@ -4,7 +4,7 @@ none, never another one (fixed seeds; long run: bench/bench_fuzz.py)."""
 
 import logging
 
-from firmware_model.state import SlotStore
+from firmware_model.device.slots import SlotStore
 from ground.fuzz import state_faults
 from ground.fuzz.tally import Tally
 

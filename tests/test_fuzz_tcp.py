@@ -1,4 +1,4 @@
-"""TCP link policy (firmware_model.link.TcpLink): one active client, the newest takes over, idle
+"""TCP link policy (firmware_model.device.link.TcpLink): one active client, the newest takes over, idle
 clients closed, cut frames ended, a connection flood absorbed; each proved against a device."""
 
 import socket
@@ -7,10 +7,10 @@ import time
 
 import pytest
 
-from firmware_model.device import Device
-from firmware_model.link import TcpLink, serve
-from ground.client import Client, LinkDown
+from firmware_model.device.device import Device
+from firmware_model.device.link import TcpLink, serve
 from ground.fuzz import tcp_faults
+from ground.link.client import Client, LinkDown
 
 
 @pytest.fixture

@@ -4,13 +4,13 @@ restarts with the catalog it had (fixed seed; long run: bench/bench_fuzz.py)."""
 
 import threading
 
-from firmware_model.catalog_image_io import catalog_slot_handler
-from firmware_model.device import Device
-from firmware_model.link import PtyLink, serve
-from firmware_model.state import SlotStore
-from ground.client import Client
+from firmware_model.device.catalog_slot import catalog_slot_handler
+from firmware_model.device.device import Device
+from firmware_model.device.link import PtyLink, serve
+from firmware_model.device.slots import SlotStore
 from ground.fuzz import upload_faults
 from ground.fuzz.tally import Tally
+from ground.link.client import Client
 
 
 def test_every_transfer_fault_keeps_the_active_catalog_and_a_kill_loses_nothing():

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from ident_sky import random_attitude, random_catalog
 
+from firmware_model.catalog.onboard import angle_between
 from firmware_model.ident.four_star import (
     GROUP_PAIRS,
     SIGNATURES,
@@ -12,7 +13,6 @@ from firmware_model.ident.four_star import (
     match_four_star,
     vote_matrix,
 )
-from firmware_model.onboard_catalog import angle_between
 
 EPS = np.radians(0.01)
 

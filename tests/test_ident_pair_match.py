@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from ident_sky import random_catalog
 
+from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.ident.pair_match import (
     PairNoise,
     best_match,
@@ -13,7 +14,6 @@ from firmware_model.ident.pair_match import (
     pair_tuple,
     sigma_phi_from_centroid,
 )
-from firmware_model.onboard_catalog import OnboardCatalog
 
 
 def test_critical_distance_is_papers_value():

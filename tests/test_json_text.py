@@ -32,7 +32,7 @@ def test_what_it_cannot_represent_is_refused():
 
 
 def test_the_results_log_is_strict_json(tmp_path):
-    from ground.results_log import ResultsLog
+    from ground.analysis.results_log import ResultsLog
 
     log = ResultsLog(tmp_path)
     log.append(

@@ -1,6 +1,10 @@
-"""The import direction of the layers (docs/ARCHITECTURE.md): ``protocol`` imports neither of the
-others, ``firmware_model`` never imports ``ground``; checked on every module's source, lazy
-imports inside functions included."""
+"""The import direction of the layers (docs/ARCHITECTURE.md), checked on every module's source,
+lazy imports inside functions included.
+
+Between the top-level packages: ``protocol`` imports neither of the others, ``firmware_model``
+never imports ``ground``. Inside each, the sub-packages form a stack, listed bottom first in
+:data:`STACKS`: a module may import its own group and the groups below it, never one above.
+"""
 
 import ast
 from pathlib import Path
@@ -10,16 +14,57 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 FORBIDDEN = {"protocol": ("firmware_model", "ground"), "firmware_model": ("ground",)}
 
+#: Bottom first. A group is a module path prefix; the longest matching prefix names a module's group.
+STACKS = {
+    "firmware_model": [
+        ("firmware_model.reference_frames", "firmware_model.catalog"),
+        # identification needs the camera model (pixels <-> directions) and nothing else of the pipeline
+        ("firmware_model.pipeline.camera",),
+        ("firmware_model.ident",),
+        ("firmware_model.pipeline",),
+        ("firmware_model.device",),
+    ],
+    "ground": [
+        ("ground.atomic_write", "ground.json_text", "ground.optional", "ground.arg_types"),
+        ("ground.link", "ground.catalog"),
+        ("ground.sim",),
+        ("ground.calibration",),
+        ("ground.analysis", "ground.fuzz"),
+        ("ground.cli",),
+    ],
+}
 
-def _imported(path: Path) -> set[str]:
-    """Top-level package names imported anywhere in the module (absolute imports)."""
+
+def _module_name(path: Path) -> str:
+    return ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+
+
+def _imports(path: Path) -> set[str]:
+    """Every absolute module path the module imports (``from a.b import c`` gives ``a.b.c`` and
+    ``a.b``, since ``c`` may be a module or a name in ``a.b``)."""
     names = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
-            names.update(alias.name.split(".")[0] for alias in node.names)
+            names.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            names.add(node.module.split(".")[0])
+            names.add(node.module)
+            names.update(f"{node.module}.{alias.name}" for alias in node.names)
     return names
+
+
+def _imported(path: Path) -> set[str]:
+    """Top-level package names imported anywhere in the module (absolute imports)."""
+    return {name.split(".")[0] for name in _imports(path)}
+
+
+def _level(stack, module: str) -> int | None:
+    """Index in ``stack`` of the group owning ``module`` (longest prefix), None if none does."""
+    best, best_len = None, -1
+    for i, group in enumerate(stack):
+        for prefix in group:
+            if (module == prefix or module.startswith(prefix + ".")) and len(prefix) > best_len:
+                best, best_len = i, len(prefix)
+    return best
 
 
 @pytest.mark.parametrize("layer", sorted(FORBIDDEN))
@@ -34,7 +79,51 @@ def test_a_layer_never_imports_the_ones_above_it(layer):
     assert not offenders, offenders
 
 
+@pytest.mark.parametrize("package", sorted(STACKS))
+def test_sub_packages_import_only_downwards(package):
+    stack = STACKS[package]
+    offenders = {}
+    for path in sorted((ROOT / package).rglob("*.py")):
+        own = _level(stack, _module_name(path))
+        if own is None:  # the package's own __init__
+            continue
+        up = sorted(
+            name
+            for name in _imports(path)
+            if name.startswith(package + ".") and (lvl := _level(stack, name)) is not None and lvl > own
+        )
+        if up:
+            offenders[str(path.relative_to(ROOT))] = up
+    assert not offenders, offenders
+
+
+def test_every_module_belongs_to_a_group():
+    loose = [
+        str(p.relative_to(ROOT))
+        for package, stack in STACKS.items()
+        for p in (ROOT / package).rglob("*.py")
+        if p.name != "__init__.py" or p.parent != ROOT / package
+        if _level(stack, _module_name(p)) is None
+    ]
+    assert not loose, loose
+
+
+def test_the_command_line_is_imported_by_nothing_else():
+    users = [
+        str(p.relative_to(ROOT))
+        for layer in ("protocol", "firmware_model", "ground")
+        for p in (ROOT / layer).rglob("*.py")
+        if not _module_name(p).startswith("ground.cli")
+        and any(name == "ground.cli" or name.startswith("ground.cli.") for name in _imports(p))
+    ]
+    assert not users, users
+
+
 def test_the_check_sees_an_import_inside_a_function(tmp_path):
     src = tmp_path / "m.py"
-    src.write_text("def f():\n    from ground.client import Client\n    import firmware_model.device\n")
+    src.write_text("def f():\n    from ground.link.client import Client\n    import firmware_model.device.device\n")
     assert _imported(src) == {"ground", "firmware_model"}
+    assert _level(STACKS["ground"], "ground.link.client") < _level(STACKS["ground"], "ground.cli.main")
+    assert _level(STACKS["firmware_model"], "firmware_model.pipeline.camera") < _level(
+        STACKS["firmware_model"], "firmware_model.ident.verify"
+    )

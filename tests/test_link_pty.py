@@ -8,8 +8,8 @@ import sys
 
 import pytest
 
-from ground.client import Client, Nack, ReplyTimeout
 from ground.fuzz.device_proc import device_command as _device_command
+from ground.link.client import Client, Nack, ReplyTimeout
 from protocol import nsp, result, slip
 from protocol.commands import Code, NackReason, XferState
 from protocol.crc import crc32
@@ -96,8 +96,8 @@ def _small_catalog_image(n: int = 300) -> bytes:
     """A valid catalog image of a random ``n``-star sky (the device validates slot 0)."""
     import numpy as np
 
-    from firmware_model.catalog_image_io import catalog_to_image
-    from firmware_model.onboard_catalog import OnboardCatalog
+    from firmware_model.catalog.image_io import catalog_to_image
+    from firmware_model.catalog.onboard import OnboardCatalog
 
     rng = np.random.default_rng(7)
     v = rng.normal(size=(n, 3))
@@ -226,8 +226,8 @@ def test_link_is_served_while_a_combination_waits_for_its_sequence():
     In-process device on a real pty (the capture is held by the test)."""
     import threading
 
-    from firmware_model.device import Device
-    from firmware_model.link import PtyLink, serve
+    from firmware_model.device.device import Device
+    from firmware_model.device.link import PtyLink, serve
     from protocol.commands import AddressedBytes, Combination
 
     release = threading.Event()
@@ -305,7 +305,7 @@ def test_ctrl_c_during_an_upload_keeps_what_was_sent_and_the_next_upload_resumes
 
 
 def test_open_link_makes_each_transport_from_a_url():
-    from firmware_model.link import PtyLink, SerialLink, TcpLink, open_link
+    from firmware_model.device.link import PtyLink, SerialLink, TcpLink, open_link
 
     links = [open_link("pty://"), open_link("tcp://127.0.0.1:0", tcp_idle=5.0), open_link("loop://")]
     try:

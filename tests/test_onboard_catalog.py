@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from firmware_model.onboard_catalog import OnboardCatalog, build_pair_table
+from firmware_model.catalog.onboard import OnboardCatalog, build_pair_table
 
 
 def random_sky(n, seed):

@@ -12,16 +12,22 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from firmware_model.camera import CameraModel
-from firmware_model.extract import PSF_FAIL_FRACTION, ExtractParams, _detect_and_fit, extract_stars, failed_fit_fraction
-from firmware_model.frame import Frame
-from firmware_model.frames import attitude_from_radec_roll, quat_to_matrix, rotation_angle, vec_to_radec
-from firmware_model.pipeline import PipelineParams, run_pipeline
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.extract import (
+    PSF_FAIL_FRACTION,
+    ExtractParams,
+    _detect_and_fit,
+    extract_stars,
+    failed_fit_fraction,
+)
+from firmware_model.pipeline.raw_frame import Frame
+from firmware_model.pipeline.run import PipelineParams, run_pipeline
+from firmware_model.reference_frames import attitude_from_radec_roll, quat_to_matrix, rotation_angle, vec_to_radec
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
-from ground.sensor_sim import DetectorModel, FalseObject, render_frame
-from ground.sky_model import sky_stars
-from ground.solve_report import record_from_output
+from ground.link.solve_report import record_from_output
+from ground.sim.sensor_sim import DetectorModel, FalseObject, render_frame
+from ground.sim.sky_model import sky_stars
 from protocol.result import Status
 
 #: The tetra3 test camera's geometry (1024 x 768, ~41 arcsec/px, 11.4 x 8.6 deg).
@@ -74,7 +80,7 @@ def test_sharp_psf_with_a_wide_start_solves(catalog):
 def test_defocus_ring_among_hot_pixel_clusters_measures_a_wide_psf(catalog):
     """A 1 px guess on a defocus ring fails most star fits while 2x2/3x3 hot-pixel clusters converge
     near 0.8 px: the wide pass (PSF_WIDEN_FACTOR) must win, and the frame solve."""
-    from ground import openloop as ol
+    from ground.sim import openloop as ol
 
     rng = np.random.default_rng(5)
     hot, _ = ol.hot_clusters_e((NOMINAL.height, NOMINAL.width), 20, rng, e_range=(1000.0, 3000.0))
@@ -121,7 +127,7 @@ def test_four_stars_in_opposite_corners_of_a_wide_field_solve():
     at opposite corners (2 360 px apart), their centroids moved 0.6-1 px by coma the solver does
     not model. No catalog pattern within 1.5 half-fields of a star spans them (that radius alone
     returned a 2-star low-confidence wrong answer); the 2 half-field radius does."""
-    from ground import openloop as ol
+    from ground.sim import openloop as ol
 
     camera = CameraModel.reference_design()
     a = attitude_from_radec_roll(*np.radians([72.963, -49.661, 3.976]))
@@ -134,7 +140,7 @@ def test_four_stars_in_opposite_corners_of_a_wide_field_solve():
 
 
 def test_planet_on_the_frame_is_labelled_and_not_matched(catalog):
-    from firmware_model.planets import body_positions
+    from firmware_model.pipeline.planets import body_positions
 
     epoch = "2023-11-03T04:00:00"  # Jupiter at opposition
     jupiter = body_positions(epoch)["jupiter"].direction

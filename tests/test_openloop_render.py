@@ -1,13 +1,13 @@
-"""Open-loop rendering models (ground/openloop.py and the render_frame hooks) do what they claim."""
+"""Open-loop rendering models (ground/sim/openloop.py and the render_frame hooks) do what they claim."""
 
 import numpy as np
 import pytest
 
-from firmware_model.camera import CameraModel
-from firmware_model.frame import pattern_codes
-from firmware_model.frames import attitude_from_radec_roll
-from ground import openloop as ol
-from ground.sensor_sim import DetectorModel, Stars, pixel_integrated_gaussian, render_frame
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.raw_frame import pattern_codes
+from firmware_model.reference_frames import attitude_from_radec_roll
+from ground.sim import openloop as ol
+from ground.sim.sensor_sim import DetectorModel, Stars, pixel_integrated_gaussian, render_frame
 
 CAM = CameraModel.from_fov(320, 240, 2.0)
 ATT = attitude_from_radec_roll(0.3, -0.4, 0.1)

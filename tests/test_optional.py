@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from ground.cli import main
+from ground.cli.main import main
 from ground.optional import MissingExtra, dask_distributed, pyplot
 
 
@@ -21,8 +21,8 @@ def test_missing_extras_name_what_to_install(monkeypatch):
 
 
 def test_a_plot_asked_for_without_matplotlib_is_one_line_and_exit_2(tmp_path, monkeypatch, capsys):
-    from firmware_model.frame import Frame
-    from ground.frame_writer import write_frame
+    from firmware_model.pipeline.raw_frame import Frame
+    from ground.sim.frame_writer import write_frame
 
     write_frame(Frame(np.zeros((48, 64), np.uint16), "MONO", white_level=4095), tmp_path / "f.npy")
     monkeypatch.setitem(sys.modules, "matplotlib", None)

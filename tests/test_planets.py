@@ -1,4 +1,4 @@
-"""Planet and Moon prediction and labelling (firmware_model/planets.py).
+"""Planet and Moon prediction and labelling (firmware_model/pipeline/planets.py).
 
 Truth for the ephemeris checks comes from published events, each quoted with its source
 and converted into a geometric fact that does not depend on our code:
@@ -23,9 +23,9 @@ from astropy import units as u
 from astropy.time import Time
 from scipy.spatial.transform import Rotation
 
-from firmware_model import planets
-from firmware_model.camera import CameraModel
-from firmware_model.frames import attitude_from_radec_roll, matrix_to_quat, vec_to_radec
+from firmware_model.pipeline import planets
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, vec_to_radec
 
 ARCSEC = np.radians(1.0 / 3600.0)
 ARCMIN = 60.0 * ARCSEC

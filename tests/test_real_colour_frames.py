@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from firmware_model.frames import radec_to_vec
+from firmware_model.reference_frames import radec_to_vec
 
 GROUND = [sys.executable, "-m", "ground.cli"]
 #: Solved today (docs/e2e.md); tree.jpg (foreground clutter) is not, and must come back without a

@@ -11,14 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware_model.camera import CameraModel
-from firmware_model.catalog_image_io import catalog_to_image
-from firmware_model.frame_io import read_frame
-from firmware_model.frames import radec_to_vec
-from firmware_model.pipeline import run_pipeline
+from firmware_model.catalog.image_io import catalog_to_image
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.frame_readers import read_frame
+from firmware_model.pipeline.run import run_pipeline
+from firmware_model.reference_frames import radec_to_vec
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
-from ground.solve_report import record_from_output
+from ground.link.solve_report import record_from_output
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 REFERENCE = json.loads((FIXTURES / "tetra3_cedar_reference.json").read_text())["frames"]
@@ -101,9 +101,9 @@ def test_real_frames_solve_through_the_cli(tetra3, camera, tmp_path):
 
 
 def test_device_and_offline_replay_give_the_same_answers(tetra3, tmp_path):
-    from ground.client import Client
-    from ground.demo import start_device, stop_device
-    from ground.solve_report import solve_record
+    from ground.cli.demo import start_device, stop_device
+    from ground.link.client import Client
+    from ground.link.solve_report import solve_record
 
     params = tmp_path / "params.json"
     params.write_text(json.dumps({"mode": "geometric", "time_budget_s": 0.2}))

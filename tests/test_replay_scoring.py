@@ -1,9 +1,9 @@
-"""Scoring of solve records against truth (ground.replay.score)."""
+"""Scoring of solve records against truth (ground.analysis.replay.score)."""
 
 import numpy as np
 
-from firmware_model.frames import attitude_from_radec_roll, matrix_to_quat
-from ground.replay import Truth, score
+from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat
+from ground.analysis.replay import Truth, score
 
 A = attitude_from_radec_roll(1.0, 0.3, 2.0)
 Q = matrix_to_quat(A).tolist()
@@ -30,7 +30,7 @@ def test_scores_correct_wrong_and_no_match():
 def test_a_malformed_or_foreign_truth_file_is_not_scored_and_says_why(tmp_path):
     import json
 
-    from firmware_model.frame import Frame
+    from firmware_model.pipeline.raw_frame import Frame
 
     frame = Frame(pixels=np.zeros((40, 60), np.uint16), pattern="MONO", metadata={"seed": 5})
     good = {

@@ -2,7 +2,7 @@ import csv
 
 import numpy as np
 
-from ground.results_log import ResultsLog, plot_summary, summarize
+from ground.analysis.results_log import ResultsLog, plot_summary, summarize
 
 
 def test_log_appends_jsonl_and_csv_and_summarizes(tmp_path):
@@ -35,7 +35,7 @@ def test_log_appends_jsonl_and_csv_and_summarizes(tmp_path):
 
 
 def test_a_log_cut_mid_line_keeps_its_records_and_goes_on(tmp_path, capsys):
-    from ground.results_log import ResultsLog
+    from ground.analysis.results_log import ResultsLog
 
     log = ResultsLog(tmp_path)
     log.append({"frame": "a.dng", "outcome": "correct"})

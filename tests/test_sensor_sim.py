@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from firmware_model.camera import CameraModel
-from firmware_model.frames import attitude_from_radec_roll
-from ground.sensor_sim import PHI_V0, DetectorModel, FalseObject, Stars, random_star_field, render_frame
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.reference_frames import attitude_from_radec_roll
+from ground.sim.sensor_sim import PHI_V0, DetectorModel, FalseObject, Stars, random_star_field, render_frame
 
 CAM = CameraModel.from_fov(320, 240, 2.0)
 ATT = attitude_from_radec_roll(0.3, -0.4, 0.1)

@@ -6,11 +6,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from firmware_model.camera import CameraModel
-from firmware_model.frames import attitude_from_radec_roll, matrix_to_quat
 from firmware_model.ident.solver import SolveParams
 from firmware_model.ident.verify import FieldOfView
-from ground import skysim
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat
+from ground.sim import whole_sky as skysim
 
 CAM = CameraModel.reference_design()
 
@@ -126,7 +126,7 @@ def test_plots_are_written(colour_catalog, tmp_path):
 
 
 def test_cli_runs_both_simulations(tmp_path, capsys):
-    from ground.cli import main
+    from ground.cli.main import main
 
     assert (
         main(
@@ -266,7 +266,7 @@ def test_progress_bars_only_on_a_terminal_and_without_no_progress(tmp_path):
     import subprocess
     import sys as _sys
 
-    from ground.cli_types import progress_on
+    from ground.arg_types import progress_on
 
     cmd = [
         _sys.executable,
@@ -287,7 +287,7 @@ def test_progress_bars_only_on_a_terminal_and_without_no_progress(tmp_path):
     assert run.returncode == 0 and "pose" not in run.stderr  # tqdm's unit: no bar into the pipe
     assert not progress_on(argparse.Namespace(no_progress=True, json=False))
     assert not progress_on(argparse.Namespace(no_progress=False, json=True))
-    from ground.cli import build_parser
+    from ground.cli.main import build_parser
 
     for argv in (["--no-progress", "sim", "colour"], ["sim", "colour", "--no-progress"]):
         assert build_parser().parse_args(argv).no_progress is True

@@ -11,14 +11,14 @@ import time
 import numpy as np
 import pytest
 
-from firmware_model.state import SlotStore, pack_image, unpack_image
+from firmware_model.device.slots import SlotStore, pack_image, unpack_image
 from protocol.crc import crc32
 
 IMAGES = {"a": bytes(range(256)) * 4000, "b": bytes(reversed(range(256))) * 3000}  # 1 MB and 768 kB
 
 WRITER = """
 import sys
-from firmware_model.state import SlotStore
+from firmware_model.device.slots import SlotStore
 a, b = bytes(range(256)) * 4000, bytes(reversed(range(256))) * 3000
 store = SlotStore(sys.argv[1])
 store.set_active(0, a)

@@ -40,8 +40,8 @@ from enum import Enum
 
 import numpy as np
 
+from firmware_model.catalog.onboard import OnboardCatalog, angle_between
 from firmware_model.ident.pair_match import PairNoise, consistency_tolerance, critical_distance, match_pair
-from firmware_model.onboard_catalog import OnboardCatalog, angle_between
 
 
 class Outcome(str, Enum):

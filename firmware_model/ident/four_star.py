@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_model.onboard_catalog import OnboardCatalog, angle_between
+from firmware_model.catalog.onboard import OnboardCatalog, angle_between
 
 #: Pair columns p1..p6 as detection positions within the group.
 GROUP_PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))

@@ -20,7 +20,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.special import erfinv
 
-from firmware_model.onboard_catalog import OnboardCatalog
+from firmware_model.catalog.onboard import OnboardCatalog
 
 
 @lru_cache(maxsize=64)

@@ -23,13 +23,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from firmware_model.frames import rotation_angle
+from firmware_model.catalog.onboard import OnboardCatalog, angle_between
 from firmware_model.ident.consensus import ConsensusParams, Outcome, confident, match_scene
 from firmware_model.ident.four_star import FourStarParams, match_four_star
 from firmware_model.ident.pair_match import PairNoise, sigma_phi_from_centroid
 from firmware_model.ident.triangle import TriangleParams, match_triangles
 from firmware_model.ident.verify import FieldOfView, VerifiedMatch, VerifyParams, verify
-from firmware_model.onboard_catalog import OnboardCatalog, angle_between
+from firmware_model.reference_frames import rotation_angle
 
 #: Per-axis direction noise of the Enright & McVittie reference design: 0.2 px at f = 7383 px (rad).
 REFERENCE_SIGMA_VEC = 0.2 / 7383.1

@@ -18,7 +18,7 @@ from itertools import combinations
 
 import numpy as np
 
-from firmware_model.onboard_catalog import OnboardCatalog, angle_between, chord_of_angle
+from firmware_model.catalog.onboard import OnboardCatalog, angle_between, chord_of_angle
 
 
 @dataclass(frozen=True)

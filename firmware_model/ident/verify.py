@@ -44,9 +44,9 @@ from math import comb
 
 import numpy as np
 
-from firmware_model.camera import CameraModel
+from firmware_model.catalog.onboard import OnboardCatalog, chord_of_angle
 from firmware_model.ident.attitude import AttitudeSolution, solve_attitude
-from firmware_model.onboard_catalog import OnboardCatalog, chord_of_angle
+from firmware_model.pipeline.camera import CameraModel
 
 
 @dataclass(frozen=True)

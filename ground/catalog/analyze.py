@@ -25,8 +25,8 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from firmware_model.frames import vec_to_radec
-from firmware_model.onboard_catalog import OnboardCatalog, chord_of_angle
+from firmware_model.catalog.onboard import OnboardCatalog, chord_of_angle
+from firmware_model.reference_frames import vec_to_radec
 from ground.atomic_write import save_figure
 
 PAIR_CHUNK = 4096

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from firmware_model.onboard_catalog import OnboardCatalog
+from firmware_model.catalog.onboard import OnboardCatalog
 from ground.catalog.colour import SHARED_DATA, ColourModel, ColourSource, default_qe, load_qe_csv
 from ground.catalog.design import CatalogDesign, DesignError
 from ground.catalog.sources import StarTable, read_bsc5, read_hipparcos, select_stars

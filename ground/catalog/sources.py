@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from firmware_model.frames import radec_to_vec, vec_to_radec
+from firmware_model.reference_frames import radec_to_vec, vec_to_radec
 
 MAS = np.pi / (180.0 * 3600.0 * 1000.0)  # radians per milliarcsecond
 HIPPARCOS_EPOCH = 1991.25

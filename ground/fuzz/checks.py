@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import time
 
+from ground.fuzz.device_proc import DeviceProcess
+from ground.fuzz.tally import Tally
+from ground.link.client import Client, LinkError
 from protocol import nsp, slip
-
-from ..client import Client, LinkError
-from .device_proc import DeviceProcess
-from .tally import Tally
 
 QUIET = 0.03  #: seconds without a byte that end a drain
 DRAIN_BOUND = 5.0  #: seconds a drain may last at most (a device still sending past that is a hang)
@@ -70,7 +69,7 @@ def ping_check(client: Client, tally: Tally, device: DeviceProcess | None = None
 
 def stderr_check(device: DeviceProcess, tally: Tally) -> None:
     """Count the tracebacks the device printed (each is a bug, even if it kept serving)."""
-    from .device_proc import tracebacks
+    from ground.fuzz.device_proc import tracebacks
 
     text = device.stderr()
     n = tracebacks(text)

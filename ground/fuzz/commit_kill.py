@@ -9,16 +9,15 @@ import tempfile
 import time
 from pathlib import Path
 
-from firmware_model.state import unpack_image
+from firmware_model.device.slots import unpack_image
+from ground.fuzz.checks import ping_check, stderr_check
+from ground.fuzz.device_proc import DeviceProcess
+from ground.fuzz.tally import Tally
+from ground.fuzz.upload_faults import catalog_image
+from ground.link.client import Client, LinkError
 from protocol import nsp
 from protocol.commands import Code, SlotRequest
 from protocol.crc import crc32
-
-from ..client import Client, LinkError
-from .checks import ping_check, stderr_check
-from .device_proc import DeviceProcess
-from .tally import Tally
-from .upload_faults import catalog_image
 
 WINDOW = 0.03  #: seconds after the COMMIT within which the kill lands (uniformly)
 

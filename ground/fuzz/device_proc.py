@@ -22,7 +22,7 @@ def device_command() -> list[str]:
     if script.exists():
         return [str(script)]
     found = shutil.which("st16-device")
-    return [found] if found else [sys.executable, "-m", "firmware_model.cli"]
+    return [found] if found else [sys.executable, "-m", "firmware_model.device.cli"]
 
 
 def tracebacks(text: str) -> int:

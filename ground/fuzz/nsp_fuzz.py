@@ -11,11 +11,11 @@ from __future__ import annotations
 import random
 import tempfile
 
-from ..client import Client, LinkError
-from .checks import drain, ping_check, stderr_check
-from .device_proc import DeviceProcess
-from .tally import Tally
-from .traffic import burst, sweep
+from ground.fuzz.checks import drain, ping_check, stderr_check
+from ground.fuzz.device_proc import DeviceProcess
+from ground.fuzz.tally import Tally
+from ground.fuzz.traffic import burst, sweep
+from ground.link.client import Client, LinkError
 
 ERROR_COUNTERS = ("framing", "runt", "oversize", "bad_crc", "other_address")
 

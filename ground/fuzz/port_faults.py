@@ -4,7 +4,7 @@ other commands, slow, silent, and a peer that never stops sending (pty or ``sock
 A fake device (:class:`FakePort`) answers each command through a *behaviour*; the good reply to
 a command carries a per-command nonce, so a client that returns anything but its own command's
 nonce has taken a reply that was not for it. Behaviours that end in a good reply must be
-answered; the others must raise a :class:`~ground.client.LinkError` within the client's bound.
+answered; the others must raise a :class:`~ground.link.client.LinkError` within the client's bound.
 """
 
 from __future__ import annotations
@@ -14,11 +14,10 @@ import socket
 import threading
 import time
 
-from firmware_model.link import PtyLink
+from firmware_model.device.link import PtyLink
+from ground.fuzz.tally import Tally
+from ground.link.client import Client, LinkError
 from protocol import nsp, slip
-
-from ..client import Client, LinkError
-from .tally import Tally
 
 SLACK = 1.0  #: seconds allowed beyond the client's own bound (scheduling on a busy machine)
 

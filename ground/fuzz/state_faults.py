@@ -18,16 +18,15 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from firmware_model.state import SlotStore, pack_image
+from firmware_model.device.slots import SlotStore, pack_image
+from ground.fuzz.checks import ping_check
+from ground.fuzz.device_proc import DeviceProcess, tracebacks
+from ground.fuzz.tally import Tally
+from ground.fuzz.upload_faults import catalog_image
+from ground.link.client import Client, LinkError
 from protocol import nsp
 from protocol.commands import Code, XferState
 from protocol.crc import crc32
-
-from ..client import Client, LinkError
-from .checks import ping_check
-from .device_proc import DeviceProcess, tracebacks
-from .tally import Tally
-from .upload_faults import catalog_image
 
 PREFIXES = ("state: ", "device: ")
 
@@ -129,7 +128,7 @@ DAMAGE = {
 
 def start_in_process(root: Path) -> tuple[object, str]:
     """Build the device ``st16-device --state root`` would build; (device, its stderr)."""
-    from firmware_model.cli import build_device, build_parser
+    from firmware_model.device.cli import build_device, build_parser
 
     err = io.StringIO()
     handler = logging.StreamHandler(err)  # what st16-device's logging set-up writes to stderr

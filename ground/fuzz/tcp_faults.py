@@ -1,6 +1,6 @@
 """TCP link faults against ``st16-device --tcp``: several clients, silent clients, clients that
 vanish mid-message, idle clients, and a connection flood, under the link's policy (one active
-client, the newest takes over, idle clients closed; see ``firmware_model.link.TcpLink``).
+client, the newest takes over, idle clients closed; see ``firmware_model.device.link.TcpLink``).
 
 After every scenario a fresh client must get its PING answered; a client that was taken over
 must get a link error, never a reply meant for someone else.
@@ -14,12 +14,11 @@ import socket
 import threading
 import time
 
+from ground.fuzz.checks import ping_check, stderr_check
+from ground.fuzz.device_proc import DeviceProcess
+from ground.fuzz.tally import Tally
+from ground.link.client import Client, LinkError
 from protocol import nsp
-
-from ..client import Client, LinkError
-from .checks import ping_check, stderr_check
-from .device_proc import DeviceProcess
-from .tally import Tally
 
 TIMEOUT = 1.0  #: client reply timeout, s
 

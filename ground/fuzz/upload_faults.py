@@ -18,15 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_model.state import unpack_image
+from firmware_model.device.slots import unpack_image
+from ground.fuzz.checks import ping_check, stderr_check
+from ground.fuzz.device_proc import DeviceProcess
+from ground.fuzz.tally import Tally
+from ground.link.client import Client, LinkError, Nack
 from protocol.catalog_image import HEADER_SIZE, Reason
 from protocol.commands import Code, NackReason, XferBegin, XferData
 from protocol.crc import crc32
-
-from ..client import Client, LinkError, Nack
-from .checks import ping_check, stderr_check
-from .device_proc import DeviceProcess
-from .tally import Tally
 
 SLOT = 0
 CHUNK = 2048
@@ -34,9 +33,9 @@ CHUNK = 2048
 
 def catalog_image(seed: int, n: int = 300) -> bytes:
     """A valid catalog image of ``n`` random stars (the device validates slot 0)."""
-    from firmware_model.catalog_image_io import catalog_to_image
-    from firmware_model.frames import radec_to_vec
-    from firmware_model.onboard_catalog import OnboardCatalog
+    from firmware_model.catalog.image_io import catalog_to_image
+    from firmware_model.catalog.onboard import OnboardCatalog
+    from firmware_model.reference_frames import radec_to_vec
 
     rng = np.random.default_rng(seed)
     vec = radec_to_vec(rng.uniform(0, 2 * np.pi, n), np.arcsin(rng.uniform(-1, 1, n)))

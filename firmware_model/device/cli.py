@@ -1,0 +1,179 @@
+"""``st16-device``: serve the emulated tracker on a pty, a serial port or TCP.
+
+The first stdout line is ``listening on <path>`` (flushed); the device then serves until SIGINT
+or SIGTERM and exits 0. Options are parsed in :func:`build_parser`, the device is assembled in
+:func:`build_device` and the transport in :func:`build_link`, so frame sources and solvers can be
+added as further options without touching the serving code.
+"""
+
+from __future__ import annotations
+
+import os
+
+# One BLAS thread: the pipeline's small fits lose to thread contention on a busy machine
+# (docs/pipeline.md); set before numpy is imported, unless the user chose otherwise.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+from pathlib import Path
+
+import protocol
+from firmware_model.device.catalog_slot import catalog_slot_handler
+from firmware_model.device.device import Device
+from firmware_model.device.link import DEFAULT_IDLE_TIMEOUT, Link, open_link, serve
+from firmware_model.device.sensor_input import (
+    DeviceParams,
+    FileFrames,
+    PipelineSolver,
+    frame_slot_handler,
+    load_frame_source,
+    params_slot_handler,
+)
+from firmware_model.device.slots import SlotStore
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.run import PipelineParams
+from protocol import nsp
+from protocol.commands import Slot
+
+DEFAULT_PACED_TURNAROUND_MS = 1.0  #: ours; the research documents no turnaround
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="st16-device", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"%(prog)s {protocol.__version__}")
+    where = parser.add_mutually_exclusive_group(required=True)
+    where.add_argument("--pty", action="store_true", help="create a pseudo-terminal and print its path")
+    where.add_argument("--port", help="serve on this serial device (pyserial URL or path)")
+    where.add_argument(
+        "--tcp",
+        metavar="HOST:PORT",
+        help="serve on TCP (host defaults to 127.0.0.1); one client at "
+        "a time, a new connection takes over (docs/bad_input.md)",
+    )
+    parser.add_argument(
+        "--address",
+        type=lambda s: int(s, 0),
+        default=nsp.DEVICE_ADDRESS,
+        help="NSP address of the device (default 0x0E)",
+    )
+    parser.add_argument("--state", help="directory for persistent state (slots); in memory if absent")
+    parser.add_argument("--baud", type=int, default=115200, help="line rate for --port and for --pace")
+    parser.add_argument(
+        "--tcp-idle",
+        type=float,
+        default=DEFAULT_IDLE_TIMEOUT,
+        metavar="SECONDS",
+        help=f"with --tcp, close a client silent this long (default {DEFAULT_IDLE_TIMEOUT:g})",
+    )
+    parser.add_argument("--pace", action="store_true", help="model UART timing at --baud (10 bits per byte)")
+    parser.add_argument(
+        "--turnaround-ms",
+        type=float,
+        default=None,
+        help=f"delay from a command's last byte to its reply (default 0, {DEFAULT_PACED_TURNAROUND_MS} with --pace)",
+    )
+    parser.add_argument(
+        "--camera",
+        help="camera model JSON (CameraModel.to_dict); default: the Enright & McVittie "
+        "reference design, 2592 x 1944 at f = 7383 px",
+    )
+    capture = parser.add_mutually_exclusive_group()
+    capture.add_argument("--frames", metavar="DIR|GLOB", help="capture source: replay these frame files in order")
+    capture.add_argument(
+        "--sky",
+        metavar="SCHEDULE",
+        help="capture source: render each exposure with the sensor simulator at the attitudes of this schedule file",
+    )
+    parser.add_argument("--loop", action="store_true", help="with --frames, start again after the last file")
+    parser.add_argument("--params", help="default parameter set JSON (the slot-2 schema); an uploaded set wins")
+    parser.add_argument(
+        "--log-level",
+        choices=("debug", "info", "warning", "error"),
+        default="warning",
+        help="messages on stderr from this level up (state damage, link faults, bugs: warning)",
+    )
+    return parser
+
+
+def load_camera(path: str | None) -> CameraModel:
+    if path is None:
+        return CameraModel.reference_design()
+    try:
+        return CameraModel.from_dict(json.loads(Path(path).read_text()))
+    except (OSError, ValueError, TypeError, KeyError) as exc:
+        raise ValueError(f"camera model {path}: {exc}") from None
+
+
+def build_device(args: argparse.Namespace) -> Device:
+    """The device the options describe: slots for catalog (0), frame (1) and parameters (2), the
+    pipeline solver on the camera model, and the capture source if one is given."""
+    if not 0 <= args.address <= 0xFF:
+        raise ValueError(f"address 0x{args.address:X} outside 0x00-0xFF")
+    camera = load_camera(args.camera)
+    source = None
+    if args.frames:
+        source = FileFrames(args.frames, camera, loop=args.loop)
+    elif args.sky:
+        source = load_frame_source("sky", args.sky, camera)
+    store = SlotStore(args.state, volatile={Slot.FRAME}) if args.state else None
+    params = DeviceParams.load(args.params).apply(PipelineParams()) if args.params else PipelineParams()
+    solver = PipelineSolver(camera, params)
+    slots = {
+        Slot.CATALOG: catalog_slot_handler(prepare=solver.prepare),
+        Slot.FRAME: frame_slot_handler(camera),
+        Slot.PARAMS: params_slot_handler(),
+    }
+    return Device(
+        args.address,
+        store=store,
+        slots=slots,
+        solver=solver,
+        frame_source=source,
+        sensor_shape=(camera.height, camera.width),
+    )
+
+
+def build_link(args: argparse.Namespace) -> Link:
+    url = "pty://" if args.pty else args.port if args.port else f"tcp://{args.tcp}"
+    return open_link(url, baud=args.baud, tcp_idle=args.tcp_idle)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.baud <= 0:
+        parser.error("--baud must be positive")
+    turnaround_ms = args.turnaround_ms
+    if turnaround_ms is None:
+        turnaround_ms = DEFAULT_PACED_TURNAROUND_MS if args.pace else 0.0
+    if turnaround_ms < 0:
+        parser.error("--turnaround-ms must be >= 0")
+    if not args.tcp_idle > 0:
+        parser.error("--tcp-idle must be > 0")
+    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr, format="%(message)s")
+    try:
+        device = build_device(args)
+        link = build_link(args)
+    except (ValueError, OSError) as exc:
+        print(f"st16-device: {exc}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    print(f"listening on {link.describe()}", flush=True)
+    try:
+        serve(device, link, stop, baud=args.baud if args.pace else None, turnaround=turnaround_ms / 1000.0)
+    finally:
+        device.wait_idle(timeout=5.0)
+        link.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,279 @@
+"""What the emulated device sees and solves: frame sources, the frame and parameter slots, and
+the GO solver that runs the pipeline.
+
+* Slot 1 holds an uploaded frame (``firmware_model.pipeline.raw_frame.frame_to_bytes`` format); slot 2 holds a
+  JSON parameter set (:class:`DeviceParams`); both are validated on COMMIT with reason codes.
+* :class:`FileFrames` replays frame files in order (``--frames DIR|GLOB``), optionally looping.
+* Further capture sources register under the entry-point group ``st16.frame_sources``
+  (``name = "module:factory"``, ``factory(spec: str, camera) -> callable(ctx)``); the project's
+  own ``sky`` source renders exposures with the ground sensor simulator from an attitude schedule.
+* :class:`PipelineSolver` is the ``Device`` solver: frame + catalog + parameters -> result fields.
+"""
+
+from __future__ import annotations
+
+import glob
+import importlib
+import json
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from importlib.metadata import entry_points
+from pathlib import Path
+from typing import Any
+
+from firmware_model.device.device import FrameUnavailable, SlotHandler, SolveContext
+from firmware_model.ident.solver import MODES
+from firmware_model.pipeline import scale_free
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.extract import PSF_SIGMA_RANGE_PX
+from firmware_model.pipeline.frame_readers import FrameReadError, frame_files, read_frame
+from firmware_model.pipeline.raw_frame import Frame, frame_from_bytes
+from firmware_model.pipeline.run import PipelineParams, result_fields, run_pipeline, with_psf_sigma
+from protocol.commands import SlotRejected
+
+FRAME_SOURCE_GROUP = "st16.frame_sources"
+
+#: Slot reason codes (ours, docs/ICD.md): catalog images use 0x0201-0x0212
+#: (protocol.catalog_image), frames 0x0300-, parameter sets 0x0400-.
+REJECT_FRAME_FORMAT = 0x0300
+REJECT_FRAME_SIZE = 0x0301
+REJECT_PARAMS_JSON = 0x0400
+REJECT_PARAMS_KEY = 0x0401
+REJECT_PARAMS_VALUE = 0x0402
+
+
+def frame_slot_handler(camera: CameraModel) -> SlotHandler:
+    """Slot 1: a serialised frame whose size matches the device's camera."""
+
+    def load(data: bytes) -> Frame:
+        try:
+            frame = frame_from_bytes(data)
+        except (ValueError, KeyError) as exc:
+            raise SlotRejected(REJECT_FRAME_FORMAT, f"not a frame image: {exc}") from None
+        if (frame.width, frame.height) != (camera.width, camera.height):
+            raise SlotRejected(
+                REJECT_FRAME_SIZE,
+                f"frame is {frame.width} x {frame.height}, the device's camera is {camera.width} x {camera.height}",
+            )
+        return frame
+
+    def info(data: bytes, frame: Frame) -> bytes:
+        return json.dumps(
+            {
+                "width": frame.width,
+                "height": frame.height,
+                "pattern": frame.pattern,
+                "exposure_s": frame.exposure_s,
+                "timestamp": frame.timestamp,
+            }
+        ).encode()
+
+    def validate(data: bytes) -> None:
+        load(data)
+
+    return SlotHandler(validate, load, info)
+
+
+@dataclass(frozen=True)
+class DeviceParams:
+    """The slot-2 parameter set (JSON object; every key optional, unknown keys refused):
+
+    ``mode`` "auto" | "colour" | "geometric"; ``sigma_rg``, ``sigma_bg`` colour noise for
+    matching; ``centroid_sigma_px`` fixed centroid noise (else from the fit); ``time_budget_s``
+    identification budget; ``psf_sigma_px`` the optics' PSF sigma, an override of the per-frame
+    measurement (detection's hot-pixel tests, the fit's start); ``colour_correction`` eq. 24 as
+    ``{"beta": [6 numbers]}``; ``focal_search`` relative half-range of the focal-length search
+    for uncalibrated optics (0 to 0.2; 0 takes the camera as calibrated: no search, no optics
+    fit).
+    The same file drives the offline paths (``--params``).
+    """
+
+    mode: str | None = None
+    sigma_rg: float | None = None
+    sigma_bg: float | None = None
+    centroid_sigma_px: float | None = None
+    time_budget_s: float | None = None
+    psf_sigma_px: float | None = None
+    colour_beta: tuple | None = None
+    focal_search: float | None = None
+
+    KEYS = (
+        "mode",
+        "sigma_rg",
+        "sigma_bg",
+        "centroid_sigma_px",
+        "time_budget_s",
+        "psf_sigma_px",
+        "colour_correction",
+        "focal_search",
+    )
+
+    @classmethod
+    def load(cls, path) -> DeviceParams:
+        """A parameter file (``st16-device --params``, the offline ``--params``); ValueError with a
+        one-line reason for an unreadable or invalid one."""
+        try:
+            return cls.from_json(Path(path).read_bytes())
+        except OSError as exc:
+            raise ValueError(f"--params {path}: {exc.strerror or exc}") from None
+        except SlotRejected as exc:
+            raise ValueError(f"--params {path}: {exc.message}") from None
+
+    @classmethod
+    def from_json(cls, data: bytes) -> DeviceParams:
+        try:
+            obj = json.loads(data.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError) as exc:
+            raise SlotRejected(REJECT_PARAMS_JSON, f"parameter set is not UTF-8 JSON: {exc}") from None
+        if not isinstance(obj, dict):
+            raise SlotRejected(REJECT_PARAMS_JSON, "parameter set must be a JSON object")
+        unknown = sorted(set(obj) - set(cls.KEYS))
+        if unknown:
+            raise SlotRejected(REJECT_PARAMS_KEY, f"unknown parameter(s) {unknown}; known: {list(cls.KEYS)}")
+
+        def number(key, lo=0.0, hi=1e3, lo_open=True):
+            v = obj.get(key)
+            if v is None:
+                return None
+            if (
+                not isinstance(v, (int, float))
+                or isinstance(v, bool)
+                or not (lo < v if lo_open else lo <= v)
+                or not v < hi
+            ):
+                raise SlotRejected(
+                    REJECT_PARAMS_VALUE,
+                    f"{key} must be a number in {'(' if lo_open else '['}{lo:g}, {hi:g}), got {v!r}",
+                )
+            return float(v)
+
+        def positive(key):
+            return number(key)
+
+        mode = obj.get("mode")
+        if mode is not None and mode not in MODES:
+            raise SlotRejected(
+                REJECT_PARAMS_VALUE, f"mode must be {', '.join(MODES[:-1])} or {MODES[-1]}, got {mode!r}"
+            )
+        beta = None
+        if "colour_correction" in obj:
+            cc = obj["colour_correction"]
+            b = cc.get("beta") if isinstance(cc, dict) else None
+            if (
+                not isinstance(b, list)
+                or len(b) != 6
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and abs(x) < 1e3 for x in b)
+            ):
+                raise SlotRejected(REJECT_PARAMS_VALUE, 'colour_correction must be {"beta": [6 finite numbers]}')
+            beta = tuple(float(x) for x in b)
+        return cls(
+            mode,
+            positive("sigma_rg"),
+            positive("sigma_bg"),
+            positive("centroid_sigma_px"),
+            positive("time_budget_s"),
+            number("psf_sigma_px", *PSF_SIGMA_RANGE_PX, lo_open=False),
+            beta,
+            number("focal_search", 0.0, 0.2, lo_open=False),
+        )
+
+    def apply(self, base: PipelineParams) -> PipelineParams:
+        solve = base.solve
+        for key in ("mode", "sigma_rg", "sigma_bg", "time_budget_s"):
+            value = getattr(self, key)
+            if value is not None:
+                solve = replace(solve, **{key: value})
+        if self.psf_sigma_px is not None:
+            base = with_psf_sigma(base, self.psf_sigma_px)
+        if self.focal_search == 0.0:
+            base = replace(base, optics=None)
+        elif base.optics is not None and self.focal_search is not None:
+            base = replace(base, optics=replace(base.optics, focal_range=self.focal_search))
+        return replace(
+            base,
+            solve=solve,
+            colour_beta=self.colour_beta if self.colour_beta is not None else base.colour_beta,
+            fixed_sigma_px=self.centroid_sigma_px if self.centroid_sigma_px is not None else base.fixed_sigma_px,
+        )
+
+
+def params_slot_handler() -> SlotHandler:
+    def validate(data: bytes) -> None:
+        DeviceParams.from_json(data)
+
+    def info(data: bytes, params: DeviceParams) -> bytes:
+        return data
+
+    return SlotHandler(validate, DeviceParams.from_json, info)
+
+
+class FileFrames:
+    """Capture source replaying frame files in name order (``DIR``: its files with frame suffixes,
+    as ``replay`` lists them; or a glob), optionally looping.
+
+    An unreadable file or one of the wrong size makes that capture fail with a reason (the
+    sequence reports BAD_FRAME); the next GO takes the next file.
+    """
+
+    def __init__(self, spec: str, camera: CameraModel, loop: bool = False):
+        paths = frame_files(spec) if Path(spec).is_dir() else sorted(Path(p) for p in glob.glob(spec))
+        if not paths:
+            raise ValueError(f"no frame files in {spec!r}")
+        self.paths = paths
+        self.camera = camera
+        self.loop = loop
+        self._next = 0
+        self._lock = threading.Lock()
+
+    def __call__(self, ctx: SolveContext) -> Frame | None:
+        with self._lock:
+            if self._next >= len(self.paths):
+                if not self.loop:
+                    return None
+                self._next = 0
+            path = self.paths[self._next]
+            self._next += 1
+        try:
+            frame = read_frame(path)
+        except (FrameReadError, OSError, ValueError) as exc:
+            raise FrameUnavailable(f"{path.name}: {exc}") from None
+        if (frame.width, frame.height) != (self.camera.width, self.camera.height):
+            raise FrameUnavailable(
+                f"{path.name} is {frame.width} x {frame.height}; the camera is "
+                f"{self.camera.width} x {self.camera.height}"
+            )
+        return frame
+
+
+def load_frame_source(name: str, spec: str, camera: CameraModel) -> Callable[[SolveContext], Any]:
+    """A capture source registered under ``st16.frame_sources`` (e.g. ``sky``)."""
+    found = {ep.name: ep for ep in entry_points(group=FRAME_SOURCE_GROUP)}
+    if name not in found:
+        raise ValueError(f"no frame source {name!r} installed (have: {sorted(found)})")
+    return found[name].load()(spec, camera)
+
+
+class PipelineSolver:
+    """GO solver: runs :func:`~firmware_model.pipeline.run.run_pipeline` on the sequence's frame."""
+
+    def __init__(self, camera: CameraModel, params: PipelineParams = PipelineParams()):
+        self.camera = camera
+        self.params = params
+        # the planet check imports astropy (~0.3 s): at start-up, not inside the first GO
+        importlib.import_module("firmware_model.pipeline.planets")
+
+    def prepare(self, catalog) -> None:
+        """Build the catalog's pattern index for the optics search in the background (0.4-1.6 s,
+        once per catalog), so the first GO after a catalog commit or a restart stays in budget."""
+        if self.params.optics is not None:
+            threading.Thread(
+                target=scale_free.catalog_patterns, args=(catalog, self.camera), daemon=True, name="catalog-patterns"
+            ).start()
+
+    def __call__(self, ctx: SolveContext) -> dict:
+        params = ctx.params.apply(self.params) if isinstance(ctx.params, DeviceParams) else self.params
+        out = run_pipeline(ctx.frame, self.camera, ctx.catalog, params)
+        fields = result_fields(out)
+        fields["ext.reason"] = out.reason
+        return fields

@@ -1,0 +1,149 @@
+"""Camera calibration from identified stars over several frames, or one (``fit_frame``: the
+device's per-solve focal length and distortion).
+
+Unknowns: the chosen camera parameters (``CameraModel`` fields: f, cx, cy, k1, k2, k3,
+p1, p2) shared by all frames, plus one attitude per frame (a rotation vector applied to
+an initial attitude from Wahba's problem with the starting camera). Residuals: measured
+minus predicted pixel coordinates of each identified star (``camera.vector_to_pixel(A @
+v_icrs)``), in pixels. Solved with ``scipy.optimize.least_squares`` (trust-region, sparse
+finite-difference Jacobian: each frame's attitude touches only its own stars).
+
+With a narrow field, the principal point is nearly degenerate with the per-frame
+attitudes (a shift of (cx, cy) is almost a rotation); its uncertainty is reported and it
+can be held fixed (``fit=`` without "cx", "cy").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+from scipy.spatial.transform import Rotation
+
+from firmware_model.pipeline.camera import CameraModel
+
+DEFAULT_FIT = ("f", "cx", "cy", "k1", "k2", "p1", "p2")
+
+
+@dataclass
+class StarObservations:
+    """One frame: measured pixel coordinates (x, y) of stars and their ICRS unit vectors (N, 3)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    v_icrs: np.ndarray
+
+    def __post_init__(self):
+        self.x = np.asarray(self.x, float).ravel()
+        self.y = np.asarray(self.y, float).ravel()
+        self.v_icrs = np.asarray(self.v_icrs, float).reshape(-1, 3)
+        if not (len(self.x) == len(self.y) == len(self.v_icrs)):
+            raise ValueError("x, y and v_icrs must have the same length")
+
+
+@dataclass
+class CalibrationResult:
+    camera: CameraModel
+    attitudes: list  # per-frame A (v_sensor = A @ v_icrs)
+    residual_rms_px: float
+    residuals: list  # per frame (N, 2) measured - predicted, px
+    sigmas: dict  # 1-sigma uncertainty of each fitted camera parameter
+    n_observations: int
+    success: bool
+    message: str
+
+
+def _wahba(camera: CameraModel, obs: StarObservations) -> np.ndarray:
+    v_sensor = camera.pixel_to_vector(obs.x, obs.y)
+    rot, _ = Rotation.align_vectors(v_sensor, obs.v_icrs)
+    return rot.as_matrix()
+
+
+def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_FIT) -> CalibrationResult:
+    """Fit camera parameters ``fit`` and per-frame attitudes to the observations."""
+    fit = tuple(fit)
+    unknown = set(fit) - {"f", "cx", "cy", "k1", "k2", "k3", "p1", "p2"}
+    if unknown:
+        raise ValueError(f"cannot fit {sorted(unknown)}")
+    if not frames:
+        raise ValueError("no frames to calibrate from")
+    for i, fr in enumerate(frames):
+        if len(fr.x) < 3:
+            raise ValueError(f"frame {i} has {len(fr.x)} stars; at least 3 are needed")
+    n_obs = sum(len(fr.x) for fr in frames)
+    n_par = len(fit) + 3 * len(frames)
+    if 2 * n_obs <= n_par:
+        raise ValueError(f"{n_obs} stars give {2 * n_obs} residuals for {n_par} unknowns")
+    a0 = [_wahba(initial, fr) for fr in frames]
+    scale = np.array([initial.f if k == "f" else 1.0 for k in fit])  # f fitted relative to its start
+
+    def unpack(p):
+        vals = {k: (p[i] * scale[i]) for i, k in enumerate(fit)}
+        cam = replace(initial, **vals)
+        atts = [
+            Rotation.from_rotvec(p[len(fit) + 3 * j : len(fit) + 3 * j + 3]).as_matrix() @ a0[j]
+            for j in range(len(frames))
+        ]
+        return cam, atts
+
+    def residuals(p):
+        cam, atts = unpack(p)
+        out = []
+        for fr, a in zip(frames, atts):
+            x, y = cam.vector_to_pixel(fr.v_icrs @ a.T)
+            out.append(np.column_stack([x - fr.x, y - fr.y]).ravel())
+        return np.concatenate(out)
+
+    sparsity = lil_matrix((2 * n_obs, n_par), dtype=int)
+    sparsity[:, : len(fit)] = 1
+    row = 0
+    for j, fr in enumerate(frames):
+        sparsity[row : row + 2 * len(fr.x), len(fit) + 3 * j : len(fit) + 3 * j + 3] = 1
+        row += 2 * len(fr.x)
+    p0 = np.concatenate([[getattr(initial, k) / s for k, s in zip(fit, scale)], np.zeros(3 * len(frames))])
+    res = least_squares(
+        residuals,
+        p0,
+        jac_sparsity=sparsity,
+        method="trf",
+        x_scale="jac",
+        xtol=1e-12,
+        ftol=1e-12,
+        gtol=1e-12,
+        max_nfev=200,
+    )
+    cam, atts = unpack(res.x)
+    r = res.fun
+    dof = max(len(r) - n_par, 1)
+    s2 = float(r @ r) / dof
+    jac = res.jac.toarray() if hasattr(res.jac, "toarray") else res.jac
+    try:
+        cov = np.linalg.pinv(jac.T @ jac) * s2
+        sig = np.sqrt(np.maximum(np.diag(cov)[: len(fit)], 0.0)) * scale
+    except np.linalg.LinAlgError:
+        sig = np.full(len(fit), np.nan)
+    per_frame, row = [], 0
+    for fr in frames:
+        per_frame.append(-r[row : row + 2 * len(fr.x)].reshape(-1, 2))  # measured - predicted
+        row += 2 * len(fr.x)
+    return CalibrationResult(
+        camera=cam,
+        attitudes=atts,
+        residual_rms_px=float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2)),
+        residuals=per_frame,
+        sigmas=dict(zip(fit, (float(s) for s in sig))),
+        n_observations=n_obs,
+        success=bool(res.success),
+        message=str(res.message),
+    )
+
+
+def fit_frame(obs: StarObservations, camera: CameraModel, k1_min_stars: int) -> CalibrationResult | None:
+    """One frame's focal length, and k1 when at least ``k1_min_stars`` stars are given, fitted with
+    its attitude (principal point held); None when the stars cannot constrain it."""
+    try:
+        return calibrate([obs], camera, fit=("f", "k1") if len(obs.x) >= k1_min_stars else ("f",))
+    except (ValueError, np.linalg.LinAlgError):
+        return None

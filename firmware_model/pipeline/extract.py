@@ -1,0 +1,265 @@
+"""Single entry point from a raw frame to star measurements: detection, centroid and
+colour fit, and (with a camera model) sensor-frame unit vectors.
+
+``extract_stars(frame, camera=None, params=ExtractParams()) -> StarList``. Pure: no I/O,
+no global state. Times per stage are measured with ``time.perf_counter`` (seconds).
+
+**PSF width, measured per frame.** Detection's hot-pixel tests, the fit's start and window
+and its sharp-artefact test all depend on the PSF Gaussian sigma. Unless the parameters fix it
+(``ExtractParams.psf_sigma_px``, an override), detection and fit run with a starting guess,
+the sigma is measured as the median fitted sigma of the brightest clean stars
+(:func:`measure_psf_sigma`), and when that disagrees with the value used by more than
+``psf_tolerance`` (relative) detection and fit run again with the measurement (at most
+``psf_max_passes`` passes in all). A guess far too wide makes detection clean star cores as
+hot pixels; the fit on the remaining pixels still measures the width well enough to recover.
+A guess far too narrow for a PSF that is not Gaussian (a defocus ring) makes most fits fail,
+and the few converged ones (hot-pixel clusters) then measure a width near the guess: when more
+than :data:`PSF_FAIL_FRACTION` of the brightest candidates' fits fail, one pass runs at
+:data:`PSF_WIDEN_FACTOR` times the width (or the measurement, if wider), and the measurement
+goes on from whichever of the two passes had fewer failed fits.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.centroid import FitParams, FitResults, fit_stars
+from firmware_model.pipeline.detect import DetectParams, bound_notes, detect_stars
+from firmware_model.pipeline.raw_frame import Frame
+from protocol.star_flags import UNTRUSTED, StarFlag
+
+#: Accepted range of a set PSF sigma (px): [low, high).
+PSF_SIGMA_RANGE_PX = (0.1, 20.0)
+#: Detection keeps this many times the candidate cap; the cap applies after the fit's sharpness test.
+CAP_MARGIN = 2
+#: Brightest clean stars whose fitted sigmas make the PSF measurement, and the fewest accepted.
+PSF_SAMPLE_STARS = 20
+PSF_MIN_STARS = 3
+#: Share of failed fits among the brightest candidates above which the PSF guess is widened once.
+PSF_FAIL_FRACTION = 0.3
+PSF_WIDEN_FACTOR = 2.0
+#: Flags that exclude a star from the PSF measurement (POOR_FIT stays: a non-Gaussian PSF
+#: makes every bright star a poor Gaussian fit, but its fitted width is still the best measure).
+_PSF_EXCLUDE = int(StarFlag.SATURATED | StarFlag.EDGE | StarFlag.BLEND | StarFlag.FIT_FAILED)
+
+
+@dataclass(frozen=True)
+class ExtractParams:
+    """``psf_sigma_px``: the optics' PSF Gaussian sigma (px) as an override; None (default)
+    measures it on each frame starting from ``psf_start_px`` (module docstring). The
+    ``psf_sigma_px`` fields of ``detect`` and ``fit`` are set from it for every pass."""
+
+    detect: DetectParams = DetectParams()
+    fit: FitParams = FitParams()
+    psf_sigma_px: float | None = None
+    psf_start_px: float = 1.0
+    psf_tolerance: float = 0.1
+    psf_max_passes: int = 4
+
+
+@dataclass
+class StarList:
+    """Measured stars, brightest first. ``x, y`` px (docs/CONVENTIONS.md); ``flux`` mean
+    per-site signal summed over the PSF: (A_R + 2 A_G + A_B) / 4 for a Bayer frame, A for
+    mono (DN); ``amp`` per-channel totals R, G, B (DN); ``rg, bg`` colour ratios (NaN for
+    mono); ``cov_xy`` (N, 2, 2) px^2; ``cov_colour`` (N, 2, 2) for (rg, bg); ``snr``
+    detection signal-to-noise; ``sigma`` fitted PSF sigma (px); ``reduced_chi2`` fit
+    quality; ``flags`` StarFlag bits; ``vectors`` (N, 3) sensor-frame unit vectors when a
+    camera model was available, else None. ``timings`` seconds per stage; ``reason`` says
+    why the list is empty (or what was dropped)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    flux: np.ndarray
+    amp: np.ndarray
+    rg: np.ndarray
+    bg: np.ndarray
+    cov_xy: np.ndarray
+    cov_colour: np.ndarray
+    snr: np.ndarray
+    sigma: np.ndarray
+    reduced_chi2: np.ndarray
+    flags: np.ndarray
+    vectors: np.ndarray | None = None
+    timings: dict = field(default_factory=dict)
+    reason: str = ""
+    psf_sigma_px: float = float("nan")  #: PSF sigma detection and fit used (px)
+    psf_measured_px: float = float("nan")  #: PSF sigma measured on this frame (px); NaN: too few stars
+    psf_source: str = ""  #: "setting" (override), "measured" or "start" (too few stars to measure)
+    psf_passes: int = 0  #: detection + fit passes run
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    @property
+    def trusted(self) -> np.ndarray:
+        """True where no UNTRUSTED flag is set."""
+        return (self.flags & int(UNTRUSTED)) == 0
+
+    def to_records(self) -> list[dict]:
+        """One JSON-friendly dict per star (NaN becomes None)."""
+
+        def num(v):
+            v = float(v)
+            return v if np.isfinite(v) else None
+
+        recs = []
+        for i in range(len(self)):
+            rec = {
+                "x": num(self.x[i]),
+                "y": num(self.y[i]),
+                "flux": num(self.flux[i]),
+                "rg": num(self.rg[i]),
+                "bg": num(self.bg[i]),
+                "sigma_x": num(np.sqrt(self.cov_xy[i, 0, 0])),
+                "sigma_y": num(np.sqrt(self.cov_xy[i, 1, 1])),
+                "sigma_rg": num(np.sqrt(self.cov_colour[i, 0, 0])),
+                "sigma_bg": num(np.sqrt(self.cov_colour[i, 1, 1])),
+                "snr": num(self.snr[i]),
+                "psf_sigma": num(self.sigma[i]),
+                "reduced_chi2": num(self.reduced_chi2[i]),
+                "flags": int(self.flags[i]),
+                "flag_names": [f.name for f in StarFlag if f and int(self.flags[i]) & int(f)],
+            }
+            if self.vectors is not None:
+                rec["vector"] = [float(c) for c in self.vectors[i]]
+            recs.append(rec)
+        return recs
+
+
+def measure_psf_sigma(fit: FitResults, snr: np.ndarray) -> float:
+    """Median fitted PSF sigma (px) of the :data:`PSF_SAMPLE_STARS` highest-SNR stars whose fit
+    converged and is not saturated, clipped, blended or sharp; NaN with fewer than
+    :data:`PSF_MIN_STARS` such stars."""
+    ok = np.isfinite(fit.sigma) & ((fit.flags & _PSF_EXCLUDE) == 0) & ~fit.sharp
+    idx = np.flatnonzero(ok)
+    if len(idx) < PSF_MIN_STARS:
+        return float("nan")
+    idx = idx[np.argsort(-snr[idx])][:PSF_SAMPLE_STARS]
+    return float(np.median(fit.sigma[idx]))
+
+
+def failed_fit_fraction(fit: FitResults, snr: np.ndarray) -> float:
+    """Share of the :data:`PSF_SAMPLE_STARS` highest-SNR candidates (not saturated, clipped or
+    blended) whose fit failed; 0 without such candidates."""
+    idx = np.flatnonzero((fit.flags & int(StarFlag.SATURATED | StarFlag.EDGE | StarFlag.BLEND)) == 0)
+    if not len(idx):
+        return 0.0
+    idx = idx[np.argsort(-snr[idx])][:PSF_SAMPLE_STARS]
+    return float(np.mean((fit.flags[idx] & int(StarFlag.FIT_FAILED)) != 0))
+
+
+#: Fitted centres closer than this (px) are one star found twice (two peaks of a defocus ring).
+REPEAT_PX = 1.0
+
+
+def _repeats(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """True for candidates whose fitted centre lies within :data:`REPEAT_PX` of a brighter one's."""
+    ok = np.flatnonzero(np.isfinite(x) & np.isfinite(y))
+    out = np.zeros(len(x), bool)
+    if len(ok) > 1:
+        pairs = cKDTree(np.column_stack([x[ok], y[ok]])).query_pairs(REPEAT_PX, output_type="ndarray")
+        out[ok[pairs.max(axis=1)]] = True  # candidates come brightest first
+    return out
+
+
+def _detect_and_fit(frame: Frame, params: ExtractParams, sigma_px: float):
+    """One pass at PSF sigma ``sigma_px``: detection with twice the candidate cap, the fit, and
+    then the cap applied to the candidates the fit did not reject as sharper than the PSF (so
+    hot pixels cannot crowd stars out of the cap). Returns (fit, detection SNR, seconds in the
+    fit, notes on what was left out)."""
+    cap = params.detect.max_candidates
+    det = detect_stars(frame, replace(params.detect, psf_sigma_px=sigma_px, max_candidates=CAP_MARGIN * cap))
+    t1 = time.perf_counter()
+    fit = fit_stars(frame, det, replace(params.fit, psf_sigma_px=sigma_px))
+    dt = time.perf_counter() - t1
+    if not len(det):
+        return fit, det.snr, dt, [det.reason]
+    keep = np.flatnonzero(~fit.sharp)
+    n_sharp = len(fit.sharp) - len(keep)
+    keep = keep[~_repeats(fit.x[keep], fit.y[keep])]
+    notes = bound_notes(det, det.n_dropped_cap + max(len(keep) - cap, 0), cap)
+    if n_sharp:
+        notes.append(f"{n_sharp} candidate(s) sharper than the PSF rejected by the fit (hot pixels / cosmic rays)")
+    keep = keep[:cap]
+    return FitResults(**{k: v[keep] for k, v in vars(fit).items()}), det.snr[keep], dt, notes
+
+
+def extract_stars(frame: Frame, camera: CameraModel | None = None, params: ExtractParams = ExtractParams()) -> StarList:
+    """Detect and fit stars in ``frame``; ``camera`` (or ``frame.camera``) adds unit vectors."""
+    t0 = time.perf_counter()
+    sigma = params.psf_sigma_px if params.psf_sigma_px is not None else params.psf_start_px
+    fit_s = 0.0
+
+    def one_pass(width):
+        nonlocal fit_s
+        fit, snr, dt, notes = _detect_and_fit(frame, params, width)
+        fit_s += dt
+        return fit, snr, notes, width
+
+    current, passes = one_pass(sigma), 1
+    source, measured = "setting", float("nan")
+    if params.psf_sigma_px is None:
+        failed = failed_fit_fraction(*current[:2])
+        if failed > PSF_FAIL_FRACTION and passes < params.psf_max_passes:
+            # most fits failed: either the guess is far too narrow for the PSF, or the few
+            # converged fits are right that it is narrower; a wide pass tells which
+            m = measure_psf_sigma(*current[:2])
+            wide, passes = one_pass(PSF_WIDEN_FACTOR * max(sigma, m if np.isfinite(m) else 0.0)), passes + 1
+            if failed_fit_fraction(*wide[:2]) < failed and len(wide[0].x) >= 0.5 * len(current[0].x):
+                current = wide
+        while True:
+            measured = measure_psf_sigma(*current[:2])
+            source = "measured" if np.isfinite(measured) else "start"
+            if (
+                not np.isfinite(measured)
+                or abs(measured / current[3] - 1.0) <= params.psf_tolerance
+                or passes >= params.psf_max_passes
+            ):
+                break
+            nxt, passes = one_pass(measured), passes + 1
+            if len(nxt[0].x) < 0.5 * len(current[0].x):
+                break  # the measured width lost most of the stars (a PSF far from Gaussian): keep this pass
+            current = nxt
+    fit, snr, notes, sigma = current
+    t2 = time.perf_counter()
+    t1 = t2 - fit_s
+    reason = "; ".join(notes)
+    if camera is None and frame.camera:
+        camera = CameraModel.from_dict(frame.camera)
+    if camera is not None and (camera.width, camera.height) != (frame.width, frame.height):
+        raise ValueError(
+            f"camera model is {camera.width} x {camera.height} but the frame is {frame.width} x {frame.height}"
+        )
+    if frame.is_mono:
+        flux = fit.amp[:, 1]
+    else:
+        flux = (fit.amp[:, 0] + 2.0 * fit.amp[:, 1] + fit.amp[:, 2]) / 4.0
+    vectors = camera.pixel_to_vector(fit.x, fit.y) if camera is not None else None
+    t3 = time.perf_counter()
+    return StarList(
+        x=fit.x,
+        y=fit.y,
+        flux=flux,
+        amp=fit.amp,
+        rg=fit.rg,
+        bg=fit.bg,
+        cov_xy=fit.cov_xy,
+        cov_colour=fit.cov_colour,
+        snr=snr,
+        sigma=fit.sigma,
+        reduced_chi2=fit.reduced_chi2,
+        flags=fit.flags,
+        vectors=vectors,
+        timings={"detect_s": t1 - t0, "fit_s": t2 - t1, "vectors_s": t3 - t2, "total_s": t3 - t0},
+        reason=reason,
+        psf_sigma_px=float(sigma),
+        psf_measured_px=measured,
+        psf_source=source,
+        psf_passes=passes,
+    )

@@ -1,0 +1,798 @@
+"""The device's detection-to-attitude pipeline on one frame, and its result-structure fields.
+
+``run_pipeline(frame, camera, catalog, params) -> PipelineOutput`` chains extraction
+(detection, centroid and colour fit, camera model), the optional eq. 24 colour correction,
+identification and attitude (``firmware_model.ident.solver``). It never raises on bad frames:
+the output carries a :class:`protocol.result.Status` and a reason.
+:func:`result_fields` maps an output onto the result structure (docs/ICD.md): the COSMOS
+sections (quaternion, centroid and matching telemetry for image 1) and our extension region.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from firmware_model.catalog.onboard import OnboardCatalog
+from firmware_model.ident.consensus import Outcome, large_set
+from firmware_model.ident.solver import SolveParams, SolveResult, solution_from_match, solve
+from firmware_model.ident.verify import FieldOfView, verify
+from firmware_model.pipeline import scale_free
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.camera_fit import StarObservations, fit_frame
+from firmware_model.pipeline.extract import ExtractParams, StarList, extract_stars
+from firmware_model.pipeline.raw_frame import Frame
+from firmware_model.reference_frames import quat_to_matrix, rotation_angle
+from protocol import result
+from protocol.result import ReturnBits, Status
+from protocol.star_flags import UNTRUSTED, StarFlag
+
+#: Floor on the per-axis centroid noise fed to the solver (px): covers camera-model and
+#: optical residuals that the photon-noise covariance of the fit does not know about.
+CENTROID_SIGMA_FLOOR_PX = 0.1
+
+#: Centroid noise assumed when the fit gave no covariance (centre-of-gravity fallback), px.
+UNKNOWN_CENTROID_SIGMA_PX = 1.0
+#: Floor for stars whose fit is flagged untrusted (saturated, blended, poor fit, edge), px. Such
+#: stars keep their place in the geometry with this weight; saturated or blended stars lose
+#: their colour (the identification then uses their geometry alone).
+UNTRUSTED_CENTROID_FLOOR_PX = 0.5
+
+#: Detections whose fitted centroid is less certain than this (px, 1-sigma) are not used.
+MAX_CENTROID_SIGMA_PX = 3.0
+
+#: Fewest detections given to the geometric matcher.
+MIN_GEOMETRIC_DETECTIONS = 8
+#: Brightest-detection counts tried in turn by the 4-star matcher before the density cap: a
+#: small set of bright stars is most likely all in the catalog (beyond Dong et al., which takes
+#: its groups from the frame centre whatever their brightness).
+GEOMETRIC_STEPS = (4, 6, 8)
+
+#: Method codes of the result extension (``ext.method``).
+METHOD_CODES = {"colour": 1, "geometric": 2, "geometric-consensus": 3, "pattern": 4}
+
+#: Stage names reported in the result extension, in order.
+STAGES = ("detect", "fit", "vectors", "identify", "attitude", "total")
+
+
+@dataclass(frozen=True)
+class OpticsSearch:
+    """Lost in space with a datasheet camera (focal length off by a few per cent, radial
+    distortion and principal-point offset not modelled), as plate solvers do it.
+
+    When the nominal camera gives no high-confidence answer, the brightest ``n_bright``
+    detections are matched as scale-free 4-star patterns (``firmware_model.pipeline.scale_free``: edge
+    ratios within ``pattern_tolerance``, focal length within ``focal_range`` of the nominal; blended,
+    failed-fit and edge detections are left out: clutter such as a foreground tree is).
+    Each pattern match, best first, only seeds a predict-match-fit of the focal length (and k1
+    when at least ``k1_min_stars`` stars match) with the attitude; the frame is then identified
+    again from scratch with the fitted camera and the normal tight noise model, and the answer
+    taken only if that is high-confidence (else the refined match itself, verified over every
+    detection, when it is large). Every solve reports the fitted optics and their 1-sigma
+    (``PipelineOutput.optics``, from at least ``min_stars`` matched stars); when the fit moves a
+    corner by more than ``refit_px`` or fits the stars :data:`REFIT_RMS_RATIO` times better, the
+    frame is identified again with it so stars the first camera missed are matched. The search
+    stops once ``budget_s`` seconds have passed since the frame's extraction began (the frame's
+    whole budget: GO to result stays under 2 s whatever the frame)."""
+
+    focal_range: float = 0.05
+    n_bright: int = 20
+    pattern_tolerance: float = 0.01
+    k1_min_stars: int = 6
+    min_stars: int = 4
+    refit_px: float = 1.0
+    budget_s: float = 1.5
+
+
+@dataclass
+class OpticsFit:
+    """Optics fitted to the matched stars of one solve: the camera (principal point held at the
+    nominal one: on a narrow field it is degenerate with the attitude), 1-sigma of each fitted
+    parameter (``f`` px, ``k1``), RMS residual (px), stars used, and ``focal_scale`` the focal
+    length of the pattern match that found the answer over the nominal one (NaN: no search)."""
+
+    camera: CameraModel
+    sigmas: dict
+    residual_rms_px: float
+    n_stars: int
+    focal_scale: float = float("nan")
+
+
+@dataclass(frozen=True)
+class PipelineParams:
+    """Pipeline configuration. ``colour_beta`` is the eq. 24 correction (6 numbers) or None;
+    ``solve`` is the solver configuration (its colour sigmas are raised to the catalog's design
+    values, its field of view defaults to the camera's); the per-detection direction noise is derived from
+    the fit covariance (with the floor ``centroid_floor_px``) unless ``fixed_sigma_px`` is set.
+
+    ``photometric_gate`` (mag, or None to disable): a low-confidence consensus may be caused by
+    detections fainter than the catalog holds, which the eta test of Enright & McVittie counts against the
+    match. The pipeline then estimates every detection's magnitude from the zero point of the
+    matched stars, drops those fainter than the catalog limit plus this margin, and solves
+    again; the second answer is taken only if it is high-confidence and agrees with the first.
+
+    ``geometric_density_factor``: the geometric (4-star) method sees only the brightest
+    detections: first :data:`GEOMETRIC_STEPS` of them, then this factor times the catalog
+    stars expected in the field (:func:`geometric_detection_cap`). ``geometric_fallback``: when that 4-star match finds
+    nothing, the consensus matcher of Enright & McVittie runs on geometry alone (colours unknown), which
+    tolerates missing and extra stars far better; its answers are labelled
+    ``geometric-consensus``. ``colour_fallback``: in ``auto`` mode a colour frame that the colour
+    matcher cannot solve with high confidence (colours biased beyond the catalog's noise model,
+    e.g. through the atmosphere before calibration, or gamma-encoded sRGB images) is solved on
+    geometry alone, as a mono frame would be; that answer is taken when the colour matcher found
+    none or when it is high-confidence.
+
+    ``optics``: the uncalibrated-optics search and the per-solve focal-length/distortion fit
+    (:class:`OpticsSearch`; None takes the camera as calibrated: neither runs)."""
+
+    extract: ExtractParams = ExtractParams()
+    solve: SolveParams = SolveParams()
+    colour_beta: tuple | None = None
+    fixed_sigma_px: float | None = None
+    photometric_gate: float | None = 0.1
+    geometric_density_factor: float = 1.5
+    geometric_fallback: bool = True
+    colour_fallback: bool = True
+    optics: OpticsSearch | None = OpticsSearch()
+    centroid_floor_px: float = CENTROID_SIGMA_FLOOR_PX
+
+
+@dataclass
+class PipelineOutput:
+    status: Status
+    reason: str = ""
+    stars: StarList | None = None
+    used: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))  #: star rows given to the solver
+    solution: SolveResult | None = None
+    timings: dict = field(default_factory=dict)  #: seconds per stage (STAGES)
+    colour_beta: tuple | None = None  #: the eq. 24 correction the matcher's colours went through
+    camera: CameraModel | None = None  #: the camera model the answer was identified with
+    optics: OpticsFit | None = None  #: focal length and distortion fitted to the matched stars
+    planets: list = field(default_factory=list)  #: ``planets.PlanetLabel`` of detections on a planet / the moon
+
+    @property
+    def ok(self) -> bool:
+        return self.status is Status.OK
+
+
+def with_psf_sigma(params: PipelineParams, sigma_px: float | None) -> PipelineParams:
+    """``params`` with the PSF Gaussian sigma fixed to ``sigma_px`` (an override of the per-frame
+    measurement; None measures again)."""
+    return replace(params, extract=replace(params.extract, psf_sigma_px=sigma_px))
+
+
+def apply_colour_correction(rg, bg, beta):
+    """Eq. 24 with ``beta = [b1..b6]``: ``rg' = b1 rg + b2 bg + b5``, ``bg' = b3 rg + b4 bg + b6``."""
+    b = np.asarray(beta, dtype=float)
+    return b[0] * rg + b[1] * bg + b[4], b[2] * rg + b[3] * bg + b[5]
+
+
+def run_pipeline(
+    frame: Frame, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams = PipelineParams()
+) -> PipelineOutput:
+    """Frame -> stars -> identification -> attitude (module docstring), then planet labelling."""
+    t0 = time.perf_counter()
+    if (frame.width, frame.height) != (camera.width, camera.height):
+        return PipelineOutput(
+            Status.BAD_FRAME,
+            f"frame is {frame.width} x {frame.height} but the camera is {camera.width} x {camera.height}",
+        )
+    try:
+        stars = extract_stars(frame, camera, params.extract)
+    except ValueError as exc:
+        return PipelineOutput(Status.BAD_FRAME, f"frame rejected: {exc}")
+    out = identify_stars(stars, camera, catalog, params)
+    if frame.timestamp and out.solution is not None and out.solution.q_icrs_to_sensor is not None:
+        out = _label_planets(out, frame, catalog, params)
+    out.timings["total"] = time.perf_counter() - t0
+    return out
+
+
+def _label_planets(out: PipelineOutput, frame: Frame, catalog: OnboardCatalog, params: PipelineParams):
+    """Label detections on a predicted planet or the moon at the frame's epoch (``planets``); if
+    one of them was matched to a catalog star, identify again without them."""
+    from firmware_model.pipeline.planets import label_planets
+
+    site = frame.site or {}
+    where = (
+        (site["lat_deg"], site["lon_deg"], site.get("height_m", 0.0)) if {"lat_deg", "lon_deg"} <= set(site) else None
+    )
+    try:
+        labels = label_planets(
+            out.stars.x, out.stars.y, out.solution.q_icrs_to_sensor, out.camera, frame.timestamp, site=where
+        )
+    except ValueError as exc:  # an unreadable timestamp: no labels, and say so
+        out.reason = f"{out.reason}; planets not predicted: {exc}" if out.reason else f"planets not predicted: {exc}"
+        return out
+    rows = np.array([lab.index for lab in labels], dtype=np.int64)
+    if len(rows) and np.isin(out.used[out.solution.matched_det], rows).any():
+        hidden = replace(out.stars, x=out.stars.x.copy(), y=out.stars.y.copy(), vectors=out.stars.vectors.copy())
+        hidden.x[rows] = hidden.y[rows] = np.nan
+        hidden.vectors[rows] = np.nan
+        again = identify_stars(hidden, out.camera, catalog, params)
+        again.stars = out.stars
+        if again.optics is None:
+            again.optics = out.optics
+        out = again
+    out.planets = labels
+    return out
+
+
+def identify_stars(
+    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams = PipelineParams()
+) -> PipelineOutput:
+    """Identification and attitude from extracted stars (``stars.vectors`` from ``camera``),
+    with the optics search and fit of :class:`OpticsSearch`."""
+    t0 = time.perf_counter()
+    timings = {
+        "detect": stars.timings.get("detect_s", 0.0),
+        "fit": stars.timings.get("fit_s", 0.0),
+        "vectors": stars.timings.get("vectors_s", 0.0),
+    }
+    out = _identify(stars, camera, catalog, params, timings)
+    frame_t0 = t0 - stars.timings.get("total_s", 0.0)  # the search's budget counts from extraction
+    if params.optics is not None and out.status is not Status.TOO_FEW_STARS:
+        if out.status is not Status.OK:
+            found = _search_optics(stars, camera, catalog, params, timings, frame_t0)
+            if found is not None and (found.status is Status.OK or _rank(found) > _rank(out)):
+                out = found
+        elif (refined := _refine_optics(out, stars, camera, catalog, params, timings)) is not None:
+            out = refined
+        elif out.optics is None:  # too few stars matched to check the optics: a search may match more
+            found = _search_optics(stars, camera, catalog, params, timings, frame_t0)
+            if found is not None and found.status is Status.OK and _rank(found) > _rank(out):
+                out = found  # a high-confidence answer only: the search may now return a low one
+    out.timings = timings
+    timings["total"] = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
+    return out
+
+
+def _identify(
+    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams, timings: dict
+) -> PipelineOutput:
+    """One identification with one camera model: colour or geometric with their fallbacks."""
+    used = _usable(stars)
+    if len(used) < 2:
+        why = stars.reason or f"{len(stars)} detection(s)"
+        return PipelineOutput(Status.TOO_FEW_STARS, f"too few stars: {why}", stars, used, camera=camera)
+    geometric = params.solve.mode == "geometric" or (
+        params.solve.mode == "auto" and (not catalog.has_colour or not np.isfinite(stars.rg[used]).any())
+    )
+    if geometric:
+        sol, rows = _solve_geometric(used, stars, camera, catalog, params, timings)
+    else:
+        sol, rows = _solve_rows(used, stars, camera, catalog, params, params.solve.mode, True, timings)
+        if sol.status is not Outcome.HIGH_CONFIDENCE and params.colour_fallback and params.solve.mode == "auto":
+            # colours biased beyond the catalog's noise model (the atmosphere, an sRGB image): geometry alone
+            geo, geo_rows = _solve_geometric(
+                used, stars, camera, catalog, replace(params, solve=replace(params.solve, mode="geometric")), timings
+            )
+            if sol.status is Outcome.NO_MATCH or geo.status is Outcome.HIGH_CONFIDENCE:
+                geometric, sol, rows = True, geo, geo_rows
+    if geometric and sol.status is Outcome.NO_MATCH and params.geometric_fallback and catalog.has_colour:
+        sol2, rows2 = _solve_rows(used, stars, camera, catalog, params, "colour", False, timings)
+        if sol2.status is not Outcome.NO_MATCH:
+            sol2.method = "geometric-consensus"
+            sol, rows = sol2, rows2
+    if sol.status is Outcome.NO_MATCH:
+        return PipelineOutput(
+            Status.NO_MATCH, sol.reason, stars, rows, sol, colour_beta=params.colour_beta, camera=camera
+        )
+    status = Status.OK if sol.status is Outcome.HIGH_CONFIDENCE else Status.LOW_CONFIDENCE
+    return PipelineOutput(status, sol.reason, stars, rows, sol, colour_beta=params.colour_beta, camera=camera)
+
+
+def _usable(stars: StarList) -> np.ndarray:
+    """Rows with a direction and a centroid known to better than :data:`MAX_CENTROID_SIGMA_PX` (a
+    degenerate fit can report a finite centre with a covariance of tens of px^2)."""
+    if not len(stars):
+        return np.empty(0, np.int64)
+    var = 0.5 * (stars.cov_xy[:, 0, 0] + stars.cov_xy[:, 1, 1])
+    known = ~(var > MAX_CENTROID_SIGMA_PX**2)  # NaN (no covariance) stays: the pipeline gives it 1 px
+    return np.flatnonzero(np.isfinite(stars.vectors).all(axis=1) & known)
+
+
+def _with_camera(stars: StarList, camera: CameraModel) -> StarList:
+    return replace(stars, vectors=camera.pixel_to_vector(stars.x, stars.y))
+
+
+def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSearch) -> OpticsFit | None:
+    """Focal length (and k1 with enough stars) fitted with the attitude to the matched stars; stars
+    off by more than :data:`OPTICS_OUTLIER_PX` (or 5 x the median) after a first fit (a blend, a
+    saturated or badly fitted star the answer keeps with a wide noise floor) are left out of a second."""
+    sol = out.solution
+    if sol is None or len(sol.matched_det) < search.min_stars:
+        return None
+    rows, cat = out.used[sol.matched_det], sol.matched_cat
+    res = None
+    for _ in range(2):
+        res = fit_frame(
+            StarObservations(out.stars.x[rows], out.stars.y[rows], catalog.vec[cat]), out.camera, search.k1_min_stars
+        )
+        if res is None or not res.success or not np.isfinite(res.residual_rms_px):
+            return None
+        err = np.hypot(*res.residuals[0].T)
+        keep = err <= max(OPTICS_OUTLIER_PX, 5.0 * float(np.median(err)))
+        if keep.all() or keep.sum() < search.min_stars:
+            break
+        rows, cat = rows[keep], cat[keep]
+    return OpticsFit(res.camera, res.sigmas, res.residual_rms_px, len(rows))
+
+
+#: Star residual (px) beyond which a star is left out of the optics fit (with 5 x the median).
+OPTICS_OUTLIER_PX = 1.0
+
+
+def _corner_shift_px(a: CameraModel, b: CameraModel) -> float:
+    """Largest pixel displacement between two camera models over the array corners."""
+    xs = np.array([0.0, a.width - 1.0, 0.0, a.width - 1.0])
+    ys = np.array([0.0, 0.0, a.height - 1.0, a.height - 1.0])
+    x2, y2 = b.vector_to_pixel(a.pixel_to_vector(xs, ys))
+    return float(np.nanmax(np.hypot(x2 - xs, y2 - ys)))
+
+
+#: The frame is identified again with the fitted optics when they fit this much better (RMS ratio).
+REFIT_RMS_RATIO = 1.5
+
+
+def _refine_optics(
+    out: PipelineOutput,
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    timings: dict,
+) -> PipelineOutput | None:
+    """Attach the optics fit to a high-confidence ``out``; identify again with the fitted camera when
+    it moves a corner by more than ``refit_px`` or fits the stars :data:`REFIT_RMS_RATIO` times
+    better than the answer's camera did, and keep that answer if it is high-confidence and
+    agrees (within 1 mrad): its camera fits the stars better by construction."""
+    fit = _fit_optics(out, catalog, params.optics)
+    out.optics = fit
+    rms_px = out.solution.consensus_rms * camera.f
+    if fit is None or (
+        _corner_shift_px(camera, fit.camera) <= params.optics.refit_px
+        and rms_px <= REFIT_RMS_RATIO * fit.residual_rms_px
+    ):
+        return None
+    again = _identify(_with_camera(stars, fit.camera), fit.camera, catalog, params, timings)
+    if again.status is Status.OK and _same_attitude(again.solution, out.solution, 1e-3):
+        again.optics = _fit_optics(again, catalog, params.optics) or fit
+        return again
+    return None
+
+
+def _search_optics(
+    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams, timings: dict, t0: float
+) -> PipelineOutput | None:
+    """The scale-free search of :class:`OpticsSearch`: the first pattern match that leads to a
+    high-confidence answer with the fitted camera, else the low-confidence answer of a pattern
+    match that explains the most stars (None when no pattern match verifies)."""
+    search = params.optics
+    t1 = time.perf_counter()
+    scale_free.catalog_patterns(catalog, camera)  # once per catalog: not this frame's budget
+    t0 += time.perf_counter() - t1
+    tried: list[np.ndarray] = []
+    best: tuple[PipelineOutput, float] | None = None  # (answer, focal scale of its pattern)
+    for hyp in _pattern_seeds(stars, camera, catalog, search, timings):
+        if time.perf_counter() - t0 > search.budget_s:
+            break
+        if any(rotation_angle(hyp.a, a) < _SAME_SEED_RAD for a in tried):
+            continue
+        t1 = time.perf_counter()
+        refined = scale_free.refine(stars.x, stars.y, camera, hyp, catalog, k1_min_stars=search.k1_min_stars)
+        timings["attitude"] = timings.get("attitude", 0.0) + time.perf_counter() - t1
+        if refined is None:
+            continue
+        tried.append(hyp.a)  # a seed near one that refined to a failed identification leads there too
+        fitted, rows, cat, rms_px = refined
+        seen = _with_camera(stars, fitted)
+        # the fitted optics leave residuals no centroid covariance knows about (coma, an unmodelled
+        # distortion): per axis, they set the floor of the noise the identification assumes
+        floor = max(params.centroid_floor_px, rms_px / np.sqrt(2.0))
+        tight = replace(params, optics=None, centroid_floor_px=floor)
+        out = _identify(seen, fitted, catalog, tight, timings)
+        if out.status is not Status.OK:
+            pattern = _verify_pattern(seen, fitted, rows, cat, catalog, tight, timings)
+            out = (
+                pattern if pattern is not None and (pattern.status is Status.OK or _rank(pattern) > _rank(out)) else out
+            )
+        if out.status is Status.OK:
+            return _with_optics(out, hyp.f / camera.f, catalog, search)
+        if out.solution is not None and _rank(out) > _rank(best[0] if best else None):
+            best = (out, hyp.f / camera.f)
+    return _with_optics(*best, catalog=catalog, search=search) if best else None  # the optics of the answer only
+
+
+def _with_optics(
+    out: PipelineOutput, focal_scale: float, catalog: OnboardCatalog, search: OpticsSearch
+) -> PipelineOutput:
+    """``out`` with the optics fitted to its matched stars and the search's focal scale."""
+    out.optics = _fit_optics(out, catalog, search)
+    if out.optics is not None:
+        out.optics.focal_scale = focal_scale
+    return out
+
+
+def _rank(out: PipelineOutput | None) -> tuple[int, float]:
+    """Preference between low-confidence answers: stars matched, then the solution's confidence
+    (coverage of the predicted stars times the share of detections explained); (0, 0) for none."""
+    return (0, 0.0) if out is None or out.solution is None else (len(out.solution.matched_det), out.solution.confidence)
+
+
+def _pattern_seeds(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, search: OpticsSearch, timings: dict):
+    """Pattern hypotheses (``scale_free.hypotheses``) from the brightest clean detections, then, when
+    poor fits were among them (hot-pixel clusters and other unblurred clutter can outshine the
+    stars), from the brightest detections that also fit the PSF well."""
+    clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)  # clutter is blended or badly fitted
+    well = clean[(stars.flags[clean] & int(StarFlag.POOR_FIT)) == 0]
+    for rows in (clean, well):
+        if rows is well and np.array_equal(well[: search.n_bright], clean[: search.n_bright]):
+            return
+        t1 = time.perf_counter()
+        hyps = scale_free.hypotheses(
+            stars.x[rows], stars.y[rows], camera, catalog, search.n_bright, search.pattern_tolerance, search.focal_range
+        )
+        timings["identify"] = timings.get("identify", 0.0) + time.perf_counter() - t1
+        yield from hyps
+
+
+def _verify_pattern(
+    stars: StarList, camera: CameraModel, rows, cat, catalog: OnboardCatalog, params: PipelineParams, timings: dict
+) -> PipelineOutput | None:
+    """The refined pattern match itself (detection ``rows`` on catalog stars ``cat``), verified over
+    every usable detection with the fitted camera and the tight noise model (method "pattern"),
+    or None when verification refuses it. High confidence only as the solver grants a large set
+    (at least ``confident_stars`` matched covering at least ``confident_coverage`` of the
+    predicted stars); else low confidence: the pattern was chosen by a search among thousands of
+    4-sets, so its own stars do not count as the independent evidence the chance-alignment rule
+    needs."""
+    used = _usable(stars)
+    rows, cat = np.asarray(rows), np.asarray(cat)
+    inside = np.isin(rows, used)
+    match, _, sp = _verify_over(used, rows[inside], cat[inside], stars, camera, catalog, params, timings)
+    if match is None:
+        return None
+    cp = sp.consensus
+    confident = large_set(match, cp)
+    outcome, status = (
+        (Outcome.HIGH_CONFIDENCE, Status.OK) if confident else (Outcome.LOW_CONFIDENCE, Status.LOW_CONFIDENCE)
+    )
+    reason = (
+        ""
+        if confident
+        else (
+            f"pattern match of {match.n} stars (coverage {match.coverage:.2f}) "
+            f"below the {cp.confident_stars} stars and {cp.confident_coverage:g} coverage "
+            "a search-chosen pattern needs"
+        )
+    )
+    sol = solution_from_match(match, outcome, reason, np.arange(len(used)), catalog, "pattern", len(used))
+    return PipelineOutput(status, reason, stars, used, sol, colour_beta=params.colour_beta, camera=camera)
+
+
+#: Detections left out of the pattern search's brightest stars (saturated stars stay: they are real).
+_PATTERN_EXCLUDE = int(StarFlag.BLEND | StarFlag.FIT_FAILED | StarFlag.EDGE)
+
+#: Pattern seeds whose attitudes differ by less than this (rad) lead to the same refined answer.
+_SAME_SEED_RAD = np.radians(0.2)
+
+
+def _solve_rows(
+    rows,
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    mode: str,
+    use_colour: bool,
+    timings: dict,
+):
+    """Solve on ``rows`` of ``stars`` (adds to ``timings``); returns (solution, rows it refers to).
+    Inputs as :func:`_solver_inputs`; a low-confidence answer is retried with the photometric
+    gate (:class:`PipelineParams`)."""
+    rg, bg, sigma_px, solve_params = _solver_inputs(rows, stars, camera, catalog, params, mode, use_colour)
+
+    def run(sub):
+        out = solve(
+            stars.vectors[rows[sub]],
+            rg[sub],
+            bg[sub],
+            catalog,
+            replace(solve_params, sigma_vec=solve_params.sigma_vec[sub]),
+        )
+        timings["identify"] = (
+            timings.get("identify", 0.0) + out.timings.get("match", 0.0) + out.timings.get("validate", 0.0)
+        )
+        timings["attitude"] = timings.get("attitude", 0.0) + out.timings.get("verify", 0.0)
+        return out
+
+    sol = run(np.arange(len(rows)))
+    if sol.status is Outcome.LOW_CONFIDENCE and params.photometric_gate is not None:
+        gated = _photometric_gate(stars.flux[rows], sol, catalog, params.photometric_gate)
+        if gated is not None and 2 <= len(gated) < len(rows):
+            sol2 = run(gated)
+            if sol2.status is Outcome.HIGH_CONFIDENCE and _same_attitude(
+                sol, sol2, 5 * float(np.max(sigma_px)) / camera.f
+            ):
+                return sol2, rows[gated]
+    return sol, rows
+
+
+def _solver_inputs(
+    rows,
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    mode: str,
+    use_colour: bool,
+):
+    """Colours, per-star noise (px) and solver parameters for ``rows`` of ``stars``.
+
+    Saturated or blended stars keep their geometry but lose their colour; the per-star
+    direction noise comes from the fit covariance with a floor, larger for untrusted fits. The
+    colour noise given to the matcher is the largest of the solver setting, the catalog's
+    design value and the median colour sigma the fit measured on this frame (a small aperture
+    leaves 4th-magnitude stars with ~0.1 colour noise; matching them at 0.05 rejects true
+    matches)."""
+    flags = stars.flags[rows]
+    colour_ok = ((flags & int(StarFlag.SATURATED | StarFlag.BLEND)) == 0) & use_colour
+    rg = np.where(colour_ok, stars.rg[rows], np.nan)
+    bg = np.where(colour_ok, stars.bg[rows], np.nan)
+    if params.colour_beta is not None:
+        rg, bg = apply_colour_correction(rg, bg, params.colour_beta)
+    if params.fixed_sigma_px is not None:
+        sigma_px = np.full(len(rows), float(params.fixed_sigma_px))
+    else:
+        var = 0.5 * (stars.cov_xy[rows, 0, 0] + stars.cov_xy[rows, 1, 1])
+        var = np.where(np.isfinite(var), var, UNKNOWN_CENTROID_SIGMA_PX**2)
+        floor = np.where(
+            (flags & int(UNTRUSTED)) != 0,
+            max(UNTRUSTED_CENTROID_FLOOR_PX, params.centroid_floor_px),
+            params.centroid_floor_px,
+        )
+        sigma_px = np.sqrt(var + floor**2)
+    measured = np.sqrt(np.where(colour_ok[:, None], stars.cov_colour[rows][:, [0, 1], [0, 1]], np.nan))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: no colour measured
+        frame_rg, frame_bg = np.nanmedian(measured, axis=0)
+    solve_params = replace(
+        params.solve,
+        mode=mode,
+        sigma_vec=sigma_px / camera.f,
+        fov=params.solve.fov or FieldOfView.from_camera(camera),
+        sigma_rg=float(np.nanmax([params.solve.sigma_rg, catalog.meta.get("sigma_rg", np.nan), frame_rg])),
+        sigma_bg=float(np.nanmax([params.solve.sigma_bg, catalog.meta.get("sigma_bg", np.nan), frame_bg])),
+        verify=replace(params.solve.verify, frame_detections=len(stars)),
+    )  # the solver may see only the brightest
+
+    return rg, bg, sigma_px, solve_params
+
+
+def _solve_geometric(used, stars, camera, catalog, params: PipelineParams, timings: dict):
+    """4-star matching on the brightest detections, widening the set (:data:`GEOMETRIC_STEPS`,
+    then :func:`geometric_detection_cap`) until a high-confidence answer; the best answer else."""
+    cap = geometric_detection_cap(camera, catalog, params.geometric_density_factor)
+    best = None
+    for k in sorted({min(k, cap, len(used)) for k in (*GEOMETRIC_STEPS, cap)}):
+        sol, rows = _solve_rows(used[:k], stars, camera, catalog, params, params.solve.mode, False, timings)
+        if sol.status is Outcome.HIGH_CONFIDENCE:
+            return _match_all(sol, rows, used, stars, camera, catalog, params, timings)
+        if best is None or (best[0].status is Outcome.NO_MATCH and sol.status is not Outcome.NO_MATCH):
+            best = (sol, rows)
+    return best
+
+
+def _match_all(
+    sol,
+    rows,
+    used,
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    timings: dict,
+):
+    """A high-confidence answer found on the brightest ``rows`` verified again over every usable
+    detection (``used``), so every star in view is matched; the answer stands if that verification
+    fails, finds fewer stars or moves the attitude."""
+    if len(rows) >= len(used):
+        return sol, rows
+    match, sigma_px, _ = _verify_over(
+        used, rows[sol.matched_det], sol.matched_cat, stars, camera, catalog, params, timings
+    )
+    if (
+        match is None
+        or match.n < len(sol.matched_det)
+        or rotation_angle(match.attitude.a, quat_to_matrix(sol.q_icrs_to_sensor))
+        > 5 * float(np.max(sigma_px)) / camera.f
+    ):
+        return sol, rows
+    full = solution_from_match(match, sol.status, sol.reason, np.arange(len(used)), catalog, sol.method, len(used))
+    full.attempts, full.timings, full.notes = sol.attempts, sol.timings, sol.notes
+    return full, used
+
+
+def _verify_over(
+    used,
+    rows,
+    cat,
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    timings: dict,
+):
+    """The solver's verification (geometry only) of detection ``rows`` matched to catalog stars
+    ``cat``, over every detection in ``used`` (sorted rows): (VerifiedMatch or None, per-star noise
+    px, solver parameters); its time goes to ``timings["attitude"]``."""
+    t0 = time.perf_counter()
+    rg, bg, sigma_px, sp = _solver_inputs(used, stars, camera, catalog, params, "geometric", False)
+    match, _ = verify(
+        np.searchsorted(used, rows),
+        cat,
+        stars.vectors[used],
+        rg,
+        bg,
+        sigma_px / camera.f,
+        catalog,
+        sp.fov,
+        0.0,
+        0.0,
+        sp.verify,
+    )
+    timings["attitude"] = timings.get("attitude", 0.0) + time.perf_counter() - t0
+    return match, sigma_px, sp
+
+
+def geometric_detection_cap(camera: CameraModel, catalog: OnboardCatalog, factor: float) -> int:
+    """Brightest detections given to the brightness-independent 4-star matcher: ``factor``
+    times the catalog stars expected in the field (catalog density x field solid angle), at
+    least :data:`MIN_GEOMETRIC_DETECTIONS`. Fainter detections are mostly stars below the
+    catalog limit, which would fill the 4-star groups with stars it cannot identify."""
+    half_x = np.arctan(camera.width / 2.0 / camera.f)
+    half_y = np.arctan(camera.height / 2.0 / camera.f)
+    solid_angle = 4.0 * np.arcsin(np.sin(half_x) * np.sin(half_y))
+    expected = catalog.n_stars * solid_angle / (4.0 * np.pi)
+    return max(MIN_GEOMETRIC_DETECTIONS, int(np.ceil(factor * expected)))
+
+
+def _photometric_gate(flux, sol: SolveResult, catalog: OnboardCatalog, margin_mag: float):
+    """Rows (of the solver input) bright enough to be catalog stars, using the zero point of the
+    matched stars: ``m_est = median(m_cat + 2.5 log10 F) - 2.5 log10 F`` kept when
+    ``m_est <= max(catalog magnitude) + margin_mag``. None when no zero point can be formed."""
+    f_matched = flux[sol.matched_det]
+    ok = np.isfinite(f_matched) & (f_matched > 0)
+    if ok.sum() < 2:
+        return None
+    zero_point = np.median(catalog.mag[sol.matched_cat][ok] + 2.5 * np.log10(f_matched[ok]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m_est = zero_point - 2.5 * np.log10(flux)
+    return np.flatnonzero(np.nan_to_num(m_est, nan=np.inf) <= float(np.max(catalog.mag)) + margin_mag)
+
+
+def _same_attitude(a: SolveResult, b: SolveResult, tol: float) -> bool:
+    return rotation_angle(quat_to_matrix(a.q_icrs_to_sensor), quat_to_matrix(b.q_icrs_to_sensor)) <= tol
+
+
+def _sigma_axes(cov) -> np.ndarray:
+    if cov is None:
+        return np.zeros(3)
+    return np.sqrt(np.clip(np.diag(np.asarray(cov, dtype=float)), 0.0, None))
+
+
+def _optics_fields(out: PipelineOutput) -> dict:
+    """The extension's optics block: PSF sigma and the fitted focal length and distortion."""
+    stars, fit = out.stars, out.optics
+    flags = result.PSF_MEASURED if stars is not None and stars.psf_source == "measured" else 0
+    fields = {
+        "ext.psf_sigma": stars.psf_sigma_px if stars is not None else np.nan,
+        "ext.focal_px": out.camera.f if out.camera is not None else np.nan,
+        "ext.focal_sigma": np.nan,
+        "ext.k1": out.camera.k1 if out.camera is not None else np.nan,
+        "ext.k1_sigma": np.nan,
+        "ext.optics_rms": np.nan,
+        "ext.focal_scale": np.nan,
+    }
+    if fit is not None:
+        flags |= result.OPTICS_FITTED | (result.OPTICS_SEARCHED if np.isfinite(fit.focal_scale) else 0)
+        fields.update(
+            {
+                "ext.focal_px": fit.camera.f,
+                "ext.focal_sigma": fit.sigmas.get("f", np.nan),
+                "ext.k1": fit.camera.k1,
+                "ext.k1_sigma": fit.sigmas.get("k1", np.nan),
+                "ext.optics_rms": fit.residual_rms_px,
+                "ext.optics_stars": fit.n_stars,
+                "ext.focal_scale": fit.focal_scale,
+            }
+        )
+    fields["ext.optics_flags"] = flags
+    return fields
+
+
+def result_fields(out: PipelineOutput) -> dict:
+    """Result-structure fields (dotted paths of ``protocol.result.RESULT``) for one output."""
+    bits = ReturnBits.FULL_PROCESSING
+    fields: dict = {}
+    stars, sol = out.stars, out.solution
+    if stars is not None and len(stars):
+        bits |= ReturnBits.IMAGE1_QUALITY
+        top = np.arange(min(10, len(stars)))
+        cen = np.zeros((10, 2))
+        cen[top] = np.column_stack([stars.x[top], stars.y[top]])
+        vec = np.zeros((10, 3))
+        if stars.vectors is not None:
+            vec[top] = stars.vectors[top]
+        fields.update(
+            {
+                "centroid.0.initialized": 1,
+                "centroid.0.good_stars": int(stars.trusted.sum()),
+                "centroid.0.centroids": cen,
+                "centroid.0.unit_vectors": vec,
+                "image.0.initialized": 1,
+                "image.0.peak_count": len(stars),
+            }
+        )
+    n_matched = 0
+    ext_stars = np.zeros(result.EXT_MAX_STARS, dtype=result.EXT_STAR)
+    ext_stars["catalog_id"] = -1
+    if stars is not None:
+        n_rep = min(len(stars), result.EXT_MAX_STARS)
+        for name in ("x", "y", "flux", "rg", "bg"):
+            ext_stars[name][:n_rep] = getattr(stars, name)[:n_rep]
+        ext_stars["rg_sigma"][:n_rep] = np.sqrt(stars.cov_colour[:n_rep, 0, 0])
+        ext_stars["bg_sigma"][:n_rep] = np.sqrt(stars.cov_colour[:n_rep, 1, 1])
+        ext_stars["flags"][:n_rep] = ((stars.flags[:n_rep] & int(StarFlag.SATURATED)) != 0).astype(np.uint32) << 1
+        fields["ext.n_detected"] = len(stars)
+        fields["ext.n_reported"] = n_rep
+    if sol is not None and sol.q_icrs_to_sensor is not None:
+        q = np.asarray(sol.q_icrs_to_sensor, dtype=float)
+        rows = out.used[sol.matched_det]
+        n_matched = len(rows)
+        for k, row in enumerate(rows):
+            if row < result.EXT_MAX_STARS:
+                ext_stars["catalog_id"][row] = sol.matched_star_id[k]
+                ext_stars["residual"][row] = sol.residuals[k]
+                ext_stars["flags"][row] |= 1
+        matched10 = np.full(10, -1, dtype=np.int32)
+        matched10[: min(10, n_matched)] = sol.matched_star_id[:10]
+        bits |= ReturnBits.IMAGE1_SUCCESS
+        if out.status is Status.OK:
+            bits |= ReturnBits.CONSISTENT_SOLUTION
+        fields.update(
+            {
+                "quaternion": q,
+                "matching.0.initialized": 1,
+                "matching.0.quaternion": q,
+                "matching.0.consensus_size": int(sol.consensus_size),
+                "matching.0.consensus_rms": float(sol.consensus_rms),
+                "matching.0.confidence": float(sol.confidence),
+                "matching.0.matched_stars": matched10,
+                "matching.0.set_tests": int(sol.attempts),
+                "ext.quaternion": q,
+                "ext.sigma": _sigma_axes(sol.covariance),
+                "ext.residual_rms": float(sol.consensus_rms),
+            }
+        )
+        if n_matched and out.stars is not None and np.isfinite(out.stars.rg[rows]).any():
+            obs_rg, obs_bg = out.stars.rg[rows], out.stars.bg[rows]
+            if out.colour_beta is not None:
+                obs_rg, obs_bg = apply_colour_correction(obs_rg, obs_bg, out.colour_beta)
+            d = np.concatenate([obs_rg - sol.matched_rg, obs_bg - sol.matched_bg])
+            fields["ext.colour_rms"] = float(np.sqrt(np.nanmean(d**2)))
+    for lab in out.planets:
+        if lab.index < result.EXT_MAX_STARS:
+            ext_stars["flags"][lab.index] |= 4 | (1 + result.BODIES.index(lab.body)) << 8
+    fields["ext.n_planets"] = min(len(out.planets), 255)
+    fields["ext.n_matched"] = n_matched
+    fields.update(_optics_fields(out))
+    fields["ext.stars"] = ext_stars
+    fields["ext.stage_times"] = np.array([out.timings.get(s, 0.0) for s in STAGES], dtype=np.float32)
+    fields["ext.method"] = METHOD_CODES.get(sol.method if sol else "", 0)
+    fields["return_code"] = result.make_return_code(out.status, int(bits))
+    return fields

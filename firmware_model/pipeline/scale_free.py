@@ -1,0 +1,219 @@
+"""Scale-free first match for uncalibrated optics: 4-star patterns whose edge ratios do not
+depend on the focal length, as plate solvers do it (tetra3's patterns, astrometry.net's quads).
+
+A pattern is four stars; its key is the six pairwise angles sorted and divided by the largest
+(five numbers in (0, 1]). A focal-length error scales every edge alike and leaves the key
+unchanged; radial distortion of a few pixels changes it by well under a per cent for patterns of a
+few hundred pixels. Catalog patterns (the module constants say which 4-sets) are built once per
+(catalog, field) and kept in a KD-tree (L-infinity ball queries).
+
+``hypotheses`` matches the frame's patterns (every 4-combination of its brightest detections no
+wider than the widest catalog pattern, directions taken through the nominal camera) and turns
+each key match into a focal length (ratio of the catalog's largest edge to the frame's) and an
+attitude (the four stars, best of the 24 assignments). ``refine`` then predicts every catalog
+star in the field, matches detections within a shrinking radius and fits focal length (and k1)
+with the attitude (``firmware_model.pipeline.camera_fit``). The caller identifies the frame again from scratch with the
+fitted camera: a pattern match is only a seed.
+
+Units: radians for angles, pixels for image positions (docs/CONVENTIONS.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from itertools import combinations, permutations
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from firmware_model.catalog.onboard import OnboardCatalog, angle_between, chord_of_angle
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.camera_fit import StarObservations, fit_frame
+
+#: Catalog patterns of two kinds, both scale free: (1) for each region of the sky the size of the
+#: field (circles of the minor half-field on a Fibonacci lattice spaced REGION_SPACING of that
+#: radius), every 4-combination of its REGION_STARS brightest stars, as tetra3 builds its database
+#: (a frame's brightest stars are its region's brightest); (2) for each pattern radius and each
+#: star with fewer than PATTERN_STARS_PER_CAP brighter stars within it, three of its
+#: CATALOG_NEIGHBOURS brightest neighbours there (sparse fields whose stars sit far apart; the
+#: wider radius reaches the frame's opposite corners, the narrower keeps the centres it loses).
+REGION_STARS = 10
+REGION_SPACING = 1.0
+CATALOG_NEIGHBOURS = 10
+PATTERN_STARS_PER_CAP = 12
+#: Pattern radii over the minor half-field (kind 2; the frame's widest pattern: twice the largest).
+PATTERN_RADIUS_FACTORS = (1.5, 2.0)
+_PAIRS = list(combinations(range(4), 2))
+_PERMS = np.array(list(permutations(range(4))))
+
+
+@dataclass
+class Hypothesis:
+    """A pattern match: focal length (px), attitude ``a`` (v_sensor = a @ v_icrs) and the key
+    distance (largest difference of the edge ratios)."""
+
+    f: float
+    a: np.ndarray
+    key_distance: float
+
+
+def _keys(vectors: np.ndarray, groups: np.ndarray):
+    """Sorted normalised edge ratios (G, 5) and the largest edge (G,) of 4-star groups (G, 4)."""
+    v = vectors[groups]  # (G, 4, 3)
+    edges = np.stack([angle_between(v[:, i], v[:, j]) for i, j in _PAIRS], axis=1)
+    edges.sort(axis=1)
+    top = edges[:, -1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return edges[:, :-1] / top[:, None], top
+
+
+def _groups(near: list, brightness_rank: np.ndarray, centres: np.ndarray, neighbours: int) -> np.ndarray:
+    """4-star groups: each centre with three of its ``neighbours`` brightest neighbours (``near[c]``:
+    the stars within the pattern radius of star ``c``)."""
+    out = []
+    for c in centres:
+        near_c = np.array([j for j in near[c] if j != c], dtype=np.int64)
+        if len(near_c) < 3:
+            continue
+        near_c = near_c[np.argsort(brightness_rank[near_c])][:neighbours]
+        out.extend((c, *trio) for trio in combinations(near_c.tolist(), 3))
+    return np.array(out, dtype=np.int64).reshape(-1, 4)
+
+
+def _region_groups(tree: cKDTree, mag: np.ndarray, field_radius: float) -> np.ndarray:
+    """Every 4-combination of the :data:`REGION_STARS` brightest stars of each field-sized region."""
+    spacing = REGION_SPACING * field_radius
+    n = int(np.ceil(4.0 * np.pi / spacing**2))
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * i
+    points = np.column_stack([np.sqrt(1.0 - z * z) * np.cos(phi), np.sqrt(1.0 - z * z) * np.sin(phi), z])
+    out = [np.zeros((0, 4), np.int64)]
+    for near in tree.query_ball_point(points, chord_of_angle(field_radius)):
+        near = np.asarray(near, np.int64)
+        near = np.sort(near[np.argsort(mag[near], kind="stable")][:REGION_STARS])
+        if len(near) >= 4:
+            out.append(np.array(list(combinations(near.tolist(), 4)), np.int64))
+    return np.concatenate(out)
+
+
+def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
+    """(groups, keys, largest edge, KD-tree of keys) of the catalog's patterns for a camera's field
+    (module constants), cached on the catalog object per minor half-field (to 1 mrad)."""
+    cache = catalog.__dict__.setdefault("_pattern_cache", {})
+    mrad = int(round(camera.fov_half_angle_minor * 1000.0))
+    if mrad not in cache:
+        field = mrad / 1000.0
+        rank = np.argsort(np.argsort(catalog.mag, kind="stable"), kind="stable")
+        groups = [_region_groups(catalog._tree, catalog.mag, field)]
+        for factor in PATTERN_RADIUS_FACTORS:
+            near = catalog._tree.query_ball_point(catalog.vec, chord_of_angle(factor * field))
+            brighter = np.array([np.count_nonzero(rank[n] < rank[i]) for i, n in enumerate(near)])
+            groups.append(_groups(near, rank, np.flatnonzero(brighter < PATTERN_STARS_PER_CAP), CATALOG_NEIGHBOURS))
+        groups = np.concatenate(groups)
+        groups = np.unique(np.sort(groups, axis=1), axis=0)  # a 4-set found several ways once
+        keys, top = _keys(catalog.vec, groups)
+        ok = np.isfinite(keys).all(axis=1) & (top > 0)
+        cache[mrad] = (groups[ok], keys[ok], top[ok], cKDTree(keys[ok]))
+    return cache[mrad]
+
+
+def hypotheses(
+    x: np.ndarray,
+    y: np.ndarray,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    n_bright: int,
+    tolerance: float,
+    focal_range: float,
+    max_hypotheses: int = 64,
+) -> list[Hypothesis]:
+    """Pattern matches of the ``n_bright`` brightest detections (rows of ``x, y``, brightest first)
+    with key distance below ``tolerance`` and focal length within ``focal_range`` (relative) of
+    the nominal camera's, best key distance first."""
+    n = min(len(x), n_bright)
+    if n < 4:
+        return []
+    groups_c, keys_c, top_c, tree = catalog_patterns(catalog, camera)
+    v = camera.pixel_to_vector(x[:n], y[:n])
+    groups = np.array(list(combinations(range(n), 4)), np.int64)
+    keys, top = _keys(v, groups)
+    wide = top <= 2.0 * max(PATTERN_RADIUS_FACTORS) * camera.fov_half_angle_minor * (1 + focal_range)
+    groups, keys, top = groups[wide], keys[wide], top[wide]
+    if len(groups) == 0:
+        return []
+    found = tree.query_ball_point(keys, tolerance, p=np.inf)
+    gi = np.repeat(np.arange(len(groups)), [len(f) for f in found])
+    ci = np.fromiter((k for f in found for k in f), dtype=np.int64, count=len(gi))
+    scale = top[gi] / top_c[ci]
+    ok = np.abs(scale - 1.0) <= focal_range
+    gi, ci, scale = gi[ok], ci[ok], scale[ok]
+    dist = np.max(np.abs(keys[gi] - keys_c[ci]), axis=1)
+    out = []
+    for m in np.argsort(dist, kind="stable"):  # best key first; attitudes only for those returned
+        g = groups[gi[m]]
+        # directions through the hypothesised focal length: with the nominal one, a pattern off
+        # the boresight would tilt the attitude by the scale error times its field angle
+        b = replace(camera, f=camera.f * scale[m]).pixel_to_vector(x[g], y[g])
+        a = _assign(b, catalog.vec[groups_c[ci[m]]])
+        if a is not None:
+            out.append(Hypothesis(camera.f * scale[m], a, float(dist[m])))
+            if len(out) == max_hypotheses:
+                break
+    return out
+
+
+def _assign(b: np.ndarray, r: np.ndarray):
+    """Attitude from the best of the 24 assignments of frame directions ``b`` (through the
+    hypothesised focal length) to catalog directions ``r`` (edges compared after a common scale),
+    or None when even the best leaves an edge mismatch above 2 % of the largest edge."""
+    eb = np.stack([angle_between(b[i], b[j]) for i, j in _PAIRS])
+    rp = r[_PERMS]  # (24, 4, 3)
+    er = np.stack([angle_between(rp[:, i], rp[:, j]) for i, j in _PAIRS], axis=1)
+    scale = eb.sum() / er.sum(axis=1)
+    mismatch = np.sqrt(np.mean((er * scale[:, None] - eb) ** 2, axis=1))
+    best = int(np.argmin(mismatch))
+    if mismatch[best] > 0.02 * eb.max():
+        return None
+    rot, _ = Rotation.align_vectors(b, rp[best])
+    return rot.as_matrix()
+
+
+def refine(
+    x: np.ndarray,
+    y: np.ndarray,
+    camera: CameraModel,
+    hyp: Hypothesis,
+    catalog: OnboardCatalog,
+    radii_px=(30.0, 10.0, 4.0, 2.5),
+    min_stars: int = 4,
+    k1_min_stars: int = 6,
+):
+    """Predict-match-fit from a pattern hypothesis: the camera with the hypothesis' focal length,
+    then for each radius in ``radii_px`` match every detection to the nearest predicted catalog
+    star within it (one detection per star) and fit f, k1 (with enough stars) and the attitude.
+    Returns (camera, detection rows, catalog indices, RMS residual of the last fit in px) or None
+    with fewer than ``min_stars``."""
+    cam, a = replace(camera, f=hyp.f), hyp.a
+    near = catalog.stars_within(a[2], camera.fov_half_angle_diagonal * 1.2)
+    det = cat = res = None
+    for radius in radii_px:
+        px, py = cam.vector_to_pixel(catalog.vec[near] @ a.T)
+        inside = np.isfinite(px) & cam.in_frame(px, py)
+        if inside.sum() < min_stars:
+            return None
+        cx, cy, ci = px[inside], py[inside], near[inside]
+        d = np.hypot(x[:, None] - cx[None, :], y[:, None] - cy[None, :])
+        j = np.argmin(d, axis=1)
+        ok = d[np.arange(len(x)), j] < radius
+        rows = np.flatnonzero(ok)
+        rows = rows[np.unique(j[rows], return_index=True)[1]]  # brightest detection per star
+        if len(rows) < min_stars:
+            return None
+        det, cat = rows, ci[j[rows]]
+        res = fit_frame(StarObservations(x[det], y[det], catalog.vec[cat]), cam, k1_min_stars)
+        if res is None:
+            return None
+        cam, a = res.camera, res.attitudes[0]
+    return cam, det, cat, res.residual_rms_px

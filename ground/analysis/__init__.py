@@ -1,0 +1,1 @@
+"""Analysis: replay of frame sets, solve reports, results logs and plots."""

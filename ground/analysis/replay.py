@@ -1,0 +1,375 @@
+"""Field-test replay: solve every frame of a directory over the link or in-process, score
+against truth, log every result as it comes, and summarise.
+
+* Frames are the files of a directory that the frame readers accept, in name order; truth is
+  ``NAME.truth.json`` beside a frame (the renderer's format: ``attitude_quaternion``
+  scalar-first ICRS->sensor, and ``stars`` with ``id``, ``x``, ``y``).
+* :class:`LinkSolver` uploads each frame to slot 1 and commands GO over the serial link. A
+  device that stops answering is reported, waited for (PING every half second) and the frame
+  is solved again once it is back; a result is logged only once it is complete, so nothing
+  logged is lost and nothing is logged twice.
+* :class:`OfflineSolver` runs the same pipeline in-process.
+* Scoring: ``correct`` when the attitude error is at most :data:`CORRECT_DEG` and no matched
+  star carries a wrong id (an id is wrong when truth stars lie within :data:`MATCH_RADIUS_PX`
+  of the detection and none of them has it: a blend may be matched to either component); ``wrong`` for any other returned attitude; ``no_match`` when no
+  attitude came back; ``unscored`` without truth; ``unreadable`` when the file could not be
+  read (the run goes on).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from firmware_model.catalog.onboard import OnboardCatalog
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.extract import StarList, extract_stars
+from firmware_model.pipeline.frame_readers import frame_files, read_frame
+from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes
+from firmware_model.pipeline.run import PipelineParams, identify_stars, run_pipeline
+from firmware_model.reference_frames import quat_to_matrix, rotation_angle
+from ground.analysis.results_log import ResultsLog, plot_summary, summarize
+from ground.atomic_write import write_text
+from ground.link.solve_report import matched_stars, record_from_output, solve_record
+from ground.optional import MissingExtra
+from ground.sim.frame_writer import truth_path_for
+from protocol.commands import Slot
+from protocol.result import Status
+
+CORRECT_DEG = 0.1  #: attitude error bound of a correct solve (peer_solvers.md section 5)
+MATCH_RADIUS_PX = 2.0  #: detection <-> truth association radius
+LOOSE_SIGMA_PX = 3.0  #: centroid noise assumed for the approximate attitude before refraction correction
+
+
+@dataclass(frozen=True)
+class Truth:
+    q_icrs_to_sensor: np.ndarray
+    star_id: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+
+    @classmethod
+    def for_frame(cls, frame_path, frame: Frame | None = None, warn=None) -> Truth | None:
+        """The truth beside a rendered frame (``NAME.truth.json``), or None: absent, unreadable, or
+        (with ``frame``) written for another frame (its camera size or render seed differ). The
+        last two are said through ``warn`` (default: one line on stderr): the frame is then not
+        scored, and nothing else is lost."""
+        path = truth_path_for(frame_path)
+        if not path.is_file():
+            return None
+        say = warn or (lambda msg: print(f"st16-ground: {msg}", file=sys.stderr))
+        try:
+            data = json.loads(path.read_text())
+            stars = data.get("stars", [])
+            truth = cls(
+                np.asarray(data["attitude_quaternion"], dtype=float).reshape(4),
+                np.array([s["id"] for s in stars], dtype=np.int64),
+                np.array([s["x"] for s in stars], dtype=float),
+                np.array([s["y"] for s in stars], dtype=float),
+            )
+            camera, seed = data.get("camera") or {}, data.get("seed")
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            say(f"{path.name} is not a readable truth file ({type(exc).__name__}: {exc}); frame not scored")
+            return None
+        if frame is not None:
+            size = (camera.get("width"), camera.get("height"))
+            frame_seed = (frame.metadata or {}).get("seed")
+            if (None not in size and size != (frame.width, frame.height)) or (
+                seed is not None and frame_seed is not None and int(seed) != int(frame_seed)
+            ):
+                say(
+                    f"{path.name} describes another frame ({size[0]} x {size[1]}, seed {seed}; the frame is "
+                    f"{frame.width} x {frame.height}, seed {frame_seed}); frame not scored"
+                )
+                return None
+        return truth
+
+    def stars_near(self, x: float, y: float) -> set[int]:
+        """Ids of truth stars within MATCH_RADIUS_PX (a blend may hold several)."""
+        if not len(self.x):
+            return set()
+        return {int(i) for i in self.star_id[np.hypot(self.x - x, self.y - y) <= MATCH_RADIUS_PX]}
+
+
+def score(record: dict, truth: Truth | None) -> dict:
+    """Outcome, attitude error (deg) and wrong-id count of a solve record."""
+    if record.get("q_icrs_to_sensor") is None:
+        return {"outcome": "no_match"}
+    if truth is None:
+        return {"outcome": "unscored"}
+    err = np.degrees(rotation_angle(quat_to_matrix(record["q_icrs_to_sensor"]), quat_to_matrix(truth.q_icrs_to_sensor)))
+    wrong = 0
+    for s in matched_stars(record):
+        near = truth.stars_near(s["x"], s["y"])
+        wrong += int(bool(near) and s["catalog_id"] not in near)
+    outcome = "correct" if err <= CORRECT_DEG and wrong == 0 else "wrong"
+    return {"outcome": outcome, "attitude_error_deg": float(err), "wrong_ids": wrong}
+
+
+class OfflineSolver:
+    """The device pipeline in-process (``replay --offline``).
+
+    With a ``site`` (``ground.calibration.corrections.Site``) and a frame timestamp, star vectors are
+    corrected for atmospheric refraction before the final match (Enright & McVittie section 5.3.2): a
+    first solve (with a loose :data:`LOOSE_SIGMA_PX` noise model if the rigorous one fails: the
+    paper used a manual match) gives the approximate attitude that places each star in the
+    sky, the vectors are corrected (``correct_refraction``) and the stars identified again at
+    full rigour; the record then says ``"refraction": "corrected"``. With a site the camera is
+    taken as calibrated (no optics search): on one low field, refraction and a focal-length error
+    are nearly degenerate.
+
+    ``camera`` is one model for every frame, or a function of the frame (``--fov-deg``: a pinhole
+    camera per frame size).
+    """
+
+    def __init__(
+        self,
+        camera: CameraModel | Callable[[Frame], CameraModel],
+        catalog: OnboardCatalog,
+        params: PipelineParams = PipelineParams(),
+        site=None,
+    ):
+        self.camera, self.catalog, self.params, self.site = camera, catalog, params, site
+
+    def camera_for(self, frame: Frame) -> CameraModel:
+        return self.camera if isinstance(self.camera, CameraModel) else self.camera(frame)
+
+    def solve(self, frame: Frame) -> dict:
+        camera = self.camera_for(frame)
+        if self.site is None:
+            return record_from_output(run_pipeline(frame, camera, self.catalog, self.params))
+        # refraction squeezes a low field like a focal-length error: with a site, the camera is
+        # taken as calibrated (no optics search), so the two are not confused
+        params = replace(self.params, optics=None)
+        out = run_pipeline(frame, camera, self.catalog, params)
+        if out.stars is None or len(out.stars) < 2:
+            return record_from_output(out)
+        if not frame.timestamp:
+            raise ValueError("refraction correction needs the frame's timestamp")
+        from astropy.time import Time
+
+        from ground.calibration.corrections import correct_refraction
+
+        stars = out.stars
+        approx = out
+        if out.status is not Status.OK:
+            # differential refraction can exceed the centroid noise: look for the approximate
+            # attitude with a loose noise model (the final match below is made at full rigour); a
+            # low-confidence first answer (e.g. a two-star last resort) is no approximation to trust
+            approx = identify_stars(stars, camera, self.catalog, replace(params, fixed_sigma_px=LOOSE_SIGMA_PX))
+            if approx.solution is None or approx.solution.q_icrs_to_sensor is None:
+                rec = record_from_output(out)
+                rec["refraction"] = "not corrected: no approximate attitude"
+                return rec
+        vec = correct_refraction(
+            stars.vectors,
+            quat_to_matrix(approx.solution.q_icrs_to_sensor),
+            self.site,
+            Time(frame.timestamp, scale="utc"),
+        )
+        corrected = identify_stars(replace(stars, vectors=vec), camera, self.catalog, params)
+        rec = record_from_output(corrected)
+        rec["refraction"] = "corrected"
+        return rec
+
+
+class LinkSolver:
+    """Solves on a device over the serial link (``replay`` / ``solve``), surviving link loss."""
+
+    def __init__(
+        self,
+        url: str,
+        reconnect_timeout: float = 120.0,
+        go_timeout: float = 60.0,
+        log=None,
+        upload_progress: bool = False,
+        **client_kw,
+    ):
+        self.url = url
+        self.upload_progress = upload_progress  #: a progress bar while the frame uploads (minutes at 115 200 baud)
+        self.reconnect_timeout = reconnect_timeout
+        self.go_timeout = go_timeout
+        self.log = log
+        self.client_kw = client_kw
+        self.client = None
+        self.reconnects = 0
+
+    def _connect(self):
+        from ground.link.client import Client
+
+        client = Client(self.url, log=self.log, **self.client_kw)
+        try:
+            if "BOOTLOADER" in client.ping():
+                client.init()
+        except Exception:
+            client.close()
+            raise
+        self.client = client
+
+    def close(self):
+        if self.client is not None:
+            self.client.close()
+            self.client = None
+
+    def _wait_for_device(self, why: Exception, say, deadline: float) -> None:
+        left = max(deadline - time.monotonic(), 0.0)
+        say(f"device not answering ({type(why).__name__}: {why}); waiting up to {left:.0f} s")
+        self.close()
+        while time.monotonic() < deadline:
+            try:
+                self._connect()
+                self.reconnects += 1
+                say("device is back; solving the frame again")
+                return
+            except Exception:
+                time.sleep(0.5)
+        raise TimeoutError(f"device at {self.url} did not come back within {self.reconnect_timeout:.0f} s")
+
+    def solve(self, frame: Frame | None, say=print) -> dict:
+        """Upload ``frame`` (or capture, when None), GO, and return the decoded result. A silent or
+        lost device is waited for, at most ``reconnect_timeout`` seconds in all for this frame; a
+        NACK is the device's answer and is raised (``ground.link.client.Nack``), never retried."""
+        from ground.link.client import LinkError, Nack
+
+        data = frame_to_bytes(frame) if frame is not None else None
+        deadline = None
+        while True:
+            try:
+                if self.client is None:
+                    self._connect()
+                if data is not None:
+                    self.client.upload(Slot.FRAME, data, progress=self.upload_progress)
+                return solve_record(self.client.go_and_wait(timeout=self.go_timeout))
+            except Nack:
+                raise
+            except (LinkError, OSError) as exc:
+                if deadline is None:
+                    deadline = time.monotonic() + self.reconnect_timeout
+                self._wait_for_device(exc, say, deadline)
+
+
+def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool = True, resume: bool = False) -> dict:
+    """Solve every frame of ``directory`` with ``solver`` (Link/OfflineSolver); log and summarise.
+    Each record is on disk before the next frame starts, so an interrupted run keeps what it
+    solved; ``resume`` continues it (frames already logged in ``out_dir`` are skipped). Without
+    ``resume`` an ``out_dir`` that already holds results is refused (ValueError): runs never mix."""
+    from ground.link.client import Nack
+
+    paths = frame_files(directory)
+    log = ResultsLog(out_dir)
+    done = {r.get("frame") for r in log.records()}
+    if done and not resume:
+        raise ValueError(
+            f"{out_dir} already holds {len(done)} frame result(s): --resume continues that run, or choose another --out"
+        )
+    say = tqdm.write if progress else (lambda msg: print(msg, file=sys.stderr))
+    todo = [p for p in paths if p.name not in done]
+    bar = tqdm(
+        todo, desc="replay", unit="frame", disable=not progress, initial=len(paths) - len(todo), total=len(paths)
+    )
+    for path in bar:
+        base = {"time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "frame": path.name}
+        try:
+            frame = read_frame(path)
+        except Exception as exc:  # unreadable frames are logged and skipped; the run goes on
+            log.append({**base, "outcome": "unreadable", "reason": f"{type(exc).__name__}: {exc}"})
+            continue
+        t0 = time.perf_counter()
+        try:
+            record = solver.solve(frame, say) if isinstance(solver, LinkSolver) else solver.solve(frame)
+        except Nack as exc:  # the device refused this frame (its size, say): logged, and the run goes on
+            log.append({**base, "outcome": "refused", "reason": str(exc)})
+            continue
+        record["exchange_s"] = time.perf_counter() - t0
+        record["solve_s"] = record["timings_s"].get("total")
+        truth = Truth.for_frame(path, frame, say)
+        record.update(base)
+        record.update(score(record, truth))
+        record["residuals_arcsec"] = [
+            s["residual_arcsec"] for s in matched_stars(record) if s["residual_arcsec"] is not None
+        ]
+        log.append(record)
+        bar.set_postfix_str(record["outcome"])
+    records = log.records()
+    summary = summarize(records)
+    summary["plots"] = []
+    if make_plots:
+        try:
+            summary["plots"] = [str(p) for p in plot_summary(records, out_dir)]
+        except MissingExtra as exc:  # the results are kept; only the pictures are missing
+            say(f"plots skipped: {exc}")
+    write_text(Path(out_dir) / "summary.json", json.dumps(summary, indent=2))
+    return summary
+
+
+# --------------------------------------------------------------------------- table 5 (Enright & McVittie)
+
+TABLE5_MODES = ("basic", "ideal colour", "chromatic correction", "ideal colour + chromatic")
+
+
+def _associate(stars: StarList, truth: Truth):
+    """(detection row, truth row) pairs within MATCH_RADIUS_PX."""
+    pairs = []
+    for i in range(len(stars)):
+        d = np.hypot(truth.x - stars.x[i], truth.y - stars.y[i])
+        if len(d) and d.min() <= MATCH_RADIUS_PX:
+            pairs.append((i, int(np.argmin(d))))
+    return pairs
+
+
+def table5(
+    paths,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams = PipelineParams(),
+    progress: bool = True,
+) -> dict:
+    """Enright & McVittie table 5 on frames with truth: correct/incorrect matches for the basic pipeline,
+    with idealised colour (each star's mean colour error over the run removed), with
+    idealised geometry (each star's mean centroid error removed: the paper's chromatic
+    correction) and with both."""
+    ids = {int(s): k for k, s in enumerate(catalog.star_id)}
+    runs = []
+    for path in tqdm(list(paths), desc="extract", unit="frame", disable=not progress):
+        truth = Truth.for_frame(path)
+        if truth is None:
+            continue
+        stars = extract_stars(read_frame(path), camera, params.extract)
+        runs.append((stars, truth, _associate(stars, truth)))
+    colour_err: dict[int, list] = {}
+    pos_err: dict[int, list] = {}
+    for stars, truth, pairs in runs:
+        for i, t in pairs:
+            sid = int(truth.star_id[t])
+            pos_err.setdefault(sid, []).append((stars.x[i] - truth.x[t], stars.y[i] - truth.y[t]))
+            if sid in ids:
+                c = ids[sid]
+                colour_err.setdefault(sid, []).append((stars.rg[i] - catalog.rg[c], stars.bg[i] - catalog.bg[c]))
+    mean_colour = {s: np.nanmean(np.array(v), axis=0) for s, v in colour_err.items()}
+    mean_pos = {s: np.mean(np.array(v), axis=0) for s, v in pos_err.items()}
+    table = {}
+    for mode in TABLE5_MODES:
+        counts = {"correct": 0, "incorrect": 0, "no_match": 0}
+        for stars, truth, pairs in runs:
+            s2 = replace(stars, x=stars.x.copy(), y=stars.y.copy(), rg=stars.rg.copy(), bg=stars.bg.copy())
+            for i, t in pairs:
+                sid = int(truth.star_id[t])
+                if "colour" in mode and sid in mean_colour:
+                    s2.rg[i] -= mean_colour[sid][0]
+                    s2.bg[i] -= mean_colour[sid][1]
+                if "chromatic" in mode:
+                    s2.x[i] -= mean_pos[sid][0]
+                    s2.y[i] -= mean_pos[sid][1]
+            s2 = replace(s2, vectors=camera.pixel_to_vector(s2.x, s2.y))
+            sc = score(record_from_output(identify_stars(s2, camera, catalog, params)), truth)
+            key = {"correct": "correct", "wrong": "incorrect"}.get(sc["outcome"], "no_match")
+            counts[key] += 1
+        table[mode] = counts
+    return {"frames": len(runs), "table": table}

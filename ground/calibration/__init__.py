@@ -1,0 +1,1 @@
+"""Calibration from real frames: optics (camera model) and field corrections (colour, refraction)."""

@@ -1,0 +1,67 @@
+"""``st16-ground`` link subcommands (one per entry of ``ground.link.commands.COMMANDS``) and the
+interactive console: open the client from the global options, run, print (``--json`` for one line).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from ground import json_text
+from ground.arg_types import InputError
+from ground.link.commands import Run, add_commands, render, report_error
+
+if TYPE_CHECKING:  # the client imports numpy and pyserial: only when a command runs
+    from ground.link.client import Client
+
+
+def client_kwargs(args) -> dict:
+    """``Client`` keyword arguments from the global options of ``st16-ground``."""
+    return {
+        "device_address": args.device_address,
+        "host_address": args.host_address,
+        "timeout": args.timeout,
+        "log": args.log,
+        "baudrate": args.baud,
+    }
+
+
+def open_client(args) -> Client:
+    from ground.link.client import Client
+
+    if not args.port:
+        raise InputError("--port URL is required for link commands")
+    return Client(args.port, **client_kwargs(args))
+
+
+def _handler(run: Run):
+    def handle(args) -> int:
+        from ground.link.client import LinkError
+
+        with open_client(args) as client:
+            try:
+                out = run(client, args)
+            except LinkError as exc:
+                return report_error(exc, args.json)
+        print(json_text.dumps(out) if args.json else render(out))
+        return 0
+
+    return handle
+
+
+def _console(args) -> int:
+    from ground.link.console import Console
+
+    console = Console(open_client(args), as_json=args.json, reopen=lambda: open_client(args))
+    try:
+        console.run()
+    finally:
+        if console.client is not None:
+            console.client.close()
+    return 0
+
+
+def register(sub) -> None:
+    """Called by ``ground.cli.main``: the link subcommands and ``console``."""
+    add_commands(sub, _handler)
+    p = sub.add_parser("console", help="interactive console (history, help per command, raw hex on request)")
+    p.set_defaults(func=_console)

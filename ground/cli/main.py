@@ -1,0 +1,148 @@
+"""``st16-ground``: the ground tool's command line.
+
+Each feature module contributes its subcommands through ``register(subparsers)``; a handler
+receives the parsed ``args`` and returns a process exit code. Global options (link URL,
+addresses, JSON output, exchange log) are parsed here once for every subcommand. Expected
+failures that a handler does not report itself end here as one line on stderr with the exit
+code of their class (:data:`EXIT_CODES`); ``--debug`` shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from ground.arg_types import U8, InputError, output_file, ranged
+
+#: Modules that add subcommands, in help order. Each defines ``register(subparsers)``.
+COMMAND_MODULES = (
+    "ground.cli.link",
+    "ground.cli.catalog",
+    "ground.cli.frame",
+    "ground.cli.sim",
+    "ground.cli.solve",
+    "ground.cli.camera",
+)
+
+
+#: Exit codes by class of outcome (also in ``st16-ground --help``).
+EXIT_CODES = {
+    0: "success (a solve: a high-confidence attitude)",
+    1: "the command failed or its answer is not a confident solve (the reason is printed)",
+    2: "usage or input: bad arguments, a missing or unreadable file",
+    3: "solve: no attitude",
+    4: "link: the port cannot be opened, or the device does not answer",
+    5: "refused: the device answered with a NACK",
+    130: "interrupted (Ctrl-C)",
+}
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Descriptions as written; an option's help ends with its default unless the default is
+    None, False or suppressed, or the help already says what it is."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if (
+            any(action.default is v for v in (None, False, argparse.SUPPRESS))
+            or "default" in text
+            or not (action.option_strings or action.nargs in (argparse.OPTIONAL, argparse.ZERO_OR_MORE))
+        ):
+            return text
+        return text + " (default: %(default)s)"
+
+
+def _global_options(parser: argparse.ArgumentParser, defaults: bool = True) -> None:
+    """The options every subcommand shares; on subcommands (``defaults=False``) they are accepted
+    after the subcommand's name too, and only override what was given before it when present."""
+
+    def add(name: str, help_text: str, default, shown=None, **kw) -> None:
+        if default is not None and default is not False:
+            help_text += f" (default: {shown or default})"
+        parser.add_argument(name, help=help_text, default=default if defaults else argparse.SUPPRESS, **kw)
+
+    add("--debug", "show the traceback of a failure", False, action="store_true")
+    add("--port", "pyserial URL of the device: pty path, /dev/tty*, socket://host:port, loop://", None)
+    add("--baud", "baud rate for real serial ports", 115200, type=ranged(int, 50, 16_000_000, "a baud rate"))
+    add("--device-address", "NSP address of the tracker", 0x0E, "0x0E", type=U8)
+    add("--host-address", "our NSP address", 0x11, "0x11", type=U8)
+    add("--timeout", "reply timeout in seconds", 1.0, type=ranged(float, 0.001, 3600.0, "a reply timeout in s"))
+    add("--json", "machine-readable output", False, action="store_true")
+    add(
+        "--no-progress",
+        "no progress bars (also off with --json or when stderr is not a terminal)",
+        False,
+        action="store_true",
+    )
+    add("--log", "append every exchange to this JSONL file", None, type=output_file)
+
+
+def _leaf_parsers(parser: argparse.ArgumentParser):
+    """Every parser below ``parser`` that runs a command (subcommands of subcommands included)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in dict.fromkeys(action.choices.values()):  # aliases share a parser
+                yield child
+                yield from _leaf_parsers(child)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="st16-ground",
+        description=__doc__.splitlines()[0],
+        formatter_class=HelpFormatter,
+        epilog="exit codes:\n" + "\n".join(f"  {code:>3}  {text}" for code, text in EXIT_CODES.items()),
+    )
+    from protocol import __version__  # package metadata only: start-up stays fast
+
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    _global_options(parser)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name != name:
+                raise
+            continue  # feature not installed in this build
+        module.register(sub)
+    for child in _leaf_parsers(parser):
+        child.formatter_class = HelpFormatter
+        group = child.add_argument_group("global options (also accepted before the command)")
+        _global_options(group, defaults=False)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from serial import SerialException  # after parsing: --help and usage errors stay fast
+
+    from ground.link.client import LinkError
+    from ground.link.commands import exit_code
+    from ground.link.exchange_log import LogWriteError
+    from ground.optional import MissingExtra
+
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        if args.debug:
+            raise
+        print("st16-ground: interrupted", file=sys.stderr)
+        return 130
+    except (InputError, LogWriteError, MissingExtra) as exc:  # bad input, an unwritable --log, a part not installed
+        if args.debug:
+            raise
+        print(f"st16-ground: {exc}", file=sys.stderr)
+        return 2
+    except BrokenPipeError:  # the reader went away (| head): no traceback, no second error at exit
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
+    except (LinkError, SerialException, OSError) as exc:
+        if args.debug:
+            raise
+        print(f"st16-ground: {exc}", file=sys.stderr)
+        return exit_code(exc)
+

@@ -1,0 +1,510 @@
+"""Ground-side NSP client over any pyserial URL (pty path, /dev/tty*, socket://host:port, loop://).
+
+Every transaction toggles the B bit and only accepts a reply that carries the same B bit, the
+device as source, us as destination and the command's code, so a late reply to an earlier
+command is never taken for the current one. Before its first command a client drains the line
+until it has been quiet for :data:`SYNC_QUIET` s (a reply still on its way to a previous,
+killed client is dropped there), and before every command it drops what is waiting; both drains
+are bounded (:data:`SYNC_BOUND`, :data:`READ_SLICE`), whatever the peer sends. Line noise, damaged frames and replies to
+other commands are read past: the exchange goes on until its own reply or its deadline, and
+only then reports the damage seen (:class:`MalformedReply`) or the silence (:class:`ReplyTimeout`).
+Idempotent reads are retried on timeouts and malformed replies. NACKs raise :class:`Nack`. Each
+error carries the raw bytes received (the first :data:`MAX_RAW` of them).
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import serial
+from tqdm import tqdm
+
+from ground.link.exchange_log import ExchangeLog, code_name
+from protocol import edac, nsp, result, slip
+from protocol.commands import (
+    APP_START_ADDRESS,
+    GO_OPERATIONAL,
+    UPLOAD_CHUNK,
+    AddressedBytes,
+    Code,
+    Combination,
+    CrcReply,
+    CrcRequest,
+    DarkWindow,
+    Diagnostics,
+    Go,
+    Init,
+    NackInfo,
+    PayloadError,
+    Peek,
+    Poke,
+    ReadFile,
+    ReadRange,
+    SlotImage,
+    SlotRequest,
+    WriteAck,
+    WriteEdac,
+    WriteFile,
+    XferBegin,
+    XferData,
+    XferDataAck,
+    XferState,
+    XferStatus,
+)
+from protocol.crc import crc32
+
+try:
+    from termios import error as _TermiosError
+except ImportError:  # pragma: no cover - not POSIX
+    _TermiosError = OSError
+
+_PORT_ERRORS = (serial.SerialException, OSError, _TermiosError)
+READ_SLICE = 0.02  #: seconds one port read may block
+SYNC_QUIET = 0.05  #: seconds of silence that end the drain before a client's first command
+SYNC_BOUND = 0.25  #: seconds that drain may last at most (a peer that never stops sending)
+MAX_RAW = 65536  #: received bytes kept per exchange for error reports
+
+
+class LinkError(Exception):
+    """Base of the client's errors; ``raw`` is every byte received during the failed exchange."""
+
+    def __init__(self, message: str, raw: bytes = b""):
+        super().__init__(message)
+        self.raw = bytes(raw)
+
+
+class Nack(LinkError):
+    """The device answered with ACK clear; ``reason`` (u16) and ``text`` come from its data."""
+
+    def __init__(self, code: int, info: NackInfo, raw: bytes):
+        super().__init__(f"{code_name(code)} NACKed: {info.reason_name} (0x{info.reason:04X}) {info.text}", raw)
+        self.code = code
+        self.reason = info.reason
+        self.text = info.text
+
+
+class ReplyTimeout(LinkError):
+    """No complete reply in time."""
+
+
+class MalformedReply(LinkError):
+    """A reply that is garbled (bad CRC, runt, bad escape) or inconsistent with the command."""
+
+
+class LinkDown(LinkError):
+    """The port itself failed (device process gone, cable unplugged): pyserial's error text."""
+
+
+@dataclass(frozen=True)
+class UploadReport:
+    slot: int
+    length: int
+    crc32: int
+    resumed_from: int  #: bytes already on the device when the upload started
+    sent: int  #: payload bytes sent by this call
+    seconds: float
+
+
+class Client:
+    """NSP client; use as a context manager. ``log`` is a JSONL path or an :class:`ExchangeLog`."""
+
+    def __init__(
+        self,
+        url: str,
+        device_address: int = nsp.DEVICE_ADDRESS,
+        host_address: int = nsp.HOST_ADDRESS,
+        timeout: float = 1.0,
+        log: str | Path | ExchangeLog | None = None,
+        retries: int = 2,
+        baudrate: int = 115200,
+    ):
+        self.url = url
+        self.device_address = device_address
+        self.host_address = host_address
+        self.timeout = timeout
+        self.retries = retries
+        self._own_log = isinstance(log, (str, Path))
+        self.log = ExchangeLog(log) if self._own_log else log  # first: a log that fails leaves no port open
+        # Reads wait at most READ_SLICE so the reply deadline is checked without reconfiguring the port.
+        try:
+            self._ser = serial.serial_for_url(
+                url, baudrate=baudrate, timeout=READ_SLICE, write_timeout=max(timeout, 5.0)
+            )
+        except BaseException:
+            if self._own_log and self.log is not None:
+                self.log.close()
+            raise
+        self._b = False
+        self._synced = False  #: the line has been drained once (before the first command)
+        self.stale_replies = 0  #: replies discarded because their B bit belonged to an earlier command
+        self.discarded = 0  #: bytes dropped by the drains before commands
+        self.last_exchange: tuple[bytes, bytes] = (b"", b"")  #: (sent frame, bytes received) of the last command
+
+    def close(self) -> None:
+        self._ser.close()
+        if self._own_log and self.log is not None:
+            self.log.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ transactions
+
+    def transact(
+        self, code: int, data: bytes = b"", *, poll: bool = True, timeout: float | None = None, idempotent: bool = False
+    ) -> list[nsp.Message]:
+        """Send a command; return its reply messages (all ACKed, last one Final); [] if not polled."""
+        attempts = 1 + (self.retries if idempotent else 0)
+        for attempt in range(attempts):
+            try:
+                return self._exchange(code, data, poll, self.timeout if timeout is None else timeout)
+            except (ReplyTimeout, MalformedReply):
+                if attempt == attempts - 1:
+                    raise
+        raise AssertionError("unreachable")
+
+    def write_raw(self, data: bytes) -> None:
+        """Put bytes on the line unchanged (fault injection, console ``raw``); logged as ``tx``."""
+        self._ser.write(bytes(data))
+        if self.log:
+            self.log.record("tx", bytes(data), "raw")
+
+    def read_raw(self, duration: float) -> bytes:
+        """Everything that arrives within ``duration`` seconds."""
+        out = bytearray()
+        deadline = time.monotonic() + duration
+        while time.monotonic() < deadline:
+            out += self._ser.read(max(1, self._ser.in_waiting))
+        return bytes(out)
+
+    def send_silent(self, code: int, data: bytes = b"") -> None:
+        """Send with Poll = 0: the device executes without replying."""
+        self._exchange(code, data, False, 0.0)
+
+    def _exchange(self, code: int, data: bytes, poll: bool, timeout: float) -> list[nsp.Message]:
+        if not self._ser.is_open:  # pyserial would fail with a TypeError on the closed descriptor
+            raise LinkDown(f"{code_name(code)}: port {self.url} is closed")
+        try:
+            return self._exchange_once(code, data, poll, timeout)
+        except _PORT_ERRORS as exc:
+            raise LinkDown(f"{code_name(code)}: port {self.url} failed: {exc}", self.last_exchange[1]) from exc
+
+    def _discard(self, quiet: float, bound: float) -> None:
+        """Drop input until none has arrived for ``quiet`` s (0: just what is waiting now), for
+        at most ``bound`` s. Bounded, unlike pyserial's ``socket://`` flush, which reads as long
+        as the peer sends."""
+        start = last = time.monotonic()
+        while True:
+            now = time.monotonic()
+            if now - start >= bound or (now - last >= quiet and not self._ser.in_waiting):
+                return
+            chunk = (
+                self._ser.read(self._ser.in_waiting)
+                if self._ser.in_waiting
+                else (self._ser.read(1) if quiet > 0 else b"")
+            )
+            if chunk:
+                self.discarded += len(chunk)
+                last = time.monotonic()
+
+    def _exchange_once(self, code: int, data: bytes, poll: bool, timeout: float) -> list[nsp.Message]:
+        if not self._synced:
+            self._discard(SYNC_QUIET, min(max(timeout, SYNC_QUIET), SYNC_BOUND))
+            self._synced = True
+        else:
+            self._discard(0.0, READ_SLICE)
+        self._b = not self._b
+        msg = nsp.command(self.device_address, self.host_address, code, data, poll=poll, b=self._b)
+        self._ser.write(msg.frame())
+        self.last_exchange = (msg.frame(), b"")
+        if self.log:
+            self.log.record("tx", msg.encode())
+        if not poll:
+            return []
+        decoder = slip.Decoder(nsp.MAX_MESSAGE)
+        received = bytearray()
+        parts: list[nsp.Message] = []
+        damage: list[str] = []  # what was read past: noise, damaged frames, replies to other commands
+        damage_before = 0  # len(damage) when the first part arrived
+        deadline = time.monotonic() + timeout
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                got = f"; {len(parts)} part(s) received before the Final one" if parts else ""
+                if damage:
+                    raise MalformedReply(
+                        f"{code_name(code)}: no valid reply within {timeout:.3f} s{got}; "
+                        f"read past {len(damage)} bad frame(s), first: {damage[0]}",
+                        bytes(received),
+                    )
+                raise ReplyTimeout(f"{code_name(code)}: no reply within {timeout:.3f} s{got}", bytes(received))
+            chunk = self._ser.read(max(1, self._ser.in_waiting))
+            if not chunk:
+                continue
+            if len(received) < MAX_RAW:
+                received += chunk[: MAX_RAW - len(received)]
+            self.last_exchange = (self.last_exchange[0], bytes(received))
+            for event in decoder.feed(chunk):
+                reply = self._accept(event, code, damage)
+                if reply is None:
+                    continue
+                if not reply.ack:
+                    raise Nack(code, NackInfo.unpack(reply.data), bytes(received))
+                if parts and len(damage) > damage_before:  # a part of this reply may be among them
+                    raise MalformedReply(
+                        f"{code_name(code)}: a frame was damaged inside the multi-part reply: {damage[-1]}",
+                        bytes(received),
+                    )
+                if not parts:
+                    damage_before = len(damage)  # noise before the first part is harmless
+                parts.append(reply)
+                if reply.final:
+                    return parts
+
+    def _accept(self, event, code: int, damage: list[str]) -> nsp.Message | None:
+        """The reply ``event`` holds if it is this command's; else None, noting damage in ``damage``."""
+        if isinstance(event, (slip.FramingError, slip.Oversize)):
+            damage.append(event.reason if isinstance(event, slip.FramingError) else "oversize frame")
+            return None
+        try:
+            reply = nsp.decode(event.data)
+        except nsp.MessageError as exc:
+            if event.data[:1] == bytes([self.host_address]):
+                if self.log:
+                    self.log.record("rx", event.data)
+            damage.append(str(exc))
+            return None
+        if reply.dst != self.host_address or reply.src != self.device_address:
+            return None  # another node's traffic (or our own echo on loop://)
+        stale = reply.b != self._b
+        other = not stale and reply.code != code
+        if self.log:
+            note = (
+                "stale: B bit of an earlier command"
+                if stale
+                else f"ignored: a reply to code 0x{reply.code:02X}"
+                if other
+                else None
+            )
+            self.log.record("rx", event.data, note)
+        if stale:
+            self.stale_replies += 1
+            return None
+        if other:
+            damage.append(f"reply carries code 0x{reply.code:02X}")
+            return None
+        return reply
+
+    def _single(self, code: int, data: bytes = b"", **kw) -> bytes:
+        parts = self.transact(code, data, **kw)
+        if len(parts) != 1:
+            raise MalformedReply(
+                f"{code_name(code)}: {len(parts)} reply messages, expected 1", b"".join(p.encode() for p in parts)
+            )
+        return parts[0].data
+
+    def _parse(self, code: int, data: bytes, parser, *args):
+        try:
+            return parser(data, *args)
+        except PayloadError as exc:
+            raise MalformedReply(f"{code_name(code)}: {exc}", data) from None
+
+    # ------------------------------------------------------------------ ST-16 commands
+
+    def ping(self) -> str:
+        """Identification banner (differs between bootloader and application)."""
+        return self._single(Code.PING, idempotent=True).decode("ascii", "replace")
+
+    def init(self, addr: int = APP_START_ADDRESS) -> None:
+        """Start the application at ``addr`` (0x00002000)."""
+        self._single(Code.INIT, Init(addr).pack(), timeout=max(self.timeout, 3.0))
+
+    def peek(self, address: int, count: int) -> bytes:
+        data = self._single(Code.PEEK, Peek(address, count).pack(), idempotent=True)
+        reply = self._parse(Code.PEEK, data, AddressedBytes.unpack, 4)
+        self._check_echo(Code.PEEK, reply.address, address, len(reply.data), count, data)
+        return reply.data
+
+    def poke(self, address: int, data: bytes) -> int:
+        raw = self._single(Code.POKE, Poke(address, data).pack())
+        ack = self._parse(Code.POKE, raw, WriteAck.unpack, 4)
+        self._check_echo(Code.POKE, ack.address, address, ack.count, len(data), raw)
+        return ack.count
+
+    def diagnostic(self, clear: bool = False) -> Diagnostics:
+        """Error counters and command counts; ``clear`` resets them after reading."""
+        data = self._single(Code.DIAGNOSTIC, b"\x01" if clear else b"", idempotent=not clear)
+        return self._parse(Code.DIAGNOSTIC, data, Diagnostics.unpack)
+
+    def crc(self, space: int, address: int, length: int) -> int:
+        """CRC-16/MCRF4XX of a device memory span (space: 0 EDAC, 1 memory map, 2 result)."""
+        data = self._single(Code.CRC, CrcRequest(space, address, length).pack(), idempotent=True)
+        return self._parse(Code.CRC, data, CrcReply.unpack).crc
+
+    def read_file(self, address: int, long: bool = False) -> bytes:
+        """Four EDAC bytes at ``address`` (short form sends the file index ``address // 4``)."""
+        req = ReadFile(address, long)
+        data = self._single(Code.READ_FILE, req.pack(), idempotent=True)
+        head = req.pack()
+        if len(data) != len(head) + 4 or data[: len(head)] != head:
+            raise MalformedReply(f"READ_FILE: reply {data.hex()} does not echo {head.hex()} + 4 bytes", data)
+        return data[len(head) :]
+
+    def write_file(self, address: int, value: bytes, long: bool = False) -> None:
+        if len(value) != 4:
+            raise ValueError("WRITE FILE writes exactly 4 bytes")
+        req = WriteFile(address, value, long).pack()
+        data = self._single(Code.WRITE_FILE, req)
+        if data != req:
+            raise MalformedReply(f"WRITE_FILE: reply {data.hex()} does not echo the command", data)
+
+    def read_edac(self, address: int, count: int) -> bytes:
+        """EDAC bytes; the short form is used for up to 256 bytes, the long form beyond."""
+        req = ReadRange(address, count, long=count > 256)
+        data = self._single(Code.READ_EDAC, req.pack(), idempotent=True)
+        reply = self._parse(Code.READ_EDAC, data, AddressedBytes.unpack)
+        self._check_echo(Code.READ_EDAC, reply.address, address, len(reply.data), count, data)
+        return reply.data
+
+    def write_edac(self, address: int, data: bytes) -> int:
+        raw = self._single(Code.WRITE_EDAC, WriteEdac(address, data).pack())
+        ack = self._parse(Code.WRITE_EDAC, raw, WriteAck.unpack)
+        self._check_echo(Code.WRITE_EDAC, ack.address, address, ack.count, len(data), raw)
+        return ack.count
+
+    def go(self, code: int = GO_OPERATIONAL) -> int:
+        data = self._single(Code.GO, Go(code).pack())
+        if data[:1] != bytes([code]):
+            raise MalformedReply(f"GO: reply {data.hex()} does not echo the go code", data)
+        return data[0]
+
+    def result_length(self) -> int:
+        """EDAC 0x004C: 2616 when a result is ready, 0 while a sequence runs."""
+        return struct.unpack("<I", self.read_edac(edac.RESULT_LENGTH, 4))[0]
+
+    def read_result(self, address: int = 0, count: int = result.TOTAL_LENGTH) -> bytes:
+        """Result bytes [address, address+count), assembled from the Final-flagged parts."""
+        parts = self.transact(Code.READ_RESULT, ReadRange(address, count, long=True).pack(), idempotent=True)
+        return self._assemble(Code.READ_RESULT, parts, address, count)
+
+    def read_result_record(self) -> np.ndarray:
+        """The whole result structure, parsed (``protocol.result.RESULT`` record)."""
+        return result.parse(self.read_result(0, result.TOTAL_LENGTH))
+
+    def go_and_wait(self, code: int = GO_OPERATIONAL, timeout: float = 30.0, interval: float = 0.02) -> np.ndarray:
+        """GO, poll the result length until the sequence has finished, return the parsed result."""
+        self.go(code)
+        deadline = time.monotonic() + timeout
+        while self.result_length() == 0:
+            if time.monotonic() > deadline:
+                raise ReplyTimeout(f"result not ready within {timeout} s after GO 0x{code:02X}")
+            time.sleep(interval)
+        return self.read_result_record()
+
+    def combination(self, go_code: int, mask: int, timeout: float = 30.0, mask_bytes: int = 4) -> dict[int, bytes]:
+        """COMBINATION: returns {result address: bytes} of every part (placed by its address)."""
+        parts = self.transact(Code.COMBINATION, Combination(go_code, mask, mask_bytes).pack(), timeout=timeout)
+        out: dict[int, bytes] = {}
+        for part in parts:
+            if not part.data:
+                continue
+            piece = self._parse(Code.COMBINATION, part.data, AddressedBytes.unpack)
+            out[piece.address] = piece.data
+        return out
+
+    def dark_window(self, window: DarkWindow) -> None:
+        req = window.pack()
+        data = self._single(Code.IMAGE, req)
+        if data != req:
+            raise MalformedReply("IMAGE: reply does not echo the dark-window command", data)
+
+    # ------------------------------------------------------------------ transfers (extension)
+
+    def xfer_begin(self, slot: int, length: int, crc: int) -> XferStatus:
+        data = self._single(Code.XFER_BEGIN, XferBegin(slot, length, crc).pack(), idempotent=True)
+        return self._parse(Code.XFER_BEGIN, data, XferStatus.unpack)
+
+    def xfer_data(self, slot: int, offset: int, chunk: bytes, poll: bool = True) -> int | None:
+        """Send bytes at ``offset``; returns the contiguous byte count (None when not polled)."""
+        payload = XferData(slot, offset, chunk).pack()
+        if not poll:
+            self.send_silent(Code.XFER_DATA, payload)
+            return None
+        data = self._single(Code.XFER_DATA, payload, idempotent=True)
+        return self._parse(Code.XFER_DATA, data, XferDataAck.unpack).contiguous
+
+    def xfer_status(self, slot: int) -> XferStatus:
+        data = self._single(Code.XFER_STATUS, SlotRequest(slot).pack(), idempotent=True)
+        return self._parse(Code.XFER_STATUS, data, XferStatus.unpack)
+
+    def xfer_commit(self, slot: int, timeout: float = 30.0) -> SlotImage:
+        data = self._single(Code.XFER_COMMIT, SlotRequest(slot).pack(), timeout=timeout)
+        return self._parse(Code.XFER_COMMIT, data, SlotImage.unpack)
+
+    def xfer_abort(self, slot: int) -> XferStatus:
+        data = self._single(Code.XFER_ABORT, SlotRequest(slot).pack(), idempotent=True)
+        return self._parse(Code.XFER_ABORT, data, XferStatus.unpack)
+
+    def slot_info(self, slot: int) -> SlotImage:
+        data = self._single(Code.SLOT_INFO, SlotRequest(slot).pack(), idempotent=True)
+        return self._parse(Code.SLOT_INFO, data, SlotImage.unpack)
+
+    def upload(
+        self, slot: int, data: bytes, progress: bool = True, chunk: int = UPLOAD_CHUNK, commit: bool = True
+    ) -> UploadReport:
+        """Upload ``data`` into ``slot``, resuming whatever the device already holds of the same
+        image (same length and CRC-32), then COMMIT (raises :class:`Nack` if the device refuses)."""
+        t0 = time.monotonic()
+        data = bytes(data)
+        crc = crc32(data)
+        status = self.xfer_begin(slot, len(data), crc)
+        resumed, sent = status.received, 0
+        with tqdm(
+            total=len(data), initial=resumed, unit="B", unit_scale=True, disable=not progress, desc=f"slot {slot}"
+        ) as bar:
+            while status.state != XferState.COMPLETE:
+                if not status.missing:
+                    raise MalformedReply(f"slot {slot}: transfer incomplete but no missing range reported")
+                for offset, length in status.missing:
+                    for start in range(offset, offset + length, chunk):
+                        piece = data[start : min(start + chunk, offset + length)]
+                        self.xfer_data(slot, start, piece)
+                        sent += len(piece)
+                        bar.update(len(piece))
+                status = self.xfer_status(slot)
+                if status.length != len(data) or status.crc32 != crc:
+                    raise MalformedReply(f"slot {slot}: device now holds a different transfer")
+        if commit:
+            self.xfer_commit(slot)
+        return UploadReport(slot, len(data), crc, resumed, sent, time.monotonic() - t0)
+
+    # ------------------------------------------------------------------ helpers
+
+    def _check_echo(self, code, got_addr, want_addr, got_n, want_n, raw) -> None:
+        if got_addr != want_addr or got_n != want_n:
+            raise MalformedReply(
+                f"{code_name(code)}: reply for 0x{got_addr:X}+{got_n}, asked 0x{want_addr:X}+{want_n}", raw
+            )
+
+    def _assemble(self, code: int, parts: list[nsp.Message], address: int, count: int) -> bytes:
+        buf = bytearray(count)
+        covered = 0
+        for part in parts:
+            piece = self._parse(code, part.data, AddressedBytes.unpack)
+            lo = piece.address - address
+            if lo < 0 or lo + len(piece.data) > count:
+                raise MalformedReply(f"{code_name(code)}: part at 0x{piece.address:X} outside the request", part.data)
+            buf[lo : lo + len(piece.data)] = piece.data
+            covered += len(piece.data)
+        if covered != count:
+            raise MalformedReply(
+                f"{code_name(code)}: parts cover {covered} of {count} bytes", b"".join(p.encode() for p in parts)
+            )
+        return bytes(buf)

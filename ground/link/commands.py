@@ -1,0 +1,318 @@
+"""The ground's link command table: one entry per NSP command (and the transfer helpers), shared
+by the ``st16-ground`` link subcommands and the interactive console.
+
+Each command is described once in :data:`COMMANDS` as ``(help, add_arguments, run)``, where
+``run(client, args)`` returns a JSON-able dict; :func:`render` prints it for people,
+:func:`report_error` and :func:`exit_code` turn a failed exchange into one line and an exit code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from ground import json_text
+from ground.arg_types import SECONDS, U8, U16, U32, progress_on, ranged
+from protocol.commands import GO_OPERATIONAL, DarkWindow
+
+if TYPE_CHECKING:  # the client imports numpy and pyserial: only when a command runs
+    from ground.link.client import Client, LinkError
+
+
+def _int(text: str) -> int:
+    return int(text, 0)
+
+
+def _hex(text: str) -> bytes:
+    try:
+        return bytes.fromhex(text.replace(":", "").replace(" ", ""))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not hex bytes: {text!r}") from None
+
+
+def _args_none(p: argparse.ArgumentParser) -> None:
+    pass
+
+
+def _args_addr_count(p):
+    p.add_argument("address", type=U32, help="start address (0x.. for hex)")
+    p.add_argument("count", type=ranged(int, 1, 1 << 20, "a byte count (1 to 1048576)"), help="bytes to read")
+
+
+def _args_addr_data(p):
+    p.add_argument("address", type=U32, help="start address (0x.. for hex)")
+    p.add_argument("data", type=_hex, help="hex bytes, e.g. 01020304")
+
+
+def _args_slot(p):
+    p.add_argument("slot", type=U8, help="0 catalog, 1 frame, 2 parameters")
+
+
+def _bytes_out(address: int, data: bytes) -> dict:
+    return {"address": address, "count": len(data), "hex": data.hex()}
+
+
+def _run_ping(c: Client, a) -> dict:
+    return {"banner": c.ping()}
+
+
+def _run_init(c, a):
+    c.init(a.address)
+    return {"init": a.address, "banner": c.ping()}
+
+
+def _run_diag(c, a):
+    return c.diagnostic(clear=a.clear).as_dict()
+
+
+def _run_peek(c, a):
+    return _bytes_out(a.address, c.peek(a.address, a.count))
+
+
+def _run_poke(c, a):
+    return {"address": a.address, "written": c.poke(a.address, a.data)}
+
+
+def _run_read_edac(c, a):
+    return _bytes_out(a.address, c.read_edac(a.address, a.count))
+
+
+def _run_write_edac(c, a):
+    return {"address": a.address, "written": c.write_edac(a.address, a.data)}
+
+
+def _run_read_file(c, a):
+    return _bytes_out(a.address, c.read_file(a.address, long=a.long))
+
+
+def _run_write_file(c, a):
+    c.write_file(a.address, a.data, long=a.long)
+    return {"address": a.address, "written": 4}
+
+
+def _run_crc(c, a):
+    return {"space": a.space, "address": a.address, "length": a.length, "crc16": c.crc(a.space, a.address, a.length)}
+
+
+class _Decoded(dict):
+    """A decoded result (``ground.link.solve_report``), rendered by its ``format_record``."""
+
+
+def _run_go(c, a):
+    from ground.link.solve_report import result_record
+
+    if a.wait:
+        return _Decoded(result_record(c.go_and_wait(a.code, timeout=a.wait_timeout)))
+    return {"go": c.go(a.code)}
+
+
+def _run_result(c, a):
+    from ground.link.solve_report import result_record
+
+    if a.count is not None:
+        return _bytes_out(a.address, c.read_result(a.address, a.count))
+    return _Decoded(result_record(c.read_result_record()))
+
+
+def _run_combination(c, a):
+    from ground.link.solve_report import combination_record
+
+    return _Decoded(combination_record(c.combination(a.go_code, a.mask, timeout=a.wait_timeout)))
+
+
+def _run_dark_window(c, a):
+    values = tuple(a.values) + (0,) * (8 - len(a.values))
+    c.dark_window(DarkWindow(a.buffer, a.row, a.col, a.rows, a.cols, values))
+    return {"dark_window": [a.buffer, a.row, a.col, a.rows, a.cols, list(values)]}
+
+
+def _run_upload(c, a):
+    data = Path(a.file).read_bytes()
+    report = c.upload(a.slot, data, progress=progress_on(a), commit=not a.no_commit)
+    seconds = max(report.seconds, 1e-9)
+    return {**report.__dict__, "bytes_per_second": report.sent / seconds}
+
+
+def _status_dict(st) -> dict:
+    return {
+        "slot": st.slot,
+        "state": int(st.state),
+        "length": st.length,
+        "crc32": st.crc32,
+        "contiguous": st.contiguous,
+        "received": st.received,
+        "n_missing": st.n_missing,
+        "missing": [list(r) for r in st.missing],
+    }
+
+
+def _run_slot_status(c, a):
+    return _status_dict(c.xfer_status(a.slot))
+
+
+def _run_slot_abort(c, a):
+    return _status_dict(c.xfer_abort(a.slot))
+
+
+def _run_slot_info(c, a):
+    info = c.slot_info(a.slot)
+    out = {"slot": info.slot, "active": info.active, "length": info.length, "crc32": info.crc32}
+    try:
+        out["info"] = json.loads(info.info.decode("utf-8")) if info.info else None
+    except (UnicodeDecodeError, ValueError):
+        out["info_hex"] = info.info.hex()
+    return out
+
+
+def _run_send(c, a):
+    parts = c.transact(a.code, a.data, poll=not a.silent)
+    return {"replies": [{"mcf": p.mcf, "final": p.final, "ack": p.ack, "data": p.data.hex()} for p in parts]}
+
+
+def _a_init(p):
+    p.add_argument("--address", type=U32, default=0x2000, help="application start address (default: 0x2000)")
+
+
+def _a_diag(p):
+    p.add_argument("--clear", action="store_true", help="reset the counters after reading")
+
+
+def _a_file(p, data: bool):
+    p.add_argument("address", type=U32, help="EDAC address (multiple of 4)")
+    if data:
+        p.add_argument("data", type=_hex, help="4 hex bytes")
+    p.add_argument("--long", action="store_true", help="long form (u16 address) instead of the file index")
+
+
+def _a_crc(p):
+    p.add_argument("space", type=U8, help="0 EDAC, 1 memory map, 2 result")
+    p.add_argument("address", type=U32, help="start address (0x.. for hex)")
+    p.add_argument("length", type=U32, help="bytes")
+
+
+def _a_go(p):
+    p.add_argument("code", type=U8, nargs="?", default=GO_OPERATIONAL, help="go code (default: 0x0B, routine attitude)")
+    p.add_argument("--wait", action="store_true", help="poll until the result is ready and print it")
+    p.add_argument("--wait-timeout", type=SECONDS, default=30.0, help="give up waiting for the result after, s")
+
+
+def _a_result(p):
+    p.add_argument("--address", type=U32, default=0, help="result offset of the raw bytes (with --count)")
+    p.add_argument(
+        "--count",
+        type=ranged(int, 1, 1 << 20, "a byte count (1 to 1048576)"),
+        help="raw bytes instead of the decoded summary",
+    )
+
+
+def _a_combination(p):
+    p.add_argument("go_code", type=U8, help="go code of the sequence, e.g. 0x0B")
+    p.add_argument("mask", type=U16, help="section mask, e.g. 0x0007 (protocol.result.SECTIONS; 0x1000 ours)")
+    p.add_argument("--wait-timeout", type=SECONDS, default=30.0, help="give up waiting for the sequence after, s")
+
+
+def _a_dark(p):
+    for name in ("buffer", "row", "col", "rows", "cols"):
+        p.add_argument(name, type=U16, help="window " + name)
+    p.add_argument("values", type=U16, nargs="*", help="up to 8 dark values")
+
+
+def _a_upload(p):
+    _args_slot(p)
+    p.add_argument("file", help="image to upload")
+    p.add_argument("--no-commit", action="store_true", help="leave the transfer pending")
+
+
+def _a_send(p):
+    p.add_argument("code", type=ranged(int, 0, 0x1F, "a command code (0x00-0x1F)"), help="command code 0x00-0x1F")
+    p.add_argument("data", type=_hex, nargs="?", default=b"", help="data field as hex (default: empty)")
+    p.add_argument("--silent", action="store_true", help="Poll = 0 (no reply expected)")
+
+
+Run = Callable[["Client", argparse.Namespace], dict]
+
+#: name -> (help, add_arguments, run)
+COMMANDS: dict[str, tuple[str, Callable, Run]] = {
+    "ping": ("PING: identification banner (bootloader or application)", _args_none, _run_ping),
+    "init": ("INIT: start the application", _a_init, _run_init),
+    "diag": ("DIAGNOSTIC: error counters and command counts", _a_diag, _run_diag),
+    "peek": ("PEEK ADDRESS COUNT from the memory map", _args_addr_count, _run_peek),
+    "poke": ("POKE ADDRESS HEX into the memory map", _args_addr_data, _run_poke),
+    "read-edac": ("READ EDAC ADDRESS COUNT", _args_addr_count, _run_read_edac),
+    "write-edac": ("WRITE EDAC ADDRESS HEX (scratch 0x0100-0x01FF)", _args_addr_data, _run_write_edac),
+    "read-file": ("READ FILE: 4 EDAC bytes", lambda p: _a_file(p, False), _run_read_file),
+    "write-file": ("WRITE FILE: 4 EDAC bytes", lambda p: _a_file(p, True), _run_write_file),
+    "crc": ("CRC: CRC-16 of a device memory span", _a_crc, _run_crc),
+    "go": ("GO [CODE]: start a sequence (--wait prints the result)", _a_go, _run_go),
+    "result": ("READ RESULT: decoded summary, or raw bytes with --count", _a_result, _run_result),
+    "combination": ("COMBINATION GO_CODE MASK: sequence + selected result sections", _a_combination, _run_combination),
+    "dark-window": ("IMAGE dark window BUFFER ROW COL ROWS COLS [VALUES]", _a_dark, _run_dark_window),
+    "upload": ("upload FILE into SLOT (resumable, then commit)", _a_upload, _run_upload),
+    "slot-status": ("transfer status of SLOT", _args_slot, _run_slot_status),
+    "slot-abort": ("discard the pending transfer of SLOT", _args_slot, _run_slot_abort),
+    "slot-info": ("active image of SLOT", _args_slot, _run_slot_info),
+    "send": ("send any command code with a hex data field", _a_send, _run_send),
+}
+
+
+def render(obj: dict) -> str:
+    """Human-readable rendering of a command's output dict."""
+    if isinstance(obj, _Decoded):
+        from ground.link.solve_report import format_record
+
+        return format_record(obj)
+    if set(obj) == {"banner"}:
+        return obj["banner"]
+    lines = []
+    for key, value in obj.items():
+        if isinstance(value, float):
+            value = f"{value:.6g}"
+        elif isinstance(value, int) and not isinstance(value, bool) and key in ("address", "crc32", "crc16"):
+            value = f"0x{value:X}"
+        elif isinstance(value, (dict, list)):
+            value = json_text.dumps(value)
+        lines.append(f"{key}: {value}")
+    return "\n".join(lines)
+
+
+def report_error(exc: LinkError, as_json: bool) -> int:
+    """Report a failed exchange (one line on stderr, or a JSON object on stdout with every byte
+    received) and return its exit code: 5 when the device refused (NACK), 4 for the link (no
+    reply, a garbled one, a port gone)."""
+    from ground.link.client import Nack
+
+    payload = {"error": type(exc).__name__, "message": str(exc), "raw": exc.raw.hex()}
+    if isinstance(exc, Nack):
+        payload["reason"] = exc.reason
+    if as_json:
+        print(json_text.dumps(payload))
+    else:
+        raw = payload["raw"]
+        seen = f" (received {len(exc.raw)} B: {raw[:64]}{'...' if len(raw) > 64 else ''})" if raw else ""
+        print(f"st16-ground: {payload['error']}: {payload['message']}{seen}", file=sys.stderr)
+    return exit_code(exc)
+
+
+def exit_code(exc: BaseException) -> int:
+    """The documented exit code of a failure (``ground.cli.main.EXIT_CODES``): 5 the device refused
+    (NACK), 4 the link (no reply, a garbled one, a port that fails or times out), 2 any other
+    file or system error."""
+    from serial import SerialException
+
+    from ground.link.client import LinkError, Nack
+
+    if isinstance(exc, Nack):
+        return 5
+    return 4 if isinstance(exc, (LinkError, SerialException, TimeoutError)) else 2
+
+
+def add_commands(sub, handler_factory) -> None:
+    """Add every command of :data:`COMMANDS` to ``sub`` with ``func=handler_factory(run)``."""
+    for name, (help_text, add_args, run) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        add_args(p)
+        p.set_defaults(func=handler_factory(run))

@@ -1,0 +1,272 @@
+"""Decode a solve result (READ RESULT record) into what users read and log.
+
+``solve_record(rec)`` returns the ``--json`` form of ``st16-ground solve``: status, the
+quaternion ``q_icrs_to_sensor`` [w, x, y, z], boresight RA/Dec/roll in degrees
+(docs/CONVENTIONS.md), detected and matched counts, the matched stars (catalog id, pixel
+position, colour ratios, residual), attitude 1-sigma per sensor axis (arcsec), and the time per
+pipeline stage. The same function serves offline runs through :func:`record_from_output`.
+:func:`result_record` adds what READ RESULT carries besides (COSMOS bits, epoch, omega),
+:func:`combination_record` decodes the sections a COMBINATION returned, and
+:func:`format_record` renders any of these for people.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime, timezone
+
+import numpy as np
+
+from firmware_model.pipeline.run import METHOD_CODES, STAGES, PipelineOutput, result_fields
+from firmware_model.reference_frames import quat_to_matrix, radec_roll_from_attitude
+from protocol import result
+
+ARCSEC = 180.0 / np.pi * 3600.0
+METHODS = {0: "", **{code: name for name, code in METHOD_CODES.items()}}
+
+
+def _num(v) -> float | None:
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def _body(flags: int) -> str | None:
+    """The planet or moon a star's flags name (protocol.result.EXT_STAR), or None."""
+    code = (flags >> 8) & 0xF
+    return result.BODIES[code - 1] if flags & 4 and 1 <= code <= len(result.BODIES) else None
+
+
+def _optics(ext) -> dict:
+    """PSF and optics block of the extension (``None`` for values the device did not set)."""
+    flags = int(ext["optics_flags"])
+    fitted = bool(flags & result.OPTICS_FITTED)
+    return {
+        "psf_sigma_px": _num(ext["psf_sigma"]),
+        "psf_measured": bool(flags & result.PSF_MEASURED),
+        "focal_px": _num(ext["focal_px"]),
+        "focal_sigma_px": _num(ext["focal_sigma"]) if fitted else None,
+        "k1": _num(ext["k1"]),
+        "k1_sigma": _num(ext["k1_sigma"]) if fitted else None,
+        "fit_rms_px": _num(ext["optics_rms"]) if fitted else None,
+        "fit_stars": int(ext["optics_stars"]) if fitted else 0,
+        "fitted": fitted,
+        "searched": bool(flags & result.OPTICS_SEARCHED),
+        "focal_scale": _num(ext["focal_scale"]) if flags & result.OPTICS_SEARCHED else None,
+    }
+
+
+def solve_record(rec: np.ndarray) -> dict:
+    """JSON-ready dict of a parsed result record (protocol.result.RESULT)."""
+    rc = int(rec["return_code"])
+    st = result.status_of(rc)
+    ext = rec["ext"]
+    out = {
+        "sequence": int(rec["sequence"]),
+        "status": st.name if isinstance(st, result.Status) else f"UNKNOWN_{st}",
+        "return_code": rc,
+        "reason": bytes(ext["reason"]).rstrip(b"\0").decode("utf-8", "replace"),
+        "method": METHODS.get(int(ext["method"]), ""),
+        "n_detected": int(ext["n_detected"]),
+        "n_matched": int(ext["n_matched"]),
+        "q_icrs_to_sensor": None,
+        "ra_deg": None,
+        "dec_deg": None,
+        "roll_deg": None,
+        "sigma_arcsec": None,
+        "residual_rms_arcsec": None,
+        "timings_s": {name: float(t) for name, t in zip(STAGES, ext["stage_times"])},
+        "optics": _optics(ext),
+        "n_planets": int(ext["n_planets"]),
+        "stars": [],
+    }
+    q = np.asarray(ext["quaternion"], dtype=float)
+    if rc & result.ReturnBits.IMAGE1_SUCCESS and np.isfinite(q).all() and abs(np.linalg.norm(q) - 1) < 1e-6:
+        ra, dec, roll = radec_roll_from_attitude(quat_to_matrix(q))
+        out.update(
+            q_icrs_to_sensor=[float(v) for v in q],
+            ra_deg=float(np.degrees(ra)),
+            dec_deg=float(np.degrees(dec)),
+            roll_deg=float(np.degrees(roll)),
+            sigma_arcsec=[float(s * ARCSEC) for s in ext["sigma"]],
+            residual_rms_arcsec=_num(ext["residual_rms"] * ARCSEC),
+        )
+    for s in ext["stars"][: int(ext["n_reported"])]:
+        out["stars"].append(
+            {
+                "x": _num(s["x"]),
+                "y": _num(s["y"]),
+                "flux": _num(s["flux"]),
+                "rg": _num(s["rg"]),
+                "bg": _num(s["bg"]),
+                "catalog_id": int(s["catalog_id"]) if int(s["catalog_id"]) >= 0 else None,
+                "residual_arcsec": _num(s["residual"] * ARCSEC) if int(s["flags"]) & 1 else None,
+                "saturated": bool(int(s["flags"]) & 2),
+                "body": _body(int(s["flags"])),
+            }
+        )
+    return out
+
+
+def record_from_output(out: PipelineOutput, sequence: int = 0) -> dict:
+    """The same dict for an in-process pipeline run (offline replay)."""
+    fields = result_fields(out)
+    fields["ext.reason"] = out.reason.encode()[: result.EXT_REASON_BYTES]
+    return solve_record(result.parse(result.build(fields, sequence)))
+
+
+def utc_iso(epoch_s: float) -> str | None:
+    """ISO-8601 UTC time of POSIX seconds (ms resolution); None for 0 (not set) or out of range."""
+    if not (np.isfinite(epoch_s) and 0 < epoch_s < 253402300800):  # year 10000
+        return None
+    return datetime.fromtimestamp(epoch_s, timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+def _header(rec: np.ndarray) -> dict:
+    rc = int(rec["return_code"])
+    return {
+        "bits": [b.name for b in result.ReturnBits if rc & b],
+        "epoch": float(rec["epoch"]),
+        "epoch_utc": utc_iso(float(rec["epoch"])),
+        "omega_rad_s": [float(v) for v in rec["omega"]],
+    }
+
+
+def result_record(rec: np.ndarray) -> dict:
+    """:func:`solve_record` plus the COSMOS return bits, the epoch (POSIX s and ISO UTC) and omega (rad/s)."""
+    return {**solve_record(rec), **_header(rec)}
+
+
+#: Keys of :func:`result_record` decoded from each COMBINATION section (by its result address).
+_SECTION_KEYS = {
+    0x000: ("sequence",),
+    0x004: ("return_code", "status", "bits"),
+    0x028: ("omega_rad_s",),
+    0x040: ("epoch", "epoch_utc"),
+    result.EXT_OFFSET: (
+        "reason",
+        "method",
+        "n_detected",
+        "n_matched",
+        "sigma_arcsec",
+        "residual_rms_arcsec",
+        "timings_s",
+        "optics",
+        "n_planets",
+        "stars",
+    ),
+}
+
+
+def combination_record(parts: dict[int, bytes]) -> dict:
+    """Readable fields of the result sections a COMBINATION returned (result address -> bytes):
+    those of :func:`result_record` that the sections hold, the attitude from the quaternion section
+    (``q_icrs_to_sensor``, boresight RA/Dec/roll in degrees), the matching section's consensus, and
+    the hex of the sections not decoded (``raw``, by address)."""
+    buf = bytearray(result.TOTAL_LENGTH)
+    for address, data in parts.items():
+        buf[address : address + len(data)] = data
+    rec = result.parse(bytes(buf))
+    full = result_record(rec)
+    out: dict = {}
+    for address in sorted(parts):
+        if address in _SECTION_KEYS:
+            out.update({k: full[k] for k in _SECTION_KEYS[address]})
+        elif address == 0x008:
+            q = np.asarray(rec["quaternion"], dtype=float)
+            if np.isfinite(q).all() and abs(np.linalg.norm(q) - 1) < 1e-6:
+                ra, dec, roll = (float(np.degrees(v)) for v in radec_roll_from_attitude(quat_to_matrix(q)))
+                out.update(q_icrs_to_sensor=[float(v) for v in q], ra_deg=ra, dec_deg=dec, roll_deg=roll)
+            else:
+                out["q_icrs_to_sensor"] = None  # no attitude
+        elif address == 0x7E8:
+            m = rec["matching"][0]
+            out["matching"] = {
+                "consensus_size": int(m["consensus_size"]),
+                "confidence": _num(m["confidence"]),
+                "matched_stars": [int(i) for i in m["matched_stars"] if i >= 0],
+            }
+        else:
+            out.setdefault("raw", {})[f"0x{address:04X}"] = parts[address].hex()
+    return out
+
+
+def _optics_line(o: dict) -> str:
+    psf = "PSF sigma " + (
+        "-"
+        if o["psf_sigma_px"] is None
+        else f"{o['psf_sigma_px']:.2f} px ({'measured' if o['psf_measured'] else 'set'})"
+    )
+    if not o["fitted"]:
+        return f"optics: {psf}; focal {o['focal_px'] or float('nan'):.1f} px (nominal, not fitted)"
+    k1 = f"k1 {o['k1']:+.4f}" + (f" +- {o['k1_sigma']:.4f}" if o["k1_sigma"] is not None else " (held)")
+    found = f", found at focal scale {o['focal_scale']:.2f}" if o["searched"] else ""
+    return (
+        f"optics: {psf}; focal {o['focal_px']:.1f} +- {o['focal_sigma_px']:.1f} px, {k1} "
+        f"(fitted over {o['fit_stars']} stars, RMS {o['fit_rms_px']:.3f} px{found})"
+    )
+
+
+def format_record(rec: dict) -> str:
+    """Lines for people from a :func:`solve_record`, :func:`result_record` or :func:`combination_record`
+    (only the fields present are shown)."""
+    lines = []
+    if "status" in rec:
+        lines.append(
+            f"status {rec['status']}"
+            + (f" ({rec['reason']})" if rec.get("reason") else "")
+            + (f", method {rec['method']}" if rec.get("method") else "")
+        )
+    if "bits" in rec:
+        lines.append(f"return code 0x{rec['return_code']:04X}: {', '.join(rec['bits']) or 'no bits set'}")
+    if "sequence" in rec or "epoch" in rec:
+        lines.append(
+            ", ".join(
+                ([f"sequence {rec['sequence']}"] if "sequence" in rec else [])
+                + ([f"epoch {rec['epoch_utc'] or 'not set'} UTC"] if "epoch" in rec else [])
+            )
+        )
+    if rec.get("q_icrs_to_sensor") is not None:
+        q = rec["q_icrs_to_sensor"]
+        lines.append(f"q_icrs_to_sensor [w x y z] = [{q[0]:+.9f} {q[1]:+.9f} {q[2]:+.9f} {q[3]:+.9f}]")
+        sigma = rec.get("sigma_arcsec")
+        lines.append(
+            f"boresight RA {rec['ra_deg']:.5f} deg, Dec {rec['dec_deg']:+.5f} deg, roll {rec['roll_deg']:.4f} deg"
+            + (f"; 1-sigma x/y/z {', '.join(f'{s:.2f}' for s in sigma)} arcsec" if sigma else "")
+        )
+    elif "q_icrs_to_sensor" in rec:
+        lines.append("no attitude")
+    if "omega_rad_s" in rec:
+        lines.append("omega [x y z] = [" + " ".join(f"{w:+.3e}" for w in rec["omega_rad_s"]) + "] rad/s")
+    if "n_detected" in rec:
+        lines.append(f"detected {rec['n_detected']}, matched {rec['n_matched']}")
+    if "matching" in rec:
+        m = rec["matching"]
+        lines.append(
+            f"matching: consensus of {m['consensus_size']}, confidence {m['confidence']}, "
+            f"catalog ids {m['matched_stars']}"
+        )
+    if rec.get("optics") and rec["optics"]["psf_sigma_px"] != 0:  # 0: a zeroed record, nothing measured
+        lines.append(_optics_line(rec["optics"]))
+    for s in rec.get("stars", []):
+        if s.get("body"):
+            lines.append(
+                f"  on {s['body']}: x {s['x']:8.2f}  y {s['y']:8.2f} "
+                "(predicted at the frame's epoch; not used as a star)"
+            )
+    for s in rec.get("stars", []):
+        if s["catalog_id"] is not None:
+            colour = f" rg {s['rg']:.3f} bg {s['bg']:.3f}" if s["rg"] is not None else ""
+            lines.append(
+                f"  id {s['catalog_id']:>7}  x {s['x']:8.2f}  y {s['y']:8.2f}{colour}  "
+                f'residual {s["residual_arcsec"]:.2f}"'
+            )
+    if "timings_s" in rec:
+        lines.append("time per stage (ms): " + ", ".join(f"{k} {v * 1e3:.1f}" for k, v in rec["timings_s"].items()))
+    for address, hex_ in rec.get("raw", {}).items():
+        lines.append(f"section at {address} ({len(hex_) // 2} bytes, not decoded): {hex_}")
+    if "attitude_error_deg" in rec:
+        lines.append(f"attitude error vs truth: {rec['attitude_error_deg'] * 3600:.2f} arcsec ({rec['outcome']})")
+    return "\n".join(lines)
+
+
+def matched_stars(record: dict) -> list[dict]:
+    return [s for s in record["stars"] if s["catalog_id"] is not None]
