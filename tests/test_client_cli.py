@@ -2,6 +2,7 @@
 
 import io
 import json
+from datetime import UTC
 
 import pytest
 
@@ -109,7 +110,7 @@ def test_global_options_are_accepted_after_the_command(port, capsys):
 
 
 def test_result_and_combination_print_decoded_fields(port, capsys):
-    from datetime import datetime, timezone
+    from datetime import datetime
 
     assert main(["--port", port, "go", "--wait"]) == 0
     for argv in (["result"], ["combination", "0x0B", "0x1017"]):
@@ -121,7 +122,7 @@ def test_result_and_combination_print_decoded_fields(port, capsys):
         assert out["status"] == "NO_CATALOG" and out["n_matched"] == 0 and out["q_icrs_to_sensor"] is None
         when = datetime.fromisoformat(out["epoch_utc"].replace("Z", "+00:00"))
         assert abs(when.timestamp() - out["epoch"]) < 1e-3
-        assert abs((datetime.now(timezone.utc) - when).total_seconds()) < 120
+        assert abs((datetime.now(UTC) - when).total_seconds()) < 120
 
 
 def test_combination_sections_decode_to_attitude_and_time():

@@ -56,7 +56,7 @@ from __future__ import annotations
 
 import json
 import warnings
-from datetime import datetime, timezone
+from datetime import UTC, datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -180,7 +180,7 @@ def read_dng(path) -> Frame:
     extras = _tiff_description_json(path)
     timestamp = extras.get("timestamp")
     if timestamp is None and isinstance(stamp, datetime) and stamp.year > 1970:
-        timestamp = stamp.replace(tzinfo=stamp.tzinfo or timezone.utc).isoformat()
+        timestamp = stamp.replace(tzinfo=stamp.tzinfo or UTC).isoformat()
     exposure = extras.get("exposure_s", shutter if shutter > 0 else None)
     return Frame(
         pixels=pixels,
@@ -483,7 +483,7 @@ def _exif_fields(im) -> dict:
             out["timestamp"] = _utc_iso(t)
             out["timestamp_utc_assumed"] = True
         else:
-            out["timestamp"] = _utc_iso(t.replace(tzinfo=tz).astimezone(timezone.utc))
+            out["timestamp"] = _utc_iso(t.replace(tzinfo=tz).astimezone(UTC))
             out["timestamp_utc_assumed"] = False
             out["exif_time_offset"] = offset
     return out

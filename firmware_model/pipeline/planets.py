@@ -36,7 +36,7 @@ i.e. 0.5-12 px worst for pixels of 10-70 arcsec.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from functools import lru_cache
 
 import erfa
@@ -120,7 +120,7 @@ def _parse_utc(epoch: str) -> Time:
     except ValueError:
         return Time(epoch, scale="utc")  # astropy's own formats (e.g. year-day)
     if when.tzinfo is not None:
-        when = when.astimezone(timezone.utc).replace(tzinfo=None)
+        when = when.astimezone(UTC).replace(tzinfo=None)
     return Time(when, scale="utc")
 
 

@@ -9,10 +9,9 @@ Enright & McVittie eq. 18: ``sigma_phi = 2 sigma_pix / f_px``.
 from __future__ import annotations
 
 import math
+import tomllib
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-
-import tomllib
 
 SOURCES = ("hipparcos", "bsc5")
 

@@ -145,4 +145,3 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"st16-ground: {exc}", file=sys.stderr)
         return exit_code(exc)
-

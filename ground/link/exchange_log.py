@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import threading
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 from protocol import nsp
@@ -60,7 +60,7 @@ class ExchangeLog:
 
     def record(self, direction: str, raw: bytes, note: str | None = None) -> None:
         entry = {
-            "t": datetime.now(timezone.utc).isoformat(timespec="microseconds"),
+            "t": datetime.now(UTC).isoformat(timespec="microseconds"),
             "dir": direction,
             "hex": bytes(raw).hex(),
             **describe(raw),

@@ -12,7 +12,7 @@ pipeline stage. The same function serves offline runs through :func:`record_from
 
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import numpy as np
 
@@ -117,7 +117,7 @@ def utc_iso(epoch_s: float) -> str | None:
     """ISO-8601 UTC time of POSIX seconds (ms resolution); None for 0 (not set) or out of range."""
     if not (np.isfinite(epoch_s) and 0 < epoch_s < 253402300800):  # year 10000
         return None
-    return datetime.fromtimestamp(epoch_s, timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    return datetime.fromtimestamp(epoch_s, UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 def _header(rec: np.ndarray) -> dict:
