@@ -166,6 +166,18 @@ def test_a_header_claiming_a_huge_image_is_refused_before_allocating(tmp_path):
         read_frame(tmp_path / "cut.fits")
 
 
+def test_a_tiff_sample_format_without_a_numpy_type_is_named(tmp_path):
+    """40-bit samples: tifffile reads no dtype for them; the reader says so (it once failed on
+    ``None.itemsize``)."""
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "odd.tiff", np.zeros((4, 4), np.uint16))
+    with tifffile.TiffFile(tmp_path / "odd.tiff", mode="r+") as tif:
+        tif.pages.first.tags["BitsPerSample"].overwrite(40)
+    with pytest.raises(FrameReadError, match="TIFF sample format not supported"):
+        read_frame(tmp_path / "odd.tiff")
+
+
 @pytest.mark.parametrize("suffix", [".dng", ".fits", ".npy"])
 def test_damaged_frame_files_raise_only_frame_read_error(tmp_path, suffix):
     """Seeded damage (cuts, header bytes, scattered bytes, large numbers in the header) of each

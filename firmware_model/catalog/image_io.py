@@ -57,13 +57,14 @@ def catalog_to_image(cat: OnboardCatalog, created_unix: int | None = None) -> by
         sigma_phi=float(cat.meta.get("sigma_phi", nan)),
         sigma_rg=float(design.get("sigma_rg", nan)),
         sigma_bg=float(design.get("sigma_bg", nan)),
-        source_id=SOURCE_IDS.get(cat.meta.get("source"), 0),
+        source_id=SOURCE_IDS.get(source, 0) if isinstance(source := cat.meta.get("source"), str) else 0,
         flags=FLAG_COLOUR if cat.has_colour else 0,
         created_unix=int(os.environ.get("SOURCE_DATE_EPOCH", time.time()))
         if created_unix is None
         else int(created_unix),
     )
     kvector = cat.kvector if cat.kvector is not None else np.empty(0, np.uint32)
+    assert cat.hash_index is not None  # OnboardCatalog.__post_init__ always builds it
     return pack_image(params, stars, pairs, cat.hash_index, kvector)
 
 

@@ -157,6 +157,7 @@ class OnboardCatalog:
         scale = self.n_h / self.phi_max
         h_lo = int(np.clip(np.floor(scale * lo), 0, self.n_h))
         h_hi = int(np.clip(np.floor(scale * (hi + self.dphi_star)) + 1, 0, self.n_h))
+        assert self.hash_index is not None  # set by __post_init__
         a, b = int(self.hash_index[h_lo]), int(self.hash_index[h_hi])
         window = self.pair_phi[a:b]
         return a + int(np.searchsorted(window, lo, "left")), a + int(np.searchsorted(window, hi, "right"))
@@ -173,6 +174,7 @@ class OnboardCatalog:
         hi_cos = np.cos(max(phi - tol, 0.0))
         k_bot = int(np.clip(np.floor((lo_cos - self.kv_q) / self.kv_m), 1, n))
         k_top = int(np.clip(np.ceil((hi_cos - self.kv_q) / self.kv_m), 1, n))
+        assert self.kvector is not None  # __post_init__ builds it whenever there are two pairs
         start_r = int(self.kvector[k_bot - 1])  # 0-based first row in cosine order (ID_start - 1)
         stop_r = int(self.kvector[k_top - 1])  # 0-based one past the last row (ID_end)
         return n - stop_r, n - start_r

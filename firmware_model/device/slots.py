@@ -184,6 +184,7 @@ class SlotStore:
     def _load(self) -> None:
         """Read every slot directory; damage is reported as one ``state:`` line on stderr and the
         damaged part ignored (never an exception: a device with bad state still starts)."""
+        assert self.root is not None
         for sub in sorted(self.root.iterdir()):
             if not sub.name.startswith("slot"):
                 continue
@@ -301,7 +302,7 @@ class SlotStore:
     def drop_transfer(self, slot: int) -> None:
         self._transfers.pop(slot, None)
         self._buffers.pop(slot, None)
-        if self._persistent(slot):
+        if self.root is not None and slot not in self.volatile:  # _persistent(slot), narrowed
             d = self.root / f"slot{slot}"
             for name in ("partial.json", "partial.bin"):
                 if (d / name).exists():

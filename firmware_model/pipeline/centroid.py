@@ -28,6 +28,7 @@ cosmic-ray hit that the detector's neighbour test let through.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.special import erf
@@ -339,7 +340,7 @@ def _levenberg_marquardt(win, p0, w, params):
     need = started.copy()  # stars whose Jacobian must be (re)computed
     nfev = 1
     eye = np.eye(m)
-    cached = [np.zeros(0, int), None]  # indices and windows of the last subset
+    cached: list[Any] = [np.zeros(0, int), None]  # indices and windows of the last subset
 
     def sel(idx):
         if not np.array_equal(cached[0], idx):
@@ -490,20 +491,20 @@ def _fit_all(frame, det, params, gain, out):
     sharp_ok = (
         pg[:, 2] + 3.0 * np.sqrt(np.maximum(cov[:, 2, 2], 0.0)) < params.sharp_sigma_fraction * params.psf_sigma_px
     )
-    for j, g_ in enumerate(good):
+    for row, g_ in enumerate(good):
         i = idx[fit[g_]]
-        q = pg[j]
+        q = pg[row]
         out.x[i], out.y[i], out.sigma[i] = q[0], q[1], q[2]
-        out.sharp[i] = sharp_ok[j]
-        out.cov_xy[i] = cov[j, :2, :2]
-        out.reduced_chi2[i] = chi2r[j]
+        out.sharp[i] = sharp_ok[row]
+        out.cov_xy[i] = cov[row, :2, :2]
+        out.reduced_chi2[i] = chi2r[row]
         _store_amplitudes(out, i, q[3:], slots, nchan)
         if nchan == 3:
             a_r, a_g, a_b = q[3], q[4], q[5]
             gm = np.array([[1.0 / a_g, -a_r / a_g**2, 0.0], [0.0, -a_b / a_g**2, 1.0 / a_g]])
             out.rg[i], out.bg[i] = a_r / a_g, a_b / a_g
-            out.cov_colour[i] = gm @ cov[j, 3:6, 3:6] @ gm.T
-        if chi2r[j] > params.max_reduced_chi2:
+            out.cov_colour[i] = gm @ cov[row, 3:6, 3:6] @ gm.T
+        if chi2r[row] > params.max_reduced_chi2:
             out.flags[i] = int(out.flags[i]) | int(StarFlag.POOR_FIT)
 
 

@@ -229,7 +229,7 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     block = max(min(params.block_px // 2, h2, w2) // 2 * 2, 4)  # in phase pixels
     black = np.asarray(frame.black_level, dtype=np.float32).reshape(2, 2)
     total = np.zeros((h2, w2), np.float32)
-    bg_sum = var_sum = 0.0
+    bg_sum = var_sum = np.zeros((), np.float32)  # 0-d: the first phase's grid gives the shape
     bg_grids, noise_grids, bad, phases = {}, {}, [], {}
     d2 = 1.0 if frame.is_mono else 4.0  # squared distance to the neighbours used (px^2)
     ratio = params.sharp_fraction * np.exp(-d2 / (2.0 * params.psf_sigma_px**2))

@@ -143,7 +143,7 @@ def _tiff_is_raw(path: Path) -> bool:
     import tifffile
 
     with tifffile.TiffFile(path) as tif:
-        page = tif.pages[0]
+        page = tif.pages.first
         return 50706 in page.tags or int(page.photometric) in (32803, 34892)
 
 
@@ -201,7 +201,7 @@ def _tiff_description_json(path: Path) -> dict:
 
     try:
         with tifffile.TiffFile(path) as tif:
-            desc = tif.pages[0].description
+            desc = tif.pages.first.description
     except Exception:  # not a TIFF container (e.g. CR3): no embedded description
         return {}
     try:
@@ -220,7 +220,9 @@ def read_tiff(path) -> Frame:
     with tifffile.TiffFile(path) as tif:
         if not tif.pages:
             raise FrameReadError(f"{path}: TIFF file holds no image")
-        page = tif.pages[0]
+        page = tif.pages.first
+        if page.dtype is None:  # tifffile has no numpy type for the sample format
+            raise FrameReadError(f"{path}: TIFF sample format not supported ({page.bitspersample}-bit samples)")
         _check_size(path, page.shape, page.dtype.itemsize, compressed=page.compression != 1)
         data = page.asarray()
         exp_tag = page.tags.get(33434)
@@ -281,6 +283,7 @@ def read_fits(path) -> Frame:
         letters = np.array(list(pattern)).reshape(2, 2)
         letters = np.roll(letters, (-int(hdr.get("YBAYROFF", 0)) % 2, -int(hdr.get("XBAYROFF", 0)) % 2), axis=(0, 1))
         pattern = "".join(letters.ravel())
+    black: float | list[float]
     if all(f"BLACK{i}" in hdr for i in range(4)):
         black = [float(hdr[f"BLACK{i}"]) for i in range(4)]
     else:

@@ -14,7 +14,9 @@ format of :mod:`protocol.frame_blob` (declared there once).
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -57,13 +59,29 @@ class Frame:
 
     pixels: np.ndarray
     pattern: str = "MONO"
-    black_level: tuple = (0.0, 0.0, 0.0, 0.0)
+    black_level: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     white_level: float = 4095.0
     exposure_s: float | None = None
     timestamp: str | None = None
     site: dict | None = None
     camera: dict | None = None
     metadata: dict = field(default_factory=dict)
+
+    if TYPE_CHECKING:
+        # What the generated __init__ accepts: one black level or four (__post_init__ stores four
+        # floats); declared for the type checker only, the dataclass writes the real one.
+        def __init__(
+            self,
+            pixels: np.ndarray,
+            pattern: str = ...,
+            black_level: float | Sequence[float] = ...,
+            white_level: float = ...,
+            exposure_s: float | None = ...,
+            timestamp: str | None = ...,
+            site: dict | None = ...,
+            camera: dict | None = ...,
+            metadata: dict = ...,
+        ) -> None: ...
 
     def __post_init__(self):
         self.pattern = normalise_pattern(self.pattern)
@@ -86,7 +104,8 @@ class Frame:
             bl = np.repeat(bl, 4)
         if bl.size != 4 or not np.all(np.isfinite(bl)):
             raise ValueError(f"black_level must be 1 or 4 finite values, got {self.black_level!r}")
-        self.black_level = tuple(float(b) for b in bl)
+        b0, b1, b2, b3 = (float(b) for b in bl)
+        self.black_level = (b0, b1, b2, b3)
         self.white_level = float(self.white_level)
         if not np.isfinite(self.white_level) or self.white_level <= max(self.black_level):
             raise ValueError(f"white level {self.white_level} must exceed the black levels {self.black_level}")
@@ -137,7 +156,8 @@ def frame_to_bytes(frame: Frame) -> bytes:
         raise ValueError("pixel values must lie in [0, 65535] to serialise as uint16")
     extras = {"timestamp": frame.timestamp, "site": frame.site, "camera": frame.camera, "metadata": frame.metadata}
     exposure = float("nan") if frame.exposure_s is None else frame.exposure_s
-    black = tuple(float(v) for v in frame.black_level)
+    b0, b1, b2, b3 = (float(v) for v in frame.black_level)
+    black = (b0, b1, b2, b3)
     return frame_blob.pack(
         frame_blob.FrameBlob(
             frame.pattern,

@@ -71,7 +71,7 @@ def _keys(vectors: np.ndarray, groups: np.ndarray):
 def _groups(near: list, brightness_rank: np.ndarray, centres: np.ndarray, neighbours: int) -> np.ndarray:
     """4-star groups: each centre with three of its ``neighbours`` brightest neighbours (``near[c]``:
     the stars within the pattern radius of star ``c``)."""
-    out = []
+    out: list[tuple[int, ...]] = []
     for c in centres:
         near_c = np.array([j for j in near[c] if j != c], dtype=np.int64)
         if len(near_c) < 3:
@@ -106,12 +106,12 @@ def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
     if mrad not in cache:
         field = mrad / 1000.0
         rank = np.argsort(np.argsort(catalog.mag, kind="stable"), kind="stable")
-        groups = [_region_groups(catalog._tree, catalog.mag, field)]
+        parts = [_region_groups(catalog._tree, catalog.mag, field)]
         for factor in PATTERN_RADIUS_FACTORS:
             near = catalog._tree.query_ball_point(catalog.vec, chord_of_angle(factor * field))
             brighter = np.array([np.count_nonzero(rank[n] < rank[i]) for i, n in enumerate(near)])
-            groups.append(_groups(near, rank, np.flatnonzero(brighter < PATTERN_STARS_PER_CAP), CATALOG_NEIGHBOURS))
-        groups = np.concatenate(groups)
+            parts.append(_groups(near, rank, np.flatnonzero(brighter < PATTERN_STARS_PER_CAP), CATALOG_NEIGHBOURS))
+        groups = np.concatenate(parts)
         groups = np.unique(np.sort(groups, axis=1), axis=0)  # a 4-set found several ways once
         keys, top = _keys(catalog.vec, groups)
         ok = np.isfinite(keys).all(axis=1) & (top > 0)
@@ -186,7 +186,7 @@ def refine(
     camera: CameraModel,
     hyp: Hypothesis,
     catalog: OnboardCatalog,
-    radii_px=(30.0, 10.0, 4.0, 2.5),
+    radii_px: tuple[float, ...] = (30.0, 10.0, 4.0, 2.5),
     min_stars: int = 4,
     k1_min_stars: int = 6,
 ):
@@ -216,4 +216,5 @@ def refine(
         if res is None:
             return None
         cam, a = res.camera, res.attitudes[0]
+    assert res is not None, "radii_px holds no radius"
     return cam, det, cat, res.residual_rms_px

@@ -89,8 +89,8 @@ def write_dng(frame: Frame, path) -> Path:
             subfiletype=0,
         )
         if mono:  # tifffile refuses LinearRaw with one sample; patch the tag in place
-            with tifffile.TiffFile(tmp, mode="r+b") as tif:
-                tif.pages[0].tags["PhotometricInterpretation"].overwrite(34892)
+            with tifffile.TiffFile(tmp, mode="r+") as tif:  # binary: tifffile appends the "b"
+                tif.pages.first.tags["PhotometricInterpretation"].overwrite(34892)
     return path
 
 
