@@ -24,6 +24,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from tqdm import tqdm
@@ -38,6 +39,9 @@ from firmware_model.reference_frames import quat_to_matrix, rotation_angle
 from ground.analysis.results_log import ResultsLog, plot_summary, summarize
 from ground.atomic_write import write_text
 from ground.link.solve_report import matched_stars, record_from_output, solve_record
+
+if TYPE_CHECKING:
+    from ground.link.client import Client
 from ground.optional import MissingExtra
 from ground.sim.frame_writer import truth_path_for
 from protocol.commands import Slot
@@ -164,13 +168,14 @@ class OfflineSolver:
             # attitude with a loose noise model (the final match below is made at full rigour); a
             # low-confidence first answer (e.g. a two-star last resort) is no approximation to trust
             approx = identify_stars(stars, camera, self.catalog, replace(params, fixed_sigma_px=LOOSE_SIGMA_PX))
-            if approx.solution is None or approx.solution.q_icrs_to_sensor is None:
-                rec = record_from_output(out)
-                rec["refraction"] = "not corrected: no approximate attitude"
-                return rec
+        q_approx = approx.solution.q_icrs_to_sensor if approx.solution is not None else None
+        if q_approx is None:  # (an OK answer always has its attitude)
+            rec = record_from_output(out)
+            rec["refraction"] = "not corrected: no approximate attitude"
+            return rec
         vec = correct_refraction(
             stars.vectors,
-            quat_to_matrix(approx.solution.q_icrs_to_sensor),
+            quat_to_matrix(q_approx),
             self.site,
             Time(frame.timestamp, scale="utc"),
         )
@@ -198,10 +203,10 @@ class LinkSolver:
         self.go_timeout = go_timeout
         self.log = log
         self.client_kw = client_kw
-        self.client = None
+        self.client: Client | None = None
         self.reconnects = 0
 
-    def _connect(self):
+    def _connect(self) -> Client:
         from ground.link.client import Client
 
         client = Client(self.url, log=self.log, **self.client_kw)
@@ -212,6 +217,7 @@ class LinkSolver:
             client.close()
             raise
         self.client = client
+        return client
 
     def close(self):
         if self.client is not None:
@@ -242,11 +248,10 @@ class LinkSolver:
         deadline = None
         while True:
             try:
-                if self.client is None:
-                    self._connect()
+                client = self.client if self.client is not None else self._connect()
                 if data is not None:
-                    self.client.upload(Slot.FRAME, data, progress=self.upload_progress)
-                return solve_record(self.client.go_and_wait(timeout=self.go_timeout))
+                    client.upload(Slot.FRAME, data, progress=self.upload_progress)
+                return solve_record(client.go_and_wait(timeout=self.go_timeout))
             except Nack:
                 raise
             except (LinkError, OSError) as exc:

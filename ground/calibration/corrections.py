@@ -71,6 +71,8 @@ class ColourCorrection:
         (``prior_weight`` x N pseudo-observations): directions the data do not constrain stay
         as they are instead of collapsing.
         """
+        if max_iter < 1:
+            raise ValueError(f"max_iter must be at least 1, got {max_iter}")
         obs = np.asarray(observed, dtype=float)
         cat = np.asarray(catalog, dtype=float)
         if obs.shape != cat.shape or obs.ndim != 2 or obs.shape[1] != 2:
@@ -81,7 +83,7 @@ class ColourCorrection:
             raise ValueError(f"need at least {min_stars} stars with finite colours to fit 6 parameters, got {n_finite}")
         design = np.hstack([obs, np.ones((len(obs), 1))])
         use = finite.copy()
-        coef = None
+        coef = np.zeros((3, 2))  # replaced by the first iteration's fit (max_iter >= 1)
         for _ in range(max_iter):
             w = np.sqrt(prior_weight * use.sum())
             prior_x = np.array([[w, 0.0, 0.0], [0.0, w, 0.0]])

@@ -50,9 +50,10 @@ def _high(out: PipelineOutput) -> bool:
 def _observations(stars: list[StarList], outs: list[PipelineOutput], catalog: OnboardCatalog):
     obs = []
     for s, out in zip(stars, outs):
-        if _high(out) and len(out.solution.matched_det) >= 3:
-            rows = out.used[out.solution.matched_det]
-            obs.append(StarObservations(s.x[rows], s.y[rows], catalog.vec[out.solution.matched_cat]))
+        sol = out.solution
+        if _high(out) and sol is not None and len(sol.matched_det) >= 3:
+            rows = out.used[sol.matched_det]
+            obs.append(StarObservations(s.x[rows], s.y[rows], catalog.vec[sol.matched_cat]))
     return obs
 
 
@@ -67,6 +68,8 @@ def calibrate_from_frames(
     progress: bool = True,
 ) -> FrameCalibration:
     """Calibrate ``initial`` on ``frames`` of the real sky (module docstring)."""
+    if rounds < 1:
+        raise ValueError(f"rounds must be at least 1 (each round fits the camera), got {rounds}")
     stars = [extract_stars(f, None, params.extract) for f in frames]
     search = replace(params, optics=replace(params.optics or OpticsSearch(), focal_range=focal_search))
     outs = [
@@ -81,10 +84,11 @@ def calibrate_from_frames(
     camera = replace(initial, f=float(np.median(focals))) if focals else initial
     scale = camera.f / initial.f
     fixed = replace(params, optics=None)
-    result = None
+    result: CalibrationResult | None = None
     for _ in range(rounds):
         obs = _observations(stars, outs, catalog)
         result = calibrate(obs, camera, fit=fit)
         camera = result.camera
         outs = _identify_all(stars, camera, catalog, fixed)
+    assert result is not None  # rounds >= 1
     return FrameCalibration(result, float(scale), [_high(o) for o in outs], outs)

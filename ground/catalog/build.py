@@ -50,8 +50,7 @@ def borrow_mk_types(sel: StarTable, bsc5_path: str | Path, epoch: float) -> tupl
 def colour_model(design: CatalogDesign) -> ColourModel:
     """The design's detector colour model (shipped MT9P031-like QE unless ``qe_path``)."""
     qe = load_qe_csv(design.qe_path) if design.qe_path else default_qe()
-    kwargs = {"pickles_dir": Path(design.pickles_dir)} if design.pickles_dir else {}
-    return ColourModel(qe=qe, **kwargs)
+    return ColourModel(qe=qe, pickles_dir=Path(design.pickles_dir)) if design.pickles_dir else ColourModel(qe=qe)
 
 
 def build_catalog(

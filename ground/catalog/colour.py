@@ -264,6 +264,7 @@ def match_template(mk: MKType, templates: dict[str, MKType]) -> str | None:
     best, best_cost = None, np.inf
     for name in sorted(templates):
         t = templates[name]
+        assert t.lum is not None, name  # a template name always carries a luminosity class
         cost = abs(t.temp_index - mk.temp_index) + w * abs(t.lum - lum)
         if cost < best_cost - 1e-12:
             best, best_cost = name, cost
@@ -316,8 +317,11 @@ def ratios_from_signals(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return s[..., 0] / s[..., 1], s[..., 2] / s[..., 1]
 
 
-def blackbody_ratios(qe: QETable, temperature, band=None) -> tuple[np.ndarray, np.ndarray]:
-    """Colour ratios of Planck spectra at ``temperature`` (K, scalar or array) on a 0.5 nm grid."""
+def blackbody_ratios(
+    qe: QETable, temperature, band: tuple[float, float] | None = None
+) -> tuple[np.ndarray, np.ndarray] | tuple[float, float]:
+    """Colour ratios of Planck spectra at ``temperature`` (K, scalar or array) on a 0.5 nm grid:
+    arrays for an array of temperatures, floats for a scalar."""
     lo, hi = band or qe.band
     grid = np.arange(lo, hi + 0.25, 0.5)
     grid[-1] = min(grid[-1], hi)
@@ -333,6 +337,14 @@ def blackbody_ratios(qe: QETable, temperature, band=None) -> tuple[np.ndarray, n
 @lru_cache(maxsize=256)
 def _sed_cached(path: str):
     return read_sed(path)
+
+
+def _shipped_template_type(name: str) -> MKType:
+    """MK type of a template named in the shipped table (every name there parses)."""
+    parsed = parse_template_name(name)
+    if parsed is None:
+        raise ColourDataError(f"data/pickles_templates.csv: {name!r} is not a Pickles template name")
+    return parsed[0]
 
 
 def shipped_template_table() -> list[dict]:
@@ -393,12 +405,14 @@ class ColourModel:
     lookup_degree: int = 4
 
     def __post_init__(self):
-        self.band = tuple(self.band or self.qe.band)
+        lo, hi = self.band or self.qe.band
+        self.band = (lo, hi)
         if not (self.qe.band[0] <= self.band[0] < self.band[1] <= self.qe.band[1]):
             raise ColourDataError(
                 f"QE table {self.qe.name} covers {self.qe.band[0]}-{self.qe.band[1]} nm, not the band {self.band}"
             )
-        self._have_spectra = self.pickles_dir is not None and Path(self.pickles_dir).is_dir()
+        spectra = self.pickles_dir if self.pickles_dir is not None and Path(self.pickles_dir).is_dir() else None
+        self._have_spectra = spectra is not None
         shipped_ok = self.qe.name == DEFAULT_QE_NAME and self.band == default_qe().band
         if not self._have_spectra and not shipped_ok:
             raise ColourDataError(
@@ -406,9 +420,9 @@ class ColourModel:
             )
         rows = shipped_template_table()
         self._templates = (
-            pickles_templates(self.pickles_dir)
-            if self._have_spectra
-            else {r["template"]: parse_template_name(r["template"])[0] for r in rows}
+            pickles_templates(spectra)
+            if spectra is not None
+            else {r["template"]: _shipped_template_type(r["template"]) for r in rows}
         )
         self._cache: dict[str, tuple[float, float]] = {}
         if not self._have_spectra:
@@ -423,6 +437,8 @@ class ColourModel:
     def template_ratios(self, name: str) -> tuple[float, float]:
         """(Lambda_rg, Lambda_bg) of one Pickles template."""
         if name not in self._cache:
+            if self.pickles_dir is None:
+                raise ColourDataError(f"template {name}: its ratios are not shipped and there are no Pickles spectra")
             w, f = _sed_cached(str(Path(self.pickles_dir) / f"{name}.sed"))
             rg, bg = ratios_from_signals(photon_signals(self.qe, w, f, self.band))
             self._cache[name] = (float(rg), float(bg))
@@ -433,7 +449,7 @@ class ColourModel:
         x, rg, bg = [], [], []
         for row in rows:
             mk = self._templates.get(row["template"])
-            if mk is None or not np.isfinite(row[index]) or mk.lum < 3 or mk.temp_index >= 67:
+            if mk is None or mk.lum is None or not np.isfinite(row[index]) or mk.lum < 3 or mk.temp_index >= 67:
                 continue
             r, b = self.template_ratios(row["template"])
             x.append(row[index])

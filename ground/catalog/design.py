@@ -12,6 +12,7 @@ import math
 import tomllib
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
+from typing import Any
 
 SOURCES = ("hipparcos", "bsc5")
 
@@ -66,7 +67,7 @@ class CatalogDesign:
         vertical = camera.fov_half_angle_minor if width_px >= height_px else camera.fov_half_angle_major
         area = fov_deg * 2.0 * math.degrees(vertical)  # deg^2, small-field
         m = (math.log10(stars_in_view * 41253.0 / area) - 0.63) / 0.515
-        design = {
+        design: dict[str, Any] = {
             "theta_fov_deg": theta,
             "sensor_width_px": width_px,
             "sensor_height_px": height_px,

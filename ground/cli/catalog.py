@@ -65,7 +65,8 @@ def _design_args(p) -> None:
     g.add_argument("--drop-variable", action="store_true", default=None, help="drop variable stars")
     defaults = {f.name: f.default for f in fields(CatalogDesign)}
     for action in g._group_actions:  # the flags default to None ("not given"): show the design's default
-        default = defaults.get(_DESIGN_FLAGS.get(action.dest))
+        field_name = _DESIGN_FLAGS.get(action.dest)
+        default = defaults.get(field_name) if field_name else None
         if default is not None and "default" not in action.help:
             action.help += f" (default: {default}, or the --design file's)"
 
@@ -131,11 +132,12 @@ def _analyze(args) -> int:
     from ground.catalog.analyze import TABLE_HEADER, analyze, plot_views, table_row
     from ground.catalog.build import build_catalog
 
+    errors: tuple[type[Exception], ...] = (*_design_errors(), ValueError)
     try:
         design = design_from_args(args)
         cat = build_catalog(design)
         res, views, vc, vm = analyze(cat, design, n_views=args.views, progress=progress_on(args), return_views=True)
-    except (*_design_errors(), ValueError) as exc:
+    except errors as exc:
         return _fail(str(exc))
     if args.json_out:
         atomic_write.write_text(args.json_out, res.to_json() + "\n")
@@ -164,8 +166,7 @@ def _colours(args) -> int:
 
     try:
         qe = load_qe_csv(args.qe) if args.qe else default_qe()
-        kwargs = {"pickles_dir": Path(args.pickles)} if args.pickles else {}
-        model = ColourModel(qe=qe, **kwargs)
+        model = ColourModel(qe=qe, pickles_dir=Path(args.pickles)) if args.pickles else ColourModel(qe=qe)
         ratios = plot_colour_ratios(model, args.plot)
     except ColourDataError as exc:
         return _fail(str(exc))

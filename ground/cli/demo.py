@@ -35,7 +35,7 @@ MIN_CATALOG_STARS = 8
 
 def pick_attitudes(catalog, camera: CameraModel, n: int, rng) -> list[np.ndarray]:
     """``n`` random attitudes whose field holds at least MIN_CATALOG_STARS catalog stars."""
-    out = []
+    out: list[np.ndarray] = []
     radius = np.arctan(np.hypot(camera.width, camera.height) / 2 / camera.f)
     while len(out) < n:
         ra, dec, roll = rng.uniform(0, 2 * np.pi), np.arcsin(rng.uniform(-1, 1)), rng.uniform(0, 2 * np.pi)
@@ -47,12 +47,13 @@ def pick_attitudes(catalog, camera: CameraModel, n: int, rng) -> list[np.ndarray
     return out
 
 
-def start_device(state_dir: Path, *extra: str) -> tuple[subprocess.Popen, str]:
+def start_device(state_dir: Path, *extra: str) -> tuple[subprocess.Popen[str], str]:
     proc = subprocess.Popen(
         [sys.executable, "-m", "firmware_model.device.cli", "--pty", "--state", str(state_dir), *extra],
         stdout=subprocess.PIPE,
         text=True,
     )
+    assert proc.stdout is not None  # stdout=PIPE
     line = proc.stdout.readline().strip()
     if not line.startswith("listening on "):
         proc.kill()
@@ -60,10 +61,11 @@ def start_device(state_dir: Path, *extra: str) -> tuple[subprocess.Popen, str]:
     return proc, line[len("listening on ") :]
 
 
-def stop_device(proc: subprocess.Popen) -> int:
+def stop_device(proc: subprocess.Popen[str]) -> int:
     proc.send_signal(signal.SIGTERM)
     rc = proc.wait(timeout=30)
-    proc.stdout.close()
+    if proc.stdout is not None:  # start_device's pipe
+        proc.stdout.close()
     return rc
 
 

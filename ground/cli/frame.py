@@ -144,10 +144,10 @@ def cmd_render(args) -> int:
     else:
         stars = random_star_field(camera, attitude, args.random, tuple(args.mag_range), seed=args.seed)
     rng = np.random.default_rng(args.seed + 7919)
-    objs = [
-        FalseObject("cosmic", *rng.uniform([0, 0], [camera.width - 1, camera.height - 1]), rng.uniform(500, 5000))
-        for _ in range(args.cosmics)
-    ]
+    objs = []
+    for _ in range(args.cosmics):
+        cx, cy = rng.uniform([0, 0], [camera.width - 1, camera.height - 1])
+        objs.append(FalseObject("cosmic", cx, cy, rng.uniform(500, 5000)))
     if args.satellite:
         x, y = rng.uniform([0, 0], [camera.width - 1, camera.height - 1])
         ang = rng.uniform(0, np.pi)
@@ -188,7 +188,7 @@ def _match_truth(stars, truth: dict) -> list[dict | None]:
         return [None] * len(stars)
     tx = np.array([s["x"] for s in ts])
     ty = np.array([s["y"] for s in ts])
-    out = []
+    out: list[dict | None] = []
     for i in range(len(stars)):
         d = np.hypot(tx - stars.x[i], ty - stars.y[i])
         j = int(np.argmin(d))

@@ -98,7 +98,8 @@ def _offline_solver(args):
 
         try:
             parts = [float(v) for v in args.site.split(",")]
-            site = Site(*parts[:3], pressure_hpa=args.pressure, temperature_c=args.temperature)
+            given = dict(zip(("lat_deg", "lon_deg", "height_m"), parts))  # a fourth value is ignored
+            site = Site(**given, pressure_hpa=args.pressure, temperature_c=args.temperature)
         except (ValueError, TypeError):
             raise InputError(f"--site wants LAT,LON[,HEIGHT_M] in degrees/metres, got {args.site!r}") from None
     try:

@@ -36,6 +36,7 @@ class DeviceProcess:
     def __init__(self, *args: str):
         self._err = tempfile.TemporaryFile(mode="w+")
         self.proc = subprocess.Popen(device_command() + list(args), stdout=subprocess.PIPE, stderr=self._err, text=True)
+        assert self.proc.stdout is not None  # stdout=PIPE
         line = self.proc.stdout.readline().strip()
         if not line.startswith("listening on "):
             self.proc.wait(START_TIMEOUT)
@@ -60,7 +61,8 @@ class DeviceProcess:
         except subprocess.TimeoutExpired:
             self.proc.kill()
             rc = self.proc.wait()
-        self.proc.stdout.close()
+        if self.proc.stdout is not None:  # the pipe opened in __init__
+            self.proc.stdout.close()
         return rc
 
     def __enter__(self) -> DeviceProcess:

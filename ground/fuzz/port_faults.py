@@ -69,7 +69,7 @@ class FakePort:
         self.flood = flood
         self.nonces: list[int] = []  #: nonce of every command received, in order
         self._stop = threading.Event()
-        self._conn = None
+        self._conn: socket.socket | None = None
         if tcp:
             self._server = socket.create_server(("127.0.0.1", 0))
             self.url = f"socket://127.0.0.1:{self._server.getsockname()[1]}"
@@ -119,9 +119,11 @@ class FakePort:
         decoder = slip.Decoder()
         while not self._stop.is_set():
             for event in decoder.feed(self._read(0.02)):
+                if not isinstance(event, slip.Frame):  # a framing error or an oversize frame
+                    continue
                 try:
                     msg = nsp.decode(event.data)
-                except (nsp.MessageError, AttributeError):
+                except nsp.MessageError:
                     continue
                 nonce = self.rng.randrange(1 << 30)
                 self.nonces.append(nonce)

@@ -17,6 +17,7 @@ import random
 import shutil
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from firmware_model.device.slots import SlotStore, pack_image
 from ground.fuzz.checks import ping_check
@@ -27,6 +28,9 @@ from ground.link.client import Client, LinkError
 from protocol import nsp
 from protocol.commands import Code, XferState
 from protocol.crc import crc32
+
+if TYPE_CHECKING:
+    from firmware_model.device.device import Device
 
 PREFIXES = ("state: ", "device: ")
 
@@ -126,7 +130,7 @@ DAMAGE = {
 }
 
 
-def start_in_process(root: Path) -> tuple[object, str]:
+def start_in_process(root: Path) -> tuple[Device, str]:
     """Build the device ``st16-device --state root`` would build; (device, its stderr)."""
     from firmware_model.device.cli import build_device, build_parser
 
@@ -197,8 +201,13 @@ def trial(root: Path, rng: random.Random, catalog: bytes, names: list[str], tall
     if ask(Code.PING) is None:
         tally.fail("unanswered_pings", f"{names}: PING not answered")
         return
-    info = SlotImage.unpack(ask(Code.SLOT_INFO, SlotRequest(0).pack()).data)
-    status = XferStatus.unpack(ask(Code.XFER_STATUS, SlotRequest(0).pack()).data)
+    info_reply = ask(Code.SLOT_INFO, SlotRequest(0).pack())
+    status_reply = ask(Code.XFER_STATUS, SlotRequest(0).pack()) if info_reply is not None else None
+    if info_reply is None or status_reply is None:  # as the process trial counts a LinkError here
+        tally.fail("unanswered_pings", f"{names}: SLOT_INFO or XFER_STATUS not answered")
+        return
+    info = SlotImage.unpack(info_reply.data)
+    status = XferStatus.unpack(status_reply.data)
     _check_slots(info.active, info.crc32, status.state, catalog, names, touches_img, touches_partial, tally)
 
 

@@ -283,7 +283,9 @@ def sky_gradient_e(shape, lo_e: float, hi_e: float, angle_rad: float) -> np.ndar
     return lo_e + (hi_e - lo_e) * t
 
 
-def hot_clusters_e(shape, n: int, rng: np.random.Generator, e_range=(100.0, 3000.0), sizes=(2, 3)):
+def hot_clusters_e(
+    shape, n: int, rng: np.random.Generator, e_range: tuple[float, float] = (100.0, 3000.0), sizes=(2, 3)
+):
     """``n`` square clusters of hot pixels (side drawn from ``sizes``), each pixel with a dark
     signal uniform in ``e_range`` (e- over the exposure). Returns (map e-, [[row, col, side], ...])."""
     h, w = shape

@@ -29,6 +29,7 @@ Signal model (docs/pipeline.md has the defaults and their rationale):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -216,7 +217,7 @@ def render_frame(
     camera: CameraModel,
     detector: DetectorModel = DetectorModel(),
     seed: int = 0,
-    false_objects: list[FalseObject] = (),
+    false_objects: Sequence[FalseObject] = (),
     timestamp: str | None = None,
     psf=None,
     extra_e: np.ndarray | None = None,
@@ -352,7 +353,7 @@ def random_star_field(
     camera: CameraModel,
     attitude: np.ndarray,
     n: int,
-    vmag_range=(2.0, 7.0),
+    vmag_range: tuple[float, float] = (2.0, 7.0),
     seed: int = 0,
     margin_px: float = 20.0,
     min_separation_px: float = 0.0,
@@ -362,7 +363,8 @@ def random_star_field(
     [0.2, 1.4] (the spread of real stars through a Bayer CMOS), as ICRS vectors for
     ``attitude``. Ids are 1..n. ``min_separation_px`` rejects crowded placements."""
     rng = np.random.default_rng(seed)
-    xs, ys = [], []
+    xs: list[float] = []
+    ys: list[float] = []
     while len(xs) < n:
         xc = rng.uniform(margin_px, camera.width - 1 - margin_px)
         yc = rng.uniform(margin_px, camera.height - 1 - margin_px)
