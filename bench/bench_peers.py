@@ -34,7 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from firmware_model.ident.attitude import svd_attitude
-from firmware_model.ident.solver import SolveParams, solve
+from firmware_model.ident.solver import SolveParams
+from firmware_model.ident.strategy import solve
 from firmware_model.ident.verify import FieldOfView, VerifyParams
 from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll, quat_to_matrix, radec_to_vec, rotation_angle

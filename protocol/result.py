@@ -145,8 +145,8 @@ PSF_MEASURED = 0x04  #: ``psf_sigma`` was measured on this frame (else: the sett
 #: ``colour_rms`` RMS of (rg, bg) minus the catalog's over the matched stars, after the device's
 #: colour correction (the stars' ``rg``, ``bg`` are the raw measurements);
 #: ``stage_times`` seconds for detect, fit, vectors, identify, attitude, total
-#: (``firmware_model.pipeline.run.STAGES``); ``method`` 0 none, 1 colour, 2 geometric (4-star), 3 geometric consensus, 4 scale-free pattern
-#: (uncalibrated optics); ``reason``
+#: (``firmware_model.pipeline.run.STAGES``); ``method`` a :class:`MethodCode`: 0 none, 1 colour, 2 geometric (4-star), 3 geometric
+#: consensus, 4 scale-free pattern (uncalibrated optics); ``reason``
 #: why the status is what it is (UTF-8, truncated to EXT_REASON_BYTES). Optics block: ``psf_sigma``
 #: PSF Gaussian sigma used (px); ``focal_px`` / ``focal_sigma`` fitted focal length and 1-sigma (px),
 #: ``k1`` / ``k1_sigma`` radial distortion (NaN sigma: held), ``optics_rms`` residual of that fit
@@ -209,6 +209,17 @@ RESULT = _struct(
     ],
     TOTAL_LENGTH,
 )
+
+
+class MethodCode(IntEnum):
+    """How the answer was identified (``ext.method``); ``firmware_model.ident.solver.Method`` names
+    each code."""
+
+    NONE = 0
+    COLOUR = 1  #: colour consensus
+    GEOMETRIC = 2  #: 4-star voting with the triangle fallback
+    GEOMETRIC_CONSENSUS = 3  #: the consensus matcher on geometry alone (mono fallback)
+    PATTERN = 4  #: scale-free pattern search (uncalibrated optics)
 
 
 class ReturnBits(IntEnum):

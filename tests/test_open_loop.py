@@ -181,4 +181,4 @@ def test_bad_frames_get_a_status_never_a_confident_answer(catalog, name, frame):
     out = run_pipeline(frame, NOMINAL, catalog)
     assert out.status is not Status.OK, name
     assert out.reason, name
-    assert out.timings["total"] < 10.0  # bounded by the search budget, not a hang
+    assert out.timings.total < 10.0  # bounded by the search budget, not a hang

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from firmware_model.device.device import FrameUnavailable, SlotHandler, SolveContext
-from firmware_model.ident.solver import MODES
+from firmware_model.ident.solver import Mode
 from firmware_model.pipeline import scale_free
 from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.extract import PSF_SIGMA_RANGE_PX
@@ -89,7 +89,7 @@ class DeviceParams:
     The same file drives the offline paths (``--params``).
     """
 
-    mode: str | None = None
+    mode: Mode | None = None
     sigma_rg: float | None = None
     sigma_bg: float | None = None
     centroid_sigma_px: float | None = None
@@ -151,11 +151,12 @@ class DeviceParams:
         def positive(key):
             return number(key)
 
-        mode = obj.get("mode")
-        if mode is not None and mode not in MODES:
-            raise SlotRejected(
-                REJECT_PARAMS_VALUE, f"mode must be {', '.join(MODES[:-1])} or {MODES[-1]}, got {mode!r}"
-            )
+        mode = None
+        if obj.get("mode") is not None:
+            try:
+                mode = Mode.parse(obj["mode"])
+            except ValueError as exc:
+                raise SlotRejected(REJECT_PARAMS_VALUE, str(exc)) from None
         beta = None
         if "colour_correction" in obj:
             cc = obj["colour_correction"]

@@ -36,7 +36,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 
 import numpy as np
 
@@ -44,7 +44,7 @@ from firmware_model.catalog.onboard import OnboardCatalog, angle_between
 from firmware_model.ident.pair_match import PairNoise, consistency_tolerance, critical_distance, match_pair
 
 
-class Outcome(str, Enum):  # noqa: UP042 (issue 11: the solver enums become StrEnum together)
+class Outcome(StrEnum):
     """The three result classes of Enright & McVittie section 3.3."""
 
     HIGH_CONFIDENCE = "HIGH_CONFIDENCE"

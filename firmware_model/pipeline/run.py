@@ -2,7 +2,9 @@
 
 ``run_pipeline(frame, camera, catalog, params) -> PipelineOutput`` chains extraction
 (detection, centroid and colour fit, camera model), the optional eq. 24 colour correction,
-identification and attitude (``firmware_model.ident.solver``). It never raises on bad frames:
+identification and attitude (``firmware_model.ident.strategy.identify``, which decides the order of
+the matching methods and the confidence; the optics search here calls it again with a fitted
+camera). It never raises on bad frames:
 the output carries a :class:`protocol.result.Status` and a reason.
 :func:`result_fields` maps an output onto the result structure (docs/ICD.md): the COSMOS
 sections (quaternion, centroid and matching telemetry for image 1) and our extension region.
@@ -11,21 +13,29 @@ sections (quaternion, centroid and matching telemetry for image 1) and our exten
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from firmware_model.catalog.onboard import OnboardCatalog
-from firmware_model.ident.consensus import Outcome, large_set
-from firmware_model.ident.solver import SolveParams, SolveResult, solution_from_match, solve
-from firmware_model.ident.verify import FieldOfView, verify
+from firmware_model.ident.consensus import Outcome
+from firmware_model.ident.solver import SolveParams, SolveResult, method_code
+from firmware_model.ident.strategy import (
+    Detections,
+    IdentifyTimings,
+    StrategyParams,
+    geometric_detection_cap,
+    identify,
+    same_attitude,
+    verify_pattern,
+)
+from firmware_model.ident.verify import FieldOfView
 from firmware_model.pipeline import scale_free
 from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.camera_fit import StarObservations, fit_frame
 from firmware_model.pipeline.extract import ExtractParams, StarList, extract_stars
 from firmware_model.pipeline.raw_frame import Frame
-from firmware_model.reference_frames import quat_to_matrix, rotation_angle
+from firmware_model.reference_frames import rotation_angle
 from protocol import result
 from protocol.result import ReturnBits, Status
 from protocol.star_flags import UNTRUSTED, StarFlag
@@ -44,18 +54,24 @@ UNTRUSTED_CENTROID_FLOOR_PX = 0.5
 #: Detections whose fitted centroid is less certain than this (px, 1-sigma) are not used.
 MAX_CENTROID_SIGMA_PX = 3.0
 
-#: Fewest detections given to the geometric matcher.
-MIN_GEOMETRIC_DETECTIONS = 8
-#: Brightest-detection counts tried in turn by the 4-star matcher before the density cap: a
-#: small set of bright stars is most likely all in the catalog (beyond Dong et al., which takes
-#: its groups from the frame centre whatever their brightness).
-GEOMETRIC_STEPS = (4, 6, 8)
-
-#: Method codes of the result extension (``ext.method``).
-METHOD_CODES = {"colour": 1, "geometric": 2, "geometric-consensus": 3, "pattern": 4}
-
-#: Stage names reported in the result extension, in order.
+#: Stage names reported in the result extension, in order (the fields of :class:`StageTimings`).
 STAGES = ("detect", "fit", "vectors", "identify", "attitude", "total")
+
+
+@dataclass
+class StageTimings(IdentifyTimings):
+    """Seconds per pipeline stage (:data:`STAGES`): detection, centroid fit, camera vectors (from
+    the extraction), identification and attitude (every solve of the frame, the optics search's
+    included), and the whole frame."""
+
+    detect: float = 0.0
+    fit: float = 0.0
+    vectors: float = 0.0
+    total: float = 0.0
+
+    def to_dict(self) -> dict[str, float]:
+        """``{stage: seconds}`` in :data:`STAGES` order."""
+        return {name: getattr(self, name) for name in STAGES}
 
 
 @dataclass(frozen=True)
@@ -115,8 +131,8 @@ class PipelineParams:
     again; the second answer is taken only if it is high-confidence and agrees with the first.
 
     ``geometric_density_factor``: the geometric (4-star) method sees only the brightest
-    detections: first :data:`GEOMETRIC_STEPS` of them, then this factor times the catalog
-    stars expected in the field (:func:`geometric_detection_cap`). ``geometric_fallback``: when that 4-star match finds
+    detections: first ``strategy.GEOMETRIC_STEPS`` of them, then this factor times the catalog
+    stars expected in the field (``strategy.geometric_detection_cap``). ``geometric_fallback``: when that 4-star match finds
     nothing, the consensus matcher of Enright & McVittie runs on geometry alone (colours unknown), which
     tolerates missing and extra stars far better; its answers are labelled
     ``geometric-consensus``. ``colour_fallback``: in ``auto`` mode a colour frame that the colour
@@ -147,7 +163,7 @@ class PipelineOutput:
     stars: StarList | None = None
     used: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))  #: star rows given to the solver
     solution: SolveResult | None = None
-    timings: dict = field(default_factory=dict)  #: seconds per stage (STAGES)
+    timings: StageTimings = field(default_factory=StageTimings)  #: seconds per stage (STAGES)
     colour_beta: tuple | None = None  #: the eq. 24 correction the matcher's colours went through
     camera: CameraModel | None = None  #: the camera model the answer was identified with
     optics: OpticsFit | None = None  #: focal length and distortion fitted to the matched stars
@@ -187,7 +203,7 @@ def run_pipeline(
     out = identify_stars(stars, camera, catalog, params)
     if frame.timestamp and out.solution is not None and out.solution.q_icrs_to_sensor is not None:
         out = _label_planets(out, frame, catalog, params)
-    out.timings["total"] = time.perf_counter() - t0
+    out.timings.total = time.perf_counter() - t0
     return out
 
 
@@ -227,11 +243,11 @@ def identify_stars(
     """Identification and attitude from extracted stars (``stars.vectors`` from ``camera``),
     with the optics search and fit of :class:`OpticsSearch`."""
     t0 = time.perf_counter()
-    timings = {
-        "detect": stars.timings.get("detect_s", 0.0),
-        "fit": stars.timings.get("fit_s", 0.0),
-        "vectors": stars.timings.get("vectors_s", 0.0),
-    }
+    timings = StageTimings(
+        detect=stars.timings.get("detect_s", 0.0),
+        fit=stars.timings.get("fit_s", 0.0),
+        vectors=stars.timings.get("vectors_s", 0.0),
+    )
     out = _identify(stars, camera, catalog, params, timings)
     frame_t0 = t0 - stars.timings.get("total_s", 0.0)  # the search's budget counts from extraction
     if params.optics is not None and out.status is not Status.TOO_FEW_STARS:
@@ -246,37 +262,28 @@ def identify_stars(
             if found is not None and found.status is Status.OK and _rank(found) > _rank(out):
                 out = found  # a high-confidence answer only: the search may now return a low one
     out.timings = timings
-    timings["total"] = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
+    timings.total = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
     return out
 
 
 def _identify(
-    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams, timings: dict
+    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams, timings: StageTimings
 ) -> PipelineOutput:
-    """One identification with one camera model: colour or geometric with their fallbacks."""
+    """One identification with one camera model (``strategy.identify``: the order of methods and
+    fallbacks)."""
     used = _usable(stars)
     if len(used) < 2:
         why = stars.reason or f"{len(stars)} detection(s)"
         return PipelineOutput(Status.TOO_FEW_STARS, f"too few stars: {why}", stars, used, camera=camera)
-    geometric = params.solve.mode == "geometric" or (
-        params.solve.mode == "auto" and (not catalog.has_colour or not np.isfinite(stars.rg[used]).any())
+    strategy = StrategyParams(
+        solve=_solve_params(stars, camera, catalog, params),
+        photometric_gate=params.photometric_gate,
+        geometric_cap=geometric_detection_cap(camera, catalog, params.geometric_density_factor),
+        geometric_fallback=params.geometric_fallback,
+        colour_fallback=params.colour_fallback,
     )
-    if geometric:
-        sol, rows = _solve_geometric(used, stars, camera, catalog, params, timings)
-    else:
-        sol, rows = _solve_rows(used, stars, camera, catalog, params, params.solve.mode, True, timings)
-        if sol.status is not Outcome.HIGH_CONFIDENCE and params.colour_fallback and params.solve.mode == "auto":
-            # colours biased beyond the catalog's noise model (the atmosphere, an sRGB image): geometry alone
-            geo, geo_rows = _solve_geometric(
-                used, stars, camera, catalog, replace(params, solve=replace(params.solve, mode="geometric")), timings
-            )
-            if sol.status is Outcome.NO_MATCH or geo.status is Outcome.HIGH_CONFIDENCE:
-                geometric, sol, rows = True, geo, geo_rows
-    if geometric and sol.status is Outcome.NO_MATCH and params.geometric_fallback and catalog.has_colour:
-        sol2, rows2 = _solve_rows(used, stars, camera, catalog, params, "colour", False, timings)
-        if sol2.status is not Outcome.NO_MATCH:
-            sol2.method = "geometric-consensus"
-            sol, rows = sol2, rows2
+    found = identify(_detections(used, stars, camera, params), catalog, strategy, timings)
+    sol, rows = found.solution, used[found.rows]
     if sol.status is Outcome.NO_MATCH:
         return PipelineOutput(
             Status.NO_MATCH, sol.reason, stars, rows, sol, colour_beta=params.colour_beta, camera=camera
@@ -344,7 +351,7 @@ def _refine_optics(
     camera: CameraModel,
     catalog: OnboardCatalog,
     params: PipelineParams,
-    timings: dict,
+    timings: StageTimings,
 ) -> PipelineOutput | None:
     """Attach the optics fit to a high-confidence ``out``; identify again with the fitted camera when
     it moves a corner by more than ``refit_px`` or fits the stars :data:`REFIT_RMS_RATIO` times
@@ -359,14 +366,19 @@ def _refine_optics(
     ):
         return None
     again = _identify(_with_camera(stars, fit.camera), fit.camera, catalog, params, timings)
-    if again.status is Status.OK and _same_attitude(again.solution, out.solution, 1e-3):
+    if again.status is Status.OK and same_attitude(again.solution, out.solution, 1e-3):
         again.optics = _fit_optics(again, catalog, params.optics) or fit
         return again
     return None
 
 
 def _search_optics(
-    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams, timings: dict, t0: float
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    timings: StageTimings,
+    t0: float,
 ) -> PipelineOutput | None:
     """The scale-free search of :class:`OpticsSearch`: the first pattern match that leads to a
     high-confidence answer with the fitted camera, else the low-confidence answer of a pattern
@@ -384,7 +396,7 @@ def _search_optics(
             continue
         t1 = time.perf_counter()
         refined = scale_free.refine(stars.x, stars.y, camera, hyp, catalog, k1_min_stars=search.k1_min_stars)
-        timings["attitude"] = timings.get("attitude", 0.0) + time.perf_counter() - t1
+        timings.attitude += time.perf_counter() - t1
         if refined is None:
             continue
         tried.append(hyp.a)  # a seed near one that refined to a failed identification leads there too
@@ -423,7 +435,9 @@ def _rank(out: PipelineOutput | None) -> tuple[int, float]:
     return (0, 0.0) if out is None or out.solution is None else (len(out.solution.matched_det), out.solution.confidence)
 
 
-def _pattern_seeds(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, search: OpticsSearch, timings: dict):
+def _pattern_seeds(
+    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, search: OpticsSearch, timings: StageTimings
+):
     """Pattern hypotheses (``scale_free.hypotheses``) from the brightest clean detections, then, when
     poor fits were among them (hot-pixel clusters and other unblurred clutter can outshine the
     stars), from the brightest detections that also fit the PSF well."""
@@ -436,42 +450,37 @@ def _pattern_seeds(stars: StarList, camera: CameraModel, catalog: OnboardCatalog
         hyps = scale_free.hypotheses(
             stars.x[rows], stars.y[rows], camera, catalog, search.n_bright, search.pattern_tolerance, search.focal_range
         )
-        timings["identify"] = timings.get("identify", 0.0) + time.perf_counter() - t1
+        timings.identify += time.perf_counter() - t1
         yield from hyps
 
 
 def _verify_pattern(
-    stars: StarList, camera: CameraModel, rows, cat, catalog: OnboardCatalog, params: PipelineParams, timings: dict
+    stars: StarList,
+    camera: CameraModel,
+    rows,
+    cat,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    timings: StageTimings,
 ) -> PipelineOutput | None:
     """The refined pattern match itself (detection ``rows`` on catalog stars ``cat``), verified over
-    every usable detection with the fitted camera and the tight noise model (method "pattern"),
-    or None when verification refuses it. High confidence only as the solver grants a large set
-    (at least ``confident_stars`` matched covering at least ``confident_coverage`` of the
-    predicted stars); else low confidence: the pattern was chosen by a search among thousands of
-    4-sets, so its own stars do not count as the independent evidence the chance-alignment rule
-    needs."""
+    every usable detection with the fitted camera and the tight noise model and judged by
+    ``strategy.verify_pattern`` (method "pattern"), or None when verification refuses it."""
     used = _usable(stars)
     rows, cat = np.asarray(rows), np.asarray(cat)
     inside = np.isin(rows, used)
-    match, _, sp = _verify_over(used, rows[inside], cat[inside], stars, camera, catalog, params, timings)
-    if match is None:
+    sol = verify_pattern(
+        _detections(used, stars, camera, params),
+        np.searchsorted(used, rows[inside]),
+        cat[inside],
+        catalog,
+        _solve_params(stars, camera, catalog, params),
+        timings,
+    )
+    if sol is None:
         return None
-    cp = sp.consensus
-    confident = large_set(match, cp)
-    outcome, status = (
-        (Outcome.HIGH_CONFIDENCE, Status.OK) if confident else (Outcome.LOW_CONFIDENCE, Status.LOW_CONFIDENCE)
-    )
-    reason = (
-        ""
-        if confident
-        else (
-            f"pattern match of {match.n} stars (coverage {match.coverage:.2f}) "
-            f"below the {cp.confident_stars} stars and {cp.confident_coverage:g} coverage "
-            "a search-chosen pattern needs"
-        )
-    )
-    sol = solution_from_match(match, outcome, reason, np.arange(len(used)), catalog, "pattern", len(used))
-    return PipelineOutput(status, reason, stars, used, sol, colour_beta=params.colour_beta, camera=camera)
+    status = Status.OK if sol.status is Outcome.HIGH_CONFIDENCE else Status.LOW_CONFIDENCE
+    return PipelineOutput(status, sol.reason, stars, used, sol, colour_beta=params.colour_beta, camera=camera)
 
 
 #: Detections left out of the pattern search's brightest stars (saturated stars stay: they are real).
@@ -481,74 +490,38 @@ _PATTERN_EXCLUDE = int(StarFlag.BLEND | StarFlag.FIT_FAILED | StarFlag.EDGE)
 _SAME_SEED_RAD = np.radians(0.2)
 
 
-def _solve_rows(
-    rows,
-    stars: StarList,
-    camera: CameraModel,
-    catalog: OnboardCatalog,
-    params: PipelineParams,
-    mode: str,
-    use_colour: bool,
-    timings: dict,
-):
-    """Solve on ``rows`` of ``stars`` (adds to ``timings``); returns (solution, rows it refers to).
-    Inputs as :func:`_solver_inputs`; a low-confidence answer is retried with the photometric
-    gate (:class:`PipelineParams`)."""
-    rg, bg, sigma_px, solve_params = _solver_inputs(rows, stars, camera, catalog, params, mode, use_colour)
-
-    def run(sub):
-        out = solve(
-            stars.vectors[rows[sub]],
-            rg[sub],
-            bg[sub],
-            catalog,
-            replace(solve_params, sigma_vec=solve_params.sigma_vec[sub]),
-        )
-        timings["identify"] = (
-            timings.get("identify", 0.0) + out.timings.get("match", 0.0) + out.timings.get("validate", 0.0)
-        )
-        timings["attitude"] = timings.get("attitude", 0.0) + out.timings.get("verify", 0.0)
-        return out
-
-    sol = run(np.arange(len(rows)))
-    if sol.status is Outcome.LOW_CONFIDENCE and params.photometric_gate is not None:
-        gated = _photometric_gate(stars.flux[rows], sol, catalog, params.photometric_gate)
-        if gated is not None and 2 <= len(gated) < len(rows):
-            sol2 = run(gated)
-            if sol2.status is Outcome.HIGH_CONFIDENCE and _same_attitude(
-                sol, sol2, 5 * float(np.max(sigma_px)) / camera.f
-            ):
-                return sol2, rows[gated]
-    return sol, rows
+def _solve_params(stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams):
+    """The solver configuration for ``stars``: the field of view defaults to the camera's, the
+    colour noise is at least the catalog's design value (``strategy.identify`` raises it further to
+    the median colour sigma the fit measured), verification knows the frame's detection count
+    (the solver may see only the brightest)."""
+    return replace(
+        params.solve,
+        fov=params.solve.fov or FieldOfView.from_camera(camera),
+        sigma_rg=float(np.nanmax([params.solve.sigma_rg, catalog.meta.get("sigma_rg", np.nan)])),
+        sigma_bg=float(np.nanmax([params.solve.sigma_bg, catalog.meta.get("sigma_bg", np.nan)])),
+        verify=replace(params.solve.verify, frame_detections=len(stars)),
+    )
 
 
-def _solver_inputs(
-    rows,
-    stars: StarList,
-    camera: CameraModel,
-    catalog: OnboardCatalog,
-    params: PipelineParams,
-    mode: str,
-    use_colour: bool,
-):
-    """Colours, per-star noise (px) and solver parameters for ``rows`` of ``stars``.
+def _detections(used: np.ndarray, stars: StarList, camera: CameraModel, params: PipelineParams) -> Detections:
+    """What identification sees of the ``used`` rows of ``stars``.
 
-    Saturated or blended stars keep their geometry but lose their colour; the per-star
-    direction noise comes from the fit covariance with a floor, larger for untrusted fits. The
-    colour noise given to the matcher is the largest of the solver setting, the catalog's
-    design value and the median colour sigma the fit measured on this frame (a small aperture
-    leaves 4th-magnitude stars with ~0.1 colour noise; matching them at 0.05 rejects true
-    matches)."""
-    flags = stars.flags[rows]
-    colour_ok = ((flags & int(StarFlag.SATURATED | StarFlag.BLEND)) == 0) & use_colour
-    rg = np.where(colour_ok, stars.rg[rows], np.nan)
-    bg = np.where(colour_ok, stars.bg[rows], np.nan)
+    Saturated or blended stars keep their geometry but lose their colour; colours go through the
+    eq. 24 correction; the per-star centroid noise comes from the fit covariance with a floor,
+    larger for untrusted fits (or is ``fixed_sigma_px``); the measured colour sigmas let the
+    matcher widen its colour noise (a small aperture leaves 4th-magnitude stars with ~0.1 colour
+    noise; matching them at 0.05 rejects true matches)."""
+    flags = stars.flags[used]
+    colour_ok = (flags & int(StarFlag.SATURATED | StarFlag.BLEND)) == 0
+    rg = np.where(colour_ok, stars.rg[used], np.nan)
+    bg = np.where(colour_ok, stars.bg[used], np.nan)
     if params.colour_beta is not None:
         rg, bg = apply_colour_correction(rg, bg, params.colour_beta)
     if params.fixed_sigma_px is not None:
-        sigma_px = np.full(len(rows), float(params.fixed_sigma_px))
+        sigma_px = np.full(len(used), float(params.fixed_sigma_px))
     else:
-        var = 0.5 * (stars.cov_xy[rows, 0, 0] + stars.cov_xy[rows, 1, 1])
+        var = 0.5 * (stars.cov_xy[used, 0, 0] + stars.cov_xy[used, 1, 1])
         var = np.where(np.isfinite(var), var, UNKNOWN_CENTROID_SIGMA_PX**2)
         floor = np.where(
             (flags & int(UNTRUSTED)) != 0,
@@ -556,127 +529,17 @@ def _solver_inputs(
             params.centroid_floor_px,
         )
         sigma_px = np.sqrt(var + floor**2)
-    measured = np.sqrt(np.where(colour_ok[:, None], stars.cov_colour[rows][:, [0, 1], [0, 1]], np.nan))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: no colour measured
-        frame_rg, frame_bg = np.nanmedian(measured, axis=0)
-    solve_params = replace(
-        params.solve,
-        mode=mode,
-        sigma_vec=sigma_px / camera.f,
-        fov=params.solve.fov or FieldOfView.from_camera(camera),
-        sigma_rg=float(np.nanmax([params.solve.sigma_rg, catalog.meta.get("sigma_rg", np.nan), frame_rg])),
-        sigma_bg=float(np.nanmax([params.solve.sigma_bg, catalog.meta.get("sigma_bg", np.nan), frame_bg])),
-        verify=replace(params.solve.verify, frame_detections=len(stars)),
-    )  # the solver may see only the brightest
-
-    return rg, bg, sigma_px, solve_params
-
-
-def _solve_geometric(used, stars, camera, catalog, params: PipelineParams, timings: dict):
-    """4-star matching on the brightest detections, widening the set (:data:`GEOMETRIC_STEPS`,
-    then :func:`geometric_detection_cap`) until a high-confidence answer; the best answer else."""
-    cap = geometric_detection_cap(camera, catalog, params.geometric_density_factor)
-    best = None
-    for k in sorted({min(k, cap, len(used)) for k in (*GEOMETRIC_STEPS, cap)}):
-        sol, rows = _solve_rows(used[:k], stars, camera, catalog, params, params.solve.mode, False, timings)
-        if sol.status is Outcome.HIGH_CONFIDENCE:
-            return _match_all(sol, rows, used, stars, camera, catalog, params, timings)
-        if best is None or (best[0].status is Outcome.NO_MATCH and sol.status is not Outcome.NO_MATCH):
-            best = (sol, rows)
-    return best
-
-
-def _match_all(
-    sol,
-    rows,
-    used,
-    stars: StarList,
-    camera: CameraModel,
-    catalog: OnboardCatalog,
-    params: PipelineParams,
-    timings: dict,
-):
-    """A high-confidence answer found on the brightest ``rows`` verified again over every usable
-    detection (``used``), so every star in view is matched; the answer stands if that verification
-    fails, finds fewer stars or moves the attitude."""
-    if len(rows) >= len(used):
-        return sol, rows
-    match, sigma_px, _ = _verify_over(
-        used, rows[sol.matched_det], sol.matched_cat, stars, camera, catalog, params, timings
+    colour_sigma = np.sqrt(np.where(colour_ok[:, None], stars.cov_colour[used][:, [0, 1], [0, 1]], np.nan))
+    return Detections(
+        vectors=stars.vectors[used],
+        rg=rg,
+        bg=bg,
+        sigma_px=sigma_px,
+        focal_px=camera.f,
+        flux=stars.flux[used],
+        colour_sigma=colour_sigma,
+        measured_colour=bool(np.isfinite(stars.rg[used]).any()),
     )
-    if (
-        match is None
-        or match.n < len(sol.matched_det)
-        or rotation_angle(match.attitude.a, quat_to_matrix(sol.q_icrs_to_sensor))
-        > 5 * float(np.max(sigma_px)) / camera.f
-    ):
-        return sol, rows
-    full = solution_from_match(match, sol.status, sol.reason, np.arange(len(used)), catalog, sol.method, len(used))
-    full.attempts, full.timings, full.notes = sol.attempts, sol.timings, sol.notes
-    return full, used
-
-
-def _verify_over(
-    used,
-    rows,
-    cat,
-    stars: StarList,
-    camera: CameraModel,
-    catalog: OnboardCatalog,
-    params: PipelineParams,
-    timings: dict,
-):
-    """The solver's verification (geometry only) of detection ``rows`` matched to catalog stars
-    ``cat``, over every detection in ``used`` (sorted rows): (VerifiedMatch or None, per-star noise
-    px, solver parameters); its time goes to ``timings["attitude"]``."""
-    t0 = time.perf_counter()
-    rg, bg, sigma_px, sp = _solver_inputs(used, stars, camera, catalog, params, "geometric", False)
-    match, _ = verify(
-        np.searchsorted(used, rows),
-        cat,
-        stars.vectors[used],
-        rg,
-        bg,
-        sigma_px / camera.f,
-        catalog,
-        sp.fov,
-        0.0,
-        0.0,
-        sp.verify,
-    )
-    timings["attitude"] = timings.get("attitude", 0.0) + time.perf_counter() - t0
-    return match, sigma_px, sp
-
-
-def geometric_detection_cap(camera: CameraModel, catalog: OnboardCatalog, factor: float) -> int:
-    """Brightest detections given to the brightness-independent 4-star matcher: ``factor``
-    times the catalog stars expected in the field (catalog density x field solid angle), at
-    least :data:`MIN_GEOMETRIC_DETECTIONS`. Fainter detections are mostly stars below the
-    catalog limit, which would fill the 4-star groups with stars it cannot identify."""
-    half_x = np.arctan(camera.width / 2.0 / camera.f)
-    half_y = np.arctan(camera.height / 2.0 / camera.f)
-    solid_angle = 4.0 * np.arcsin(np.sin(half_x) * np.sin(half_y))
-    expected = catalog.n_stars * solid_angle / (4.0 * np.pi)
-    return max(MIN_GEOMETRIC_DETECTIONS, int(np.ceil(factor * expected)))
-
-
-def _photometric_gate(flux, sol: SolveResult, catalog: OnboardCatalog, margin_mag: float):
-    """Rows (of the solver input) bright enough to be catalog stars, using the zero point of the
-    matched stars: ``m_est = median(m_cat + 2.5 log10 F) - 2.5 log10 F`` kept when
-    ``m_est <= max(catalog magnitude) + margin_mag``. None when no zero point can be formed."""
-    f_matched = flux[sol.matched_det]
-    ok = np.isfinite(f_matched) & (f_matched > 0)
-    if ok.sum() < 2:
-        return None
-    zero_point = np.median(catalog.mag[sol.matched_cat][ok] + 2.5 * np.log10(f_matched[ok]))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        m_est = zero_point - 2.5 * np.log10(flux)
-    return np.flatnonzero(np.nan_to_num(m_est, nan=np.inf) <= float(np.max(catalog.mag)) + margin_mag)
-
-
-def _same_attitude(a: SolveResult, b: SolveResult, tol: float) -> bool:
-    return rotation_angle(quat_to_matrix(a.q_icrs_to_sensor), quat_to_matrix(b.q_icrs_to_sensor)) <= tol
 
 
 def _sigma_axes(cov) -> np.ndarray:
@@ -792,7 +655,7 @@ def result_fields(out: PipelineOutput) -> dict:
     fields["ext.n_matched"] = n_matched
     fields.update(_optics_fields(out))
     fields["ext.stars"] = ext_stars
-    fields["ext.stage_times"] = np.array([out.timings.get(s, 0.0) for s in STAGES], dtype=np.float32)
-    fields["ext.method"] = METHOD_CODES.get(sol.method if sol else "", 0)
+    fields["ext.stage_times"] = np.array(list(out.timings.to_dict().values()), dtype=np.float32)
+    fields["ext.method"] = method_code(sol.method if sol else None)
     fields["return_code"] = result.make_return_code(out.status, int(bits))
     return fields

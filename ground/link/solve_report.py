@@ -16,12 +16,14 @@ from datetime import UTC, datetime
 
 import numpy as np
 
-from firmware_model.pipeline.run import METHOD_CODES, STAGES, PipelineOutput, result_fields
+from firmware_model.ident.solver import Method
+from firmware_model.pipeline.run import STAGES, PipelineOutput, result_fields
 from firmware_model.reference_frames import quat_to_matrix, radec_roll_from_attitude
 from protocol import result
 
 ARCSEC = 180.0 / np.pi * 3600.0
-METHODS = {0: "", **{code: name for name, code in METHOD_CODES.items()}}
+#: Method name per ``ext.method`` code (``protocol.result.MethodCode``; 0: none).
+METHODS = {int(result.MethodCode.NONE): "", **{int(m.code): str(m) for m in Method}}
 
 
 def _num(v) -> float | None:

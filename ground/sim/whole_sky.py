@@ -25,7 +25,7 @@ import multiprocessing
 import os
 import signal
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
@@ -33,7 +33,8 @@ import numpy as np
 from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.four_star import FourStarParams, match_four_star
-from firmware_model.ident.solver import SolveParams, check_hypothesis, solve
+from firmware_model.ident.solver import Mode, SolveParams
+from firmware_model.ident.strategy import Detections, StrategyParams, check_hypothesis, identify
 from firmware_model.ident.verify import FieldOfView
 from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, vec_to_radec
@@ -185,9 +186,9 @@ def _field_radius(camera: CameraModel) -> float:
 @dataclass(frozen=True)
 class ColourSimConfig:
     """A whole-sky colour run: ``n_boresights`` spiral directions x ``n_roll`` rolls.
-    ``colour`` False: a mono frame, solved as the device solves one: geometric (4-star, triangle)
-    matching and, when that finds nothing and ``geometric_fallback`` is set, the consensus matcher
-    on geometry alone (``PipelineParams.geometric_fallback``)."""
+    ``colour`` False: a mono frame, solved in the device's order (``strategy.identify``): geometric
+    (4-star, triangle) matching and, when that finds nothing and ``geometric_fallback`` is set, the
+    consensus matcher on geometry alone (``PipelineParams.geometric_fallback``)."""
 
     n_boresights: int = 10000
     n_roll: int = 10
@@ -206,7 +207,21 @@ def _solve_params(camera: CameraModel, cfg: ColourSimConfig) -> SolveParams:
         sigma_rg=max(cfg.model.sigma_colour, 1e-3),
         sigma_bg=max(cfg.model.sigma_colour, 1e-3),
         fov=FieldOfView.from_camera(camera, 0.0),
-        mode="colour" if cfg.colour else "geometric",
+        mode=Mode.COLOUR if cfg.colour else Mode.GEOMETRIC,
+    )
+
+
+def _strategy(params: SolveParams, cfg: ColourSimConfig) -> StrategyParams:
+    """The device's order of methods (``strategy.identify``) on simulated star vectors: every
+    detection at once (no brightest-first ladder), no photometric gate (no fluxes), the mono
+    fallback as configured, no colour fallback (the mode is the run's)."""
+    return StrategyParams(
+        solve=params,
+        photometric_gate=None,
+        geometric_steps=(),
+        geometric_cap=None,
+        geometric_fallback=cfg.geometric_fallback,
+        colour_fallback=False,
     )
 
 
@@ -214,6 +229,7 @@ def run_poses(catalog: OnboardCatalog, camera: CameraModel, cfg: ColourSimConfig
     """Evaluate poses ``pose_ids`` (``boresight * n_roll + roll``) of a run; returns POSE_DTYPE rows."""
     boresights = spiral_boresights(cfg.n_boresights)
     params = _solve_params(camera, cfg)
+    strategy = _strategy(params, cfg)
     out = np.zeros(len(pose_ids), POSE_DTYPE)
     for row, pid in enumerate(np.asarray(pose_ids, np.int64)):
         b_idx, r_idx = divmod(int(pid), cfg.n_roll)
@@ -223,9 +239,8 @@ def run_poses(catalog: OnboardCatalog, camera: CameraModel, cfg: ColourSimConfig
         a = attitude_from_radec_roll(float(ra), float(dec), roll)
         scene = observe(catalog, a, camera, cfg.model, rng, colour=cfg.colour)
         t = time.perf_counter()
-        res = solve(scene.vectors, scene.rg, scene.bg, catalog, params)
-        if not cfg.colour and cfg.geometric_fallback and res.status is Outcome.NO_MATCH and catalog.has_colour:
-            res = solve(scene.vectors, scene.rg, scene.bg, catalog, replace(params, mode="colour"))  # rg, bg: NaN
+        found = identify(Detections(scene.vectors, scene.rg, scene.bg), catalog, strategy)
+        res = found.solution
         dt = time.perf_counter() - t
         rec = out[row]
         rec["boresight"], rec["roll"], rec["n_visible"], rec["n_det"] = b_idx, roll, scene.n_visible, len(scene.truth)
@@ -235,7 +250,7 @@ def run_poses(catalog: OnboardCatalog, camera: CameraModel, cfg: ColourSimConfig
         if res.q_icrs_to_sensor is None:
             rec["cause"] = no_solution_cause(scene, res.reason, catalog, params, cfg.colour)
         if res.q_icrs_to_sensor is not None:
-            truth = scene.truth[res.matched_det]
+            truth = scene.truth[found.rows[res.matched_det]]
             rec["n_matched"] = len(truth)
             rec["n_correct"] = int(np.sum(truth == res.matched_cat))
             rec["n_wrong"] = len(truth) - rec["n_correct"]

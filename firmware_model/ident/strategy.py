@@ -1,0 +1,573 @@
+"""Where a solve is decided: the order of the matching methods, their fallbacks and the
+confidence of the answer, for one set of star vectors (:func:`solve`) and for one frame's
+detections (:func:`identify`). The matchers themselves live in their modules (``consensus``,
+``four_star``, ``triangle``, ``verify``, ``attitude``); each stage here is a small function with
+typed inputs and outputs, composed top-down:
+
+``identify(detections, catalog, StrategyParams) -> Identification`` (the device pipeline, the
+whole-sky simulation):
+
+1. route: geometric when the mode says so, or in ``auto`` mode when the catalog or the frame has no
+   colour; else colour (:func:`colour_route`).
+2. colour route: :func:`solve_rows` on every detection (the solver decides colour consensus),
+   with the photometric gate; in ``auto`` mode, an answer that is not high confidence is tried
+   against the geometric route on the same detections (``colour_fallback``): that answer is taken
+   when colour found none or geometry is high-confidence.
+3. geometric route (:func:`geometric_route`): :func:`solve_rows` on the brightest ``k`` detections
+   for each ``k`` of :func:`geometric_sizes` (4, 6, 8, then the density cap); the first
+   high-confidence answer is verified again over every detection (:func:`match_all`); else the
+   first answer that found anything.
+4. mono fallback: a geometric route that found nothing runs the consensus matcher on geometry
+   alone (``geometric_fallback``; method ``geometric-consensus``).
+
+``solve_rows`` is one :func:`solve` on a subset plus the photometric gate: a low-confidence answer
+is solved again without detections fainter than the catalog holds (zero point from the matched
+stars) and that answer is taken if it is high-confidence and agrees.
+
+``solve(vectors, rg, bg, catalog, SolveParams) -> SolveResult``: clean the input
+(``solver.clean``), choose the method (:func:`choose_method`), then colour consensus
+(``consensus.match_scene``, whose high / low confidence is decided as it searches: it stops at
+the first confident set) or geometric matching (:func:`match_geometric`: 4-star voting, then the
+triangle fallback when that is not conclusive), and the geometric confidence
+(:func:`decide_geometric`). It never raises on bad input: it answers NO_MATCH with a reason.
+
+The pipeline's optics search (``firmware_model.pipeline.run``) calls :func:`identify` again with
+the fitted camera and judges its own pattern matches with :func:`verify_pattern`.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from firmware_model.catalog.onboard import OnboardCatalog, angle_between
+from firmware_model.ident.consensus import ConsensusParams, Outcome, confident, large_set, match_scene
+from firmware_model.ident.four_star import match_four_star
+from firmware_model.ident.pair_match import PairNoise
+from firmware_model.ident.solver import (
+    Method,
+    Mode,
+    SolveParams,
+    SolveResult,
+    SolveTimings,
+    clean,
+    solution_from_match,
+)
+from firmware_model.ident.triangle import match_triangles
+from firmware_model.ident.verify import FieldOfView, VerifiedMatch, verify
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.reference_frames import quat_to_matrix, rotation_angle
+
+#: Fewest detections given to the geometric matcher by :func:`geometric_detection_cap`.
+MIN_GEOMETRIC_DETECTIONS = 8
+#: Brightest-detection counts tried in turn by the geometric route before the density cap: a
+#: small set of bright stars is most likely all in the catalog (beyond Dong et al., which takes
+#: its groups from the frame centre whatever their brightness).
+GEOMETRIC_STEPS = (4, 6, 8)
+
+#: A hypothesis check: detection indices and catalog indices -> (verified match or None, reason).
+Check = Callable[[np.ndarray, np.ndarray], tuple[VerifiedMatch | None, str]]
+
+
+# ------------------------------------------------------------------ inputs and outputs
+@dataclass(frozen=True)
+class Detections:
+    """One frame's detections as identification sees them, brightest first.
+
+    vectors (N, 3) sensor-frame directions; rg, bg (N,) colour ratios (NaN: no usable colour);
+    sigma_px (N,) per-axis centroid noise (px) with ``focal_px`` the focal length they scale by
+    (None: the solver parameters' ``sigma_vec`` as given); flux (N,) for the photometric gate
+    (None: no gate); colour_sigma (N, 2) measured 1-sigma of rg, bg (NaN where unknown; their
+    median raises the colour noise the matcher assumes; None: the parameters' as given);
+    measured_colour: whether the frame measured colour, which routes ``auto`` mode (None: any
+    finite ``rg``)."""
+
+    vectors: np.ndarray
+    rg: np.ndarray
+    bg: np.ndarray
+    sigma_px: np.ndarray | None = None
+    focal_px: float = 1.0
+    flux: np.ndarray | None = None
+    colour_sigma: np.ndarray | None = None
+    measured_colour: bool | None = None
+
+    def __len__(self) -> int:
+        return len(self.vectors)
+
+    @property
+    def has_colour(self) -> bool:
+        if self.measured_colour is not None:
+            return self.measured_colour
+        return bool(np.isfinite(self.rg).any())
+
+
+@dataclass(frozen=True)
+class StrategyParams:
+    """How :func:`identify` orders the methods.
+
+    solve: the solver configuration (``mode`` picks the route); photometric_gate: margin (mag)
+    beyond the catalog limit for the gate, None to disable; geometric_steps and geometric_cap:
+    the brightest-detection counts of the geometric route (:func:`geometric_sizes`; cap None:
+    every detection); geometric_fallback: consensus on geometry alone when the geometric route
+    finds nothing; colour_fallback: in ``auto`` mode, the geometric route when colour is not
+    high-confidence."""
+
+    solve: SolveParams = SolveParams()
+    photometric_gate: float | None = None
+    geometric_steps: tuple[int, ...] = GEOMETRIC_STEPS
+    geometric_cap: int | None = None
+    geometric_fallback: bool = True
+    colour_fallback: bool = True
+
+
+@dataclass
+class IdentifyTimings:
+    """Seconds spent identifying one frame, summed over every solve: ``identify`` matching and
+    input cleaning, ``attitude`` verification and attitude."""
+
+    identify: float = 0.0
+    attitude: float = 0.0
+
+    def add_solve(self, sol: SolveResult) -> None:
+        self.identify = self.identify + sol.timings.match + sol.timings.validate
+        self.attitude += sol.timings.verify
+
+
+@dataclass
+class Identification:
+    """The answer of :func:`identify`: the solution (status NO_MATCH when none) and the detections
+    (indices into :class:`Detections`) its ``matched_det`` refers to."""
+
+    solution: SolveResult
+    rows: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+
+    @property
+    def status(self) -> Outcome:
+        return self.solution.status
+
+
+# ------------------------------------------------------------------ one frame
+def identify(
+    det: Detections, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings | None = None
+) -> Identification:
+    """The order of methods and fallbacks for one frame (module docstring, steps 1-4)."""
+    timings = timings if timings is not None else IdentifyTimings()
+    everything = np.arange(len(det))
+    mode = params.solve.mode
+    geometric = mode == Mode.GEOMETRIC or (mode == Mode.AUTO and (not catalog.has_colour or not det.has_colour))
+    if geometric:
+        found = geometric_route(det, catalog, params, timings)
+    else:
+        found = colour_route(det, catalog, params, timings)
+        if found.status is not Outcome.HIGH_CONFIDENCE and params.colour_fallback and mode == Mode.AUTO:
+            # colours biased beyond the catalog's noise model (the atmosphere, an sRGB image): geometry alone
+            geo = geometric_route(
+                det, catalog, replace(params, solve=replace(params.solve, mode=Mode.GEOMETRIC)), timings
+            )
+            if found.status is Outcome.NO_MATCH or geo.status is Outcome.HIGH_CONFIDENCE:
+                geometric, found = True, geo
+    if geometric and found.status is Outcome.NO_MATCH and params.geometric_fallback and catalog.has_colour:
+        again = solve_rows(det, everything, catalog, params, Mode.COLOUR, False, timings)
+        if again.status is not Outcome.NO_MATCH:
+            again.solution.method = Method.GEOMETRIC_CONSENSUS
+            found = again
+    return found
+
+
+def colour_route(det: Detections, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings):
+    """Every detection with its colour, in the configured mode (the solver picks the method)."""
+    return solve_rows(det, np.arange(len(det)), catalog, params, params.solve.mode, True, timings)
+
+
+def geometric_sizes(n: int, cap: int | None, steps: tuple[int, ...] = GEOMETRIC_STEPS) -> list[int]:
+    """Brightest-detection counts the geometric route tries in turn: ``steps``, then ``cap``
+    (None: all ``n``), none beyond ``n`` or the cap."""
+    top = n if cap is None else cap
+    return sorted({min(k, top, n) for k in (*steps, top)})
+
+
+def geometric_route(
+    det: Detections, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings
+) -> Identification:
+    """4-star matching on the brightest detections, widening the set (:func:`geometric_sizes`)
+    until a high-confidence answer (then :func:`match_all`); the first answer found else."""
+    everything = np.arange(len(det))
+    best: Identification | None = None
+    for k in geometric_sizes(len(det), params.geometric_cap, params.geometric_steps):
+        found = solve_rows(det, everything[:k], catalog, params, params.solve.mode, False, timings)
+        if found.status is Outcome.HIGH_CONFIDENCE:
+            return match_all(found, det, catalog, params.solve, timings)
+        if best is None or (best.status is Outcome.NO_MATCH and found.status is not Outcome.NO_MATCH):
+            best = found
+    assert best is not None  # geometric_sizes is never empty
+    return best
+
+
+def solve_rows(
+    det: Detections,
+    rows: np.ndarray,
+    catalog: OnboardCatalog,
+    params: StrategyParams,
+    mode: Mode | str,
+    use_colour: bool,
+    timings: IdentifyTimings,
+) -> Identification:
+    """One :func:`solve` on detections ``rows`` (their colours only when ``use_colour``), and the
+    photometric gate: a low-confidence answer is solved again on the detections bright enough to
+    be catalog stars, and that answer taken if it is high-confidence and agrees."""
+    rg, bg, sp = _rows_inputs(det, rows, params.solve, mode, use_colour)
+
+    def run(sub: np.ndarray) -> SolveResult:
+        sigma = sp.sigma_vec if np.ndim(sp.sigma_vec) == 0 else np.asarray(sp.sigma_vec)[sub]
+        out = solve(det.vectors[rows[sub]], rg[sub], bg[sub], catalog, replace(sp, sigma_vec=sigma))
+        timings.add_solve(out)
+        return out
+
+    sol = run(np.arange(len(rows)))
+    if sol.status is Outcome.LOW_CONFIDENCE and params.photometric_gate is not None and det.flux is not None:
+        gated = photometric_gate(det.flux[rows], sol, catalog, params.photometric_gate)
+        if gated is not None and 2 <= len(gated) < len(rows):
+            sol2 = run(gated)
+            if sol2.status is Outcome.HIGH_CONFIDENCE and same_attitude(sol, sol2, _tolerance(det, rows, sp)):
+                return Identification(sol2, rows[gated])
+    return Identification(sol, rows)
+
+
+def _rows_inputs(det: Detections, rows: np.ndarray, base: SolveParams, mode: Mode | str, use_colour: bool):
+    """Colours and solver parameters for ``rows``: the per-detection direction noise, and the
+    colour noise raised to the median colour sigma measured on these detections (a small aperture
+    leaves 4th-magnitude stars with ~0.1 colour noise; matching them at 0.05 rejects true matches)."""
+    n = len(rows)
+    rg = det.rg[rows] if use_colour else np.full(n, np.nan)
+    bg = det.bg[rows] if use_colour else np.full(n, np.nan)
+    sp = replace(base, mode=mode)
+    if det.sigma_px is not None:
+        sp = replace(sp, sigma_vec=det.sigma_px[rows] / det.focal_px)
+    if det.colour_sigma is not None:
+        measured = det.colour_sigma[rows] if use_colour else np.full((n, 2), np.nan)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: no colour measured
+            frame_rg, frame_bg = np.nanmedian(measured, axis=0)
+        sp = replace(
+            sp,
+            sigma_rg=float(np.nanmax([base.sigma_rg, frame_rg])),
+            sigma_bg=float(np.nanmax([base.sigma_bg, frame_bg])),
+        )
+    return rg, bg, sp
+
+
+def _tolerance(det: Detections, rows: np.ndarray, sp: SolveParams) -> float:
+    """Attitude agreement between two answers on the same stars: 5 x the largest centroid noise."""
+    if det.sigma_px is not None:
+        return 5 * float(np.max(det.sigma_px[rows])) / det.focal_px
+    return 5 * float(np.max(sp.sigma_vec))
+
+
+def match_all(
+    found: Identification, det: Detections, catalog: OnboardCatalog, base: SolveParams, timings: IdentifyTimings
+) -> Identification:
+    """A high-confidence answer found on the brightest detections verified again over every
+    detection, so every star in view is matched; the answer stands if that verification fails,
+    finds fewer stars or moves the attitude."""
+    sol, rows = found.solution, found.rows
+    if len(rows) >= len(det):
+        return found
+    everything = np.arange(len(det))
+    match = verify_over(det, rows[sol.matched_det], sol.matched_cat, catalog, base, timings)
+    if (
+        match is None
+        or match.n < len(sol.matched_det)
+        or rotation_angle(match.attitude.a, quat_to_matrix(sol.q_icrs_to_sensor)) > _tolerance(det, everything, base)
+    ):
+        return found
+    full = solution_from_match(match, sol.status, sol.reason, everything, catalog, sol.method, len(det))
+    full.attempts, full.timings, full.notes = sol.attempts, sol.timings, sol.notes
+    return Identification(full, everything)
+
+
+def verify_over(
+    det: Detections,
+    rows: np.ndarray,
+    cat: np.ndarray,
+    catalog: OnboardCatalog,
+    base: SolveParams,
+    timings: IdentifyTimings,
+) -> VerifiedMatch | None:
+    """The solver's verification (geometry only) of detections ``rows`` matched to catalog stars
+    ``cat``, over every detection; its time goes to ``timings.attitude``."""
+    t0 = time.perf_counter()
+    n = len(det)
+    sigma_vec = det.sigma_px / det.focal_px if det.sigma_px is not None else base.sigma_vec
+    match, _ = verify(
+        np.asarray(rows),
+        cat,
+        det.vectors,
+        np.full(n, np.nan),
+        np.full(n, np.nan),
+        sigma_vec,
+        catalog,
+        base.fov,
+        0.0,
+        0.0,
+        base.verify,
+    )
+    timings.attitude += time.perf_counter() - t0
+    return match
+
+
+def verify_pattern(
+    det: Detections,
+    rows: np.ndarray,
+    cat: np.ndarray,
+    catalog: OnboardCatalog,
+    base: SolveParams,
+    timings: IdentifyTimings,
+) -> SolveResult | None:
+    """A pattern match found by a search (the pipeline's optics search: detections ``rows`` on
+    catalog stars ``cat``) verified over every detection (method ``pattern``), or None when
+    verification refuses it. High confidence only as the solver grants a large set (at least
+    ``confident_stars`` matched covering at least ``confident_coverage`` of the predicted stars);
+    else low confidence: the pattern was chosen among thousands of 4-sets, so its own stars do not
+    count as the independent evidence the chance-alignment rule needs."""
+    match = verify_over(det, rows, cat, catalog, base, timings)
+    if match is None:
+        return None
+    cp = base.consensus
+    high = large_set(match, cp)
+    reason = (
+        ""
+        if high
+        else (
+            f"pattern match of {match.n} stars (coverage {match.coverage:.2f}) "
+            f"below the {cp.confident_stars} stars and {cp.confident_coverage:g} coverage "
+            "a search-chosen pattern needs"
+        )
+    )
+    outcome = Outcome.HIGH_CONFIDENCE if high else Outcome.LOW_CONFIDENCE
+    return solution_from_match(match, outcome, reason, np.arange(len(det)), catalog, Method.PATTERN, len(det))
+
+
+def photometric_gate(flux: np.ndarray, sol: SolveResult, catalog: OnboardCatalog, margin_mag: float):
+    """Rows (of the solver input) bright enough to be catalog stars, using the zero point of the
+    matched stars: ``m_est = median(m_cat + 2.5 log10 F) - 2.5 log10 F`` kept when
+    ``m_est <= max(catalog magnitude) + margin_mag``. None when no zero point can be formed."""
+    f_matched = flux[sol.matched_det]
+    ok = np.isfinite(f_matched) & (f_matched > 0)
+    if ok.sum() < 2:
+        return None
+    zero_point = np.median(catalog.mag[sol.matched_cat][ok] + 2.5 * np.log10(f_matched[ok]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m_est = zero_point - 2.5 * np.log10(flux)
+    return np.flatnonzero(np.nan_to_num(m_est, nan=np.inf) <= float(np.max(catalog.mag)) + margin_mag)
+
+
+def same_attitude(a: SolveResult, b: SolveResult, tol: float) -> bool:
+    """Whether two answers' attitudes agree within ``tol`` (rad)."""
+    return rotation_angle(quat_to_matrix(a.q_icrs_to_sensor), quat_to_matrix(b.q_icrs_to_sensor)) <= tol
+
+
+def geometric_detection_cap(camera: CameraModel, catalog: OnboardCatalog, factor: float) -> int:
+    """Brightest detections given to the brightness-independent 4-star matcher: ``factor``
+    times the catalog stars expected in the field (catalog density x field solid angle), at
+    least :data:`MIN_GEOMETRIC_DETECTIONS`. Fainter detections are mostly stars below the
+    catalog limit, which would fill the 4-star groups with stars it cannot identify."""
+    half_x = np.arctan(camera.width / 2.0 / camera.f)
+    half_y = np.arctan(camera.height / 2.0 / camera.f)
+    solid_angle = 4.0 * np.arcsin(np.sin(half_x) * np.sin(half_y))
+    expected = catalog.n_stars * solid_angle / (4.0 * np.pi)
+    return max(MIN_GEOMETRIC_DETECTIONS, int(np.ceil(factor * expected)))
+
+
+# ------------------------------------------------------------------ one set of star vectors
+def choose_method(mode: Mode, frame_colour: bool, catalog: OnboardCatalog) -> Method:
+    """``auto``: colour consensus when the frame and the catalog carry colour, else geometric."""
+    if mode is Mode.AUTO:
+        return Method.COLOUR if frame_colour and catalog.has_colour else Method.GEOMETRIC
+    return Method.COLOUR if mode is Mode.COLOUR else Method.GEOMETRIC
+
+
+def _frame_colour(rg: np.ndarray, bg: np.ndarray) -> bool:
+    return bool(np.isfinite(rg).any() and np.isfinite(bg).any())
+
+
+def _fov(params: SolveParams, v: np.ndarray) -> FieldOfView:
+    return params.fov or FieldOfView.cone(float(np.max(np.arccos(np.clip(v[:, 2], -1, 1)))) + 1e-9)
+
+
+def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveParams()) -> SolveResult:
+    """Identify the stars of one set of sensor-frame vectors (brightest first; colours or None)
+    and estimate the attitude: clean, choose the method, match, decide (module docstring)."""
+    t0 = time.perf_counter()
+    timings = SolveTimings()
+    scene = clean(vectors, rg, bg, catalog, params)
+    timings.validate = time.perf_counter() - t0
+    if isinstance(scene, str):
+        return SolveResult(Outcome.NO_MATCH, scene, timings=timings)
+    v, n = scene.v, len(scene.v)
+
+    def no_match(reason: str, method: Method | None = None) -> SolveResult:
+        timings.total = time.perf_counter() - t0
+        return SolveResult(Outcome.NO_MATCH, reason, method=method, n_used=n, timings=timings, notes=scene.notes)
+
+    try:
+        mode = Mode.parse(params.mode)
+    except ValueError:
+        return no_match(f"unknown mode {params.mode!r}")
+    if catalog.n_pairs == 0:
+        return no_match("catalog has no star pairs")
+    method = choose_method(mode, _frame_colour(scene.rg, scene.bg), catalog)
+    if method is Method.COLOUR and not catalog.has_colour:
+        return no_match("colour mode forced but the catalog has no colours", method)
+    if n < 2:
+        return no_match(f"{n} usable detection(s): need at least two", method)
+    ang = angle_between(v[:, None, :], v[None, :, :])
+    in_range = (ang > catalog.phi_min) & (ang <= catalog.phi_max)
+    if not in_range.any():
+        return no_match(
+            f"no detection pair within the catalog's pair-angle range "
+            f"({np.degrees(catalog.phi_min):.3g}-{np.degrees(catalog.phi_max):.3g} deg): "
+            f"catalog built for another field of view?",
+            method,
+        )
+    fov = _fov(params, v)
+    noise = PairNoise(params.pair_sigma_phi, params.sigma_rg, params.sigma_bg)
+    colour = method is Method.COLOUR
+    verify_time = [0.0]
+
+    def check(det: np.ndarray, cat: np.ndarray) -> tuple[VerifiedMatch | None, str]:
+        tv = time.perf_counter()
+        out = verify(
+            det,
+            cat,
+            v,
+            scene.rg,
+            scene.bg,
+            scene.sigma,
+            catalog,
+            fov,
+            noise.sigma_rg if colour else 0.0,
+            noise.sigma_bg if colour else 0.0,
+            params.verify,
+        )
+        verify_time[0] += time.perf_counter() - tv
+        return out
+
+    deadline = t0 + params.time_budget_s
+    t1 = time.perf_counter()
+    if colour:
+        res = match_scene(v, scene.rg, scene.bg, catalog, noise, params.consensus, check, deadline=deadline)
+        timings.match = time.perf_counter() - t1 - verify_time[0]
+        timings.verify = verify_time[0]
+        timings.total = time.perf_counter() - t0
+        if res.best is None:
+            return no_match(res.reason, method)
+        out = solution_from_match(res.best, res.outcome, res.reason, scene.index_map, catalog, method, n)
+        out.attempts = res.attempts
+    else:
+        if n < 3:
+            return no_match(f"geometric mode needs at least three detections, got {n}", method)
+        found, groups = match_geometric(v, catalog, noise, params, check, deadline)
+        timings.match = time.perf_counter() - t1 - verify_time[0]
+        timings.verify = verify_time[0]
+        timings.total = time.perf_counter() - t0
+        if not found:
+            why = "time budget exhausted" if time.perf_counter() > deadline else "no verified identification"
+            return no_match(f"{why} ({groups} 4-star group(s), triangle fallback)", method)
+        best, status, reason = decide_geometric(found, n, params.consensus)
+        out = solution_from_match(best, status, reason, scene.index_map, catalog, method, n)
+        out.attempts = groups
+    out.timings = timings
+    out.notes = scene.notes
+    return out
+
+
+def match_geometric(
+    v: np.ndarray, catalog: OnboardCatalog, noise: PairNoise, params: SolveParams, check: Check, deadline: float
+) -> tuple[list[VerifiedMatch], int]:
+    """Verified geometric hypotheses: 4-star matching (Dong et al.), then the triangle fallback
+    when it is not conclusive. Returns the verified matches and the 4-star groups tried."""
+    n = len(v)
+    eps = params.four_star.epsilon or params.four_star.epsilon_sigmas * noise.sigma_phi
+    found: list[VerifiedMatch] = []
+    groups = 0
+    if n >= 4:
+        fs = match_four_star(v, catalog, eps, params.four_star)
+        groups = fs.groups
+        if len(fs.det) >= 2:
+            match, _ = check(fs.det, fs.cat)
+            if match is not None:
+                found.append(match)
+    if not (found and geometric_high(found[0], [], n, params.consensus)):
+        found += match_triangles(v, catalog, eps, check, params.triangle, deadline=deadline)
+    return found, groups
+
+
+def decide_geometric(found: list[VerifiedMatch], n: int, cp: ConsensusParams) -> tuple[VerifiedMatch, Outcome, str]:
+    """The best of the verified geometric hypotheses (most stars, then coverage), its confidence
+    and the reason when it is not high: rivals with a different attitude and comparable support,
+    or too small a share of the ``n`` detections."""
+    best = max(found, key=lambda f: (f.n, f.coverage if np.isfinite(f.coverage) else 0.0))
+    rivals = [
+        f
+        for f in found
+        if f is not best
+        and f.n >= max(3, cp.rival_ratio * best.n)
+        and rotation_angle(f.attitude.a, best.attitude.a) >= cp.rival_angle
+    ]
+    if geometric_high(best, rivals, n, cp):
+        return best, Outcome.HIGH_CONFIDENCE, ""
+    if rivals:
+        return best, Outcome.LOW_CONFIDENCE, f"{len(rivals)} rival hypothesis(es) with comparable support"
+    return best, Outcome.LOW_CONFIDENCE, f"{best.n} of {n} detections matched"
+
+
+def geometric_high(best: VerifiedMatch, rivals: list[VerifiedMatch], n: int, cp: ConsensusParams) -> bool:
+    """High confidence for a geometric answer: no rival, at least three stars, and the eta test or
+    a large well-covering set (as in the colour consensus)."""
+    if rivals or best.n < 3:
+        return False
+    if best.low_coverage and best.n < cp.decisive_stars:
+        return False
+    return best.n >= cp.eta * n or confident(best, cp)
+
+
+def check_hypothesis(
+    vectors, rg, bg, det, cat, catalog: OnboardCatalog, params: SolveParams = SolveParams()
+) -> tuple[VerifiedMatch | None, str]:
+    """Run the solver's verification on a given identification (``det`` input rows matched to
+    catalog indices ``cat``), with the cleaning, field of view and noise ``solve`` would use.
+
+    For diagnostics (the whole-sky simulation asks whether the true identification of a frame
+    that was not solved would have passed verification): returns ``(VerifiedMatch, "")`` with
+    indices into the cleaned detections, or ``(None, reason)``.
+    """
+    scene = clean(vectors, rg, bg, catalog, params)
+    if isinstance(scene, str):
+        return None, scene
+    pos = {int(r): k for k, r in enumerate(scene.index_map.tolist())}
+    pairs = [(pos[int(d)], int(c)) for d, c in zip(np.atleast_1d(det), np.atleast_1d(cat)) if int(d) in pos]
+    if len(pairs) < 2:
+        return None, "fewer than two of the given detections survive input cleaning"
+    try:
+        colour = choose_method(Mode.parse(params.mode), _frame_colour(scene.rg, scene.bg), catalog) is Method.COLOUR
+    except ValueError:
+        colour = False  # an unknown mode: verified on geometry
+    d = np.array([p[0] for p in pairs], np.int64)
+    c = np.array([p[1] for p in pairs], np.int64)
+    return verify(
+        d,
+        c,
+        scene.v,
+        scene.rg,
+        scene.bg,
+        scene.sigma,
+        catalog,
+        _fov(params, scene.v),
+        params.sigma_rg if colour else 0.0,
+        params.sigma_bg if colour else 0.0,
+        params.verify,
+    )
