@@ -204,7 +204,8 @@ class ReadFile(Layout):
 
 @dataclass(frozen=True)
 class WriteFile(Layout):
-    """WRITE FILE: short form u8 index + 4 bytes, long form u16 address + 4 bytes; reply echoes it."""
+    """WRITE FILE: short form u8 index + 4 bytes, long form u16 address + 4 bytes; reply echoes it.
+    The READ FILE reply has this layout too: the request's index/address field + the 4 bytes."""
 
     address: int
     value: bytes
@@ -319,11 +320,33 @@ DIAG_ERROR_FIELDS = ("framing", "runt", "oversize", "bad_crc", "fifo_overflow")
 DIAG_COUNT_FIELDS = ("accepted", "nacked", "silent", "other_address", "replies")
 
 
+DIAG_CLEAR = 0x01  #: DIAGNOSTIC flag: clear the counters after reading
+
+
+@dataclass(frozen=True)
+class DiagnosticRequest(Layout):
+    """DIAGNOSTIC command data: none, or u8 flags (bit 0 :data:`DIAG_CLEAR`); ``sent`` tells
+    whether the flags byte is on the wire."""
+
+    flags: int = 0
+    sent: bool = False
+
+    FORMS = {False: Form("<"), True: Form("<B")}
+    SELECT = "sent"
+    NAME = "DIAGNOSTIC"
+    LENGTH_TEXT = "DIAGNOSTIC takes 0 or 1 data byte"
+
+    @classmethod
+    def clearing(cls, clear: bool) -> DiagnosticRequest:
+        """The request a client sends: the clear flag, or no data field."""
+        return cls(DIAG_CLEAR, True) if clear else cls()
+
+
 @dataclass(frozen=True)
 class Diagnostics(Layout):
     """DIAGNOSTIC reply (ours): 5 error counters, 5 traffic counters, 32 per-code counts, all u32.
 
-    Command data: empty, or one byte whose bit 0 asks to clear the counters after reading.
+    Command data: :class:`DiagnosticRequest`.
     """
 
     framing: int = 0

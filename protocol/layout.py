@@ -24,7 +24,8 @@ attributes:
 ``WRAP``
     pack integers modulo their field width (counters that may have overflowed).
 ``NAME``
-    labels length errors (:class:`PayloadError` with ``BAD_LENGTH``).
+    labels length errors (:class:`PayloadError` with ``BAD_LENGTH``); ``LENGTH_TEXT``, when set,
+    is the whole text of such an error.
 """
 
 from __future__ import annotations
@@ -133,6 +134,7 @@ class Layout:
     MAX_ITEMS: ClassVar[int | None] = None
     WRAP: ClassVar[bool] = False
     NAME: ClassVar[str]
+    LENGTH_TEXT: ClassVar[str | None] = None
 
     # ------------------------------------------------------------------ the declaration
 
@@ -181,11 +183,22 @@ class Layout:
     # ------------------------------------------------------------------ decode
 
     @classmethod
-    def unpack(cls: type[_L], data: bytes, *form_arg: Any) -> _L:
-        return cls._decode(data, *form_arg)
+    def unpack(cls: type[_L], data: bytes) -> _L:
+        return cls._decode(data)
 
     @classmethod
     def _decode(cls: type[_L], data: bytes, *form_arg: Any) -> _L:
+        try:
+            key = cls._form_of(data, *form_arg)
+        except PayloadError as exc:
+            if cls.LENGTH_TEXT is None:
+                raise
+            raise PayloadError(exc.reason, cls.LENGTH_TEXT) from None
+        return cls._decode_form(data, key)
+
+    @classmethod
+    def _form_of(cls, data: bytes, *form_arg: Any) -> Any:
+        """The selector value of the form ``data`` is in (``BAD_LENGTH`` if none fits)."""
         forms = cls.forms()
         if cls.FORM_ARG:
             key = form_arg[0]
@@ -201,7 +214,11 @@ class Layout:
             sizes = cls._sizes()
             need(data, tuple(s for s, _ in sizes), cls.NAME)
             key = dict(sizes)[len(data)]
-        form = forms[key]
+        return key
+
+    @classmethod
+    def _decode_form(cls: type[_L], data: bytes, key: Any) -> _L:
+        form = cls.forms()[key]
         flat = struct.unpack_from(form.head, data)
         values: dict[str, Any] = {}
         at = 0

@@ -21,11 +21,13 @@ import logging
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import protocol
 from firmware_model.device.catalog_slot import catalog_slot_handler
-from firmware_model.device.device import Device
+from firmware_model.device.device import Device, SlotHandler, SolveContext
 from firmware_model.device.link import DEFAULT_IDLE_TIMEOUT, Link, open_link, serve
 from firmware_model.device.sensor_input import (
     DeviceParams,
@@ -116,7 +118,7 @@ def build_device(args: argparse.Namespace) -> Device:
     if not 0 <= args.address <= 0xFF:
         raise ValueError(f"address 0x{args.address:X} outside 0x00-0xFF")
     camera = load_camera(args.camera)
-    source = None
+    source: Callable[[SolveContext], Any] | None = None
     if args.frames:
         source = FileFrames(args.frames, camera, loop=args.loop)
     elif args.sky:
@@ -124,7 +126,7 @@ def build_device(args: argparse.Namespace) -> Device:
     store = SlotStore(args.state, volatile={Slot.FRAME}) if args.state else None
     params = DeviceParams.load(args.params).apply(PipelineParams()) if args.params else PipelineParams()
     solver = PipelineSolver(camera, params)
-    slots = {
+    slots: dict[int, SlotHandler] = {
         Slot.CATALOG: catalog_slot_handler(prepare=solver.prepare),
         Slot.FRAME: frame_slot_handler(camera),
         Slot.PARAMS: params_slot_handler(),

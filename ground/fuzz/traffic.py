@@ -14,12 +14,14 @@ from protocol.commands import (
     Combination,
     CrcRequest,
     DarkWindow,
+    DiagnosticRequest,
     Go,
     Init,
     Peek,
     Poke,
     ReadFile,
     ReadRange,
+    SlotRequest,
     WriteEdac,
     WriteFile,
     XferBegin,
@@ -52,7 +54,7 @@ def _plausible_data(rng: random.Random, code: int) -> bytes:
         0x01: lambda: Init(rng.choice([0x2000, r(1 << 32)])).pack(),
         0x02: lambda: Peek(addr, r(0, 1100)).pack(),
         0x03: lambda: Poke(addr, rng.randbytes(r(1, 64))).pack(),
-        0x04: lambda: bytes([rng.choice([0, 1, r(256)])]) if r(2) else b"",
+        0x04: lambda: (DiagnosticRequest(rng.choice([0, 1, r(256)]), True) if r(2) else DiagnosticRequest()).pack(),
         0x06: lambda: CrcRequest(r(4), addr, rng.choice([r(1, 4096), r(1 << 32)])).pack(),
         0x07: lambda: ReadFile(r(0, 600) & ~3, long=bool(r(2))).pack(),
         0x08: lambda: WriteFile(r(0, 600) & ~3, rng.randbytes(4), long=bool(r(2))).pack(),
@@ -68,7 +70,7 @@ def _plausible_data(rng: random.Random, code: int) -> bytes:
     if code in makers:
         return makers[code]()
     if code in (0x15, 0x16, 0x17, 0x18):
-        return bytes([r(5)])
+        return SlotRequest(r(5)).pack()
     return b""
 
 

@@ -16,8 +16,10 @@ from __future__ import annotations
 
 import struct
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, TypeVar
 
 import numpy as np
 import serial
@@ -25,6 +27,7 @@ from tqdm import tqdm
 
 from ground.link.exchange_log import ExchangeLog, code_name
 from protocol import edac, nsp, result, slip
+from protocol.command_table import COMMANDS
 from protocol.commands import (
     APP_START_ADDRESS,
     GO_OPERATIONAL,
@@ -35,6 +38,7 @@ from protocol.commands import (
     CrcReply,
     CrcRequest,
     DarkWindow,
+    DiagnosticRequest,
     Diagnostics,
     Go,
     Init,
@@ -56,9 +60,13 @@ from protocol.commands import (
     XferStatus,
 )
 from protocol.crc import crc32
+from protocol.layout import Layout
 
+_TermiosError: type[Exception]
 try:
-    from termios import error as _TermiosError
+    import termios
+
+    _TermiosError = termios.error
 except ImportError:  # pragma: no cover - not POSIX
     _TermiosError = OSError
 
@@ -67,6 +75,8 @@ READ_SLICE = 0.02  #: seconds one port read may block
 SYNC_QUIET = 0.05  #: seconds of silence that end the drain before a client's first command
 SYNC_BOUND = 0.25  #: seconds that drain may last at most (a peer that never stops sending)
 MAX_RAW = 65536  #: received bytes kept per exchange for error reports
+
+_T = TypeVar("_T")
 
 
 class LinkError(Exception):
@@ -128,7 +138,9 @@ class Client:
         self.timeout = timeout
         self.retries = retries
         self._own_log = isinstance(log, (str, Path))
-        self.log = ExchangeLog(log) if self._own_log else log  # first: a log that fails leaves no port open
+        self.log = (
+            ExchangeLog(log) if isinstance(log, (str, Path)) else log
+        )  # first: a log that fails leaves no port open
         # Reads wait at most READ_SLICE so the reply deadline is checked without reconfiguring the port.
         try:
             self._ser = serial.serial_for_url(
@@ -310,77 +322,100 @@ class Client:
             )
         return parts[0].data
 
-    def _parse(self, code: int, data: bytes, parser, *args):
+    def _parse(self, code: int, data: bytes, parser: Callable[..., _T], *args: Any) -> _T:
         try:
             return parser(data, *args)
         except PayloadError as exc:
             raise MalformedReply(f"{code_name(code)}: {exc}", data) from None
 
+    def _send(self, code: Code, request: Layout | None, **kw: Any) -> bytes:
+        """The single reply message's data to ``request``, a payload of the command table's
+        request type of ``code``; retried when the table says it may be (``idempotent`` given
+        overrides)."""
+        spec = COMMANDS[code]
+        if (request is None) != (spec.request is None) or (request is not None and type(request) is not spec.request):
+            raise TypeError(f"{code_name(code)} takes {spec.request}, not {type(request)}")
+        kw.setdefault("idempotent", spec.idempotent)
+        return self._single(code, request.pack() if request is not None else b"", **kw)
+
+    def _reply(self, code: Code, data: bytes, *args: Any) -> Any:
+        """``data`` parsed as the command table's reply type of ``code``."""
+        reply = COMMANDS[code].reply
+        assert reply is not None
+        return self._parse(code, data, reply.unpack, *args)
+
+    def _call(self, code: Code, request: Layout | None, *args: Any, **kw: Any) -> Any:
+        """Send ``request`` and parse the reply (``args`` go to the reply parser)."""
+        return self._reply(code, self._send(code, request, **kw), *args)
+
     # ------------------------------------------------------------------ ST-16 commands
 
     def ping(self) -> str:
         """Identification banner (differs between bootloader and application)."""
-        return self._single(Code.PING, idempotent=True).decode("ascii", "replace")
+        return self._send(Code.PING, None).decode("ascii", "replace")
 
     def init(self, addr: int = APP_START_ADDRESS) -> None:
         """Start the application at ``addr`` (0x00002000)."""
-        self._single(Code.INIT, Init(addr).pack(), timeout=max(self.timeout, 3.0))
+        self._send(Code.INIT, Init(addr), timeout=max(self.timeout, 3.0))
 
     def peek(self, address: int, count: int) -> bytes:
-        data = self._single(Code.PEEK, Peek(address, count).pack(), idempotent=True)
-        reply = self._parse(Code.PEEK, data, AddressedBytes.unpack, 4)
+        data = self._send(Code.PEEK, Peek(address, count))
+        reply: AddressedBytes = self._reply(Code.PEEK, data, 4)
         self._check_echo(Code.PEEK, reply.address, address, len(reply.data), count, data)
         return reply.data
 
     def poke(self, address: int, data: bytes) -> int:
-        raw = self._single(Code.POKE, Poke(address, data).pack())
-        ack = self._parse(Code.POKE, raw, WriteAck.unpack, 4)
+        raw = self._send(Code.POKE, Poke(address, data))
+        ack: WriteAck = self._reply(Code.POKE, raw, 4)
         self._check_echo(Code.POKE, ack.address, address, ack.count, len(data), raw)
         return ack.count
 
     def diagnostic(self, clear: bool = False) -> Diagnostics:
         """Error counters and command counts; ``clear`` resets them after reading."""
-        data = self._single(Code.DIAGNOSTIC, b"\x01" if clear else b"", idempotent=not clear)
-        return self._parse(Code.DIAGNOSTIC, data, Diagnostics.unpack)
+        request = DiagnosticRequest.clearing(clear)
+        return self._call(Code.DIAGNOSTIC, request, idempotent=not clear)  # a clearing read is not repeated
 
     def crc(self, space: int, address: int, length: int) -> int:
         """CRC-16/MCRF4XX of a device memory span (space: 0 EDAC, 1 memory map, 2 result)."""
-        data = self._single(Code.CRC, CrcRequest(space, address, length).pack(), idempotent=True)
-        return self._parse(Code.CRC, data, CrcReply.unpack).crc
+        reply: CrcReply = self._call(Code.CRC, CrcRequest(space, address, length))
+        return reply.crc
 
     def read_file(self, address: int, long: bool = False) -> bytes:
         """Four EDAC bytes at ``address`` (short form sends the file index ``address // 4``)."""
         req = ReadFile(address, long)
-        data = self._single(Code.READ_FILE, req.pack(), idempotent=True)
+        data = self._send(Code.READ_FILE, req)
         head = req.pack()
-        if len(data) != len(head) + 4 or data[: len(head)] != head:
+        try:
+            reply: WriteFile | None = self._reply(Code.READ_FILE, data)
+        except MalformedReply:
+            reply = None
+        if reply is None or ReadFile(reply.address, reply.long).pack() != head:
             raise MalformedReply(f"READ_FILE: reply {data.hex()} does not echo {head.hex()} + 4 bytes", data)
-        return data[len(head) :]
+        return reply.value
 
     def write_file(self, address: int, value: bytes, long: bool = False) -> None:
         if len(value) != 4:
             raise ValueError("WRITE FILE writes exactly 4 bytes")
-        req = WriteFile(address, value, long).pack()
-        data = self._single(Code.WRITE_FILE, req)
-        if data != req:
+        req = WriteFile(address, value, long)
+        data = self._send(Code.WRITE_FILE, req)
+        if data != req.pack():
             raise MalformedReply(f"WRITE_FILE: reply {data.hex()} does not echo the command", data)
 
     def read_edac(self, address: int, count: int) -> bytes:
         """EDAC bytes; the short form is used for up to 256 bytes, the long form beyond."""
-        req = ReadRange(address, count, long=count > 256)
-        data = self._single(Code.READ_EDAC, req.pack(), idempotent=True)
-        reply = self._parse(Code.READ_EDAC, data, AddressedBytes.unpack)
+        data = self._send(Code.READ_EDAC, ReadRange(address, count, long=count > 256))
+        reply: AddressedBytes = self._reply(Code.READ_EDAC, data)
         self._check_echo(Code.READ_EDAC, reply.address, address, len(reply.data), count, data)
         return reply.data
 
     def write_edac(self, address: int, data: bytes) -> int:
-        raw = self._single(Code.WRITE_EDAC, WriteEdac(address, data).pack())
-        ack = self._parse(Code.WRITE_EDAC, raw, WriteAck.unpack)
+        raw = self._send(Code.WRITE_EDAC, WriteEdac(address, data))
+        ack: WriteAck = self._reply(Code.WRITE_EDAC, raw)
         self._check_echo(Code.WRITE_EDAC, ack.address, address, ack.count, len(data), raw)
         return ack.count
 
     def go(self, code: int = GO_OPERATIONAL) -> int:
-        data = self._single(Code.GO, Go(code).pack())
+        data = self._send(Code.GO, Go(code))
         if data[:1] != bytes([code]):
             raise MalformedReply(f"GO: reply {data.hex()} does not echo the go code", data)
         return data[0]
@@ -391,7 +426,8 @@ class Client:
 
     def read_result(self, address: int = 0, count: int = result.TOTAL_LENGTH) -> bytes:
         """Result bytes [address, address+count), assembled from the Final-flagged parts."""
-        parts = self.transact(Code.READ_RESULT, ReadRange(address, count, long=True).pack(), idempotent=True)
+        spec = COMMANDS[Code.READ_RESULT]
+        parts = self.transact(Code.READ_RESULT, ReadRange(address, count, long=True).pack(), idempotent=spec.idempotent)
         return self._assemble(Code.READ_RESULT, parts, address, count)
 
     def read_result_record(self) -> np.ndarray:
@@ -410,51 +446,51 @@ class Client:
 
     def combination(self, go_code: int, mask: int, timeout: float = 30.0, mask_bytes: int = 4) -> dict[int, bytes]:
         """COMBINATION: returns {result address: bytes} of every part (placed by its address)."""
-        parts = self.transact(Code.COMBINATION, Combination(go_code, mask, mask_bytes).pack(), timeout=timeout)
+        spec = COMMANDS[Code.COMBINATION]
+        parts = self.transact(
+            Code.COMBINATION,
+            Combination(go_code, mask, mask_bytes).pack(),
+            timeout=timeout,
+            idempotent=spec.idempotent,
+        )
         out: dict[int, bytes] = {}
         for part in parts:
             if not part.data:
                 continue
-            piece = self._parse(Code.COMBINATION, part.data, AddressedBytes.unpack)
+            piece: AddressedBytes = self._reply(Code.COMBINATION, part.data)
             out[piece.address] = piece.data
         return out
 
     def dark_window(self, window: DarkWindow) -> None:
-        req = window.pack()
-        data = self._single(Code.IMAGE, req)
-        if data != req:
+        data = self._send(Code.IMAGE, window)
+        if data != window.pack():
             raise MalformedReply("IMAGE: reply does not echo the dark-window command", data)
 
     # ------------------------------------------------------------------ transfers (extension)
 
     def xfer_begin(self, slot: int, length: int, crc: int) -> XferStatus:
-        data = self._single(Code.XFER_BEGIN, XferBegin(slot, length, crc).pack(), idempotent=True)
-        return self._parse(Code.XFER_BEGIN, data, XferStatus.unpack)
+        return self._call(Code.XFER_BEGIN, XferBegin(slot, length, crc))
 
     def xfer_data(self, slot: int, offset: int, chunk: bytes, poll: bool = True) -> int | None:
         """Send bytes at ``offset``; returns the contiguous byte count (None when not polled)."""
-        payload = XferData(slot, offset, chunk).pack()
+        request = XferData(slot, offset, chunk)
         if not poll:
-            self.send_silent(Code.XFER_DATA, payload)
+            self.send_silent(Code.XFER_DATA, request.pack())
             return None
-        data = self._single(Code.XFER_DATA, payload, idempotent=True)
-        return self._parse(Code.XFER_DATA, data, XferDataAck.unpack).contiguous
+        ack: XferDataAck = self._call(Code.XFER_DATA, request)
+        return ack.contiguous
 
     def xfer_status(self, slot: int) -> XferStatus:
-        data = self._single(Code.XFER_STATUS, SlotRequest(slot).pack(), idempotent=True)
-        return self._parse(Code.XFER_STATUS, data, XferStatus.unpack)
+        return self._call(Code.XFER_STATUS, SlotRequest(slot))
 
     def xfer_commit(self, slot: int, timeout: float = 30.0) -> SlotImage:
-        data = self._single(Code.XFER_COMMIT, SlotRequest(slot).pack(), timeout=timeout)
-        return self._parse(Code.XFER_COMMIT, data, SlotImage.unpack)
+        return self._call(Code.XFER_COMMIT, SlotRequest(slot), timeout=timeout)
 
     def xfer_abort(self, slot: int) -> XferStatus:
-        data = self._single(Code.XFER_ABORT, SlotRequest(slot).pack(), idempotent=True)
-        return self._parse(Code.XFER_ABORT, data, XferStatus.unpack)
+        return self._call(Code.XFER_ABORT, SlotRequest(slot))
 
     def slot_info(self, slot: int) -> SlotImage:
-        data = self._single(Code.SLOT_INFO, SlotRequest(slot).pack(), idempotent=True)
-        return self._parse(Code.SLOT_INFO, data, SlotImage.unpack)
+        return self._call(Code.SLOT_INFO, SlotRequest(slot))
 
     def upload(
         self, slot: int, data: bytes, progress: bool = True, chunk: int = UPLOAD_CHUNK, commit: bool = True

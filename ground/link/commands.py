@@ -2,7 +2,9 @@
 by the ``st16-ground`` link subcommands and the interactive console.
 
 Each command is described once in :data:`COMMANDS` as ``(help, add_arguments, run)``, where
-``run(client, args)`` returns a JSON-able dict; :func:`render` prints it for people,
+``run(client, args)`` returns a JSON-able dict and the help of a subcommand that sends one command
+(:data:`CODES`) is that command's line in the protocol's command table
+(``protocol.command_table``); :func:`render` prints it for people,
 :func:`report_error` and :func:`exit_code` turn a failed exchange into one line and an exit code.
 """
 
@@ -13,11 +15,12 @@ import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ground import json_text
 from ground.arg_types import SECONDS, U8, U16, U32, progress_on, ranged
-from protocol.commands import GO_OPERATIONAL, DarkWindow
+from protocol.command_table import COMMANDS as COMMAND_TABLE
+from protocol.commands import GO_OPERATIONAL, Code, DarkWindow
 
 if TYPE_CHECKING:  # the client imports numpy and pyserial: only when a command runs
     from ground.link.client import Client, LinkError
@@ -235,27 +238,39 @@ def _a_send(p):
 
 Run = Callable[["Client", argparse.Namespace], dict]
 
+
+#: name -> (the command code the subcommand sends, whose one-line help in the protocol's command
+#: table is the subcommand's; or, for a ground helper over several commands or any, its help;
+#: add_arguments; run)
+_SUBCOMMANDS: dict[str, tuple[Code | str, Callable, Run]] = {
+    "ping": (Code.PING, _args_none, _run_ping),
+    "init": (Code.INIT, _a_init, _run_init),
+    "diag": (Code.DIAGNOSTIC, _a_diag, _run_diag),
+    "peek": (Code.PEEK, _args_addr_count, _run_peek),
+    "poke": (Code.POKE, _args_addr_data, _run_poke),
+    "read-edac": (Code.READ_EDAC, _args_addr_count, _run_read_edac),
+    "write-edac": (Code.WRITE_EDAC, _args_addr_data, _run_write_edac),
+    "read-file": (Code.READ_FILE, lambda p: _a_file(p, False), _run_read_file),
+    "write-file": (Code.WRITE_FILE, lambda p: _a_file(p, True), _run_write_file),
+    "crc": (Code.CRC, _a_crc, _run_crc),
+    "go": (Code.GO, _a_go, _run_go),
+    "result": (Code.READ_RESULT, _a_result, _run_result),
+    "combination": (Code.COMBINATION, _a_combination, _run_combination),
+    "dark-window": (Code.IMAGE, _a_dark, _run_dark_window),
+    "upload": ("upload FILE into SLOT (resumable, then commit)", _a_upload, _run_upload),
+    "slot-status": (Code.XFER_STATUS, _args_slot, _run_slot_status),
+    "slot-abort": (Code.XFER_ABORT, _args_slot, _run_slot_abort),
+    "slot-info": (Code.SLOT_INFO, _args_slot, _run_slot_info),
+    "send": ("send any command code with a hex data field", _a_send, _run_send),
+}
+
+#: name -> the command code the subcommand sends (the others are ground helpers)
+CODES: dict[str, Code] = {name: what for name, (what, _, _) in _SUBCOMMANDS.items() if isinstance(what, Code)}
+
 #: name -> (help, add_arguments, run)
 COMMANDS: dict[str, tuple[str, Callable, Run]] = {
-    "ping": ("PING: identification banner (bootloader or application)", _args_none, _run_ping),
-    "init": ("INIT: start the application", _a_init, _run_init),
-    "diag": ("DIAGNOSTIC: error counters and command counts", _a_diag, _run_diag),
-    "peek": ("PEEK ADDRESS COUNT from the memory map", _args_addr_count, _run_peek),
-    "poke": ("POKE ADDRESS HEX into the memory map", _args_addr_data, _run_poke),
-    "read-edac": ("READ EDAC ADDRESS COUNT", _args_addr_count, _run_read_edac),
-    "write-edac": ("WRITE EDAC ADDRESS HEX (scratch 0x0100-0x01FF)", _args_addr_data, _run_write_edac),
-    "read-file": ("READ FILE: 4 EDAC bytes", lambda p: _a_file(p, False), _run_read_file),
-    "write-file": ("WRITE FILE: 4 EDAC bytes", lambda p: _a_file(p, True), _run_write_file),
-    "crc": ("CRC: CRC-16 of a device memory span", _a_crc, _run_crc),
-    "go": ("GO [CODE]: start a sequence (--wait prints the result)", _a_go, _run_go),
-    "result": ("READ RESULT: decoded summary, or raw bytes with --count", _a_result, _run_result),
-    "combination": ("COMBINATION GO_CODE MASK: sequence + selected result sections", _a_combination, _run_combination),
-    "dark-window": ("IMAGE dark window BUFFER ROW COL ROWS COLS [VALUES]", _a_dark, _run_dark_window),
-    "upload": ("upload FILE into SLOT (resumable, then commit)", _a_upload, _run_upload),
-    "slot-status": ("transfer status of SLOT", _args_slot, _run_slot_status),
-    "slot-abort": ("discard the pending transfer of SLOT", _args_slot, _run_slot_abort),
-    "slot-info": ("active image of SLOT", _args_slot, _run_slot_info),
-    "send": ("send any command code with a hex data field", _a_send, _run_send),
+    name: (COMMAND_TABLE[what].help if isinstance(what, Code) else what, add_args, run)
+    for name, (what, add_args, run) in _SUBCOMMANDS.items()
 }
 
 
@@ -285,7 +300,7 @@ def report_error(exc: LinkError, as_json: bool) -> int:
     reply, a garbled one, a port gone)."""
     from ground.link.client import Nack
 
-    payload = {"error": type(exc).__name__, "message": str(exc), "raw": exc.raw.hex()}
+    payload: dict[str, Any] = {"error": type(exc).__name__, "message": str(exc), "raw": exc.raw.hex()}
     if isinstance(exc, Nack):
         payload["reason"] = exc.reason
     if as_json:

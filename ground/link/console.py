@@ -17,6 +17,7 @@ import shlex
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 from ground.atomic_write import atomic_path
 from ground.link.client import Client, LinkError
@@ -28,6 +29,15 @@ HISTORY_LENGTH = 1000  #: commands kept
 def history_path() -> Path:
     """``$XDG_STATE_HOME/st16-ground/history`` (``~/.local/state/st16-ground/history`` by default)."""
     return Path(os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state") / "st16-ground" / "history"
+
+
+def _readline() -> ModuleType | None:
+    """The readline module, or None for a Python without it (then no history)."""
+    try:
+        import readline
+    except ImportError:
+        return None
+    return readline
 
 
 class _ParseError(Exception):
@@ -62,10 +72,7 @@ class Console(cmd.Cmd):
 
     def run(self, history: Path | None = None) -> None:
         """The command loop, with the readline history of ``history`` (default :func:`history_path`)."""
-        try:
-            import readline
-        except ImportError:  # a Python without readline: no history
-            readline = None
+        readline = _readline()
         history = history or history_path()
         if readline is not None and history.is_file():
             try:
@@ -89,18 +96,18 @@ class Console(cmd.Cmd):
     def emptyline(self) -> bool:
         return False
 
-    def default(self, line: str) -> bool:
+    def default(self, line: str) -> None:
         try:
             args = self.parser.parse_args(shlex.split(line))
         except (_ParseError, ValueError) as exc:
             if str(exc):
                 print(exc)
-            return False
+            return
         if args.command is None:
-            return False
+            return
         if self.client is None:
             print("no link: 'reopen' to open it again")
-            return False
+            return
         try:
             out = args.func(self.client, args)
             print(json.dumps(out) if self.as_json else render(out))
@@ -111,7 +118,6 @@ class Console(cmd.Cmd):
         if self.show_raw and self.client is not None:
             sent, received = self.client.last_exchange
             print(f"  tx: {sent.hex(' ')}\n  rx: {received.hex(' ')}")
-        return False
 
     def do_raw(self, arg: str) -> bool:
         """raw on|off: print the hex of the frames of every exchange."""
