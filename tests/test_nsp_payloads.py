@@ -109,3 +109,60 @@ def test_result_build_parse_paths():
         result.build({"no_such_field": 1})
     with pytest.raises(ValueError):
         result.parse(b"\0" * 100)
+
+
+def test_every_payload_type_of_the_command_table_round_trips():
+    from protocol.command_table import TABLE
+    from protocol.commands import (
+        AddressedBytes,
+        CrcReply,
+        CrcRequest,
+        DiagnosticRequest,
+        Go,
+        Init,
+        Peek,
+        Poke,
+        SlotRequest,
+        WriteAck,
+        WriteEdac,
+        XferDataAck,
+    )
+
+    samples = {
+        Init: Init(0x2000),
+        Peek: Peek(0x20000000, 16),
+        Poke: Poke(0x20000000, b"\x01\x02"),
+        AddressedBytes: AddressedBytes(0x4C, b"\x00\x0a"),
+        WriteAck: WriteAck(0x100, 2),
+        DiagnosticRequest: DiagnosticRequest(1, True),
+        Diagnostics: Diagnostics(framing=3, replies=9, per_code=tuple(range(32))),
+        CrcRequest: CrcRequest(1, 0x20000000, 64),
+        CrcReply: CrcReply(1, 0x20000000, 64, 0xBEEF),
+        ReadFile: ReadFile(0x104, True),
+        WriteFile: WriteFile(0x104, b"abcd"),
+        ReadRange: ReadRange(0x4C, 4, False),
+        WriteEdac: WriteEdac(0x100, b"xy"),
+        Go: Go(0x0B),
+        DarkWindow: DarkWindow(1, 10, 20, 30, 40, tuple(range(8))),
+        Combination: Combination(0x0B, 0x7E, 3),
+        XferBegin: XferBegin(0, 1000, 0xDEADBEEF),
+        XferData: XferData(1, 4096, b"data"),
+        XferDataAck: XferDataAck(1, 4100),
+        SlotRequest: SlotRequest(2),
+        XferStatus: XferStatus(2, 1, 1000, 0xDEADBEEF, 100, 300, 1, ((100, 700),)),
+        SlotImage: SlotImage(2, True, 10, 0x1234, b'{"keys": []}'),
+    }
+    types = {t for c in TABLE for t in (c.request, c.reply) if t is not None}
+    assert types <= set(samples)
+    for kind in types:
+        assert kind.unpack(samples[kind].pack()) == samples[kind], kind
+
+
+def test_diagnostic_request_forms_and_length_text():
+    from protocol.commands import DiagnosticRequest
+
+    assert DiagnosticRequest.clearing(True).pack() == b"\x01" and DiagnosticRequest.clearing(False).pack() == b""
+    assert DiagnosticRequest.unpack(b"") == DiagnosticRequest() and DiagnosticRequest.unpack(b"\x03").flags == 3
+    with pytest.raises(PayloadError) as exc:
+        DiagnosticRequest.unpack(b"\x00\x00")
+    assert exc.value.reason == NackReason.BAD_LENGTH and exc.value.message == "DIAGNOSTIC takes 0 or 1 data byte"
