@@ -1,0 +1,134 @@
+"""The identification strategy (firmware_model/ident/strategy.py): mode and method enums, the
+order of the geometric ladder, typed timings, and that the frame-level entry point gives the
+answers of the vector-level solver and its mono fallback."""
+
+import json
+
+import numpy as np
+import pytest
+
+from firmware_model.device.sensor_input import DeviceParams
+from firmware_model.ident.consensus import Outcome
+from firmware_model.ident.solver import Method, Mode, SolveParams, SolveTimings, method_code
+from firmware_model.ident.strategy import (
+    Detections,
+    IdentifyTimings,
+    StrategyParams,
+    geometric_sizes,
+    identify,
+    solve,
+)
+from firmware_model.ident.verify import FieldOfView
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.run import STAGES, PipelineOutput, StageTimings
+from firmware_model.reference_frames import attitude_from_radec_roll
+from ground.link.solve_report import METHODS, record_from_output
+from ground.sim import whole_sky as skysim
+from protocol.commands import SlotRejected
+from protocol.result import MethodCode, Status
+
+CAM = CameraModel.reference_design()
+
+
+@pytest.fixture(scope="module")
+def catalog():
+    from ground.catalog.build import build_catalog
+    from ground.catalog.design import CatalogDesign
+
+    return build_catalog(CatalogDesign(sigma_rg=0.05, sigma_bg=0.05))
+
+
+def test_mode_parses_user_text_with_a_one_line_error():
+    assert Mode.parse("colour") is Mode.COLOUR and Mode.parse(Mode.AUTO) is Mode.AUTO
+    assert Mode.GEOMETRIC == "geometric" and f"{Mode.AUTO}" == "auto" and json.dumps(Mode.COLOUR) == '"colour"'
+    for bad in ("psychic", 3, None, ["auto"]):
+        with pytest.raises(ValueError, match=r"^mode must be auto, colour or geometric, got ") as exc:
+            Mode.parse(bad)
+        assert "\n" not in str(exc.value)
+    with pytest.raises(SlotRejected, match="mode must be auto, colour or geometric, got 'psychic'"):
+        DeviceParams.from_json(b'{"mode": "psychic"}')
+    assert DeviceParams.from_json(b'{"mode": "geometric"}').mode is Mode.GEOMETRIC
+
+
+def test_method_codes_are_the_wire_values_and_the_report_names():
+    assert [m.code for m in Method] == [
+        MethodCode.COLOUR,
+        MethodCode.GEOMETRIC,
+        MethodCode.GEOMETRIC_CONSENSUS,
+        MethodCode.PATTERN,
+    ]
+    assert [int(c) for c in MethodCode] == [0, 1, 2, 3, 4]
+    assert method_code(None) == 0 and method_code(Method.PATTERN) == 4
+    assert METHODS == {0: "", 1: "colour", 2: "geometric", 3: "geometric-consensus", 4: "pattern"}
+
+
+def test_outcome_prints_its_value():
+    assert str(Outcome.NO_MATCH) == "NO_MATCH" and f"{Outcome.HIGH_CONFIDENCE}" == "HIGH_CONFIDENCE"
+    assert json.dumps({"status": Outcome.LOW_CONFIDENCE}) == '{"status": "LOW_CONFIDENCE"}'
+
+
+def test_geometric_ladder_widens_to_the_cap():
+    assert geometric_sizes(30, 12) == [4, 6, 8, 12]
+    assert geometric_sizes(5, 12) == [4, 5]
+    assert geometric_sizes(7, 6) == [4, 6]
+    assert geometric_sizes(10, None, ()) == [10]  # every detection at once (the whole-sky simulation)
+    assert geometric_sizes(0, None, ()) == [0]
+
+
+def test_timings_are_records_with_the_reported_stages():
+    assert list(StageTimings().to_dict()) == list(STAGES)
+    t = StageTimings(detect=0.001, fit=0.002, vectors=0.003)
+    t.add_solve(solve(np.zeros((2, 2)), None, None, None, SolveParams()))  # refused before the catalog
+    assert isinstance(t, IdentifyTimings) and t.identify >= 0.0 and t.attitude == 0.0
+    rec = record_from_output(PipelineOutput(Status.NO_MATCH, "x", timings=t))
+    assert list(rec["timings_s"]) == list(STAGES)
+    assert rec["timings_s"]["fit"] == pytest.approx(0.002) and rec["timings_s"]["total"] == 0.0
+    assert set(vars(SolveTimings())) == {"validate", "match", "verify", "total"}
+
+
+def _scene(catalog, colour, seed=3):
+    rng = np.random.default_rng(seed)
+    a = attitude_from_radec_roll(1.1, 0.3, 0.7)
+    model = skysim.ErrorModel(0.2, 0.05, 2.0, 0.05)
+    return skysim.observe(catalog, a, CAM, model, rng, colour=colour)
+
+
+def _params(mode):
+    return SolveParams(mode=mode, sigma_vec=0.2 / CAM.f, fov=FieldOfView.from_camera(CAM, 0.0), time_budget_s=10.0)
+
+
+@pytest.mark.parametrize("mode", [Mode.COLOUR, Mode.GEOMETRIC, Mode.AUTO])
+def test_identify_on_every_detection_is_the_solver(catalog, mode):
+    scene = _scene(catalog, colour=mode is not Mode.GEOMETRIC)
+    params = _params(mode)
+    one = solve(scene.vectors, scene.rg, scene.bg, catalog, params)
+    strategy = StrategyParams(solve=params, geometric_steps=(), geometric_fallback=False, colour_fallback=False)
+    timings = IdentifyTimings()
+    found = identify(Detections(scene.vectors, scene.rg, scene.bg), catalog, strategy, timings)
+    assert found.status is one.status is Outcome.HIGH_CONFIDENCE
+    assert np.array_equal(found.rows, np.arange(len(scene.vectors)))
+    assert np.array_equal(found.solution.matched_star_id, one.matched_star_id)
+    assert np.array_equal(found.solution.q_icrs_to_sensor, one.q_icrs_to_sensor)
+    assert found.solution.method == (Method.GEOMETRIC if mode is Mode.GEOMETRIC else Method.COLOUR)
+    assert timings.identify > 0.0 and timings.attitude > 0.0
+
+
+def test_mono_fallback_runs_consensus_on_geometry_when_geometry_finds_nothing(catalog):
+    # pose 6656 of the impaired mono whole-sky run: 4-star and triangle matching find nothing
+    cfg = skysim.ColourSimConfig(
+        n_boresights=5000, n_roll=2, colour=False, model=skysim.ErrorModel(0.2, 0.05, 3.0, 0.1)
+    )
+    b_idx, r_idx = divmod(6656, cfg.n_roll)
+    rng = np.random.default_rng([cfg.seed, 6656])
+    roll = 2 * np.pi * (r_idx + rng.random()) / cfg.n_roll
+    ra, dec = skysim.vec_to_radec(skysim.spiral_boresights(cfg.n_boresights)[b_idx])
+    scene = skysim.observe(
+        catalog, attitude_from_radec_roll(float(ra), float(dec), roll), CAM, cfg.model, rng, colour=False
+    )
+    det = Detections(scene.vectors, scene.rg, scene.bg)
+    params = _params(Mode.GEOMETRIC)
+    off = identify(det, catalog, StrategyParams(solve=params, geometric_steps=(), geometric_fallback=False))
+    assert off.status is Outcome.NO_MATCH and off.solution.method is Method.GEOMETRIC
+    found = identify(det, catalog, StrategyParams(solve=params, geometric_steps=()))
+    assert found.status is Outcome.HIGH_CONFIDENCE and found.solution.method is Method.GEOMETRIC_CONSENSUS
+    assert np.all(scene.truth[found.rows[found.solution.matched_det]] == found.solution.matched_cat)
