@@ -103,15 +103,17 @@ _ITEM = re.compile(r"(\d*)([a-zA-Z?])")
 
 def _items(head: str) -> list[int]:
     """Values per item of ``head``: 1 for a single value or ``Ns``, N for a repeated code."""
-    out = []
-    for count, code in _ITEM.findall(head):
-        if code == "x":
-            continue
-        if code in "sp" or not count:
-            out.append(1)
-        else:
-            out.extend([int(count)] if int(count) > 1 else [1])
-    return out
+    return [1 if code in "sp" or not count else int(count) for count, code in _ITEM.findall(head) if code != "x"]
+
+
+def _codes(head: str) -> list[str]:
+    """The struct code of each value of ``head``, repeats spelt out."""
+    return [
+        code
+        for count, code in _ITEM.findall(head)
+        if code != "x"
+        for _ in range(1 if code in "sp" else int(count or 1))
+    ]
 
 
 _L = TypeVar("_L", bound="Layout")
@@ -169,8 +171,7 @@ class Layout:
                 value = form.wire[name][0](value)
             values.extend(value if n > 1 else [value])
         if cls.WRAP:
-            codes = "".join(code * (int(count) if count else 1) for count, code in _ITEM.findall(form.head))
-            values = [v & ((1 << (8 * struct.calcsize("<" + c))) - 1) for v, c in zip(values, codes)]
+            values = [v & ((1 << (8 * struct.calcsize("<" + c))) - 1) for v, c in zip(values, _codes(form.head))]
         head = struct.pack(form.head, *values)
         if not cls.TAIL:
             return head

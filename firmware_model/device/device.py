@@ -92,17 +92,17 @@ class Device:
         #: returned (a COMBINATION's, once its sequence is done); None answers synchronously
         self.late_reply: Callable[[list[bytes]], None] | None = None
         self.transfers = Transfers(store, slots)
-        self.sequence = SequenceRunner(self._lock, self._mode, self.transfers, self)
+        self.runner = SequenceRunner(self._lock, self._mode, self.transfers, self)
         self.memory = Memory(
             Supervisor(
                 address=address,
                 banner=self.boot_banner,
                 app_mode=lambda: self._mode.app,
-                busy=lambda: self.sequence.busy,
-                result_ready=lambda: self.sequence.result_ready,
-                sequence=lambda: self.sequence.sequence,
+                busy=lambda: self.runner.busy,
+                result_ready=lambda: self.runner.result_ready,
+                sequence=lambda: self.runner.sequence,
                 counters=lambda: self.counters,
-                result=lambda: self.sequence.result,
+                result=lambda: self.runner.result,
             )
         )
         self.dispatcher = Dispatcher(self._handlers(), self._lock, lambda: self.counters, lambda: self.late_reply)
@@ -110,7 +110,7 @@ class Device:
 
     def _handlers(self) -> dict[int, Handler]:
         """The handler of every command-table code."""
-        mem, tr, seq = self.memory, self.transfers, self.sequence
+        mem, tr, seq = self.memory, self.transfers, self.runner
         return {
             Code.PING: self._ping,
             Code.INIT: self._init,
@@ -167,7 +167,7 @@ class Device:
 
     @property
     def busy(self) -> bool:
-        return self.sequence.busy
+        return self.runner.busy
 
     def edac_image(self) -> bytes:
         """The 512 EDAC bytes as READ EDAC sees them now (:data:`protocol.edac.EDAC_DTYPE`)."""
@@ -175,7 +175,7 @@ class Device:
 
     def wait_idle(self, timeout: float | None = None) -> bool:
         """Block until no sequence runs; False on timeout."""
-        return self.sequence.wait_idle(timeout)
+        return self.runner.wait_idle(timeout)
 
     # ------------------------------------------------------------------ byte level
 
