@@ -19,7 +19,7 @@ against truth, log every result as it comes, and summarise.
 from __future__ import annotations
 
 import json
-import sys
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -47,6 +47,8 @@ from ground.sim.frame_writer import truth_path_for
 from protocol.commands import Slot
 from protocol.result import Status
 
+_log = logging.getLogger(__name__)  # (``log`` is the exchange log and the results log here)
+
 CORRECT_DEG = 0.1  #: attitude error bound of a correct solve (peer_solvers.md section 5)
 MATCH_RADIUS_PX = 2.0  #: detection <-> truth association radius
 LOOSE_SIGMA_PX = 3.0  #: centroid noise assumed for the approximate attitude before refraction correction
@@ -68,7 +70,7 @@ class Truth:
         path = truth_path_for(frame_path)
         if not path.is_file():
             return None
-        say = warn or (lambda msg: print(f"st16-ground: {msg}", file=sys.stderr))
+        say = warn or (lambda msg: _log.warning("st16-ground: %s", msg))
         try:
             data = json.loads(path.read_text())
             stars = data.get("stars", [])
@@ -217,6 +219,7 @@ class LinkSolver:
             client.close()
             raise
         self.client = client
+        _log.debug("connected to the device at %s", self.url)
         return client
 
     def close(self):
@@ -238,11 +241,14 @@ class LinkSolver:
                 time.sleep(0.5)
         raise TimeoutError(f"device at {self.url} did not come back within {self.reconnect_timeout:.0f} s")
 
-    def solve(self, frame: Frame | None, say=print) -> dict:
+    def solve(self, frame: Frame | None, say: Callable[[str], object] | None = None) -> dict:
         """Upload ``frame`` (or capture, when None), GO, and return the decoded result. A silent or
-        lost device is waited for, at most ``reconnect_timeout`` seconds in all for this frame; a
-        NACK is the device's answer and is raised (``ground.link.client.Nack``), never retried."""
+        lost device is waited for, at most ``reconnect_timeout`` seconds in all for this frame (said
+        through ``say``, by default a warning of this module's logger); a NACK is the device's
+        answer and is raised (``ground.link.client.Nack``), never retried."""
         from ground.link.client import LinkError, Nack
+
+        say = say or _log.warning
 
         data = frame_to_bytes(frame) if frame is not None else None
         deadline = None
@@ -274,8 +280,11 @@ def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool =
         raise ValueError(
             f"{out_dir} already holds {len(done)} frame result(s): --resume continues that run, or choose another --out"
         )
-    say = tqdm.write if progress else (lambda msg: print(msg, file=sys.stderr))
+    say = _log.warning  # above the progress bar: st16-ground's log handler writes through tqdm
     todo = [p for p in paths if p.name not in done]
+    _log.debug(
+        "replay %s: %d frame(s), %d already logged in %s", directory, len(paths), len(paths) - len(todo), out_dir
+    )
     bar = tqdm(
         todo, desc="replay", unit="frame", disable=not progress, initial=len(paths) - len(todo), total=len(paths)
     )
@@ -302,6 +311,7 @@ def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool =
         ]
         log.append(record)
         bar.set_postfix_str(record["outcome"])
+        _log.debug("%s: %s", path.name, record["outcome"])
     records = log.records()
     summary = summarize(records)
     summary["plots"] = []

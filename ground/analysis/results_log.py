@@ -11,14 +11,16 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
 
 from ground import json_text
 from ground.atomic_write import save_figure
+
+log = logging.getLogger(__name__)
 
 CSV_FIELDS = (
     "time_utc",
@@ -74,6 +76,7 @@ class ResultsLog:
             writer.writerow(_csv_row(record))
             fh.flush()
             os.fsync(fh.fileno())
+        log.debug("%s: %s logged", self.jsonl_path, record.get("frame", "a record"))
 
     def records(self) -> list[dict]:
         """The logged records; a line cut short (a crash or a full disk mid-write) is left out with a
@@ -88,7 +91,7 @@ class ResultsLog:
             try:
                 out.append(json.loads(line))
             except ValueError:
-                print(f"st16-ground: {self.jsonl_path}: line {k + 1} cut short; left out", file=sys.stderr)
+                log.warning("st16-ground: %s: line %d cut short; left out", self.jsonl_path, k + 1)
         return out
 
 

@@ -12,11 +12,14 @@
 from __future__ import annotations
 
 import json
+import logging
 import sys
 from pathlib import Path
 
 from ground import json_text
 from ground.arg_types import ANGLE_DEG, DEC_DEG, RA_DEG, SECONDS, SEED, SENSOR_PX, output_file, ranged
+
+log = logging.getLogger(__name__)
 
 
 def _fail(message: str) -> int:
@@ -229,6 +232,7 @@ def cmd_inspect(args) -> int:
         camera = CameraModel.from_dict(json.loads(Path(args.camera).read_text())) if args.camera else None
     except (FrameReadError, ValueError, OSError) as exc:
         return _fail(str(exc))
+    log.debug("%s: %d x %d %s frame", args.frame, frame.width, frame.height, frame.pattern)
 
     lo, hi = PSF_SIGMA_RANGE_PX
     if args.psf_sigma is not None and not lo <= args.psf_sigma < hi:
@@ -263,12 +267,15 @@ def cmd_inspect(args) -> int:
         except (OSError, ValueError) as exc:
             if args.truth:  # asked for: an error
                 return _fail(f"--truth {args.truth}: {exc}")
-            print(f"st16-ground: {tpath.name} is not a readable truth file ({exc}); ignored", file=sys.stderr)
+            log.warning("st16-ground: %s is not a readable truth file (%s); ignored", tpath.name, exc)
             truth = None
     records = stars.to_records()
     if truth:
         for rec, m in zip(records, _match_truth(stars, truth)):
             rec["truth"] = m
+        log.debug(
+            "%s: truth for %d of %d stars", tpath.name, sum(r.get("truth") is not None for r in records), len(records)
+        )
     timings_ms = {k.replace("_s", "_ms"): round(v * 1e3, 3) for k, v in stars.timings.items()}
     psf = {
         "sigma_px": stars.psf_sigma_px,

@@ -2,17 +2,25 @@
 
 Each feature module contributes its subcommands through ``register(subparsers)``; a handler
 receives the parsed ``args`` and returns a process exit code. Global options (link URL,
-addresses, JSON output, exchange log) are parsed here once for every subcommand. Expected
-failures that a handler does not report itself end here as one line on stderr with the exit
-code of their class (:data:`EXIT_CODES`); ``--debug`` shows the traceback instead.
+addresses, JSON output, exchange log, log level) are parsed here once for every subcommand.
+Expected failures that a handler does not report itself end here as one line on stderr with the
+exit code of their class (:data:`EXIT_CODES`); ``--debug`` shows the traceback instead.
+
+A command's output goes to stdout; its warnings and notes go through :mod:`logging` (a logger per
+module) to one stderr handler that ``main`` installs for the run, from ``--log-level`` up (default
+warning: the lines a user always saw, as they read before), one line each, as ``st16-device``
+writes its own.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import logging
 import os
 import sys
+from collections.abc import Iterator
 
 from ground.arg_types import U8, InputError, output_file, ranged
 
@@ -77,6 +85,57 @@ def _global_options(parser: argparse.ArgumentParser, defaults: bool = True) -> N
         action="store_true",
     )
     add("--log", "append every exchange to this JSONL file", None, type=output_file)
+    add(
+        "--log-level",
+        "messages on stderr from this level up (skipped plots, ignored files, a device that stops answering: warning)",
+        "warning",
+        choices=LOG_LEVELS,
+    )
+
+
+#: ``--log-level`` choices, as ``st16-device`` spells them.
+LOG_LEVELS = ("debug", "info", "warning", "error")
+#: The loggers the stderr handler serves: this project's (a third-party logger keeps its own
+#: handling, e.g. astropy's, as it had before).
+OWN_LOGGERS = ("ground", "firmware_model", "protocol")
+
+
+class _StderrHandler(logging.StreamHandler):
+    """One line per record on stderr; above a progress bar (``tqdm.write``) when tqdm is in use,
+    so a message never breaks a bar."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        tqdm = sys.modules.get("tqdm")
+        if tqdm is None:
+            super().emit(record)
+            return
+        try:
+            tqdm.tqdm.write(self.format(record), file=self.stream)
+            self.flush()
+        except Exception:  # noqa: BLE001 - logging's own convention: report, never raise
+            self.handleError(record)
+
+
+@contextlib.contextmanager
+def stderr_logging(level: str) -> Iterator[None]:
+    """For the length of a command: a stderr handler (``%(message)s``) on this project's loggers
+    (:data:`OWN_LOGGERS`), which open down to ``level``; removed and restored afterwards (a test or
+    a script may call :func:`main` many times in one process). Records still propagate to the
+    root logger, so whatever listens there (pytest's ``caplog``) sees them too."""
+    number = logging.getLevelName(level.upper())
+    handler = _StderrHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    own = [logging.getLogger(name) for name in OWN_LOGGERS]
+    saved = [logger.level for logger in own]
+    for logger in own:
+        logger.addHandler(handler)
+        logger.setLevel(number)
+    try:
+        yield
+    finally:
+        for logger, old in zip(own, saved):
+            logger.removeHandler(handler)
+            logger.setLevel(old)
 
 
 def _leaf_parsers(parser: argparse.ArgumentParser):
@@ -126,7 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     from ground.optional import MissingExtra
 
     try:
-        return int(args.func(args) or 0)
+        with stderr_logging(args.log_level):
+            return int(args.func(args) or 0)
     except KeyboardInterrupt:
         if args.debug:
             raise

@@ -8,6 +8,7 @@ more tolerances. Both run on local cores (``--workers``) or a Dask cluster (``--
 
 from __future__ import annotations
 
+import logging
 import sys
 from pathlib import Path
 
@@ -15,6 +16,8 @@ from ground import json_text
 from ground.arg_types import SEED, SENSOR_PX, progress_on
 from ground.atomic_write import atomic_path, write_text
 from ground.optional import MissingExtra
+
+log = logging.getLogger(__name__)
 
 #: Enright & McVittie section 5.2 (table 3, fig. 9) for 1e6 poses.
 PAPER_COLOUR = {
@@ -147,7 +150,7 @@ def run_colour(args) -> int:
             skysim.plot_error_cdf(rows, args.out / "error_cdf.png")
             skysim.plot_mollweide(rows, skysim.spiral_boresights(args.boresights), args.out / "problem_map.png")
         except MissingExtra as exc:  # rows and summary are written; only the pictures are missing
-            print(f"st16-ground: plots skipped: {exc}", file=sys.stderr)
+            log.warning("st16-ground: plots skipped: %s", exc)
     lines = [
         f"{n} poses ({args.boresights} boresights x {args.rolls} rolls), {catalog.n_stars} stars, "
         f"{catalog.n_pairs} pairs; {wall:.1f} s, {n / wall:.0f} poses/s",

@@ -79,7 +79,7 @@ def _solve_on_device(args, frame):
     bar = frame is not None and progress_on(args)  # a 10 MB frame is 15 min at 115 200 baud
     solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, upload_progress=bar, **client_kwargs(args))
     try:  # a NACK (exit 5) or a device that does not come back (exit 4) ends in ground.cli.main.main
-        return solver.solve(frame, say=lambda m: print(m, file=sys.stderr))
+        return solver.solve(frame)  # a device that stops answering: warnings through logging
     finally:
         solver.close()
 
