@@ -2,8 +2,10 @@
 
 Layouts are little-endian. Documented ST-16 codes keep their research-note layouts; where the
 notes are silent the layout is ours (see docs/ICD.md, where every such choice is marked).
-Each payload class has ``pack() -> bytes`` and ``unpack(data) -> instance``; ``unpack`` raises
-:class:`PayloadError` (carrying a :class:`NackReason`) for a data field it cannot accept.
+Each payload class is declared once as a :class:`~protocol.layout.Layout` (struct head, wire
+forms, tail), from which come ``pack() -> bytes`` and ``unpack(data) -> instance``; ``unpack``
+raises :class:`PayloadError` (carrying a :class:`NackReason`, both from ``protocol.nack``) for a
+data field it cannot accept. ``protocol.command_table`` says which payloads each code carries.
 """
 
 from __future__ import annotations
@@ -13,8 +15,8 @@ from enum import IntEnum
 from typing import Any
 
 from protocol.layout import Form, Layout, le_int
-from protocol.layout import NackReason as NackReason  # re-exported: shared by device and client
-from protocol.layout import PayloadError as PayloadError
+from protocol.nack import NackReason as NackReason  # re-exported: shared by device and client
+from protocol.nack import PayloadError as PayloadError
 
 
 class Code(IntEnum):

@@ -34,43 +34,12 @@ import re
 import struct
 from collections.abc import Callable, Mapping
 from dataclasses import fields
-from enum import IntEnum
 from typing import Any, ClassVar, NamedTuple, TypeVar
+
+from protocol.nack import NackReason, PayloadError
 
 #: (to wire, from wire) conversion of one field's value
 Codec = tuple[Callable[[Any], Any], Callable[[Any], Any]]
-
-
-class NackReason(IntEnum):
-    """First two bytes (u16 LE) of a NACK's data field, followed by UTF-8 text (ours)."""
-
-    UNKNOWN_COMMAND = 0x0001
-    BAD_LENGTH = 0x0002
-    BAD_ADDRESS = 0x0003
-    READ_ONLY = 0x0004
-    WRONG_MODE = 0x0005
-    BUSY = 0x0006
-    BAD_PARAMETER = 0x0007
-    BAD_SLOT = 0x0008
-    NO_TRANSFER = 0x0009
-    OUT_OF_RANGE = 0x000A
-    INCOMPLETE = 0x000B
-    CRC_MISMATCH = 0x000C
-    NOT_SUPPORTED = 0x000D
-    STORAGE_ERROR = 0x000E
-    TOO_LARGE = 0x000F
-    INTERNAL = 0x00FF  #: unexpected device-side exception (a bug; the device keeps serving)
-    #: 0x0100-0xFFFF: reasons raised by slot validators (:class:`SlotRejected` codes)
-    VALIDATOR_BASE = 0x0100
-
-
-class PayloadError(ValueError):
-    """A data field that cannot be accepted; becomes a NACK with ``reason``."""
-
-    def __init__(self, reason: NackReason | int, message: str):
-        super().__init__(message)
-        self.reason = int(reason)
-        self.message = message
 
 
 def need(data: bytes, sizes: tuple[int, ...], what: str) -> None:
