@@ -42,6 +42,7 @@ import numpy as np
 
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between
 from firmware_model.ident.pair_match import PairNoise, consistency_tolerance, critical_distance, match_pair
+from firmware_model.ident.verify import VerifiedMatch
 
 
 class Outcome(StrEnum):
@@ -121,11 +122,11 @@ class ConsensusResult:
     """Outcome of a scene match: class, best verified match (or None), attempts used, reason."""
 
     outcome: Outcome
-    best: object | None
+    best: VerifiedMatch | None
     reason: str
     attempts: int = 0
     hypotheses: int = 0
-    rivals: list = field(default_factory=list)
+    rivals: list[VerifiedMatch] = field(default_factory=list)
 
 
 def detection_angles(vectors: np.ndarray) -> np.ndarray:
@@ -225,7 +226,9 @@ def grow(
     s_det = list(seed_det)
     s_cat = list(seed_cat)
     dphi_star = consistency_tolerance(noise.sigma_phi, delta_star)
-    cand_star, cand_d, cand_det = [], [], []
+    det_parts: list[np.ndarray] = []
+    star_parts: list[np.ndarray] = []
+    d_parts: list[np.ndarray] = []
     for s, cs in list(zip(seed_det, seed_cat))[: params.anchors]:
         a, b = indptr[cs], indptr[cs + 1]
         nb = nbr[a:b]
@@ -235,14 +238,14 @@ def grow(
         )
         d2 += _sq((rg[s] - crg[cs]) / noise.sigma_rg) + _sq((bg[s] - cbg[cs]) / noise.sigma_bg)
         ii, jj = np.nonzero(d2 < delta_star * delta_star)
-        cand_det.append(ii)
-        cand_star.append(nb[jj])
-        cand_d.append(d2[ii, jj])
-    cand_det = np.concatenate(cand_det)
+        det_parts.append(ii)
+        star_parts.append(nb[jj])
+        d_parts.append(d2[ii, jj])
+    cand_det = np.concatenate(det_parts)
     if len(cand_det) == 0:
         return np.array(s_det, np.int64), np.array(s_cat, np.int64)
-    cand_star = np.concatenate(cand_star)
-    cand_d = np.concatenate(cand_d)
+    cand_star = np.concatenate(star_parts)
+    cand_d = np.concatenate(d_parts)
     cvec = catalog.vec
     # eqs 8-9 against the two seed stars, for every candidate at once
     cv = cvec[cand_star]
@@ -253,16 +256,16 @@ def grow(
         return np.array(s_det, np.int64), np.array(s_cat, np.int64)
     cand_det, cand_star, cand_d = cand_det[keep], cand_star[keep], cand_d[keep]
     order = np.lexsort((cand_d, cand_det))
-    cand_det, cand_star = cand_det[order].tolist(), cand_star[order].tolist()
+    det_list, star_list = cand_det[order].tolist(), cand_star[order].tolist()
     # greedy growth in brightness order; candidates of one detection best first
     extra_det: list[int] = []
     extra_cat: list[int] = []
     k = 0
-    while k < len(cand_det):
-        i = cand_det[k]
+    while k < len(det_list):
+        i = det_list[k]
         stars = []
-        while k < len(cand_det) and cand_det[k] == i:
-            stars.append(cand_star[k])
+        while k < len(det_list) and det_list[k] == i:
+            stars.append(star_list[k])
             k += 1
         for c in stars:
             if c in extra_cat:
@@ -284,7 +287,7 @@ def match_scene(
     catalog: OnboardCatalog,
     noise: PairNoise,
     params: ConsensusParams,
-    verify: Callable[[np.ndarray, np.ndarray], tuple[object | None, str]],
+    verify: Callable[[np.ndarray, np.ndarray], tuple[VerifiedMatch | None, str]],
     deadline: float | None = None,
 ) -> ConsensusResult:
     """Consensus match of a scene (module docstring); detections ordered brightest first.

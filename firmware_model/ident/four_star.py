@@ -62,18 +62,19 @@ def group_angles(group_vectors: np.ndarray) -> np.ndarray:
 
 def vote_matrix(group_vectors: np.ndarray, catalog: OnboardCatalog, epsilon: float, max_candidates: int):
     """Vote matrix restricted to touched rows: ``(rows, M[rows])`` with ``M`` of shape (len(rows), 6)."""
-    cols, stars = [], []
+    col_parts: list[np.ndarray] = []
+    star_parts: list[np.ndarray] = []
     for r, theta in enumerate(group_angles(group_vectors).tolist()):
         lo, hi = catalog.kvector_range(theta, epsilon)
         if hi - lo > max_candidates:
             continue
         s = np.concatenate([catalog.pair_i[lo:hi], catalog.pair_j[lo:hi]])
-        stars.append(s)
-        cols.append(np.full(len(s), r))
-    if not stars:
+        star_parts.append(s)
+        col_parts.append(np.full(len(s), r))
+    if not star_parts:
         return np.empty(0, np.int64), np.zeros((0, 6), np.int64)
-    stars = np.concatenate(stars).astype(np.int64)
-    cols = np.concatenate(cols)
+    stars = np.concatenate(star_parts).astype(np.int64)
+    cols = np.concatenate(col_parts)
     rows, inverse = np.unique(stars, return_inverse=True)
     m = np.zeros((len(rows), 6), np.int64)
     np.add.at(m, (inverse, cols), 1)

@@ -45,11 +45,10 @@ class Mode(StrEnum):
     @classmethod
     def parse(cls, text: object) -> Mode:
         """The mode ``text`` names; ValueError with a one-line reason for anything else."""
-        try:
+        if isinstance(text, str) and text in cls._value2member_map_:
             return cls(text)
-        except (ValueError, TypeError):
-            names = [m.value for m in cls]
-            raise ValueError(f"mode must be {', '.join(names[:-1])} or {names[-1]}, got {text!r}") from None
+        names = [m.value for m in cls]
+        raise ValueError(f"mode must be {', '.join(names[:-1])} or {names[-1]}, got {text!r}")
 
 
 class Method(StrEnum):

@@ -301,7 +301,10 @@ def verify_over(
     ``cat``, over every detection; its time goes to ``timings.attitude``."""
     t0 = time.perf_counter()
     n = len(det)
-    sigma_vec = det.sigma_px / det.focal_px if det.sigma_px is not None else base.sigma_vec
+    if det.sigma_px is not None:
+        sigma_vec = det.sigma_px / det.focal_px
+    else:
+        sigma_vec = np.broadcast_to(np.asarray(base.sigma_vec, dtype=float), (n,))
     match, _ = verify(
         np.asarray(rows),
         cat,
@@ -310,7 +313,7 @@ def verify_over(
         np.full(n, np.nan),
         sigma_vec,
         catalog,
-        base.fov,
+        _fov(base, det.vectors),
         0.0,
         0.0,
         base.verify,

@@ -19,6 +19,7 @@ from itertools import combinations
 import numpy as np
 
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between, chord_of_angle
+from firmware_model.ident.verify import VerifiedMatch
 
 
 @dataclass(frozen=True)
@@ -52,6 +53,11 @@ def _side(catalog: OnboardCatalog, theta: float, eps: float, max_pairs: int):
     return np.concatenate([i, j]), np.concatenate([j, i])  # both orientations: (first, second)
 
 
+def _side_key(a: int, b: int) -> tuple[int, int]:
+    """The key of the triangle side between corners ``a`` and ``b`` (smaller corner first)."""
+    return (a, b) if a < b else (b, a)
+
+
 def triangles(v3: np.ndarray, catalog: OnboardCatalog, eps: float, max_pairs: int = 20000) -> np.ndarray:
     """Catalog triangles ``(a, b, c)`` matching detections ``v3[0], v3[1], v3[2]`` within ``eps``
     on all sides, same handedness, sorted by summed angle error; shape (M, 3).
@@ -69,12 +75,12 @@ def triangles(v3: np.ndarray, catalog: OnboardCatalog, eps: float, max_pairs: in
     in_range = {k: lo_ok <= m <= hi_ok for k, m in meas.items()}
     empty = np.empty((0, 3), np.int64)
     for p, q, r in ((0, 1, 2), (1, 0, 2), (2, 0, 1)):
-        if in_range[tuple(sorted((p, q)))] and in_range[tuple(sorted((p, r)))]:
+        if in_range[_side_key(p, q)] and in_range[_side_key(p, r)]:
             break
     else:
         return empty
-    pq = _side(catalog, meas[tuple(sorted((p, q)))], eps, max_pairs)
-    pr = _side(catalog, meas[tuple(sorted((p, r)))], eps, max_pairs)
+    pq = _side(catalog, meas[_side_key(p, q)], eps, max_pairs)
+    pr = _side(catalog, meas[_side_key(p, r)], eps, max_pairs)
     if pq is None or pr is None:
         return empty
     order = np.argsort(pr[0], kind="stable")
@@ -147,7 +153,8 @@ class TriadOrder:
         else:
             t = int(np.argmax(self.untried))
         self.untried[t] = False
-        return tuple(int(x) for x in self.tri[t])
+        i, j, k = (int(x) for x in self.tri[t])
+        return i, j, k
 
     def failed(self, det) -> None:
         """Report a triad that gave no verified set containing its three detections."""
@@ -158,7 +165,7 @@ def match_triangles(
     vectors: np.ndarray,
     catalog: OnboardCatalog,
     eps: float,
-    verify: Callable[[np.ndarray, np.ndarray], tuple[object | None, str]],
+    verify: Callable[[np.ndarray, np.ndarray], tuple[VerifiedMatch | None, str]],
     params: TriangleParams = TriangleParams(),
     deadline: float | None = None,
 ):
@@ -166,7 +173,7 @@ def match_triangles(
     ``time.perf_counter`` value."""
     import time
 
-    found = []
+    found: list[VerifiedMatch] = []
     n = min(len(vectors), params.max_stars)
     order = TriadOrder(n, params.adaptive)
     for t, (i, j, k) in enumerate(order):

@@ -216,20 +216,21 @@ def _label_planets(out: PipelineOutput, frame: Frame, catalog: OnboardCatalog, p
     where = (
         (site["lat_deg"], site["lon_deg"], site.get("height_m", 0.0)) if {"lat_deg", "lon_deg"} <= set(site) else None
     )
+    stars, sol = out.stars, out.solution
+    assert stars is not None and stars.vectors is not None and sol is not None and out.camera is not None
     try:
-        labels = label_planets(
-            out.stars.x, out.stars.y, out.solution.q_icrs_to_sensor, out.camera, frame.timestamp, site=where
-        )
+        labels = label_planets(stars.x, stars.y, sol.q_icrs_to_sensor, out.camera, frame.timestamp, site=where)
     except ValueError as exc:  # an unreadable timestamp: no labels, and say so
         out.reason = f"{out.reason}; planets not predicted: {exc}" if out.reason else f"planets not predicted: {exc}"
         return out
     rows = np.array([lab.index for lab in labels], dtype=np.int64)
-    if len(rows) and np.isin(out.used[out.solution.matched_det], rows).any():
-        hidden = replace(out.stars, x=out.stars.x.copy(), y=out.stars.y.copy(), vectors=out.stars.vectors.copy())
+    if len(rows) and np.isin(out.used[sol.matched_det], rows).any():
+        vectors = stars.vectors.copy()
+        hidden = replace(stars, x=stars.x.copy(), y=stars.y.copy(), vectors=vectors)
         hidden.x[rows] = hidden.y[rows] = np.nan
-        hidden.vectors[rows] = np.nan
+        vectors[rows] = np.nan
         again = identify_stars(hidden, out.camera, catalog, params)
-        again.stars = out.stars
+        again.stars = stars
         if again.optics is None:
             again.optics = out.optics
         out = again
@@ -299,6 +300,7 @@ def _usable(stars: StarList) -> np.ndarray:
         return np.empty(0, np.int64)
     var = 0.5 * (stars.cov_xy[:, 0, 0] + stars.cov_xy[:, 1, 1])
     known = ~(var > MAX_CENTROID_SIGMA_PX**2)  # NaN (no covariance) stays: the pipeline gives it 1 px
+    assert stars.vectors is not None  # extracted with a camera
     return np.flatnonzero(np.isfinite(stars.vectors).all(axis=1) & known)
 
 
@@ -310,15 +312,14 @@ def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSear
     """Focal length (and k1 with enough stars) fitted with the attitude to the matched stars; stars
     off by more than :data:`OPTICS_OUTLIER_PX` (or 5 x the median) after a first fit (a blend, a
     saturated or badly fitted star the answer keeps with a wide noise floor) are left out of a second."""
-    sol = out.solution
+    sol, stars, camera = out.solution, out.stars, out.camera
     if sol is None or len(sol.matched_det) < search.min_stars:
         return None
+    assert stars is not None and camera is not None  # a solution comes with both
     rows, cat = out.used[sol.matched_det], sol.matched_cat
     res = None
     for _ in range(2):
-        res = fit_frame(
-            StarObservations(out.stars.x[rows], out.stars.y[rows], catalog.vec[cat]), out.camera, search.k1_min_stars
-        )
+        res = fit_frame(StarObservations(stars.x[rows], stars.y[rows], catalog.vec[cat]), camera, search.k1_min_stars)
         if res is None or not res.success or not np.isfinite(res.residual_rms_px):
             return None
         err = np.hypot(*res.residuals[0].T)
@@ -326,6 +327,7 @@ def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSear
         if keep.all() or keep.sum() < search.min_stars:
             break
         rows, cat = rows[keep], cat[keep]
+    assert res is not None
     return OpticsFit(res.camera, res.sigmas, res.residual_rms_px, len(rows))
 
 
@@ -357,17 +359,18 @@ def _refine_optics(
     it moves a corner by more than ``refit_px`` or fits the stars :data:`REFIT_RMS_RATIO` times
     better than the answer's camera did, and keep that answer if it is high-confidence and
     agrees (within 1 mrad): its camera fits the stars better by construction."""
-    fit = _fit_optics(out, catalog, params.optics)
+    search, sol = params.optics, out.solution
+    assert search is not None and sol is not None  # called with the optics fit on, for an answer
+    fit = _fit_optics(out, catalog, search)
     out.optics = fit
-    rms_px = out.solution.consensus_rms * camera.f
+    rms_px = sol.consensus_rms * camera.f
     if fit is None or (
-        _corner_shift_px(camera, fit.camera) <= params.optics.refit_px
-        and rms_px <= REFIT_RMS_RATIO * fit.residual_rms_px
+        _corner_shift_px(camera, fit.camera) <= search.refit_px and rms_px <= REFIT_RMS_RATIO * fit.residual_rms_px
     ):
         return None
     again = _identify(_with_camera(stars, fit.camera), fit.camera, catalog, params, timings)
-    if again.status is Status.OK and same_attitude(again.solution, out.solution, 1e-3):
-        again.optics = _fit_optics(again, catalog, params.optics) or fit
+    if again.status is Status.OK and again.solution is not None and same_attitude(again.solution, sol, 1e-3):
+        again.optics = _fit_optics(again, catalog, search) or fit
         return again
     return None
 
@@ -384,6 +387,7 @@ def _search_optics(
     high-confidence answer with the fitted camera, else the low-confidence answer of a pattern
     match that explains the most stars (None when no pattern match verifies)."""
     search = params.optics
+    assert search is not None  # called with the optics search on
     t1 = time.perf_counter()
     scale_free.catalog_patterns(catalog, camera)  # once per catalog: not this frame's budget
     t0 += time.perf_counter() - t1
@@ -530,6 +534,7 @@ def _detections(used: np.ndarray, stars: StarList, camera: CameraModel, params: 
         )
         sigma_px = np.sqrt(var + floor**2)
     colour_sigma = np.sqrt(np.where(colour_ok[:, None], stars.cov_colour[used][:, [0, 1], [0, 1]], np.nan))
+    assert stars.vectors is not None  # extracted with a camera
     return Detections(
         vectors=stars.vectors[used],
         rg=rg,
@@ -580,7 +585,7 @@ def _optics_fields(out: PipelineOutput) -> dict:
 
 def result_fields(out: PipelineOutput) -> dict:
     """Result-structure fields (dotted paths of ``protocol.result.RESULT``) for one output."""
-    bits = ReturnBits.FULL_PROCESSING
+    bits: int = ReturnBits.FULL_PROCESSING
     fields: dict = {}
     stars, sol = out.stars, out.solution
     if stars is not None and len(stars):

@@ -61,6 +61,7 @@ def solve_record(rec: np.ndarray) -> dict:
     rc = int(rec["return_code"])
     st = result.status_of(rc)
     ext = rec["ext"]
+    stars: list[dict] = []
     out = {
         "sequence": int(rec["sequence"]),
         "status": st.name if isinstance(st, result.Status) else f"UNKNOWN_{st}",
@@ -78,7 +79,7 @@ def solve_record(rec: np.ndarray) -> dict:
         "timings_s": {name: float(t) for name, t in zip(STAGES, ext["stage_times"])},
         "optics": _optics(ext),
         "n_planets": int(ext["n_planets"]),
-        "stars": [],
+        "stars": stars,
     }
     q = np.asarray(ext["quaternion"], dtype=float)
     if rc & result.ReturnBits.IMAGE1_SUCCESS and np.isfinite(q).all() and abs(np.linalg.norm(q) - 1) < 1e-6:
@@ -92,7 +93,7 @@ def solve_record(rec: np.ndarray) -> dict:
             residual_rms_arcsec=_num(ext["residual_rms"] * ARCSEC),
         )
     for s in ext["stars"][: int(ext["n_reported"])]:
-        out["stars"].append(
+        stars.append(
             {
                 "x": _num(s["x"]),
                 "y": _num(s["y"]),

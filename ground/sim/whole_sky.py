@@ -397,7 +397,7 @@ def execute(
                 parts.append(part)
                 bar.update(len(part))
     bar.close()
-    rows = np.concatenate(parts) if parts else np.zeros(0)
+    rows: np.ndarray = np.concatenate(parts) if parts else np.zeros(0)
     key = "boresight" if kind == "fourstar" else None
     if key:
         rows = rows[np.argsort(rows[key], kind="stable")]
@@ -420,7 +420,7 @@ def colour_summary(rows: np.ndarray, poor_fraction: float = 0.4, high_error_deg:
     poor = solved & ~wrong & (rows["n_matched"] < poor_fraction * rows["n_visible"])
     high_err = solved & ~wrong & ~poor & (rows["err_deg"] > high_error_deg)
     none = ~solved
-    breakdown = {}
+    breakdown: dict[str, int] = {}
     for r in rows[wrong]:
         key = f"{int(r['n_wrong'])} of {int(r['n_visible'])}"
         breakdown[key] = breakdown.get(key, 0) + 1
