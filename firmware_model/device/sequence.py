@@ -75,7 +75,7 @@ class SequenceRunner:
 
     def go(self, req: Go) -> bytes:
         self._go(req.code)
-        return bytes([req.code])
+        return Go(req.code).pack()
 
     def _go(self, code: int) -> None:
         if code & ~0x3F:

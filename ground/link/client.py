@@ -314,29 +314,30 @@ class Client:
             return None
         return reply
 
-    def _single(self, code: int, data: bytes = b"", **kw) -> bytes:
-        parts = self.transact(code, data, **kw)
-        if len(parts) != 1:
-            raise MalformedReply(
-                f"{code_name(code)}: {len(parts)} reply messages, expected 1", b"".join(p.encode() for p in parts)
-            )
-        return parts[0].data
-
     def _parse(self, code: int, data: bytes, parser: Callable[..., _T], *args: Any) -> _T:
         try:
             return parser(data, *args)
         except PayloadError as exc:
             raise MalformedReply(f"{code_name(code)}: {exc}", data) from None
 
-    def _send(self, code: Code, request: Layout | None, **kw: Any) -> bytes:
-        """The single reply message's data to ``request``, a payload of the command table's
-        request type of ``code``; retried when the table says it may be (``idempotent`` given
-        overrides)."""
+    def _request(self, code: Code, request: Layout | None, **kw: Any) -> list[nsp.Message]:
+        """The reply messages to ``request``, a payload of the command table's request type of
+        ``code`` (None: no data field); retried when the table says it may be (``idempotent``
+        given overrides)."""
         spec = COMMANDS[code]
-        if (request is None) != (spec.request is None) or (request is not None and type(request) is not spec.request):
+        if not (request is None if spec.request is None else type(request) is spec.request):
             raise TypeError(f"{code_name(code)} takes {spec.request}, not {type(request)}")
         kw.setdefault("idempotent", spec.idempotent)
-        return self._single(code, request.pack() if request is not None else b"", **kw)
+        return self.transact(code, request.pack() if request is not None else b"", **kw)
+
+    def _send(self, code: Code, request: Layout | None, **kw: Any) -> bytes:
+        """The data of the single reply message to ``request`` (see :meth:`_request`)."""
+        parts = self._request(code, request, **kw)
+        if len(parts) != 1:
+            raise MalformedReply(
+                f"{code_name(code)}: {len(parts)} reply messages, expected 1", b"".join(p.encode() for p in parts)
+            )
+        return parts[0].data
 
     def _reply(self, code: Code, data: bytes, *args: Any) -> Any:
         """``data`` parsed as the command table's reply type of ``code``."""
@@ -426,8 +427,7 @@ class Client:
 
     def read_result(self, address: int = 0, count: int = result.TOTAL_LENGTH) -> bytes:
         """Result bytes [address, address+count), assembled from the Final-flagged parts."""
-        spec = COMMANDS[Code.READ_RESULT]
-        parts = self.transact(Code.READ_RESULT, ReadRange(address, count, long=True).pack(), idempotent=spec.idempotent)
+        parts = self._request(Code.READ_RESULT, ReadRange(address, count, long=True))
         return self._assemble(Code.READ_RESULT, parts, address, count)
 
     def read_result_record(self) -> np.ndarray:
@@ -446,13 +446,7 @@ class Client:
 
     def combination(self, go_code: int, mask: int, timeout: float = 30.0, mask_bytes: int = 4) -> dict[int, bytes]:
         """COMBINATION: returns {result address: bytes} of every part (placed by its address)."""
-        spec = COMMANDS[Code.COMBINATION]
-        parts = self.transact(
-            Code.COMBINATION,
-            Combination(go_code, mask, mask_bytes).pack(),
-            timeout=timeout,
-            idempotent=spec.idempotent,
-        )
+        parts = self._request(Code.COMBINATION, Combination(go_code, mask, mask_bytes), timeout=timeout)
         out: dict[int, bytes] = {}
         for part in parts:
             if not part.data:
