@@ -11,7 +11,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 from firmware_model.device.dispatch import Mode, Pending, Refused
 from firmware_model.device.transfers import Transfers
@@ -50,12 +50,21 @@ class SolveContext:
 Solver = Callable[[SolveContext], Mapping[str, Any]]
 
 
+class Settings(Protocol):
+    """What a sequence takes from the device when it starts (the device itself)."""
+
+    solver: Solver | None
+    frame_source: Callable[[SolveContext], Any] | None
+    clock: Callable[[], float]
+    sensor_shape: tuple[int, int]
+
+
 class SequenceRunner:
     """GO sequences of one device. ``lock`` is the device lock (the worker takes it to publish a
     result); ``solver``, ``frame_source``, ``clock`` and ``sensor_shape`` are read from
     ``settings`` (the device) when a sequence starts, so they may be replaced between sequences."""
 
-    def __init__(self, lock: threading.RLock, mode: Mode, transfers: Transfers, settings: Any):
+    def __init__(self, lock: threading.RLock, mode: Mode, transfers: Transfers, settings: Settings):
         self._lock = lock
         self.mode = mode
         self.transfers = transfers
