@@ -10,7 +10,9 @@ from __future__ import annotations
 import random
 
 from protocol import nsp, slip
+from protocol.command_table import COMMANDS
 from protocol.commands import (
+    Code,
     Combination,
     CrcRequest,
     DarkWindow,
@@ -47,29 +49,34 @@ FAULTS = (
 
 
 def _plausible_data(rng: random.Random, code: int) -> bytes:
-    """A data field of the right shape for ``code`` with random values (often out of range)."""
+    """A data field of the right shape for ``code`` with random values (often out of range): of
+    the request type the command table gives ``code`` (``tests/test_nsp_payloads.py`` checks that
+    every type is made)."""
     r = rng.randrange
     addr = rng.choice([0x20000000 + r(0x10000), r(0x2000), 0x40000000 + r(3000), r(1 << 32)])
     makers = {
-        0x01: lambda: Init(rng.choice([0x2000, r(1 << 32)])).pack(),
-        0x02: lambda: Peek(addr, r(0, 1100)).pack(),
-        0x03: lambda: Poke(addr, rng.randbytes(r(1, 64))).pack(),
-        0x04: lambda: (DiagnosticRequest(rng.choice([0, 1, r(256)]), True) if r(2) else DiagnosticRequest()).pack(),
-        0x06: lambda: CrcRequest(r(4), addr, rng.choice([r(1, 4096), r(1 << 32)])).pack(),
-        0x07: lambda: ReadFile(r(0, 600) & ~3, long=bool(r(2))).pack(),
-        0x08: lambda: WriteFile(r(0, 600) & ~3, rng.randbytes(4), long=bool(r(2))).pack(),
-        0x09: lambda: ReadRange(r(0, 600), r(1, 257), long=bool(r(2))).pack(),
-        0x0A: lambda: WriteEdac(r(0, 600), rng.randbytes(r(1, 40))).pack(),
-        0x0B: lambda: Go(rng.choice([0x02, 0x03, 0x0B, 0x12, r(256)])).pack(),
-        0x0D: lambda: ReadRange(r(0, 3000), r(0, 3000), long=True).pack(),
-        0x10: lambda: DarkWindow(r(3), r(3000), r(3000), r(1, 3000), r(1, 3000)).pack(),
-        0x12: lambda: Combination(rng.choice([0x02, 0x03, 0x0B, r(256)]), r(1 << 24)).pack(),
-        0x13: lambda: XferBegin(r(5), rng.choice([r(1, 5000), r(1 << 32)]), r(1 << 32)).pack(),
-        0x14: lambda: XferData(r(5), r(6000), rng.randbytes(r(1, 300))).pack(),
+        Code.INIT: lambda: Init(rng.choice([0x2000, r(1 << 32)])).pack(),
+        Code.PEEK: lambda: Peek(addr, r(0, 1100)).pack(),
+        Code.POKE: lambda: Poke(addr, rng.randbytes(r(1, 64))).pack(),
+        Code.DIAGNOSTIC: lambda: (
+            DiagnosticRequest(rng.choice([0, 1, r(256)]), True) if r(2) else DiagnosticRequest()
+        ).pack(),
+        Code.CRC: lambda: CrcRequest(r(4), addr, rng.choice([r(1, 4096), r(1 << 32)])).pack(),
+        Code.READ_FILE: lambda: ReadFile(r(0, 600) & ~3, long=bool(r(2))).pack(),
+        Code.WRITE_FILE: lambda: WriteFile(r(0, 600) & ~3, rng.randbytes(4), long=bool(r(2))).pack(),
+        Code.READ_EDAC: lambda: ReadRange(r(0, 600), r(1, 257), long=bool(r(2))).pack(),
+        Code.WRITE_EDAC: lambda: WriteEdac(r(0, 600), rng.randbytes(r(1, 40))).pack(),
+        Code.GO: lambda: Go(rng.choice([0x02, 0x03, 0x0B, 0x12, r(256)])).pack(),
+        Code.READ_RESULT: lambda: ReadRange(r(0, 3000), r(0, 3000), long=True).pack(),
+        Code.IMAGE: lambda: DarkWindow(r(3), r(3000), r(3000), r(1, 3000), r(1, 3000)).pack(),
+        Code.COMBINATION: lambda: Combination(rng.choice([0x02, 0x03, 0x0B, r(256)]), r(1 << 24)).pack(),
+        Code.XFER_BEGIN: lambda: XferBegin(r(5), rng.choice([r(1, 5000), r(1 << 32)]), r(1 << 32)).pack(),
+        Code.XFER_DATA: lambda: XferData(r(5), r(6000), rng.randbytes(r(1, 300))).pack(),
     }
     if code in makers:
         return makers[code]()
-    if code in (0x15, 0x16, 0x17, 0x18):
+    spec = COMMANDS.get(code)
+    if spec is not None and spec.request is SlotRequest:
         return SlotRequest(r(5)).pack()
     return b""
 
