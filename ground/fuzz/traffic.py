@@ -8,6 +8,7 @@ kind (:data:`FAULTS`); :func:`burst` mixes both, with garbage between frames.
 from __future__ import annotations
 
 import random
+from collections.abc import Callable
 
 from protocol import nsp, slip
 from protocol.command_table import COMMANDS
@@ -54,7 +55,7 @@ def _plausible_data(rng: random.Random, code: int) -> bytes:
     every type is made)."""
     r = rng.randrange
     addr = rng.choice([0x20000000 + r(0x10000), r(0x2000), 0x40000000 + r(3000), r(1 << 32)])
-    makers = {
+    makers: dict[int, Callable[[], bytes]] = {
         Code.INIT: lambda: Init(rng.choice([0x2000, r(1 << 32)])).pack(),
         Code.PEEK: lambda: Peek(addr, r(0, 1100)).pack(),
         Code.POKE: lambda: Poke(addr, rng.randbytes(r(1, 64))).pack(),
