@@ -118,7 +118,7 @@ def part_a(n: int, workers: int, seed: int, out: Path) -> None:
 def part_b(n: int, out: Path) -> None:
     from firmware_model.catalog.image_io import catalog_to_image
     from firmware_model.pipeline.camera import CameraModel
-    from ground.cli.demo import pick_attitudes, start_device, stop_device
+    from ground.cli.end_to_end import pick_attitudes, start_device, stop_device
     from ground.link.client import Client
     from ground.link.solve_report import solve_record
     from ground.sim.frame_writer import write_frame

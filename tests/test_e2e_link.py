@@ -19,7 +19,7 @@ from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes
 from ground.analysis.replay import LinkSolver, Truth, replay, score
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
-from ground.cli.demo import pick_attitudes, start_device, stop_device
+from ground.cli.end_to_end import pick_attitudes, start_device, stop_device
 from ground.link.client import Client, Nack
 from ground.sim.frame_writer import write_rendered
 from ground.sim.sensor_sim import DetectorModel, render_frame

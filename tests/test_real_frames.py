@@ -101,7 +101,7 @@ def test_real_frames_solve_through_the_cli(tetra3, camera, tmp_path):
 
 
 def test_device_and_offline_replay_give_the_same_answers(tetra3, tmp_path):
-    from ground.cli.demo import start_device, stop_device
+    from ground.cli.end_to_end import start_device, stop_device
     from ground.link.client import Client
     from ground.link.solve_report import solve_record
 

@@ -31,6 +31,10 @@ COMMAND_MODULES = (
     "ground.cli.frame",
     "ground.cli.sim",
     "ground.cli.solve",
+    "ground.cli.replay",
+    "ground.cli.colour",
+    "ground.cli.params",
+    "ground.cli.demo",
     "ground.cli.camera",
 )
 

@@ -1,5 +1,5 @@
 """Options shared by the offline paths (``replay --offline``, ``solve --offline``, ``frame inspect``,
-``camera calibrate``): the camera model and the parameter set.
+``camera calibrate``): the camera model, the parameter set, the catalog and the in-process solver.
 
 * Camera: ``--camera FILE`` (``CameraModel`` JSON), or ``--fov-deg F``, a pinhole camera built per
   frame from its size and horizontal field of view (the pipeline's focal-length search and
@@ -13,6 +13,7 @@ Bad values fail before any work with an :class:`~ground.arg_types.InputError` (o
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ground.arg_types import InputError
@@ -65,3 +66,34 @@ def camera_for_frames(args) -> Callable[[Frame], CameraModel]:
     except ValueError as exc:
         raise InputError(str(exc)) from None
     return lambda frame: camera
+
+
+def load_catalog(path):
+    """The on-board catalog from a catalog image file."""
+    from firmware_model.catalog.image_io import catalog_from_image
+
+    return catalog_from_image(Path(path).read_bytes())
+
+
+def offline_solver(args):
+    """The in-process solver the offline options describe (camera, catalog, parameters, site)."""
+    from ground.analysis.replay import OfflineSolver
+
+    if not args.catalog:
+        raise InputError("the offline solver needs --catalog IMAGE")
+    camera, params = camera_for_frames(args), load_params(args.params)
+    site = None
+    if getattr(args, "site", None):
+        from ground.calibration.corrections import Site
+
+        try:
+            parts = [float(v) for v in args.site.split(",")]
+            given = dict(zip(("lat_deg", "lon_deg", "height_m"), parts))  # a fourth value is ignored
+            site = Site(**given, pressure_hpa=args.pressure, temperature_c=args.temperature)
+        except (ValueError, TypeError):
+            raise InputError(f"--site wants LAT,LON[,HEIGHT_M] in degrees/metres, got {args.site!r}") from None
+    try:
+        catalog = load_catalog(args.catalog)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"--catalog {args.catalog}: {exc}") from None
+    return OfflineSolver(camera, catalog, params, site)

@@ -1,0 +1,151 @@
+"""The end-to-end demo (README's first command): a real device process on a pty, a catalog
+built from the bundled Hipparcos data and uploaded over the link, raw frames rendered at known
+attitudes, lost-in-space solves commanded over the link, and a table of the results.
+
+Everything it writes (catalog image, frames with truth, results log, summary, plots) goes to
+the output folder it names; the device's state directory is a temporary folder.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from firmware_model.catalog.image_io import catalog_to_image
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.reference_frames import attitude_from_radec_roll
+from ground.analysis.replay import LinkSolver, replay
+from ground.atomic_write import write_bytes
+from ground.catalog.build import build_catalog
+from ground.catalog.design import CatalogDesign
+from ground.sim.frame_writer import write_rendered
+from ground.sim.sensor_sim import DetectorModel, render_frame
+from ground.sim.sky_model import sky_stars
+from protocol.commands import Slot
+
+#: A demo frame shows at least this many catalog stars (a "well-populated field").
+MIN_CATALOG_STARS = 8
+
+
+def pick_attitudes(catalog, camera: CameraModel, n: int, rng) -> list[np.ndarray]:
+    """``n`` random attitudes whose field holds at least MIN_CATALOG_STARS catalog stars."""
+    out: list[np.ndarray] = []
+    radius = np.arctan(np.hypot(camera.width, camera.height) / 2 / camera.f)
+    while len(out) < n:
+        ra, dec, roll = rng.uniform(0, 2 * np.pi), np.arcsin(rng.uniform(-1, 1)), rng.uniform(0, 2 * np.pi)
+        a = attitude_from_radec_roll(ra, dec, roll)
+        near = catalog.stars_within(a[2], radius)
+        x, y = camera.vector_to_pixel(catalog.vec[near] @ a.T)
+        if np.count_nonzero(camera.in_frame(x, y)) >= MIN_CATALOG_STARS:
+            out.append(a)
+    return out
+
+
+def start_device(state_dir: Path, *extra: str) -> tuple[subprocess.Popen[str], str]:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "firmware_model.device.cli", "--pty", "--state", str(state_dir), *extra],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None  # stdout=PIPE
+    line = proc.stdout.readline().strip()
+    if not line.startswith("listening on "):
+        proc.kill()
+        raise RuntimeError(f"device did not start: {line!r}")
+    return proc, line[len("listening on ") :]
+
+
+def stop_device(proc: subprocess.Popen[str]) -> int:
+    proc.send_signal(signal.SIGTERM)
+    rc = proc.wait(timeout=30)
+    if proc.stdout is not None:  # start_device's pipe
+        proc.stdout.close()
+    return rc
+
+
+def run_demo(out, n_frames: int = 6, seed: int = 2026, progress: bool = True) -> int:
+    from ground.link.client import Client
+
+    out = Path(out).resolve()
+    if out.exists() and any(out.iterdir()):  # a fresh folder per run: runs never mix
+        out = out / time.strftime("run-%Y%m%dT%H%M%SZ", time.gmtime())
+    frames_dir = out / "frames"
+    frames_dir.mkdir(parents=True, exist_ok=True)
+    print(f"st16 demo: output folder {out}", flush=True)
+    t0 = time.perf_counter()
+    design = CatalogDesign()
+    catalog = build_catalog(design)
+    image = catalog_to_image(catalog)
+    write_bytes(out / "catalog.st16cat", image)
+    print(
+        f"catalog: Hipparcos V <= {design.m_thresh}, theta_FOV {design.theta_fov_deg} deg: {catalog.n_stars} stars, "
+        f"{catalog.n_pairs} pairs, {len(image)} bytes, built in {time.perf_counter() - t0:.1f} s",
+        flush=True,
+    )
+
+    camera = CameraModel.reference_design()
+    rng = np.random.default_rng(seed)
+    stars = sky_stars()
+    n_mono = max(1, n_frames // 3) if n_frames >= 2 else 0
+    for k, a in enumerate(pick_attitudes(catalog, camera, n_frames, rng)):
+        pattern = "MONO" if k >= n_frames - n_mono else "RGGB"
+        rendered = render_frame(
+            stars, a, camera, DetectorModel(pattern=pattern), seed=seed + k, timestamp="2026-01-01T00:00:00Z"
+        )
+        write_rendered(rendered, frames_dir / f"frame_{k:02d}_{pattern.lower()}.dng")
+    print(
+        f"frames: {n_frames} rendered at known attitudes ({n_frames - n_mono} colour RGGB, {n_mono} mono), "
+        f"sky to V {6.5}, in {frames_dir}",
+        flush=True,
+    )
+
+    with tempfile.TemporaryDirectory(prefix="st16-state-") as state:
+        proc, pty = start_device(Path(state))
+        print(f"device: st16-device --pty on {pty} (state in {state})", flush=True)
+        try:
+            with Client(pty) as client:
+                print(f"  {client.ping()}", flush=True)
+                client.init()
+                print(f"  {client.ping()}", flush=True)
+                report = client.upload(Slot.CATALOG, image, progress=progress)
+                info = client.slot_info(Slot.CATALOG)
+                print(
+                    f"catalog uploaded: {report.sent} bytes, device CRC-32 0x{info.crc32:08X} "
+                    f"({'verified' if info.active else 'NOT ACTIVE'})",
+                    flush=True,
+                )
+            solver = LinkSolver(pty)
+            try:
+                summary = replay(frames_dir, solver, out, progress=progress)
+            finally:
+                solver.close()
+        finally:
+            stop_device(proc)
+
+    from ground.analysis.results_log import ResultsLog
+
+    print()
+    print(
+        f"{'frame':<22}{'method':<11}{'status':<16}{'matched':>8}{'error (arcsec)':>16}{'device (ms)':>13}"
+        f"{'exchange (s)':>14}"
+    )
+    for rec in ResultsLog(out).records():
+        err = rec.get("attitude_error_deg")
+        print(
+            f"{rec['frame']:<22}{rec.get('method') or '-':<11}{rec.get('status', rec['outcome']):<16}"
+            f"{rec.get('n_matched', 0):>8}{'-' if err is None else f'{err * 3600:.2f}':>16}"
+            f"{(rec.get('solve_s') or 0) * 1e3:>13.1f}{rec.get('exchange_s', 0):>14.2f}"
+        )
+    counts = summary["counts"]
+    print(
+        f"\n{counts.get('correct', 0)} of {summary['frames']} frames solved correctly "
+        f"(wrong {counts.get('wrong', 0)}, no match {counts.get('no_match', 0)}); "
+        f"log {out / 'results.jsonl'}, plots {', '.join(Path(p).name for p in summary['plots'])} in {out}"
+    )
+    return 0 if counts.get("wrong", 0) == 0 else 1

@@ -1,0 +1,85 @@
+"""``st16-ground replay DIR``: every frame of a directory over the link (or ``--offline``
+in-process), scored against ``NAME.truth.json`` when present; log, summary and plots in ``--out``.
+``st16-ground table5 DIR``: Enright & McVittie table 5 (basic / ideal colour / chromatic / both) on
+frames with truth.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from ground import json_text
+from ground.arg_types import InputError, progress_on
+from ground.cli.offline_options import load_catalog, offline_solver
+from ground.cli.solve import DEFAULT_RESULTS
+
+
+def _replay(args) -> int:
+    from ground.analysis.replay import LinkSolver, replay
+    from ground.cli.link import client_kwargs
+
+    if args.offline:
+        solver = offline_solver(args)
+    else:
+        if not args.port:
+            raise InputError("--port URL is required (or use --offline)")
+        solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, **client_kwargs(args))
+    try:
+        summary = replay(args.directory, solver, args.out, progress=progress_on(args), resume=args.resume)
+    except (ValueError, TimeoutError) as exc:
+        print(f"st16-ground: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        if isinstance(solver, LinkSolver):
+            solver.close()
+    summary["log"] = str(Path(args.out) / "results.jsonl")
+    print(json_text.dumps(summary, indent=None if args.json else 2))
+    return 0
+
+
+def _table5(args) -> int:
+    from firmware_model.device.cli import load_camera
+    from firmware_model.pipeline.frame_readers import frame_files
+    from ground.analysis.replay import TABLE5_MODES, table5
+
+    out = table5(
+        frame_files(args.directory), load_camera(args.camera), load_catalog(args.catalog), progress=progress_on(args)
+    )
+    if args.json:
+        print(json_text.dumps(out))
+    else:
+        print(f"{'corrections':<28}{'correct':>9}{'incorrect':>11}{'no match':>10}   ({out['frames']} frames)")
+        for mode in TABLE5_MODES:
+            c = out["table"][mode]
+            print(f"{mode:<28}{c['correct']:>9}{c['incorrect']:>11}{c['no_match']:>10}")
+    return 0
+
+
+def register(sub) -> None:
+    from ground.cli.offline_options import add_camera_options, add_params_option
+
+    p = sub.add_parser("replay", help="solve every frame of a directory and score against truth")
+    p.add_argument("directory", help="frames (any supported format), with NAME.truth.json beside them to score")
+    p.add_argument("--offline", action="store_true", help="run the pipeline in-process instead of over the link")
+    p.add_argument("--catalog", help="catalog image for --offline")
+    add_camera_options(p)
+    add_params_option(p)
+    p.add_argument("--site", help="with --offline: LAT,LON[,HEIGHT] (deg, m) of a ground site: correct refraction")
+    p.add_argument("--pressure", type=float, default=1013.25, help="site pressure, hPa (with --site)")
+    p.add_argument("--temperature", type=float, default=10.0, help="site temperature, deg C (with --site)")
+    p.add_argument("--out", default=DEFAULT_RESULTS, help="output directory (log, summary, plots)")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run logged in --out (its frames are skipped); without it a --out that "
+        "holds results is refused",
+    )
+    p.add_argument("--reconnect-timeout", type=float, default=120.0, help="wait this long for a silent device, s")
+    p.set_defaults(func=_replay)
+
+    p = sub.add_parser("table5", help="Enright & McVittie table 5 on frames with truth (offline)")
+    p.add_argument("directory", help="frames with NAME.truth.json beside them")
+    p.add_argument("--catalog", required=True, help="catalog image")
+    p.add_argument("--camera", help="camera model JSON (default: the reference design)")
+    p.set_defaults(func=_table5)
