@@ -35,6 +35,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 from scipy import ndimage
 from scipy.special import erf, ndtri
 
@@ -126,42 +127,6 @@ REGION_CAP_FACTOR = 8
 MERGE_RADIUS_KERNELS = 3
 
 
-def frame_problem(frame: Frame, params: DetectParams) -> str:
-    """Reason the frame cannot hold usable stars, or ''."""
-    px = frame.pixels
-    lo, hi = px.min(), px.max()
-    if lo == hi:
-        return f"frame is uniform (every pixel = {lo})"
-    sat = float(np.count_nonzero(px >= frame.white_level)) / px.size if hi >= frame.white_level else 0.0
-    if sat > params.max_saturated_fraction:
-        return f"frame is saturated ({100 * sat:.0f}% of pixels at the white level)"
-    return ""
-
-
-def _phase_background(phase: np.ndarray, block: int):
-    """Coarse (background, noise) grids of one phase image (block in phase pixels):
-    clipped mean and standard deviation of a 1-in-4 subsample, the clip at +-4 sigma about a
-    sparse per-block median. Means, not medians: integer DN make medians biased by up to
-    0.5 DN, which the 36-pixel matched filter would multiply."""
-    b = max(block // 2, 2)
-    ny, nx = max(phase.shape[0] // block, 1), max(phase.shape[1] // block, 1)
-    dense = phase[: ny * block : 2, : nx * block : 2][: ny * b, : nx * b]
-    blocks = dense.reshape(ny, b, nx, b).transpose(0, 2, 1, 3).reshape(ny, nx, b * b)
-    # an odd step walks across the block's columns: a step dividing the row length would sample
-    # the same few columns in every row (a dead column then looked like half the block)
-    sparse = blocks[:, :, :: max((b * b) // 64, 1) | 1]
-    med = np.median(sparse, axis=2)
-    mad = np.maximum(
-        np.maximum(np.median(np.abs(sparse - med[:, :, None]), axis=2) * 1.4826, _clipped_width(sparse)), 0.5
-    )
-    keep = np.abs(blocks - med[:, :, None]) < 4.0 * mad[:, :, None]
-    n = np.maximum(keep.sum(axis=2), 1)
-    mean = np.where(keep, blocks, 0).sum(axis=2) / n
-    var = np.where(keep, (blocks - mean[:, :, None]) ** 2, 0).sum(axis=2) / np.maximum(n - 1, 1)
-    # clipping at 4 sigma keeps 99.99% of a Gaussian: no variance correction needed
-    return mean, np.sqrt(np.maximum(var, 1.0 / 12.0))  # floor: quantisation noise of 1 DN steps
-
-
 def _clipped_width(sparse: np.ndarray) -> np.ndarray:
     """Noise width (DN) of blocks whose samples pile up at their minimum (a background clipped at
     the black level, as in 8-bit images: the MAD of such a block is ~0): from two quantiles above
@@ -191,101 +156,509 @@ def _expand(grid: np.ndarray, block: int, shape) -> np.ndarray:
     return np.repeat(np.repeat(grid, reps[0], axis=0), reps[1], axis=1)
 
 
-def _interpolate(grid: np.ndarray, block: int, shape) -> np.ndarray:
-    """Bilinear interpolation of a block grid (values at block centres, the last block
-    stretched to the edge) to ``shape``, constant beyond the outermost centres. Smooth, so
-    a vignetted or glowing background leaves no steps at block boundaries."""
-    axes = []
-    for n_blocks, size in zip(grid.shape, shape):
-        reps = np.full(n_blocks, block)
-        reps[-1] = size - block * (n_blocks - 1)
-        centres = np.cumsum(reps) - reps / 2.0 - 0.5
-        pos = np.arange(size, dtype=float)
-        if n_blocks == 1:
-            axes.append((np.zeros(size, int), np.zeros(size, np.float32)))
-            continue
-        i0 = np.clip(np.searchsorted(centres, pos) - 1, 0, n_blocks - 2)
-        t = np.clip((pos - centres[i0]) / (centres[i0 + 1] - centres[i0]), 0.0, 1.0).astype(np.float32)
-        axes.append((i0, t))
-    (iy, ty), (ix, tx) = axes
-    g = grid.astype(np.float32)
-    if grid.shape[1] > 1:
-        g = g[:, ix] * (1 - tx) + g[:, np.minimum(ix + 1, grid.shape[1] - 1)] * tx
-    else:
-        g = np.repeat(g, shape[1], axis=1)
-    if grid.shape[0] > 1:
-        return g[iy] * (1 - ty)[:, None] + g[np.minimum(iy + 1, grid.shape[0] - 1)] * ty[:, None]
-    return np.repeat(g, shape[0], axis=0)
+def _frame_problem(lo, hi, n_sat: int, size: int, params: DetectParams) -> str:
+    """Reason the frame cannot hold usable stars, or '' (from its minimum, maximum and the number
+    of pixels at the white level)."""
+    if lo == hi:
+        return f"frame is uniform (every pixel = {lo})"
+    sat = n_sat / size
+    if sat > params.max_saturated_fraction:
+        return f"frame is saturated ({100 * sat:.0f}% of pixels at the white level)"
+    return ""
+
+
+def frame_problem(frame: Frame, params: DetectParams) -> str:
+    """Reason the frame cannot hold usable stars, or ''."""
+    lo, hi, n_sat = _nb_range(frame.pixels, float(frame.white_level))
+    return _frame_problem(lo, hi, n_sat, frame.pixels.size, params)
+
+
+def _background_grids(img: np.ndarray, black: np.ndarray, block: int, step: int):
+    """Coarse (background, noise) grids, shape (step, step, ny, nx), of the ``step`` x ``step``
+    phases of ``img`` (2: the CFA phases of a frame, minus ``black``; 1: the image itself), block
+    in phase pixels: clipped mean and standard deviation of a 1-in-4 subsample, the clip at
+    +-4 sigma about a sparse per-block median. Means, not medians: integer DN make medians biased
+    by up to 0.5 DN, which the 36-pixel matched filter would multiply."""
+    b = max(block // 2, 2)
+    hp, wp = img.shape[0] // step, img.shape[1] // step
+    ny, nx = max(hp // block, 1), max(wp // block, 1)
+    sstep = max((b * b) // 64, 1) | 1
+    # an odd sample step walks across the block's columns: a step dividing the row length would
+    # sample the same few columns in every row (a dead column then looked like half the block)
+    mean = np.empty((step, step, ny, nx))
+    var = np.empty((step, step, ny, nx))
+    for py in range(step):
+        for px in range(step):
+            blk = np.float32(black[py, px])
+            sparse = _nb_block_samples(img, step, py, px, blk, b, ny, nx, sstep)
+            med = np.median(sparse, axis=2)
+            mad = np.maximum(
+                np.maximum(np.median(np.abs(sparse - med[:, :, None]), axis=2) * 1.4826, _clipped_width(sparse)), 0.5
+            )
+            mean[py, px], var[py, px] = _nb_block_stats(img, step, py, px, blk, b, med, 4.0 * mad)
+    # clipping at 4 sigma keeps 99.99% of a Gaussian: no variance correction needed; the floor is
+    # the quantisation noise of 1 DN steps
+    return mean, np.sqrt(np.maximum(var, 1.0 / 12.0))
+
+
+#: A column whose median departs from its neighbours' by more than this many noise sigmas is a
+#: column defect (stuck, dead or offset): no star or sky feature moves a whole column's median.
+COLUMN_DEFECT_SIGMAS = 2.0
+
+
+def _column_defects(pix: np.ndarray, black: np.ndarray, sig: np.ndarray, width: int):
+    """Column defects per phase (``COLUMN_DEFECT_SIGMAS`` against the phase's median noise): the
+    offsets (2, 2, w2) that shift them to their neighbours' level, so that detection does not see
+    a line, and the linear indices of their pixels (the fit leaves them out)."""
+    h2, w2 = pix.shape[0] // 2, pix.shape[1] // 2
+    step = max(h2 // 64, 1)  # ~64 rows: the median is robust
+    colex = np.zeros((2, 2, w2), np.float32)
+    bad = []
+    for py in (0, 1):
+        for px in (0, 1):
+            sub = pix[py : 2 * h2 : 2 * step, px : 2 * w2 : 2].astype(np.float32) - black[py, px]
+            colmed = np.median(sub, axis=0)
+            excess = colmed - ndimage.median_filter(colmed, size=9, mode="nearest")
+            cols = np.flatnonzero(np.abs(excess) > COLUMN_DEFECT_SIGMAS * float(np.median(sig[py, px])))
+            if len(cols):
+                colex[py, px, cols] = excess[cols]
+                rows = np.arange(h2)
+                bad.append(((2 * rows[:, None] + py) * width + (2 * cols[None, :] + px)).ravel())
+    return colex, bad
+
+
+def _grid_sum(g: np.ndarray) -> np.ndarray:
+    """Sum of the four phase grids (2, 2, ny, nx), in phase order."""
+    return g[0, 0] + g[0, 1] + g[1, 0] + g[1, 1]
+
+
+def _interp_axis(n_blocks: int, block: int, size: int):
+    """Bilinear weights along one axis for grid values at block centres (the last block stretched
+    to the edge), constant beyond the outermost centres: lower index and weight of the upper one."""
+    if n_blocks == 1:
+        return np.zeros(size, np.int64), np.zeros(size, np.float32)
+    reps = np.full(n_blocks, block)
+    reps[-1] = size - block * (n_blocks - 1)
+    centres = np.cumsum(reps) - reps / 2.0 - 0.5
+    pos = np.arange(size, dtype=float)
+    i0 = np.clip(np.searchsorted(centres, pos) - 1, 0, n_blocks - 2)
+    t = np.clip((pos - centres[i0]) / (centres[i0 + 1] - centres[i0]), 0.0, 1.0).astype(np.float32)
+    return i0.astype(np.int64), t
+
+
+def _interp_cols(grid: np.ndarray, ix: np.ndarray, tx: np.ndarray) -> np.ndarray:
+    """The grid interpolated along its rows to every column (ny, size), float32."""
+    return grid[:, ix] * (1 - tx) + grid[:, np.minimum(ix + 1, grid.shape[1] - 1)] * tx
+
+
+# --- compiled kernels (numba; cached on disk, so only the first run after an install compiles) ---
+
+
+@njit(cache=True, nogil=True)
+def _nb_range(px, white):  # pragma: no cover - compiled
+    """Minimum, maximum and number of pixels at or above ``white``: one pass."""
+    lo = px.flat[0]
+    hi = px.flat[0]
+    n = 0
+    for r in range(px.shape[0]):
+        for c in range(px.shape[1]):
+            v = px[r, c]
+            if v < lo:
+                lo = v
+            if v > hi:
+                hi = v
+            if v >= white:
+                n += 1
+    return lo, hi, n
+
+
+@njit(cache=True, nogil=True)
+def _nb_block_samples(img, step, py, px, black, b, ny, nx, sstep):  # pragma: no cover - compiled
+    """Sparse samples (ny, nx, ns) of each block of one phase's 1-in-4 subsample."""
+    ns = (b * b + sstep - 1) // sstep
+    out = np.empty((ny, nx, ns), np.float32)
+    for i in range(ny):
+        for j in range(nx):
+            k = 0
+            for t in range(0, b * b, sstep):
+                u, v = t // b, t % b
+                out[i, j, k] = np.float32(img[2 * (i * b + u) * step + py, 2 * (j * b + v) * step + px]) - black
+                k += 1
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _nb_block_stats(img, step, py, px, black, b, med, lim):  # pragma: no cover - compiled
+    """Mean and variance of each block's 1-in-4 subsample within ``lim`` of ``med``."""
+    ny, nx = med.shape
+    mean = np.empty((ny, nx))
+    var = np.empty((ny, nx))
+    for i in range(ny):
+        for j in range(nx):
+            m = med[i, j]
+            lm = lim[i, j]
+            n = 0
+            s1 = 0.0
+            s2 = 0.0
+            for u in range(b):
+                r = 2 * (i * b + u) * step + py
+                for v in range(b):
+                    d = (np.float32(img[r, 2 * (j * b + v) * step + px]) - black) - m
+                    if abs(d) < lm:
+                        n += 1
+                        s1 += d
+                        s2 += float(d) * d
+            if n == 0:
+                mean[i, j] = 0.0
+                var[i, j] = 0.0
+            else:
+                mean[i, j] = m + s1 / n
+                var[i, j] = max(s2 - s1 * s1 / n, 0.0) / max(n - 1, 1)
+    return mean, var
+
+
+@njit(cache=True, nogil=True)
+def _nb_superpixels(pix, black, colex, thr, block, cand):  # pragma: no cover - compiled
+    """One pass over the frame: 2x2 super-pixel sums of the black- and column-corrected phases
+    (h2, w2) and the linear indices of phase pixels above their block's ``thr`` (into ``cand``;
+    returns how many there are, also beyond its length)."""
+    h2, w2 = pix.shape[0] // 2, pix.shape[1] // 2
+    width = pix.shape[1]
+    ny, nx = thr.shape[2], thr.shape[3]
+    total = np.empty((h2, w2), np.float32)
+    cap = len(cand)
+    n = 0
+    for rr in range(h2):
+        gy = min(rr // block, ny - 1)
+        for cc in range(w2):
+            gx = min(cc // block, nx - 1)
+            acc = np.float32(0.0)
+            for a in range(2):
+                for bb in range(2):
+                    v = np.float32(pix[2 * rr + a, 2 * cc + bb]) - black[a, bb] - colex[a, bb, cc]
+                    acc += v
+                    if v > thr[a, bb, gy, gx]:
+                        if n < cap:
+                            cand[n] = (2 * rr + a) * width + 2 * cc + bb
+                        n += 1
+            total[rr, cc] = acc
+    return total, n
+
+
+@njit(cache=True, nogil=True)
+def _nb_clean_sharp(px_all, black, colex, bg, sig, cand, block, ratio, mono, width):  # pragma: no cover
+    """Pixels much sharper than the PSF (hot pixels, cosmic-ray hits) among the candidates
+    ``cand`` (linear indices above k sigma): returns their linear indices, the value each is
+    replaced with (the mean of the middle two of its four neighbours) and its value before.
+    Neighbours are the same-colour pixels 2 px away (phase neighbours, already cleaned values
+    where an earlier round replaced them) or, for mono frames, the adjacent raw pixels. Sharp: the
+    second largest neighbour above the block background (+1 sigma) below ``ratio`` x the
+    excess. For a Gaussian PSF of sigma s every pixel, peak or wing, has a second-largest
+    neighbour at distance d of at least exp(-d^2 / (2 s^2)) of its own value, while an isolated
+    or paired hot pixel has background there. Rounds (3 on CFA frames: chains of hot pixels
+    clean from their ends inwards) see the values of the round before."""
+    h2, w2 = px_all.shape[0] // 2, px_all.shape[1] // 2
+    hr, wr = px_all.shape[0], px_all.shape[1]
+    ny, nx = bg.shape[2], bg.shape[3]
+    order = np.argsort(cand)
+    lin = cand[order]
+    n = len(lin)
+    cur = np.empty(n, np.float32)
+    active = np.ones(n, np.bool_)
+    for i in range(n):
+        r, c = lin[i] // width, lin[i] % width
+        cur[i] = np.float32(px_all[r, c]) - black[r % 2, c % 2] - colex[r % 2, c % 2, c // 2]
+    orig = cur.copy()
+    done = np.zeros(n, np.bool_)
+    newv = np.empty(n, np.float32)
+    nb = np.empty(4, np.float32)
+    for _round in range(1 if mono else 3):
+        n_sharp = 0
+        for i in range(n):
+            if not active[i]:
+                continue
+            r, c = lin[i] // width, lin[i] % width
+            a, b = r % 2, c % 2
+            pr, pc = r // 2, c // 2
+            gy, gx = min(pr // block, ny - 1), min(pc // block, nx - 1)
+            bgv = np.float32(bg[a, b, gy, gx])
+            thr = np.float32(sig[a, b, gy, gx])
+            for k in range(4):
+                dr = -1 if k == 0 else (1 if k == 1 else 0)
+                dc = -1 if k == 2 else (1 if k == 3 else 0)
+                if mono:
+                    rr = min(max(r + dr, 0), hr - 1)
+                    cc = min(max(c + dc, 0), wr - 1)
+                    nb[k] = np.float32(px_all[rr, cc]) - black[a, b]
+                else:
+                    qr = min(max(pr + dr, 0), h2 - 1)
+                    qc = min(max(pc + dc, 0), w2 - 1)
+                    rr, cc = 2 * qr + a, 2 * qc + b
+                    q = rr * width + cc
+                    j = np.searchsorted(lin, q)
+                    if j < n and lin[j] == q:
+                        nb[k] = cur[j]
+                    else:
+                        nb[k] = np.float32(px_all[rr, cc]) - black[a, b] - colex[a, b, qc]
+            l1, s1 = max(nb[0], nb[1]), min(nb[0], nb[1])
+            l2, s2 = max(nb[2], nb[3]), min(nb[2], nb[3])
+            second = max(min(l1, l2), max(s1, s2)) - bgv
+            middle = np.float32(0.5) * (nb[0] + nb[1] + nb[2] + nb[3] - max(l1, l2) - min(s1, s2))
+            if float(second + thr) < ratio * float(cur[i] - bgv):
+                newv[i] = middle
+                done[i] = True
+                n_sharp += 1
+        if n_sharp == 0:
+            break
+        for i in range(n):
+            if active[i] and done[i]:
+                cur[i] = newv[i]
+                active[i] = False
+    m = 0
+    for i in range(n):
+        if done[i]:
+            m += 1
+    out_lin = np.empty(m, np.int64)
+    out_new = np.empty(m, np.float32)
+    out_old = np.empty(m, np.float32)
+    m = 0
+    for i in range(n):
+        if done[i]:
+            out_lin[m], out_new[m], out_old[m] = lin[i], cur[i], orig[i]
+            m += 1
+    return out_lin, out_new, out_old
+
+
+@njit(cache=True, nogil=True)
+def _nb_patch_total(total, lin, delta, width):  # pragma: no cover - compiled
+    for i in range(len(lin)):
+        total[(lin[i] // width) // 2, (lin[i] % width) // 2] += delta[i]
+
+
+@njit(cache=True, nogil=True)
+def _nb_subtract_background(total, gx, iy, ty):  # pragma: no cover - compiled
+    """Background subtraction in place, bilinear between block centres (``gx``: the grid already
+    interpolated along rows; ``iy, ty``: lower grid row and upper weight per image row)."""
+    h, w = total.shape
+    ny = gx.shape[0]
+    for r in range(h):
+        i0 = iy[r]
+        i1 = min(i0 + 1, ny - 1)
+        t = ty[r]
+        for c in range(w):
+            total[r, c] -= gx[i0, c] * (np.float32(1.0) - t) + gx[i1, c] * t
+
+
+@njit(cache=True, nogil=True)
+def _nb_filter(total, kernel, den, block, k_sigma, mr, mc):  # pragma: no cover - compiled
+    """The separable correlation of ``total`` with ``kernel`` on both axes (zero outside the
+    image) and the super-pixels whose filtered value exceeds ``k_sigma`` x their block's ``den``,
+    in raster order, into ``mr, mc`` (none with empty arrays; returns how many there are, also
+    beyond their length)."""
+    h, w = total.shape
+    L = len(kernel)
+    hk = L // 2
+    filt = np.empty((h, w), np.float32)
+    buf = np.zeros(w + 2 * hk, np.float32)
+    acc = np.empty(w)
+    cap = len(mr)
+    n = 0
+    nyd, nxd = den.shape
+    for r in range(h):
+        acc[:] = 0.0
+        for i in range(L):
+            rr = r + i - hk
+            if 0 <= rr < h:
+                k = kernel[i]
+                for c in range(w):
+                    acc[c] += k * total[rr, c]
+        for c in range(w):
+            buf[c + hk] = np.float32(acc[c])
+        gy = min(r // block, nyd - 1)
+        for c in range(w):
+            a = 0.0
+            for j in range(L):
+                a += kernel[j] * buf[c + j]
+            f = np.float32(a)
+            filt[r, c] = f
+            if cap and f / den[gy, min(c // block, nxd - 1)] > k_sigma:
+                if n < cap:
+                    mr[n] = r
+                    mc[n] = c
+                n += 1
+    return filt, n
+
+
+@njit(cache=True, nogil=True)
+def _nb_find(parent, i):  # pragma: no cover - compiled
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
+@njit(cache=True, nogil=True)
+def _nb_label(mr, mc):  # pragma: no cover - compiled
+    """4-connected labels (1..n, numbered by first pixel in raster order, as ndimage.label) of the
+    pixels (mr, mc) given in raster order."""
+    n = len(mr)
+    parent = np.arange(n)
+    j = 0  # walks the previous row
+    row_start = 0
+    for i in range(n):
+        r, c = mr[i], mc[i]
+        if i > 0 and mr[i - 1] != r:
+            row_start = i
+        if i > row_start and mc[i - 1] == c - 1:
+            a, b = _nb_find(parent, i), _nb_find(parent, i - 1)
+            if a != b:
+                parent[max(a, b)] = min(a, b)
+        while j < n and (mr[j] < r - 1 or (mr[j] == r - 1 and mc[j] < c)):
+            j += 1
+        if j < n and mr[j] == r - 1 and mc[j] == c:
+            a, b = _nb_find(parent, i), _nb_find(parent, j)
+            if a != b:
+                parent[max(a, b)] = min(a, b)
+    lab = np.zeros(n, np.int64)
+    root_lab = np.zeros(n, np.int64)
+    k = 0
+    for i in range(n):
+        rt = _nb_find(parent, i)
+        if root_lab[rt] == 0:
+            k += 1
+            root_lab[rt] = k
+        lab[i] = root_lab[rt]
+    return lab
+
+
+@njit(cache=True, nogil=True)
+def _nb_local_maxima(img, r, c, half):  # pragma: no cover - compiled
+    """Indices of the pixels (r, c) that are the maximum of their (2 half + 1)^2 box (ties: the
+    first in raster order is kept)."""
+    h, w = img.shape
+    out = np.empty(len(r), np.int64)
+    m = 0
+    for i in range(len(r)):
+        v = img[r[i], c[i]]
+        ok = True
+        for dr in range(-half, half + 1):
+            for dc in range(-half, half + 1):
+                if dr == 0 and dc == 0:
+                    continue
+                rr, cc = r[i] + dr, c[i] + dc
+                if rr < 0 or rr >= h or cc < 0 or cc >= w:
+                    continue
+                nv = img[rr, cc]
+                later = dr > 0 or (dr == 0 and dc > 0)
+                if not (v > nv or (v == nv and later)):
+                    ok = False
+                    break
+            if not ok:
+                break
+        if ok:
+            out[m] = i
+            m += 1
+    return out[:m]
 
 
 def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detections:
     """Detect star candidates in a raw frame (module docstring)."""
-    problem = frame_problem(frame, params)
+    h2, w2 = frame.height // 2, frame.width // 2
+    px_all = frame.pixels
+    lo, hi, n_sat = _nb_range(px_all, float(frame.white_level))
+    problem = _frame_problem(lo, hi, n_sat, px_all.size, params)
     if problem:
         return _empty(problem)
-    h2, w2 = frame.height // 2, frame.width // 2
     if h2 < 4 or w2 < 4:
         return _empty(f"frame too small for detection ({frame.width} x {frame.height})")
     block = max(min(params.block_px // 2, h2, w2) // 2 * 2, 4)  # in phase pixels
     black = np.asarray(frame.black_level, dtype=np.float32).reshape(2, 2)
-    total = np.zeros((h2, w2), np.float32)
-    bg_sum = var_sum = np.zeros((), np.float32)  # 0-d: the first phase's grid gives the shape
-    bg_grids, noise_grids, bad, phases = {}, {}, [], {}
+    pix = px_all[: 2 * h2, : 2 * w2]
+    # one pass over the sampled frame: per-phase clipped mean and noise grids (2, 2, ny, nx)
+    bg_all, sig_all = _background_grids(pix, black, block, 2)
+    bg_grids = {(a, b): bg_all[a, b] for a in (0, 1) for b in (0, 1)}
+    noise_grids = {(a, b): sig_all[a, b] for a in (0, 1) for b in (0, 1)}
+    colex, bad = _column_defects(pix, black, sig_all, frame.width)
+    thr = (bg_all + params.k_sigma * sig_all).astype(np.float32)
+    # one pass over the frame: column-corrected super-pixel sums and the pixels above threshold
+    cand = np.empty(max(pix.size // 64, 4096), np.int64)
+    total, n_cand = _nb_superpixels(pix, black, colex, thr, block, cand)
+    if n_cand > len(cand):  # a frame far from sparse stars on a dark sky: one more pass
+        cand = np.empty(n_cand, np.int64)
+        total, n_cand = _nb_superpixels(pix, black, colex, thr, block, cand)
+    cand = cand[:n_cand]
     d2 = 1.0 if frame.is_mono else 4.0  # squared distance to the neighbours used (px^2)
     ratio = params.sharp_fraction * np.exp(-d2 / (2.0 * params.psf_sigma_px**2))
-    for py in (0, 1):
-        for px_ in (0, 1):
-            phase = frame.pixels[py : 2 * h2 : 2, px_ : 2 * w2 : 2].astype(np.float32) - black[py, px_]
-            med, sig = _phase_background(phase, block)
-            bg_grids[py, px_], noise_grids[py, px_] = med, sig
-            cols = _clean_columns(phase, float(np.median(sig)))
-            if len(cols):
-                rows = np.arange(h2)
-                bad.append(((2 * rows[:, None] + py) * frame.width + (2 * cols[None, :] + px_)).ravel())
-            mono = (frame.pixels, black[py, px_], py, px_) if frame.is_mono else None
-            n_r, n_c = _clean_sharp(phase, med, sig, block, params.k_sigma, ratio, mono)
-            bad.append((2 * n_r + py) * frame.width + (2 * n_c + px_))
-            total += phase
-            phases[py, px_] = phase
-            bg_sum = bg_sum + med
-            var_sum = var_sum + sig**2
-    resid = total - _interpolate(bg_sum, block, total.shape)
+    sharp_lin, sharp_val, sharp_old = _nb_clean_sharp(
+        pix, black, colex, bg_all, sig_all, cand, block, float(ratio), bool(frame.is_mono), frame.width
+    )
+    if len(sharp_lin):
+        _nb_patch_total(total, sharp_lin, sharp_val - sharp_old, frame.width)
+    bad.append(sharp_lin.astype(np.int64))
+    bg_sum = _grid_sum(bg_all)
+    var_sum = _grid_sum(sig_all.astype(np.float32) ** 2)
     bad_pixels = np.sort(np.concatenate(bad))
     n_sharp = len(bad_pixels)
-    # separable matched filter over super-pixels; noise: sqrt(sum of the 2-D weights^2) = sum k^2
+    # background subtraction, separable matched filter over super-pixels and threshold; noise:
+    # sqrt(sum of the 2-D weights^2) = sum k^2
     kernel = matched_kernel(params.psf_sigma_px)
-    filt = ndimage.correlate1d(resid, kernel, axis=0, mode="constant")
-    filt = ndimage.correlate1d(filt, kernel, axis=1, mode="constant")
-    snr_map = filt / (
-        float(np.sum(kernel.astype(float) ** 2)) * np.sqrt(_expand(var_sum.astype(np.float32), block, filt.shape))
-    )
-    if kernel is not _K121:
+    iy, ty = _interp_axis(bg_sum.shape[0], block, h2)
+    ix, tx = _interp_axis(bg_sum.shape[1], block, w2)
+    gx = _interp_cols(bg_sum.astype(np.float32), ix, tx)
+    ksq = np.float32(np.sum(kernel.astype(float) ** 2))
+    den = (ksq * np.sqrt(var_sum.astype(np.float32))).astype(np.float32)
+    wide = kernel is not _K121
+    kk = np.float32(params.k_sigma)
+    mr_ = np.empty(0 if wide else max(total.size // 64, 1024), np.int64)
+    mc_ = np.empty_like(mr_)
+    _nb_subtract_background(total, gx, iy, ty)
+    filt, n_mask = _nb_filter(total, kernel, den, block, kk, mr_, mc_)
+    if n_mask > len(mr_):  # more than 1/64 of the image significant: one more pass for the list
+        mr_, mc_ = np.empty(n_mask, np.int64), np.empty(n_mask, np.int64)
+        filt, n_mask = _nb_filter(total, kernel, den, block, kk, mr_, mc_)
+    mr_, mc_ = mr_[:n_mask], mc_[:n_mask]
+    if wide:
         # a wide kernel sums structure that white noise does not predict (residual column defects,
         # background detail smaller than a block): where the filtered background scatters more
         # than predicted, its measured scatter sets the noise. The 3x3 kernel sees little of it,
         # and on compressed real images (JPEG blocks) the same rescaling cost real faint stars.
-        snr_map /= np.maximum(_expand(_phase_background(snr_map, block)[1].astype(np.float32), block, filt.shape), 1.0)
-    mask = snr_map > params.k_sigma
-    labels, n_regions = ndimage.label(mask)
-    if n_regions == 0:
+        snr_map = filt / _expand(den, block, filt.shape)
+        scatter = _background_grids(snr_map, np.zeros((2, 2), np.float32), block, 1)[1][0, 0]
+        den = den * np.maximum(scatter.astype(np.float32), 1.0)
+        mr_, mc_ = np.nonzero(filt / _expand(den, block, filt.shape) > params.k_sigma)
+    if len(mr_) == 0:
         return _empty("no pixel above the detection threshold", n_rejected_sharp=n_sharp, bad_pixels=bad_pixels)
+    lab = _nb_label(mr_, mc_)
+    n_regions = int(lab.max())
     n_found = n_regions
     if n_regions > REGION_CAP_FACTOR * params.max_candidates:  # glare, clutter, a wrong noise level: bound the work
-        peaks = ndimage.maximum(filt, labels, np.arange(1, n_regions + 1))
-        top = np.argsort(-peaks)[: REGION_CAP_FACTOR * params.max_candidates] + 1
-        labels, n_regions = ndimage.label(np.isin(labels, top))
-        mask = labels > 0
-    mr_, mc_ = np.nonzero(mask)
-    pr, pc = _local_maxima(filt, mr_, mc_, params.peak_separation // 2)
-    pr, pc, n_over = _merge_without_dip(
-        filt, snr_map, labels, pr, pc, MERGE_RADIUS_KERNELS * len(kernel), REGION_CAP_FACTOR * params.max_candidates
+        peaks = np.full(n_regions + 1, -np.inf, np.float32)
+        np.maximum.at(peaks, lab, filt[mr_, mc_])
+        top = np.argsort(-peaks[1:], kind="stable")[: REGION_CAP_FACTOR * params.max_candidates] + 1
+        keep = np.zeros(n_regions + 1, bool)
+        keep[top] = True
+        sel = keep[lab]
+        mr_, mc_ = mr_[sel], mc_[sel]
+        lab = _nb_label(mr_, mc_)
+        n_regions = int(lab.max())
+    gy_, gx_ = np.minimum(mr_ // block, den.shape[0] - 1), np.minimum(mc_ // block, den.shape[1] - 1)
+    snr_pts = filt[mr_, mc_] / den[gy_, gx_]
+    ip = _nb_local_maxima(filt, mr_, mc_, params.peak_separation // 2)
+    pr, pc, plabel_all = mr_[ip], mc_[ip], lab[ip]
+    keep_p, n_over = _merge_without_dip(
+        filt,
+        snr_pts[ip],
+        plabel_all,
+        pr,
+        pc,
+        MERGE_RADIUS_KERNELS * len(kernel),
+        REGION_CAP_FACTOR * params.max_candidates,
     )
-    plabel = labels[pr, pc]
+    pr, pc, plabel, psnr = pr[keep_p], pc[keep_p], plabel_all[keep_p], snr_pts[ip][keep_p]
     peaks_per_region = np.bincount(plabel, minlength=n_regions + 1)
 
     # streaks: second moments of each region's filtered signal (super-pixel units), and of its
     # shape alone (a bright star on a faint trail dominates the signal's moments)
-    lab = labels[mr_, mc_]
     nb = n_regions + 1
     area = np.bincount(lab, minlength=nb)
     elongated = np.zeros(nb, bool)
@@ -294,10 +667,12 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     elongated &= area >= params.min_streak_area
     is_streak = elongated[plabel]
     n_streak = int(np.count_nonzero(is_streak))
-    pr, pc, plabel = pr[~is_streak], pc[~is_streak], plabel[~is_streak]
-    sharp = _peaked_candidates(phases, bg_grids, noise_grids, block, pr, pc, params, frame.is_mono)
+    pr, pc, plabel, psnr = pr[~is_streak], pc[~is_streak], plabel[~is_streak], psnr[~is_streak]
+    sharp = _peaked_candidates(
+        (pix, black, colex, sharp_lin, sharp_val), bg_grids, noise_grids, block, pr, pc, params, frame.is_mono
+    )
     n_sharp += int(np.count_nonzero(sharp))
-    pr, pc, plabel = pr[~sharp], pc[~sharp], plabel[~sharp]
+    pr, pc, plabel, psnr = pr[~sharp], pc[~sharp], plabel[~sharp], psnr[~sharp]
     if len(pr) == 0:
         return _empty(
             f"no star-like candidate ({n_streak} streaks rejected, {n_sharp} sharp pixels cleaned)",
@@ -310,7 +685,7 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     order = np.argsort(-flux)
     n_drop = max(len(order) - params.max_candidates, 0) + n_over
     order = order[: params.max_candidates]
-    pr, pc, plabel, flux = pr[order], pc[order], plabel[order], flux[order]
+    pr, pc, plabel, flux, psnr = pr[order], pc[order], plabel[order], flux[order], psnr[order]
     # refine the super-pixel peak with the filtered image's 3x3 centre of mass
     y_sp, x_sp = _subpixel_peak(filt, pr, pc)
     flags = np.where(peaks_per_region[plabel] > 1, int(StarFlag.BLEND), 0).astype(np.int32)
@@ -325,7 +700,7 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
         x=2.0 * x_sp + 0.5,
         y=2.0 * y_sp + 0.5,
         flux=flux,
-        snr=snr_map[pr, pc].astype(float),
+        snr=psnr.astype(float),
         flags=flags,
         noise=noise,
         background=bgv,
@@ -366,24 +741,6 @@ def bound_notes(det: Detections, n_dropped_cap: int, max_candidates: int) -> lis
     return notes
 
 
-def _local_maxima(img: np.ndarray, r: np.ndarray, c: np.ndarray, half: int):
-    """Those of the pixels (r, c) that are the maximum of their (2 half + 1)^2 box."""
-    h, w = img.shape
-    v = img[r, c]
-    is_max = np.ones(len(r), bool)
-    for dr in range(-half, half + 1):
-        for dc in range(-half, half + 1):
-            if dr == 0 and dc == 0:
-                continue
-            rr, cc = r + dr, c + dc
-            inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
-            nv = img[np.clip(rr, 0, h - 1), np.clip(cc, 0, w - 1)]
-            # ties: keep the first pixel in raster order
-            later = (dr > 0) | ((dr == 0) & (dc > 0))
-            is_max &= ~inside | (v > nv) | ((v == nv) & later)
-    return r[is_max], c[is_max]
-
-
 def _grid_at(grid: np.ndarray, gy, gx) -> np.ndarray:
     return grid[np.minimum(gy, grid.shape[0] - 1), np.minimum(gx, grid.shape[1] - 1)]
 
@@ -400,62 +757,6 @@ def _subpixel_peak(img: np.ndarray, r: np.ndarray, c: np.ndarray):
     return r + dy, c + dx
 
 
-#: A column whose median departs from its neighbours' by more than this many noise sigmas is a
-#: column defect (stuck, dead or offset): no star or sky feature moves a whole column's median.
-COLUMN_DEFECT_SIGMAS = 2.0
-
-
-def _clean_columns(phase: np.ndarray, noise: float) -> np.ndarray:
-    """Column defects of one phase (``COLUMN_DEFECT_SIGMAS``): shifted, in place, to their
-    neighbours' level so that detection does not see a line; returns their indices (the fit
-    leaves their pixels out)."""
-    colmed = np.median(phase[:: max(phase.shape[0] // 64, 1)], axis=0)  # ~64 rows: the median is robust
-    excess = colmed - ndimage.median_filter(colmed, size=9, mode="nearest")
-    cols = np.flatnonzero(np.abs(excess) > COLUMN_DEFECT_SIGMAS * noise)
-    if len(cols):
-        phase[:, cols] -= excess[cols][None, :].astype(np.float32)
-    return cols
-
-
-def _clean_sharp(
-    phase: np.ndarray, med: np.ndarray, sig: np.ndarray, block: int, k_sigma: float, ratio: float, mono=None
-):
-    """Replace, in place, phase pixels much sharper than the PSF (hot pixels, cosmic-ray
-    hits) by the mean of the middle two of their four neighbours; returns their (rows,
-    cols). Neighbours are the same-colour pixels 2 px away (the phase's own neighbours) or,
-    for mono frames (``mono = (pixels, black, py, px)``), the adjacent raw pixels. Values are
-    taken above the local block background ``med``. Sharp: excess above ``k_sigma`` x
-    ``sig`` and the second largest neighbour (+1 sigma margin) below ``ratio`` x the
-    excess. For a Gaussian PSF of sigma s every pixel, peak or wing, has a second-largest
-    neighbour at distance d of at least exp(-d^2 / (2 s^2)) of its own value, while an
-    isolated or paired hot pixel has background there."""
-    rows, cols = np.nonzero(phase > _expand((med + k_sigma * sig).astype(np.float32), block, phase.shape))
-    h, w = phase.shape
-    bg = _grid_at(med, rows // block, cols // block).astype(np.float32)
-    thr = _grid_at(sig, rows // block, cols // block).astype(np.float32)
-    done_r, done_c = [], []
-    for _ in range(1 if mono is not None else 3):  # chains of hot pixels clean from their ends inwards
-        if mono is None:
-            a, b = phase[np.maximum(rows - 1, 0), cols], phase[np.minimum(rows + 1, h - 1), cols]
-            c, d = phase[rows, np.maximum(cols - 1, 0)], phase[rows, np.minimum(cols + 1, w - 1)]
-        else:
-            a, b, c, d = _raw_neighbours(rows, cols, *mono)
-        l1, s1, l2, s2 = np.maximum(a, b), np.minimum(a, b), np.maximum(c, d), np.minimum(c, d)
-        second = np.maximum(np.minimum(l1, l2), np.maximum(s1, s2)) - bg
-        middle = 0.5 * (a + b + c + d - np.maximum(l1, l2) - np.minimum(s1, s2))
-        sharp = second + thr < ratio * (phase[rows, cols] - bg)
-        if not sharp.any():
-            break
-        phase[rows[sharp], cols[sharp]] = middle[sharp]
-        done_r.append(rows[sharp])
-        done_c.append(cols[sharp])
-        keep = ~sharp
-        rows, cols, thr, bg = rows[keep], cols[keep], thr[keep], bg[keep]
-    if not done_r:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    return np.concatenate(done_r), np.concatenate(done_c)
-
-
 def _peaked_candidates(phases, bg_grids, noise_grids, block, pr, pc, params, mono) -> np.ndarray:
     """True for candidates whose brightest raw pixel holds far more of the 6x6 raw window's
     signal than a PSF allows: hot pixels and cosmic-ray hits the per-pixel cleaning missed
@@ -466,18 +767,30 @@ def _peaked_candidates(phases, bg_grids, noise_grids, block, pr, pc, params, mon
     n = len(pr)
     if n == 0:
         return np.zeros(0, bool)
-    h2, w2 = phases[0, 0].shape
+    pix, black, colex, sharp_lin, sharp_val = phases
+    h2, w2 = pix.shape[0] // 2, pix.shape[1] // 2
+    width = pix.shape[1]
     rr = np.clip(2 * pr[:, None, None] - 2 + np.arange(6)[None, :, None], 0, 2 * h2 - 1)
     cc = np.clip(2 * pc[:, None, None] - 2 + np.arange(6)[None, None, :], 0, 2 * w2 - 1)
     rr, cc = np.broadcast_arrays(rr, cc)
+    a_, b_ = rr % 2, cc % 2
+    # the phases as detection cleaned them: black level, column offsets, replaced sharp pixels
+    vals = pix[rr, cc].astype(np.float32) - black[a_, b_] - colex[a_, b_, cc // 2]
+    if len(sharp_lin):
+        srt = np.argsort(sharp_lin)
+        sl, sv = sharp_lin[srt], sharp_val[srt]
+        lin = rr.astype(np.int64) * width + cc
+        j = np.minimum(np.searchsorted(sl, lin), len(sl) - 1)
+        hit = sl[j] == lin
+        vals[hit] = sv[j[hit]]
     win = np.empty(rr.shape, np.float32)
     gy, gx = pr // block, pc // block
     sig2 = np.zeros(n)
     for a in (0, 1):
         for b in (0, 1):
-            m = (rr % 2 == a) & (cc % 2 == b)
+            m = (a_ == a) & (b_ == b)
             bg = np.broadcast_to(_grid_at(bg_grids[a, b], gy, gx)[:, None, None], rr.shape)
-            win[m] = phases[a, b][rr[m] // 2, cc[m] // 2] - bg[m]
+            win[m] = vals[m] - bg[m]
             sig2 += _grid_at(noise_grids[a, b], gy, gx) ** 2 / 4.0
     # peak-pixel share of the flux inside the 6x6 window (a wide PSF spills out of the window)
     p0 = (erf(1.0 / (2.0 * np.sqrt(2.0) * params.psf_sigma_px)) / erf(3.0 / (np.sqrt(2.0) * params.psf_sigma_px))) ** 2
@@ -489,23 +802,13 @@ def _peaked_candidates(phases, bg_grids, noise_grids, block, pr, pc, params, mon
     return peak - share * total > 3.0 * sd
 
 
-def _raw_neighbours(rows, cols, pixels, black, py, px):
-    """Black-subtracted values of the 4 adjacent raw pixels of phase pixels (rows, cols)."""
-    hr, wr = pixels.shape
-    r, c = 2 * rows + py, 2 * cols + px
-    return tuple(
-        pixels[np.clip(r + dr, 0, hr - 1), np.clip(c + dc, 0, wr - 1)].astype(np.float32) - black
-        for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1))
-    )
-
-
-def _merge_without_dip(filt, snr_map, labels, pr, pc, radius: int, limit: int):
+def _merge_without_dip(filt, snr, plabel, pr, pc, radius: int, limit: int):
     """Drop a weaker peak when the filtered image does not dip by 3 sigma between it and a
-    brighter kept peak of the same region within ``radius`` super-pixels (noise bumps on one star
-    are not blends; farther peaks are separate stars). Peaks are taken brightest first and at
-    most ``limit`` are kept: the work is bounded whatever the clutter (kept peaks are looked up on
-    a grid of ``radius`` cells). Returns the kept rows, columns and the number left over."""
-    plabel = labels[pr, pc]
+    brighter kept peak of the same region (labels ``plabel``, detection SNR ``snr``) within
+    ``radius`` super-pixels (noise bumps on one star are not blends; farther peaks are separate
+    stars). Peaks are taken brightest first and at most ``limit`` are kept: the work is bounded
+    whatever the clutter (kept peaks are looked up on a grid of ``radius`` cells). Returns the
+    mask of kept peaks and the number left over."""
     counts = np.bincount(plabel)
     keep = np.zeros(len(pr), bool)
     cells: dict[tuple[int, int, int], list[int]] = {}
@@ -520,7 +823,7 @@ def _merge_without_dip(filt, snr_map, labels, pr, pc, radius: int, limit: int):
             keep[j], n_kept = True, n_kept + 1
             continue
         vj = filt[rj, cj]
-        noise_j = vj / snr_map[rj, cj]
+        noise_j = vj / snr[j]
         gy, gx = rj // radius, cj // radius
         separate = True
         for q in (q for dy in (-1, 0, 1) for dx in (-1, 0, 1) for q in cells.get((lab, gy + dy, gx + dx), ())):
@@ -537,4 +840,4 @@ def _merge_without_dip(filt, snr_map, labels, pr, pc, radius: int, limit: int):
         if separate:
             cells.setdefault((lab, gy, gx), []).append(j)
             keep[j], n_kept = True, n_kept + 1
-    return pr[keep], pc[keep], n_over
+    return keep, n_over
