@@ -27,10 +27,12 @@ cosmic-ray hit that the detector's neighbour test let through.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numba import njit
 from scipy.special import erf
 
 from firmware_model.pipeline.detect import Detections
@@ -404,6 +406,210 @@ def _levenberg_marquardt(win, p0, w, params):
     return p, r, conv, started
 
 
+# --- the compiled Levenberg-Marquardt (numba, cached on disk): one star at a time, the same
+# algorithm and tests as _levenberg_marquardt (the numpy batched loop, kept as the reference) ---
+
+
+@njit(cache=True, nogil=True)
+def _nb_axis(coords, centre, sigma, e, dc, ds):  # pragma: no cover - compiled
+    """pixel_gaussian_1d on one window axis (consecutive coordinates), into e, dc, ds."""
+    n = len(coords)
+    s2 = math.sqrt(2.0) * sigma
+    k0 = 1.0 / math.sqrt(2.0 * math.pi)
+    lo = coords[0] - 0.5 - centre
+    erf_lo = math.erf(lo / s2)
+    g_lo = math.exp(-0.5 * (lo / sigma) ** 2)
+    for i in range(n):
+        up = coords[i] + 0.5 - centre
+        erf_up = math.erf(up / s2)
+        g_up = math.exp(-0.5 * (up / sigma) ** 2)
+        e[i] = 0.5 * (erf_up - erf_lo)
+        dc[i] = -k0 / sigma * (g_up - g_lo)
+        ds[i] = -k0 / sigma**2 * (up * g_up - lo * g_lo)
+        lo, erf_lo, g_lo = up, erf_up, g_up
+
+
+@njit(cache=True, nogil=True)
+def _nb_residuals(p, data, w, chan, nchan, rowc, colc, ex, dex, dsx, ey, dey, dsy, r):  # pragma: no cover
+    """Weighted residuals of one window into r; returns the cost (half the sum of squares)."""
+    side = len(colc)
+    _nb_axis(colc, p[0], p[2], ex, dex, dsx)
+    _nb_axis(rowc, p[1], p[2], ey, dey, dsy)
+    cost = 0.0
+    for i in range(side):
+        for j in range(side):
+            k = i * side + j
+            if w[k] == 0.0:
+                r[k] = 0.0
+                continue
+            ch = chan[k]
+            v = (p[3 + nchan + ch] + p[3 + ch] * (ey[i] * ex[j]) - data[k]) * w[k]
+            r[k] = v
+            cost += v * v
+    return 0.5 * cost
+
+
+@njit(cache=True, nogil=True)
+def _nb_normal(p, w, chan, nchan, rowc, colc, r, ex, dex, dsx, ey, dey, dsy, a, g):  # pragma: no cover
+    """Normal matrix J^T J and gradient J^T r of one window's weighted analytic Jacobian (each row
+    has five non-zero entries: centre, sigma, its channel's amplitude and background)."""
+    side = len(colc)
+    _nb_axis(colc, p[0], p[2], ex, dex, dsx)
+    _nb_axis(rowc, p[1], p[2], ey, dey, dsy)
+    a[:, :] = 0.0
+    g[:] = 0.0
+    jv = np.empty(5)
+    ji = np.empty(5, np.int64)
+    for i in range(side):
+        for j in range(side):
+            k = i * side + j
+            wk = w[k]
+            if wk == 0.0:
+                continue
+            ch = chan[k]
+            amp = p[3 + ch] * wk
+            jv[0] = amp * ey[i] * dex[j]
+            jv[1] = amp * dey[i] * ex[j]
+            jv[2] = amp * (dsy[i] * ex[j] + ey[i] * dsx[j])
+            jv[3] = ey[i] * ex[j] * wk
+            jv[4] = wk
+            ji[0], ji[1], ji[2], ji[3], ji[4] = 0, 1, 2, 3 + ch, 3 + nchan + ch
+            rk = r[k]
+            for u in range(5):
+                g[ji[u]] += jv[u] * rk
+                for v in range(u, 5):
+                    a[ji[u], ji[v]] += jv[u] * jv[v]
+    m = a.shape[0]
+    for u in range(m):
+        for v in range(u + 1, m):
+            a[v, u] = a[u, v]
+
+
+@njit(cache=True, nogil=True)
+def _nb_solve(a, b, x):  # pragma: no cover - compiled
+    """x = a^-1 b by Gaussian elimination with partial pivoting; False if singular."""
+    m = len(b)
+    t = a.copy()
+    y = b.copy()
+    for c in range(m):
+        piv = c
+        for q in range(c + 1, m):
+            if abs(t[q, c]) > abs(t[piv, c]):
+                piv = q
+        if t[piv, c] == 0.0:
+            return False
+        if piv != c:
+            for q in range(m):
+                t[c, q], t[piv, q] = t[piv, q], t[c, q]
+            y[c], y[piv] = y[piv], y[c]
+        for q in range(c + 1, m):
+            f = t[q, c] / t[c, c]
+            if f != 0.0:
+                for u in range(c, m):
+                    t[q, u] -= f * t[c, u]
+                y[q] -= f * y[c]
+    for c in range(m - 1, -1, -1):
+        acc = y[c]
+        for u in range(c + 1, m):
+            acc -= t[c, u] * x[u]
+        x[c] = acc / t[c, c]
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _nb_levenberg_marquardt(data, w, chan, nchan, rowc, colc, p0, max_nfev, tol):  # pragma: no cover
+    """_levenberg_marquardt (analytic Jacobian) for every window, one at a time."""
+    n, m = p0.shape
+    side = rowc.shape[1]
+    p_out = p0.copy()
+    r_out = np.zeros(data.shape)
+    conv = np.zeros(n, np.bool_)
+    started = np.zeros(n, np.bool_)
+    ex, dex, dsx = np.empty(side), np.empty(side), np.empty(side)
+    ey, dey, dsy = np.empty(side), np.empty(side), np.empty(side)
+    a = np.zeros((m, m))
+    g = np.zeros(m)
+    a_s = np.zeros((m, m))
+    g_s = np.zeros(m)
+    step_s = np.zeros(m)
+    step = np.zeros(m)
+    d = np.zeros(m)
+    p_new = np.zeros(m)
+    r_new = np.zeros(data.shape[1])
+    for s in range(n):
+        p = p_out[s]
+        r = r_out[s]
+        ds_, ws, cs, rc, cc = data[s], w[s], chan[s], rowc[s], colc[s]
+        cost = _nb_residuals(p, ds_, ws, cs, nchan, rc, cc, ex, dex, dsx, ey, dey, dsy, r)
+        if not np.isfinite(cost):
+            continue
+        started[s] = True
+        lam = 1e-3
+        need = True
+        nfev = 1
+        while nfev < max_nfev:
+            if need:
+                _nb_normal(p, ws, cs, nchan, rc, cc, r, ex, dex, dsx, ey, dey, dsy, a, g)
+                need = False
+            for u in range(m):
+                d[u] = math.sqrt(a[u, u]) if a[u, u] > 0.0 else 1.0
+            rnorm = math.sqrt(2.0 * cost)
+            if rnorm == 0.0:
+                conv[s] = True
+                break
+            gmax = 0.0
+            for u in range(m):
+                gmax = max(gmax, abs(g[u]) / d[u])
+            if gmax / rnorm <= tol:
+                conv[s] = True
+                break
+            for u in range(m):
+                for v in range(m):
+                    a_s[u, v] = a[u, v] / (d[u] * d[v])
+                a_s[u, u] += lam
+                g_s[u] = -g[u] / d[u]
+            if not _nb_solve(a_s, g_s, step_s):
+                step_s[:] = np.linalg.lstsq(a_s, g_s)[0]
+            pn2 = 0.0
+            sn2 = 0.0
+            for u in range(m):
+                step[u] = step_s[u] / d[u]
+                p_new[u] = p[u] + step[u]
+                sn2 += step_s[u] ** 2
+                pn2 += (d[u] * p[u]) ** 2
+            cost_new = _nb_residuals(p_new, ds_, ws, cs, nchan, rc, cc, ex, dex, dsx, ey, dey, dsy, r_new)
+            nfev += 1
+            actual = cost - cost_new
+            pred = 0.0
+            for u in range(m):
+                q = 0.0
+                for v in range(m):
+                    q += a[u, v] * step[v]
+                pred += -g[u] * step[u] - 0.5 * step[u] * q
+            finite = np.isfinite(cost_new)
+            rho = actual / pred if pred > 0.0 else -1.0
+            if not finite or not np.isfinite(rho):
+                rho = -1.0
+            acc = rho > 1e-4
+            f_done = abs(actual) <= tol * cost and pred <= tol * cost and rho <= 2.0 and finite
+            x_done = math.sqrt(sn2) <= tol * math.sqrt(pn2)
+            if acc:
+                p[:] = p_new
+                r[:] = r_new
+                cost = cost_new
+                need = True
+            rho_w = rho if acc else 0.0
+            if rho_w < 0.5:
+                lam *= 4.0
+            elif rho_w > 0.75:
+                lam *= 1.0 / 3.0
+            lam = min(max(lam, 1e-12), 1e12)
+            if f_done or (x_done and acc):
+                conv[s] = True
+                break
+    return p_out, r_out, conv, started
+
+
 def _fit_all(frame, det, params, gain, out):
     s0 = params.psf_sigma_px
     hw = params.half_width_px or max(3, int(np.ceil(3.0 * s0)) + 1)
@@ -451,7 +657,20 @@ def _fit_all(frame, det, params, gain, out):
     if not len(fit):
         return
     fwin = win.select(fit)
-    p, r, conv, started = _levenberg_marquardt(fwin, p0[fit], w[fit], params)
+    if params.analytic_jacobian:
+        p, r, conv, started = _nb_levenberg_marquardt(
+            fwin.data,
+            np.ascontiguousarray(w[fit]),
+            fwin.chan,
+            nchan,
+            fwin.row_coords,
+            fwin.col_coords,
+            p0[fit],
+            params.max_nfev,
+            _TOL,
+        )
+    else:
+        p, r, conv, started = _levenberg_marquardt(fwin, p0[fit], w[fit], params)
     shift = np.hypot(p[:, 0] - x_start[fit], p[:, 1] - y_start[fit])
     abs_s = np.abs(p[:, 2])
     ok = (
