@@ -36,13 +36,14 @@ class _StageClock:
     def __init__(self) -> None:
         self.cpu = dict.fromkeys(STAGES, 0.0)
         self.wall = dict.fromkeys(STAGES, 0.0)
-        self._orig = {"detect": extract_mod.detect_stars, "fit": extract_mod.fit_stars}
-        extract_mod.detect_stars = self._wrap("detect")
-        extract_mod.fit_stars = self._wrap("fit")
+        # detection: the PSF-independent preparation (once per frame, when the code has it) and the
+        # detection of each PSF pass
+        self._names = {"detect_stars": "detect", "fit_stars": "fit", "prepare_detection": "detect"}
+        for name, stage in self._names.items():
+            if hasattr(extract_mod, name):
+                setattr(extract_mod, name, self._wrap(stage, getattr(extract_mod, name)))
 
-    def _wrap(self, stage: str):
-        fn = self._orig[stage]
-
+    def _wrap(self, stage: str, fn):
         def timed(*args, **kwargs):
             c0, t0 = time.thread_time(), time.perf_counter()
             try:

@@ -195,17 +195,17 @@ def _background_grids(img: np.ndarray, black: np.ndarray, block: int, step: int)
     sstep = max((b * b) // 64, 1) | 1
     # an odd sample step walks across the block's columns: a step dividing the row length would
     # sample the same few columns in every row (a dead column then looked like half the block)
-    mean = np.empty((step, step, ny, nx))
-    var = np.empty((step, step, ny, nx))
+    med = np.empty((step, step, ny, nx), np.float32)
+    lim = np.empty((step, step, ny, nx))
     for py in range(step):
         for px in range(step):
-            blk = np.float32(black[py, px])
-            sparse = _nb_block_samples(img, step, py, px, blk, b, ny, nx, sstep)
-            med = _median_last(sparse)
-            mad = np.maximum(
-                np.maximum(_median_last(np.abs(sparse - med[:, :, None])) * 1.4826, _clipped_width(sparse)), 0.5
+            sparse = _nb_block_samples(img, step, py, px, np.float32(black[py, px]), b, ny, nx, sstep)
+            med[py, px] = _median_last(sparse)
+            lim[py, px] = 4.0 * np.maximum(
+                np.maximum(_median_last(np.abs(sparse - med[py, px][:, :, None])) * 1.4826, _clipped_width(sparse)),
+                0.5,
             )
-            mean[py, px], var[py, px] = _nb_block_stats(img, step, py, px, blk, b, med, 4.0 * mad)
+    mean, var = _nb_block_stats(img, step, black.astype(np.float32), b, med, lim)
     # clipping at 4 sigma keeps 99.99% of a Gaussian: no variance correction needed; the floor is
     # the quantisation noise of 1 DN steps
     return mean, np.sqrt(np.maximum(var, 1.0 / 12.0))
@@ -298,60 +298,95 @@ def _nb_block_samples(img, step, py, px, black, b, ny, nx, sstep):  # pragma: no
 
 
 @njit(cache=True, nogil=True)
-def _nb_block_stats(img, step, py, px, black, b, med, lim):  # pragma: no cover - compiled
-    """Mean and variance of each block's 1-in-4 subsample within ``lim`` of ``med``."""
-    ny, nx = med.shape
-    mean = np.empty((ny, nx))
-    var = np.empty((ny, nx))
+def _nb_block_stats(img, step, black, b, med, lim):  # pragma: no cover - compiled
+    """Mean and variance of each block's 1-in-4 subsample within ``lim`` of ``med``, for all
+    ``step`` x ``step`` phases in one pass (arrays (step, step, ny, nx))."""
+    ny, nx = med.shape[2], med.shape[3]
+    mean = np.zeros((step, step, ny, nx))
+    var = np.zeros((step, step, ny, nx))
+    cnt = np.zeros((step, step, nx), np.int64)
+    s1 = np.zeros((step, step, nx))
+    s2 = np.zeros((step, step, nx))
     for i in range(ny):
-        for j in range(nx):
-            m = med[i, j]
-            lm = lim[i, j]
-            n = 0
-            s1 = 0.0
-            s2 = 0.0
-            for u in range(b):
-                r = 2 * (i * b + u) * step + py
-                for v in range(b):
-                    d = (np.float32(img[r, 2 * (j * b + v) * step + px]) - black) - m
-                    if abs(d) < lm:
-                        n += 1
-                        s1 += d
-                        s2 += float(d) * d
-            if n == 0:
-                mean[i, j] = 0.0
-                var[i, j] = 0.0
-            else:
-                mean[i, j] = m + s1 / n
-                var[i, j] = max(s2 - s1 * s1 / n, 0.0) / max(n - 1, 1)
+        cnt[:] = 0
+        s1[:] = 0.0
+        s2[:] = 0.0
+        for u in range(b):
+            for a in range(step):
+                r = 2 * (i * b + u) * step + a
+                for j in range(nx):
+                    for bb in range(step):
+                        m = med[a, bb, i, j]
+                        lm = lim[a, bb, i, j]
+                        blk = black[a, bb]
+                        n_ = 0
+                        t1 = 0.0
+                        t2 = 0.0
+                        for v in range(b):
+                            d = (np.float32(img[r, 2 * (j * b + v) * step + bb]) - blk) - m
+                            if abs(d) < lm:
+                                n_ += 1
+                                t1 += d
+                                t2 += float(d) * d
+                        cnt[a, bb, j] += n_
+                        s1[a, bb, j] += t1
+                        s2[a, bb, j] += t2
+        for a in range(step):
+            for bb in range(step):
+                for j in range(nx):
+                    n_ = cnt[a, bb, j]
+                    if n_ > 0:
+                        mean[a, bb, i, j] = med[a, bb, i, j] + s1[a, bb, j] / n_
+                        var[a, bb, i, j] = max(s2[a, bb, j] - s1[a, bb, j] ** 2 / n_, 0.0) / max(n_ - 1, 1)
     return mean, var
 
 
 @njit(cache=True, nogil=True)
-def _nb_superpixels(pix, black, colex, thr, block, cand):  # pragma: no cover - compiled
+def _nb_superpixels(pix, black, colex, thr, block, gx, iy, ty, cand):  # pragma: no cover - compiled
     """One pass over the frame: 2x2 super-pixel sums of the black- and column-corrected phases
-    (h2, w2) and the linear indices of phase pixels above their block's ``thr`` (into ``cand``;
-    returns how many there are, also beyond its length)."""
+    less the background (bilinear between block centres: ``gx`` the grid already interpolated
+    along rows, ``iy, ty`` lower grid row and upper weight per row), shape (h2, w2), and the
+    linear indices of phase pixels above their block's ``thr`` (into ``cand``; returns how many
+    there are, also beyond its length)."""
     h2, w2 = pix.shape[0] // 2, pix.shape[1] // 2
     width = pix.shape[1]
     ny, nx = thr.shape[2], thr.shape[3]
+    nyg = gx.shape[0]
     total = np.empty((h2, w2), np.float32)
+    thr_row = np.empty((2, 2, w2), np.float32)
+    v = np.empty((2, 2, w2), np.float32)
     cap = len(cand)
     n = 0
+    cur = -1
+    one = np.float32(1.0)
     for rr in range(h2):
         gy = min(rr // block, ny - 1)
-        for cc in range(w2):
-            gx = min(cc // block, nx - 1)
-            acc = np.float32(0.0)
+        if gy != cur:
+            cur = gy
             for a in range(2):
                 for bb in range(2):
-                    v = np.float32(pix[2 * rr + a, 2 * cc + bb]) - black[a, bb] - colex[a, bb, cc]
-                    acc += v
-                    if v > thr[a, bb, gy, gx]:
+                    for cc in range(w2):
+                        thr_row[a, bb, cc] = thr[a, bb, gy, min(cc // block, nx - 1)]
+        for a in range(2):
+            for bb in range(2):
+                blk = black[a, bb]
+                row = pix[2 * rr + a]
+                for cc in range(w2):
+                    v[a, bb, cc] = np.float32(row[2 * cc + bb]) - blk - colex[a, bb, cc]
+        i0 = iy[rr]
+        i1 = min(i0 + 1, nyg - 1)
+        t = ty[rr]
+        for cc in range(w2):
+            total[rr, cc] = (v[0, 0, cc] + v[0, 1, cc] + v[1, 0, cc] + v[1, 1, cc]) - (
+                gx[i0, cc] * (one - t) + gx[i1, cc] * t
+            )
+        for a in range(2):
+            for bb in range(2):
+                for cc in range(w2):
+                    if v[a, bb, cc] > thr_row[a, bb, cc]:
                         if n < cap:
                             cand[n] = (2 * rr + a) * width + 2 * cc + bb
                         n += 1
-            total[rr, cc] = acc
     return total, n
 
 
@@ -446,20 +481,6 @@ def _nb_patch_total(total, lin, delta, width):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _nb_subtract_background(total, gx, iy, ty):  # pragma: no cover - compiled
-    """Background subtraction in place, bilinear between block centres (``gx``: the grid already
-    interpolated along rows; ``iy, ty``: lower grid row and upper weight per image row)."""
-    h, w = total.shape
-    ny = gx.shape[0]
-    for r in range(h):
-        i0 = iy[r]
-        i1 = min(i0 + 1, ny - 1)
-        t = ty[r]
-        for c in range(w):
-            total[r, c] -= gx[i0, c] * (np.float32(1.0) - t) + gx[i1, c] * t
-
-
-@njit(cache=True, nogil=True)
 def _nb_filter(total, kernel, den, block, k_sigma, mr, mc):  # pragma: no cover - compiled
     """The separable correlation of ``total`` with ``kernel`` on both axes (zero outside the
     image) and the super-pixels whose filtered value exceeds ``k_sigma`` x their block's ``den``,
@@ -471,31 +492,42 @@ def _nb_filter(total, kernel, den, block, k_sigma, mr, mc):  # pragma: no cover 
     filt = np.empty((h, w), np.float32)
     buf = np.zeros(w + 2 * hk, np.float32)
     acc = np.empty(w)
+    den_row = np.empty(w, np.float32)
     cap = len(mr)
     n = 0
     nyd, nxd = den.shape
+    cur = -1
     for r in range(h):
         acc[:] = 0.0
         for i in range(L):
             rr = r + i - hk
             if 0 <= rr < h:
-                k = kernel[i]
+                k = float(kernel[i])
+                src = total[rr]
                 for c in range(w):
-                    acc[c] += k * total[rr, c]
+                    acc[c] += k * src[c]
         for c in range(w):
             buf[c + hk] = np.float32(acc[c])
-        gy = min(r // block, nyd - 1)
+        acc[:] = 0.0
+        for j in range(L):
+            k = float(kernel[j])
+            for c in range(w):
+                acc[c] += k * buf[c + j]
+        out = filt[r]
         for c in range(w):
-            a = 0.0
-            for j in range(L):
-                a += kernel[j] * buf[c + j]
-            f = np.float32(a)
-            filt[r, c] = f
-            if cap and f / den[gy, min(c // block, nxd - 1)] > k_sigma:
-                if n < cap:
-                    mr[n] = r
-                    mc[n] = c
-                n += 1
+            out[c] = np.float32(acc[c])
+        if cap:
+            gy = min(r // block, nyd - 1)
+            if gy != cur:
+                cur = gy
+                for c in range(w):
+                    den_row[c] = den[gy, min(c // block, nxd - 1)]
+            for c in range(w):
+                if out[c] / den_row[c] > k_sigma:
+                    if n < cap:
+                        mr[n] = r
+                        mc[n] = c
+                    n += 1
     return filt, n
 
 
@@ -571,8 +603,32 @@ def _nb_local_maxima(img, r, c, half):  # pragma: no cover - compiled
     return out[:m]
 
 
-def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detections:
-    """Detect star candidates in a raw frame (module docstring)."""
+@dataclass
+class PreparedFrame:
+    """The part of detection that does not depend on the PSF width, computed once per frame and
+    shared by the passes of a PSF measurement (:func:`prepare_detection`): per-phase background
+    and noise grids, column defects, the background-subtracted super-pixel sums before
+    hot-pixel cleaning and the pixels above the threshold (the hot-pixel candidates)."""
+
+    frame: Frame
+    k_sigma: float
+    block_px: int
+    block: int
+    black: np.ndarray
+    pix: np.ndarray
+    bg_all: np.ndarray
+    sig_all: np.ndarray
+    colex: np.ndarray
+    bad_columns: list
+    total: np.ndarray
+    cand: np.ndarray
+    den: np.ndarray
+
+
+def prepare_detection(frame: Frame, params: DetectParams = DetectParams()) -> PreparedFrame | Detections:
+    """The PSF-independent part of :func:`detect_stars` (two passes over the frame, one of them
+    over a 1-in-4 subsample), or an empty :class:`Detections` with the reason the frame cannot
+    hold stars."""
     h2, w2 = frame.height // 2, frame.width // 2
     px_all = frame.pixels
     lo, hi, n_sat = _nb_range(px_all, float(frame.white_level))
@@ -584,49 +640,83 @@ def detect_stars(frame: Frame, params: DetectParams = DetectParams()) -> Detecti
     block = max(min(params.block_px // 2, h2, w2) // 2 * 2, 4)  # in phase pixels
     black = np.asarray(frame.black_level, dtype=np.float32).reshape(2, 2)
     pix = px_all[: 2 * h2, : 2 * w2]
-    # one pass over the sampled frame: per-phase clipped mean and noise grids (2, 2, ny, nx)
+    # per-phase clipped mean and noise grids (2, 2, ny, nx) from a 1-in-4 subsample
     bg_all, sig_all = _background_grids(pix, black, block, 2)
-    bg_grids = {(a, b): bg_all[a, b] for a in (0, 1) for b in (0, 1)}
-    noise_grids = {(a, b): sig_all[a, b] for a in (0, 1) for b in (0, 1)}
     colex, bad = _column_defects(pix, black, sig_all, frame.width)
     thr = (bg_all + params.k_sigma * sig_all).astype(np.float32)
-    # one pass over the frame: column-corrected super-pixel sums and the pixels above threshold
+    bg_sum = _grid_sum(bg_all)
+    var_sum = _grid_sum(sig_all.astype(np.float32) ** 2)
+    iy, ty = _interp_axis(bg_sum.shape[0], block, h2)
+    ix, tx = _interp_axis(bg_sum.shape[1], block, w2)
+    gx = _interp_cols(bg_sum.astype(np.float32), ix, tx)
+    # one pass over the frame: column-corrected, background-subtracted super-pixel sums and the
+    # pixels above the threshold
     cand = np.empty(max(pix.size // 64, 4096), np.int64)
-    total, n_cand = _nb_superpixels(pix, black, colex, thr, block, cand)
+    total, n_cand = _nb_superpixels(pix, black, colex, thr, block, gx, iy, ty, cand)
     if n_cand > len(cand):  # a frame far from sparse stars on a dark sky: one more pass
         cand = np.empty(n_cand, np.int64)
-        total, n_cand = _nb_superpixels(pix, black, colex, thr, block, cand)
-    cand = cand[:n_cand]
+        total, n_cand = _nb_superpixels(pix, black, colex, thr, block, gx, iy, ty, cand)
+    return PreparedFrame(
+        frame,
+        params.k_sigma,
+        params.block_px,
+        block,
+        black,
+        pix,
+        bg_all,
+        sig_all,
+        colex,
+        bad,
+        total,
+        cand[:n_cand],
+        np.sqrt(var_sum.astype(np.float32)),
+    )
+
+
+def detect_stars(
+    frame: Frame, params: DetectParams = DetectParams(), prepared: PreparedFrame | Detections | None = None
+) -> Detections:
+    """Detect star candidates in a raw frame (module docstring); ``prepared``: the frame's
+    :func:`prepare_detection` with the same ``k_sigma`` and ``block_px``, when several passes
+    share it."""
+    if prepared is None:
+        prepared = prepare_detection(frame, params)
+    if isinstance(prepared, Detections):
+        return prepared
+    if prepared.frame is not frame or (prepared.k_sigma, prepared.block_px) != (params.k_sigma, params.block_px):
+        raise ValueError("prepared detection is of another frame or other k_sigma / block_px")
+    prep = prepared
+    block, black, pix, bg_all, sig_all, colex = prep.block, prep.black, prep.pix, prep.bg_all, prep.sig_all, prep.colex
+    bg_grids = {(a, b): bg_all[a, b] for a in (0, 1) for b in (0, 1)}
+    noise_grids = {(a, b): sig_all[a, b] for a in (0, 1) for b in (0, 1)}
     d2 = 1.0 if frame.is_mono else 4.0  # squared distance to the neighbours used (px^2)
     ratio = params.sharp_fraction * np.exp(-d2 / (2.0 * params.psf_sigma_px**2))
     sharp_lin, sharp_val, sharp_old = _nb_clean_sharp(
-        pix, black, colex, bg_all, sig_all, cand, block, float(ratio), bool(frame.is_mono), frame.width
+        frame.pixels, black, colex, bg_all, sig_all, prep.cand, block, float(ratio), bool(frame.is_mono), frame.width
     )
-    if len(sharp_lin):
+    total = prep.total
+    if len(sharp_lin):  # the cleaned pixels' change, undone below: the prepared sums serve other passes
+        rr_, cc_ = (sharp_lin // frame.width) // 2, (sharp_lin % frame.width) // 2
+        saved = total[rr_, cc_].copy()
         _nb_patch_total(total, sharp_lin, sharp_val - sharp_old, frame.width)
-    bad.append(sharp_lin.astype(np.int64))
-    bg_sum = _grid_sum(bg_all)
-    var_sum = _grid_sum(sig_all.astype(np.float32) ** 2)
-    bad_pixels = np.sort(np.concatenate(bad))
+    bad_pixels = np.sort(np.concatenate([*prep.bad_columns, sharp_lin.astype(np.int64)]))
     n_sharp = len(bad_pixels)
     # background subtraction, separable matched filter over super-pixels and threshold; noise:
     # sqrt(sum of the 2-D weights^2) = sum k^2
     kernel = matched_kernel(params.psf_sigma_px)
-    iy, ty = _interp_axis(bg_sum.shape[0], block, h2)
-    ix, tx = _interp_axis(bg_sum.shape[1], block, w2)
-    gx = _interp_cols(bg_sum.astype(np.float32), ix, tx)
     ksq = np.float32(np.sum(kernel.astype(float) ** 2))
-    den = (ksq * np.sqrt(var_sum.astype(np.float32))).astype(np.float32)
+    den = (ksq * prep.den).astype(np.float32)
     wide = kernel is not _K121
     kk = np.float32(params.k_sigma)
     mr_ = np.empty(0 if wide else max(total.size // 64, 1024), np.int64)
     mc_ = np.empty_like(mr_)
-    _nb_subtract_background(total, gx, iy, ty)
     filt, n_mask = _nb_filter(total, kernel, den, block, kk, mr_, mc_)
     if n_mask > len(mr_):  # more than 1/64 of the image significant: one more pass for the list
         mr_, mc_ = np.empty(n_mask, np.int64), np.empty(n_mask, np.int64)
         filt, n_mask = _nb_filter(total, kernel, den, block, kk, mr_, mc_)
     mr_, mc_ = mr_[:n_mask], mc_[:n_mask]
+    if len(sharp_lin):
+        total[rr_, cc_] = saved
     if wide:
         # a wide kernel sums structure that white noise does not predict (residual column defects,
         # background detail smaller than a block): where the filtered background scatters more

@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 
 from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.centroid import FitParams, FitResults, fit_stars
-from firmware_model.pipeline.detect import DetectParams, bound_notes, detect_stars
+from firmware_model.pipeline.detect import Detections, DetectParams, bound_notes, detect_stars, prepare_detection
 from firmware_model.pipeline.raw_frame import Frame
 from protocol.star_flags import UNTRUSTED, StarFlag
 
@@ -168,26 +168,65 @@ def _repeats(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return out
 
 
-def _detect_and_fit(frame: Frame, params: ExtractParams, sigma_px: float):
+#: Candidates fitted first, as a multiple of the cap: the fit goes on to fainter candidates only
+#: while fewer than the cap survive it (fit only where the result needs it).
+FIT_FIRST_FACTOR = 1.25
+
+
+def _take(det: Detections, idx: np.ndarray) -> Detections:
+    """Detections restricted to candidates ``idx`` (bad pixels and counts kept)."""
+    return replace(
+        det,
+        x=det.x[idx],
+        y=det.y[idx],
+        flux=det.flux[idx],
+        snr=det.snr[idx],
+        flags=det.flags[idx],
+        noise=det.noise[idx],
+        background=det.background[idx],
+    )
+
+
+def _detect_and_fit(frame: Frame, params: ExtractParams, sigma_px: float, prepared=None):
     """One pass at PSF sigma ``sigma_px``: detection with twice the candidate cap, the fit, and
     then the cap applied to the candidates the fit did not reject as sharper than the PSF (so
-    hot pixels cannot crowd stars out of the cap). Returns (fit, detection SNR, seconds in the
-    fit, notes on what was left out)."""
+    hot pixels cannot crowd stars out of the cap). Candidates are fitted brightest first, and
+    fainter ones only while fewer than the cap survive (a candidate's fate depends only on the
+    brighter ones: the repeat test keeps the brighter of two); those never fitted count as
+    dropped by the cap. Returns (fit, detection SNR, seconds in the fit, notes on what was left
+    out)."""
     cap = params.detect.max_candidates
-    det = detect_stars(frame, replace(params.detect, psf_sigma_px=sigma_px, max_candidates=CAP_MARGIN * cap))
+    dp = replace(params.detect, psf_sigma_px=sigma_px, max_candidates=CAP_MARGIN * cap)
+    det = detect_stars(frame, dp, prepared=prepared)
+    fp = replace(params.fit, psf_sigma_px=sigma_px)
     t1 = time.perf_counter()
-    fit = fit_stars(frame, det, replace(params.fit, psf_sigma_px=sigma_px))
+    n = len(det)
+    if not n:
+        fit = fit_stars(frame, det, fp)
+        return fit, det.snr, time.perf_counter() - t1, [det.reason]
+    parts: list[FitResults] = []
+    stop = 0
+    chunk = max(int(np.ceil(FIT_FIRST_FACTOR * cap)), 1)
+    while True:
+        start, stop = stop, min(n, stop + chunk)
+        parts.append(fit_stars(frame, _take(det, np.arange(start, stop)), fp))
+        fit = parts[0] if len(parts) == 1 else _concat(parts)
+        keep = np.flatnonzero(~fit.sharp)
+        n_sharp = len(fit.sharp) - len(keep)
+        keep = keep[~_repeats(fit.x[keep], fit.y[keep])]
+        if len(keep) >= cap or stop == n:
+            break
+        chunk = max(2 * (cap - len(keep)), 8)
     dt = time.perf_counter() - t1
-    if not len(det):
-        return fit, det.snr, dt, [det.reason]
-    keep = np.flatnonzero(~fit.sharp)
-    n_sharp = len(fit.sharp) - len(keep)
-    keep = keep[~_repeats(fit.x[keep], fit.y[keep])]
-    notes = bound_notes(det, det.n_dropped_cap + max(len(keep) - cap, 0), cap)
+    notes = bound_notes(det, det.n_dropped_cap + max(len(keep) - cap, 0) + (n - stop), cap)
     if n_sharp:
         notes.append(f"{n_sharp} candidate(s) sharper than the PSF rejected by the fit (hot pixels / cosmic rays)")
     keep = keep[:cap]
     return FitResults(**{k: v[keep] for k, v in vars(fit).items()}), det.snr[keep], dt, notes
+
+
+def _concat(parts: list[FitResults]) -> FitResults:
+    return FitResults(**{k: np.concatenate([vars(p)[k] for p in parts]) for k in vars(parts[0])})
 
 
 def extract_stars(frame: Frame, camera: CameraModel | None = None, params: ExtractParams = ExtractParams()) -> StarList:
@@ -196,9 +235,11 @@ def extract_stars(frame: Frame, camera: CameraModel | None = None, params: Extra
     sigma = params.psf_sigma_px if params.psf_sigma_px is not None else params.psf_start_px
     fit_s = 0.0
 
+    prepared = prepare_detection(frame, params.detect)  # shared by the passes
+
     def one_pass(width):
         nonlocal fit_s
-        fit, snr, dt, notes = _detect_and_fit(frame, params, width)
+        fit, snr, dt, notes = _detect_and_fit(frame, params, width, prepared)
         fit_s += dt
         return fit, snr, notes, width
 
