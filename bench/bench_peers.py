@@ -234,6 +234,7 @@ def print_real(names, jobs, runs):
                 "extract": 1e3 * med([x.get("extract_s") for x in rs]),
                 "ident": 1e3 * med([x.get("ident_s") for x in rs]),
                 "ref": separation_px(r["ra"], r["dec"], j) if r.get("ra") is not None else None,
+                "cache_hit": med([x.get("cache_hit") for x in rs]),
             }
             rid = [x for x in runs.get((n, k, "ident"), []) if "error" not in x]
             if rid:
@@ -274,6 +275,7 @@ def print_real(names, jobs, runs):
             m[n] = {key: med([r.get(key) for r in rows]) for key in ("wall", "cpu", "thread", "extract", "ident")}
             m[n]["ident_alone_wall"] = med([r.get("ident_alone_wall") for r in rows])
             m[n]["ident_alone_cpu"] = med([r.get("ident_alone_cpu") for r in rows])
+            hits = med([r.get("cache_hit") for r in rows])
             print(
                 f"  {n:<9} {ok}/{len(rows)} solved ({near} within 1 px of the reference); median file to attitude "
                 f"{m[n]['wall']:.1f} ms wall, {m[n]['cpu']:.1f} ms cpu (thread {m[n]['thread']:.1f}); extraction "
@@ -284,6 +286,7 @@ def print_real(names, jobs, runs):
                     if np.isfinite(m[n]["ident_alone_wall"])
                     else ""
                 )
+                + (f"; pattern-cache hits {hits:.2f} (median)" if np.isfinite(hits) else "")
             )
         for n in names[1:]:
             pr = [
@@ -406,7 +409,7 @@ def perturbed_sets(workers, jobs, bases, args, rng):
                     ratio_ = float(np.max(np.abs(rv) / sig))
                     max_sig = max(max_sig, ratio_)
                     over += ratio_ > 3.0
-            summary[(set_name, n)] = (ret, correct)
+            summary[(set_name, n)] = (ret, correct, med(cpu))
             print(
                 f"{set_name:<14}{n:<10}{ret:>9}{(hc if n != 'cedar' else '-'):>10}{correct:>8}"
                 f"{(hc_wrong if n != 'cedar' else '-'):>9}{worst:>10.3f}{worst_roll:>11.3f}"
@@ -420,6 +423,9 @@ def perturbed_sets(workers, jobs, bases, args, rng):
     for n in names[1:]:
         line = ", ".join(f"{s} {summary[(s, 'ours')][1]} vs {summary[(s, n)][1]}" for s in SETS if (s, n) in summary)
         print(f"correct, ours vs {n}: {line}")
+    if "none" in SETS:
+        line = ", ".join(f"ours/{n} {ratio(summary[('none', 'ours')][2], summary[('none', n)][2])}" for n in names[1:])
+        print(f"identification alone with the fitted optics (set none, median cpu): {line}")
 
 
 # ------------------------------------------------------------------ part 3: the synthetic grid

@@ -73,6 +73,7 @@ class Cedar:
             fov=_num(sol.get("FOV")),
             extract_s=float(sol.get("T_extract", np.nan)) / 1e3,
             ident_s=float(sol.get("T_solve", np.nan)) / 1e3,
+            cache_hit=_num(sol.get("cache_hit_fraction")),
         )
         return rep
 
