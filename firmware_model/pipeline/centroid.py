@@ -183,8 +183,8 @@ class _Windows:
     def __init__(self, frame, det, hw):
         n, w = len(det), 2 * hw + 1
         off = np.arange(-hw, hw + 1)
-        xc = np.array([int(round(v)) for v in det.x])
-        yc = np.array([int(round(v)) for v in det.y])
+        xc = np.rint(np.asarray(det.x, float)).astype(np.int64)  # round half to even, as round()
+        yc = np.rint(np.asarray(det.y, float)).astype(np.int64)
         r, c = yc[:, None] + off[None, :], xc[:, None] + off[None, :]  # (N, W) int
         self.n, self.side, self.p = n, w, w * w
         self.row_coords, self.col_coords = r.astype(float), c.astype(float)
@@ -710,21 +710,22 @@ def _fit_all(frame, det, params, gain, out):
     sharp_ok = (
         pg[:, 2] + 3.0 * np.sqrt(np.maximum(cov[:, 2, 2], 0.0)) < params.sharp_sigma_fraction * params.psf_sigma_px
     )
-    for row, g_ in enumerate(good):
-        i = idx[fit[g_]]
-        q = pg[row]
-        out.x[i], out.y[i], out.sigma[i] = q[0], q[1], q[2]
-        out.sharp[i] = sharp_ok[row]
-        out.cov_xy[i] = cov[row, :2, :2]
-        out.reduced_chi2[i] = chi2r[row]
-        _store_amplitudes(out, i, q[3:], slots, nchan)
-        if nchan == 3:
-            a_r, a_g, a_b = q[3], q[4], q[5]
-            gm = np.array([[1.0 / a_g, -a_r / a_g**2, 0.0], [0.0, -a_b / a_g**2, 1.0 / a_g]])
-            out.rg[i], out.bg[i] = a_r / a_g, a_b / a_g
-            out.cov_colour[i] = gm @ cov[row, 3:6, 3:6] @ gm.T
-        if chi2r[row] > params.max_reduced_chi2:
-            out.flags[i] = int(out.flags[i]) | int(StarFlag.POOR_FIT)
+    ii = idx[fit[good]]
+    out.x[ii], out.y[ii], out.sigma[ii] = pg[:, 0], pg[:, 1], pg[:, 2]
+    out.sharp[ii] = sharp_ok
+    out.cov_xy[ii] = cov[:, :2, :2]
+    out.reduced_chi2[ii] = chi2r
+    _store_amplitudes_many(out, ii, pg[:, 3:], slots, nchan)
+    if nchan == 3:
+        a_r, a_g, a_b = pg[:, 3], pg[:, 4], pg[:, 5]
+        z = np.zeros_like(a_g)
+        gm = np.stack(
+            [np.stack([1.0 / a_g, -a_r / a_g**2, z], axis=1), np.stack([z, -a_b / a_g**2, 1.0 / a_g], axis=1)], axis=1
+        )
+        out.rg[ii], out.bg[ii] = a_r / a_g, a_b / a_g
+        out.cov_colour[ii] = gm @ cov[:, 3:6, 3:6] @ gm.transpose(0, 2, 1)
+    poor = chi2r > params.max_reduced_chi2
+    out.flags[ii[poor]] |= int(StarFlag.POOR_FIT)
 
 
 def _inverse_normal(a):
@@ -751,3 +752,13 @@ def _store_amplitudes(out, i, lin, slots, nchan):
         out.amp[i, slot], out.background[i, slot] = lin[k], lin[nchan + k]
     if nchan == 3 and lin[1] > 0:
         out.rg[i], out.bg[i] = lin[0] / lin[1], lin[2] / lin[1]
+
+
+def _store_amplitudes_many(out, ii, lin, slots, nchan):
+    """_store_amplitudes for stars ``ii`` at once (``lin`` (len(ii), 2 nchan))."""
+    for k, slot in enumerate(slots):
+        out.amp[ii, slot], out.background[ii, slot] = lin[:, k], lin[:, nchan + k]
+    if nchan == 3:
+        pos = lin[:, 1] > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out.rg[ii[pos]], out.bg[ii[pos]] = lin[pos, 0] / lin[pos, 1], lin[pos, 2] / lin[pos, 1]

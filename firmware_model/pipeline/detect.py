@@ -179,8 +179,8 @@ def _median_last(a: np.ndarray) -> np.ndarray:
     n = a.shape[-1]
     if n % 2:
         return np.partition(a, n // 2, axis=-1)[..., n // 2]
-    part = np.partition(a, (n // 2 - 1, n // 2), axis=-1)
-    return (part[..., n // 2 - 1] + part[..., n // 2]) * a.dtype.type(0.5)
+    part = np.partition(a, n // 2, axis=-1)  # one kth: numpy's several-kth path is slower
+    return (part[..., : n // 2].max(axis=-1) + part[..., n // 2]) * a.dtype.type(0.5)
 
 
 def _background_grids(img: np.ndarray, black: np.ndarray, block: int, step: int):
@@ -322,12 +322,13 @@ def _nb_block_stats(img, step, black, b, med, lim):  # pragma: no cover - compil
                         n_ = 0
                         t1 = 0.0
                         t2 = 0.0
-                        for v in range(b):
+                        for v in range(b):  # branch-free: the loop vectorises
                             d = (np.float32(img[r, 2 * (j * b + v) * step + bb]) - blk) - m
-                            if abs(d) < lm:
-                                n_ += 1
-                                t1 += d
-                                t2 += float(d) * d
+                            keep = abs(d) < lm
+                            n_ += keep
+                            dk = float(d) if keep else 0.0
+                            t1 += dk
+                            t2 += dk * dk
                         cnt[a, bb, j] += n_
                         s1[a, bb, j] += t1
                         s2[a, bb, j] += t2
@@ -380,6 +381,14 @@ def _nb_superpixels(pix, black, colex, thr, block, gx, iy, ty, cand):  # pragma:
             total[rr, cc] = (v[0, 0, cc] + v[0, 1, cc] + v[1, 0, cc] + v[1, 1, cc]) - (
                 gx[i0, cc] * (one - t) + gx[i1, cc] * t
             )
+        # the threshold test as a branch-free count first: most rows hold no candidate
+        hits = 0
+        for a in range(2):
+            for bb in range(2):
+                for cc in range(w2):
+                    hits += v[a, bb, cc] - thr_row[a, bb, cc] > 0
+        if hits == 0:
+            continue
         for a in range(2):
             for bb in range(2):
                 for cc in range(w2):
@@ -522,6 +531,11 @@ def _nb_filter(total, kernel, den, block, k_sigma, mr, mc):  # pragma: no cover 
                 cur = gy
                 for c in range(w):
                     den_row[c] = den[gy, min(c // block, nxd - 1)]
+            hits = 0  # branch-free count first: most rows hold no significant pixel
+            for c in range(w):
+                hits += out[c] / den_row[c] > k_sigma
+            if hits == 0:
+                continue
             for c in range(w):
                 if out[c] / den_row[c] > k_sigma:
                     if n < cap:
@@ -639,7 +653,9 @@ def prepare_detection(frame: Frame, params: DetectParams = DetectParams()) -> Pr
         return _empty(f"frame too small for detection ({frame.width} x {frame.height})")
     block = max(min(params.block_px // 2, h2, w2) // 2 * 2, 4)  # in phase pixels
     black = np.asarray(frame.black_level, dtype=np.float32).reshape(2, 2)
-    pix = px_all[: 2 * h2, : 2 * w2]
+    pix = px_all if px_all.shape == (2 * h2, 2 * w2) else px_all[: 2 * h2, : 2 * w2]
+    if not pix.flags.c_contiguous:  # odd-sized mono frames, views: the kernels want C order
+        pix = np.ascontiguousarray(pix)
     # per-phase clipped mean and noise grids (2, 2, ny, nx) from a 1-in-4 subsample
     bg_all, sig_all = _background_grids(pix, black, block, 2)
     colex, bad = _column_defects(pix, black, sig_all, frame.width)
@@ -648,7 +664,7 @@ def prepare_detection(frame: Frame, params: DetectParams = DetectParams()) -> Pr
     var_sum = _grid_sum(sig_all.astype(np.float32) ** 2)
     iy, ty = _interp_axis(bg_sum.shape[0], block, h2)
     ix, tx = _interp_axis(bg_sum.shape[1], block, w2)
-    gx = _interp_cols(bg_sum.astype(np.float32), ix, tx)
+    gx = np.ascontiguousarray(_interp_cols(bg_sum.astype(np.float32), ix, tx))
     # one pass over the frame: column-corrected, background-subtracted super-pixel sums and the
     # pixels above the threshold
     cand = np.empty(max(pix.size // 64, 4096), np.int64)
