@@ -452,10 +452,9 @@ def _nb_residuals(p, data, w, chan, nchan, rowc, colc, ex, dex, dsx, ey, dey, ds
 @njit(cache=True, nogil=True)
 def _nb_normal(p, w, chan, nchan, rowc, colc, r, ex, dex, dsx, ey, dey, dsy, a, g):  # pragma: no cover
     """Normal matrix J^T J and gradient J^T r of one window's weighted analytic Jacobian (each row
-    has five non-zero entries: centre, sigma, its channel's amplitude and background)."""
+    has five non-zero entries: centre, sigma, its channel's amplitude and background); ``ex`` ...
+    ``dsy`` hold the axis profiles at ``p`` (the residuals' last evaluation)."""
     side = len(colc)
-    _nb_axis(colc, p[0], p[2], ex, dex, dsx)
-    _nb_axis(rowc, p[1], p[2], ey, dey, dsy)
     a[:, :] = 0.0
     g[:] = 0.0
     jv = np.empty(5)

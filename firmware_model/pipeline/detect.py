@@ -785,7 +785,7 @@ def detect_stars(
     n_streak = int(np.count_nonzero(is_streak))
     pr, pc, plabel, psnr = pr[~is_streak], pc[~is_streak], plabel[~is_streak], psnr[~is_streak]
     sharp = _peaked_candidates(
-        (pix, black, colex, sharp_lin, sharp_val), bg_grids, noise_grids, block, pr, pc, params, frame.is_mono
+        (pix, black, colex, sharp_lin, sharp_val), bg_all, sig_all, block, pr, pc, params, frame.is_mono
     )
     n_sharp += int(np.count_nonzero(sharp))
     pr, pc, plabel, psnr = pr[~sharp], pc[~sharp], plabel[~sharp], psnr[~sharp]
@@ -873,49 +873,57 @@ def _subpixel_peak(img: np.ndarray, r: np.ndarray, c: np.ndarray):
     return r + dy, c + dx
 
 
-def _peaked_candidates(phases, bg_grids, noise_grids, block, pr, pc, params, mono) -> np.ndarray:
+def _peaked_candidates(phases, bg_all, sig_all, block, pr, pc, params, mono) -> np.ndarray:
     """True for candidates whose brightest raw pixel holds far more of the 6x6 raw window's
     signal than a PSF allows: hot pixels and cosmic-ray hits the per-pixel cleaning missed
     (it needs ~45 sigma; this pools 36 pixels). A centred Gaussian puts p0 = erf(1 /
     (2 sqrt 2 s))^2 of the flux in one pixel, erf(3 / (sqrt 2 s))^2 in the window; colour can at most double that on a CFA
     (rg or bg up to ~2.5 against a channel mean ~1.2); 1.5x margin. Sharp if the peak
-    exceeds that share of the window sum by 3 standard deviations."""
-    n = len(pr)
-    if n == 0:
+    exceeds that share of the window sum by 3 standard deviations. The windows are taken from
+    the phases as detection cleaned them (black level, column offsets, replaced sharp pixels)."""
+    if len(pr) == 0:
         return np.zeros(0, bool)
     pix, black, colex, sharp_lin, sharp_val = phases
-    h2, w2 = pix.shape[0] // 2, pix.shape[1] // 2
-    width = pix.shape[1]
-    rr = np.clip(2 * pr[:, None, None] - 2 + np.arange(6)[None, :, None], 0, 2 * h2 - 1)
-    cc = np.clip(2 * pc[:, None, None] - 2 + np.arange(6)[None, None, :], 0, 2 * w2 - 1)
-    rr, cc = np.broadcast_arrays(rr, cc)
-    a_, b_ = rr % 2, cc % 2
-    # the phases as detection cleaned them: black level, column offsets, replaced sharp pixels
-    vals = pix[rr, cc].astype(np.float32) - black[a_, b_] - colex[a_, b_, cc // 2]
-    if len(sharp_lin):
-        srt = np.argsort(sharp_lin)
-        sl, sv = sharp_lin[srt], sharp_val[srt]
-        lin = rr.astype(np.int64) * width + cc
-        j = np.minimum(np.searchsorted(sl, lin), len(sl) - 1)
-        hit = sl[j] == lin
-        vals[hit] = sv[j[hit]]
-    win = np.empty(rr.shape, np.float32)
-    gy, gx = pr // block, pc // block
-    sig2 = np.zeros(n)
-    for a in (0, 1):
-        for b in (0, 1):
-            m = (a_ == a) & (b_ == b)
-            bg = np.broadcast_to(_grid_at(bg_grids[a, b], gy, gx)[:, None, None], rr.shape)
-            win[m] = vals[m] - bg[m]
-            sig2 += _grid_at(noise_grids[a, b], gy, gx) ** 2 / 4.0
+    srt = np.argsort(sharp_lin)
     # peak-pixel share of the flux inside the 6x6 window (a wide PSF spills out of the window)
     p0 = (erf(1.0 / (2.0 * np.sqrt(2.0) * params.psf_sigma_px)) / erf(3.0 / (np.sqrt(2.0) * params.psf_sigma_px))) ** 2
     share = min(0.9, 1.5 * p0 * (1.0 if mono else 2.0))
-    flat = win.reshape(n, -1)
-    peak = flat.max(axis=1)
-    total = flat.sum(axis=1)
-    sd = np.sqrt(sig2 * (1.0 + share**2 * flat.shape[1]))
-    return peak - share * total > 3.0 * sd
+    return _nb_peaked(pix, black, colex, sharp_lin[srt], sharp_val[srt], bg_all, sig_all, block, pr, pc, float(share))
+
+
+@njit(cache=True, nogil=True)
+def _nb_peaked(pix, black, colex, sl, sv, bg, sig, block, pr, pc, share):  # pragma: no cover - compiled
+    """_peaked_candidates' test per candidate (``sl, sv``: sorted cleaned pixels, their values)."""
+    h2, w2 = pix.shape[0] // 2, pix.shape[1] // 2
+    width = pix.shape[1]
+    ny, nx = bg.shape[2], bg.shape[3]
+    out = np.zeros(len(pr), np.bool_)
+    for i in range(len(pr)):
+        gy, gx = min(pr[i] // block, ny - 1), min(pc[i] // block, nx - 1)
+        peak = -np.inf
+        total = 0.0
+        for u in range(6):
+            rr = min(max(2 * pr[i] - 2 + u, 0), 2 * h2 - 1)
+            a = rr % 2
+            for v in range(6):
+                cc = min(max(2 * pc[i] - 2 + v, 0), 2 * w2 - 1)
+                b = cc % 2
+                val = np.float32(pix[rr, cc]) - black[a, b] - colex[a, b, cc // 2]
+                if len(sl):
+                    q = rr * width + cc
+                    j = np.searchsorted(sl, q)
+                    if j < len(sl) and sl[j] == q:
+                        val = sv[j]
+                x = np.float32(val - bg[a, b, gy, gx])
+                peak = max(peak, float(x))
+                total += x
+        sig2 = 0.0
+        for a in range(2):
+            for b in range(2):
+                sig2 += sig[a, b, gy, gx] ** 2 / 4.0
+        sd = np.sqrt(sig2 * (1.0 + share**2 * 36))
+        out[i] = peak - share * total > 3.0 * sd
+    return out
 
 
 def _merge_without_dip(filt, snr, plabel, pr, pc, radius: int, limit: int):
