@@ -914,8 +914,8 @@ def _nb_peaked(pix, black, colex, sl, sv, bg, sig, block, pr, pc, share):  # pra
                     j = np.searchsorted(sl, q)
                     if j < len(sl) and sl[j] == q:
                         val = sv[j]
-                x = np.float32(val - bg[a, b, gy, gx])
-                peak = max(peak, float(x))
+                x = float(np.float32(val - bg[a, b, gy, gx]))
+                peak = max(peak, x)
                 total += x
         sig2 = 0.0
         for a in range(2):
