@@ -143,9 +143,10 @@ def fmt(v, spec=".0f") -> str:
 def real_frames(workers, jobs, args, rng):
     names = list(workers)
     t3jobs = [j for j in jobs if j["set"] == "tetra3"]
-    for j in jobs:  # warm: every system solves every file once, untimed
-        for name, w in workers.items():
-            j[name] = w.call("file", **file_args(name, j))
+    for _ in range(2):  # warm: every system solves every file twice, untimed (our first solve of a
+        for j in jobs:  # catalog builds its pattern index inside the optics search's time budget)
+            for name, w in workers.items():
+                w.call("file", **file_args(name, j))
     bases = {}
     for j in t3jobs:
         c = centre_of(j)
@@ -375,7 +376,7 @@ def perturbed_sets(workers, jobs, bases, args, rng):
     summary = {}
     for set_name in SETS:
         for n in names:
-            ret = hc = correct = hc_wrong = over = 0
+            ret = hc = correct = hc_wrong = over = roll_only = 0
             worst = worst_roll = max_sig = 0.0
             cpu = []
             for i, (s, j, _cen) in enumerate(inputs):
@@ -404,12 +405,14 @@ def perturbed_sets(workers, jobs, bases, args, rng):
                 is_hc = rep["status"] == "OK"
                 hc += is_hc
                 hc_wrong += is_hc and err >= CORRECT_DEG
+                tilt = float(np.degrees(np.linalg.norm(rv - (rv @ b[0]) * b[0])))
+                roll_only += is_hc and err >= CORRECT_DEG and tilt < CORRECT_DEG
                 if n == "ours" and is_hc and rep.get("cov") is not None:
                     sig = np.sqrt(np.clip(np.diag(np.asarray(rep["cov"])), 1e-30, None))
                     ratio_ = float(np.max(np.abs(rv) / sig))
                     max_sig = max(max_sig, ratio_)
                     over += ratio_ > 3.0
-            summary[(set_name, n)] = (ret, correct, med(cpu))
+            summary[(set_name, n)] = (ret, correct, med(cpu), hc_wrong, roll_only)
             print(
                 f"{set_name:<14}{n:<10}{ret:>9}{(hc if n != 'cedar' else '-'):>10}{correct:>8}"
                 f"{(hc_wrong if n != 'cedar' else '-'):>9}{worst:>10.3f}{worst_roll:>11.3f}"
@@ -420,6 +423,10 @@ def perturbed_sets(workers, jobs, bases, args, rng):
     print(f"(of {n_in} inputs per set; correct = attitude within {CORRECT_DEG} deg of our unperturbed solution;")
     print(" high conf: ours status OK, tetra3rs every answer (it returns only verified ones), cedar has no such flag;")
     print(" HC >3sig: ours high-confidence answers off by more than 3 of their reported sigma on a sensor axis)")
+    line = ", ".join(f"{s} {summary[(s, 'ours')][4]} of {summary[(s, 'ours')][3]}" for s in SETS)
+    print(
+        f"ours high-confidence answers off by >= {CORRECT_DEG} deg whose boresight is within {CORRECT_DEG} deg: {line}"
+    )
     for n in names[1:]:
         line = ", ".join(f"{s} {summary[(s, 'ours')][1]} vs {summary[(s, n)][1]}" for s in SETS if (s, n) in summary)
         print(f"correct, ours vs {n}: {line}")
