@@ -414,14 +414,14 @@ def perturbed_sets(workers, jobs, bases, args, rng):
                     over += ratio_ > 3.0
             summary[(set_name, n)] = (ret, correct, med(cpu), hc_wrong, roll_only)
             print(
-                f"{set_name:<14}{n:<10}{ret:>9}{(hc if n != 'cedar' else '-'):>10}{correct:>8}"
-                f"{(hc_wrong if n != 'cedar' else '-'):>9}{worst:>10.3f}{worst_roll:>11.3f}"
+                f"{set_name:<14}{n:<10}{ret:>9}{hc:>10}{correct:>8}"
+                f"{hc_wrong:>9}{worst:>10.3f}{worst_roll:>11.3f}"
                 f"{(over if n == 'ours' else '-'):>9}{(f'{max_sig:.1f}' if n == 'ours' else '-'):>12}"
                 f"{med(cpu):>11.1f}{np.nanpercentile(cpu, 95):>7.0f}{np.nanmax(cpu):>7.0f}"
             )
     n_in = args.inputs
     print(f"(of {n_in} inputs per set; correct = attitude within {CORRECT_DEG} deg of our unperturbed solution;")
-    print(" high conf: ours status OK, tetra3rs every answer (it returns only verified ones), cedar has no such flag;")
+    print(" high conf: ours status OK; the peers return only answers their verification accepted: every one;")
     print(" HC >3sig: ours high-confidence answers off by more than 3 of their reported sigma on a sensor axis)")
     line = ", ".join(f"{s} {summary[(s, 'ours')][4]} of {summary[(s, 'ours')][3]}" for s in SETS)
     print(
