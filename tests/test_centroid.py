@@ -162,3 +162,41 @@ def test_batched_windows_match_single_window_model():
         assert np.allclose(jfd[i][v], jac[i][v], rtol=1e-4, atol=1e-4)
         assert np.allclose(lin[i], wm.linear_solve(p[i, 0], p[i, 1], p[i, 2], win.data[i][v]), rtol=1e-8)
         assert np.all(r[i][~v] == 0) and np.all(jac[i][~v] == 0)
+
+
+def test_compiled_levenberg_marquardt_matches_the_numpy_reference():
+    from firmware_model.pipeline.centroid import _TOL, _levenberg_marquardt, _nb_levenberg_marquardt, _Windows
+
+    for pattern in ("RGGB", "MONO"):
+        stars = random_star_field(CAM, ATT, 12, vmag_range=(2.0, 7.0), seed=4, min_separation_px=15)
+        frame = render_frame(stars, ATT, CAM, DetectorModel(pattern=pattern), seed=8).frame
+        det = detect_stars(frame)
+        win = _Windows(frame, det, 4)
+        sig0 = np.full(len(det), 1.0)
+        p0 = np.column_stack([det.x, det.y, sig0, win.linear_solve(det.x, det.y, sig0, win.w)])
+        ref = _levenberg_marquardt(win, p0, win.w, FitParams())
+        new = _nb_levenberg_marquardt(
+            win.data, win.w, win.chan, win.nchan, win.row_coords, win.col_coords, p0, 60, _TOL
+        )
+        assert np.array_equal(ref[2], new[2]) and np.array_equal(ref[3], new[3])  # converged, started
+        assert np.allclose(ref[0], new[0], rtol=1e-9, atol=1e-9) and np.allclose(ref[1], new[1], atol=1e-7)
+
+
+def test_fit_stops_at_the_cap_with_the_same_stars(monkeypatch):
+    import firmware_model.pipeline.extract as extract_mod
+    from firmware_model.pipeline.detect import DetectParams
+    from firmware_model.pipeline.extract import ExtractParams
+
+    stars = random_star_field(CAM, ATT, 40, vmag_range=(2.0, 7.5), seed=9, min_separation_px=10)
+    frame = render_frame(stars, ATT, CAM, DetectorModel(hot_pixel_fraction=2e-3), seed=2).frame
+    params = ExtractParams(detect=DetectParams(max_candidates=12))
+    calls = []
+    real_fit = extract_mod.fit_stars
+    monkeypatch.setattr(extract_mod, "fit_stars", lambda f, d, p: calls.append(len(d)) or real_fit(f, d, p))
+    lazy = extract_stars(frame, params=params)
+    n_lazy, calls[:] = sum(calls), []
+    monkeypatch.setattr(extract_mod, "FIT_FIRST_FACTOR", 1000.0)
+    full = extract_stars(frame, params=params)
+    assert n_lazy < sum(calls)  # fewer candidates fitted
+    assert len(lazy) == len(full) == 12
+    assert np.array_equal(lazy.x, full.x) and np.array_equal(lazy.flags, full.flags)

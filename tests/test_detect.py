@@ -188,3 +188,42 @@ def test_dense_clutter_is_bounded_work_with_a_clear_note():
     assert len(det) == 16 and det.n_dropped_cap > REGION_CAP_FACTOR * 16
     assert "dropped by the cap" in det.reason
     assert np.all(np.diff(det.flux) <= 0)
+
+
+def test_prepared_detection_shared_by_psf_passes_gives_the_same_detections():
+    from firmware_model.pipeline.detect import prepare_detection
+
+    stars = random_star_field(CAM, ATT, 20, vmag_range=(2.0, 6.0), seed=11, min_separation_px=12)
+    res = render_frame(stars, ATT, CAM, DetectorModel(hot_pixel_fraction=2e-3), seed=5)
+    prep = prepare_detection(res.frame)
+    total = prep.total.copy()
+    for sigma in (1.0, 0.6, 2.0, 1.0):
+        params = DetectParams(psf_sigma_px=sigma)
+        alone, shared = detect_stars(res.frame, params), detect_stars(res.frame, params, prepared=prep)
+        for name in ("x", "y", "flux", "snr", "flags", "bad_pixels"):
+            assert np.array_equal(getattr(alone, name), getattr(shared, name)), (sigma, name)
+        assert alone.n_rejected_sharp == shared.n_rejected_sharp and alone.reason == shared.reason
+    assert np.array_equal(prep.total, total)  # each pass undoes its hot-pixel patches
+    with pytest.raises(ValueError, match="another frame"):
+        detect_stars(res.frame, DetectParams(k_sigma=6.0), prepared=prep)
+
+
+def test_compiled_helpers_match_their_references():
+    from firmware_model.pipeline.detect import _median_last, _nb_label
+
+    rng = np.random.default_rng(3)
+    for shape in [(7, 64), (5, 65), (3, 4, 61), (2, 1)]:
+        for a in (rng.integers(0, 20, shape).astype(np.float32), rng.normal(0, 1, shape).astype(np.float32)):
+            assert np.array_equal(_median_last(a), np.median(a, axis=-1))
+    mask = rng.random((60, 80)) < 0.3
+    r, c = np.nonzero(mask)
+    ref, n = ndimage.label(mask)
+    lab = _nb_label(r, c)
+    assert lab.max() == n and np.array_equal(lab, ref[r, c])
+
+
+def test_warm_up_runs_the_compiled_kernels():
+    from firmware_model.pipeline.extract import warm_up
+
+    warm_up()
+    assert warm_up() < 5.0  # compiled (or loaded from the on-disk cache) once per process
