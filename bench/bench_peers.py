@@ -432,7 +432,8 @@ def perturbed_sets(workers, jobs, bases, args, rng):
         print(f"correct, ours vs {n}: {line}")
     if "none" in SETS:
         line = ", ".join(f"ours/{n} {ratio(summary[('none', 'ours')][2], summary[('none', n)][2])}" for n in names[1:])
-        print(f"identification alone with the fitted optics (set none, median cpu): {line}")
+        optics = "the fitted optics" if args.perturbed_camera == "fitted" else "the datasheet camera / FOV estimate"
+        print(f"identification alone with {optics} (set none, median cpu): {line}")
 
 
 # ------------------------------------------------------------------ part 3: the synthetic grid
