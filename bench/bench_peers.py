@@ -10,7 +10,7 @@ thread even with ``threads=1``, which the calling thread's CPU time does not see
 
 1. **Real frames** (../shared/data/frames: the 8 tetra3 frames, optics from the datasheet (35 mm,
    6.9 um, no distortion); the 7 colour-real frames, a pinhole from the horizontal FOV of
-   reference_pointing.json). Every system first solves every file once untimed (warm), then
+   reference_pointing.json). Every system first solves every file twice untimed (warm), then
    ``--rounds`` rounds, each a shuffled order (``--seed``) of every (system, file) pair, plus, on
    the tetra3 frames, every (system, centroid list) pair: our extracted centroids of the frame fed
    to each system's centroid-input API (identification alone). File to attitude: ours
