@@ -298,7 +298,11 @@ def main(argv=None) -> int:
             for k, v in results["speed"]["median_ms"].items()
         )
     )
-    print(f"fit time, finite-difference / analytic Jacobian (baseline ratio): {jac_ratio:.2f}x")
+    print(
+        f"fit time, finite-difference / analytic Jacobian (baseline ratio): {jac_ratio:.2f}x "
+        "(finite differences run the numpy batched loop, the analytic Jacobian the compiled one; "
+        "bench/bench_extract_speed.py times the stages against a one-pass baseline)"
+    )
     (out / "extract_results.json").write_text(json.dumps(results, indent=1))
     print(f"plot: {plot(results, out)}; numbers: {out / 'extract_results.json'}")
     return 0
