@@ -169,8 +169,18 @@ def _frame_problem(lo, hi, n_sat: int, size: int, params: DetectParams) -> str:
 
 def frame_problem(frame: Frame, params: DetectParams) -> str:
     """Reason the frame cannot hold usable stars, or ''."""
-    lo, hi, n_sat = _nb_range(frame.pixels, float(frame.white_level))
+    lo, hi, n_sat = _nb_range(_kernel_pixels(frame.pixels), float(frame.white_level))
     return _frame_problem(lo, hi, n_sat, frame.pixels.size, params)
+
+
+def _kernel_pixels(px: np.ndarray) -> np.ndarray:
+    """The pixels as the compiled kernels take them: native byte order (FITS data are big-endian)
+    and a type numba knows (float16 becomes float32); the array itself when it already is."""
+    if px.dtype == np.float16:
+        return px.astype(np.float32)
+    if not px.dtype.isnative:
+        return px.astype(px.dtype.newbyteorder("="))
+    return px
 
 
 def _median_last(a: np.ndarray) -> np.ndarray:
@@ -629,6 +639,7 @@ class PreparedFrame:
     block_px: int
     block: int
     black: np.ndarray
+    px_all: np.ndarray
     pix: np.ndarray
     bg_all: np.ndarray
     sig_all: np.ndarray
@@ -644,7 +655,7 @@ def prepare_detection(frame: Frame, params: DetectParams = DetectParams()) -> Pr
     over a 1-in-4 subsample), or an empty :class:`Detections` with the reason the frame cannot
     hold stars."""
     h2, w2 = frame.height // 2, frame.width // 2
-    px_all = frame.pixels
+    px_all = _kernel_pixels(frame.pixels)
     lo, hi, n_sat = _nb_range(px_all, float(frame.white_level))
     problem = _frame_problem(lo, hi, n_sat, px_all.size, params)
     if problem:
@@ -678,6 +689,7 @@ def prepare_detection(frame: Frame, params: DetectParams = DetectParams()) -> Pr
         params.block_px,
         block,
         black,
+        px_all,
         pix,
         bg_all,
         sig_all,
@@ -708,7 +720,7 @@ def detect_stars(
     d2 = 1.0 if frame.is_mono else 4.0  # squared distance to the neighbours used (px^2)
     ratio = params.sharp_fraction * np.exp(-d2 / (2.0 * params.psf_sigma_px**2))
     sharp_lin, sharp_val, sharp_old = _nb_clean_sharp(
-        frame.pixels, black, colex, bg_all, sig_all, prep.cand, block, float(ratio), bool(frame.is_mono), frame.width
+        prep.px_all, black, colex, bg_all, sig_all, prep.cand, block, float(ratio), bool(frame.is_mono), frame.width
     )
     total = prep.total
     if len(sharp_lin):  # the cleaned pixels' change, undone below: the prepared sums serve other passes
