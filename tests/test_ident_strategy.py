@@ -13,14 +13,17 @@ from firmware_model.ident.solver import Method, Mode, SolveParams, SolveTimings,
 from firmware_model.ident.strategy import (
     Detections,
     IdentifyTimings,
+    SolveResult,
     StrategyParams,
+    bound_roll,
+    brightest_eta,
     geometric_sizes,
     identify,
     solve,
 )
 from firmware_model.ident.verify import FieldOfView
 from firmware_model.pipeline.camera import CameraModel
-from firmware_model.pipeline.run import STAGES, PipelineOutput, StageTimings
+from firmware_model.pipeline.run import STAGES, PipelineOutput, PipelineParams, StageTimings
 from firmware_model.reference_frames import attitude_from_radec_roll
 from ground.link.solve_report import METHODS, record_from_output
 from ground.sim import whole_sky as skysim
@@ -50,6 +53,29 @@ def test_mode_parses_user_text_with_a_one_line_error():
     assert DeviceParams.from_json(b'{"mode": "geometric"}').mode is Mode.GEOMETRIC
 
 
+def test_roll_sigma_bound_holds_high_confidence_back_and_is_a_parameter():
+    deg2 = np.radians(1.0) ** 2
+    loose = SolveResult(Outcome.HIGH_CONFIDENCE, covariance=np.diag([1e-8, 1e-8, 0.2**2 * deg2]))
+    out = bound_roll(loose, np.radians(0.1))
+    assert out.status is Outcome.LOW_CONFIDENCE and out.roll_limited and "roll sigma 0.2 deg" in out.reason
+    tight = SolveResult(Outcome.HIGH_CONFIDENCE, covariance=np.diag([1e-8, 1e-8, 0.05**2 * deg2]))
+    assert bound_roll(tight, np.radians(0.1)).status is Outcome.HIGH_CONFIDENCE
+    assert SolveParams().max_roll_sigma == pytest.approx(np.radians(0.1))
+    dp = DeviceParams.from_json(b'{"max_roll_sigma_deg": 0.5}')
+    assert dp.apply(PipelineParams()).solve.max_roll_sigma == pytest.approx(np.radians(0.5))
+    with pytest.raises(SlotRejected, match="max_roll_sigma_deg must be a number"):
+        DeviceParams.from_json(b'{"max_roll_sigma_deg": -1}')
+
+
+def test_eta_on_the_brightest_detections():
+    from firmware_model.ident.consensus import ConsensusParams
+
+    cp = ConsensusParams()
+    assert brightest_eta(np.array([0, 1, 3, 30, 31]), cp)  # 3 of the brightest 4
+    assert not brightest_eta(np.array([0, 5, 9, 20]), cp)  # never eta of a prefix of at least 4
+    assert not brightest_eta(np.array([0, 1, 2, 30]), ConsensusParams(eta_prefix_min=0))
+
+
 def test_method_codes_are_the_wire_values_and_the_report_names():
     assert [m.code for m in Method] == [
         MethodCode.COLOUR,
@@ -67,10 +93,13 @@ def test_outcome_prints_its_value():
     assert json.dumps({"status": Outcome.LOW_CONFIDENCE}) == '{"status": "LOW_CONFIDENCE"}'
 
 
-def test_geometric_ladder_widens_to_the_cap():
-    assert geometric_sizes(30, 12) == [4, 6, 8, 12]
-    assert geometric_sizes(5, 12) == [4, 5]
-    assert geometric_sizes(7, 6) == [4, 6]
+def test_geometric_route_is_one_solve_up_to_the_cap():
+    # issue 12: no 4/6/8 ladder by default; explicit steps still widen to the cap
+    assert geometric_sizes(30, 12) == [12]
+    assert geometric_sizes(5, 12) == [5]
+    assert geometric_sizes(30, 12, (4, 6, 8)) == [4, 6, 8, 12]
+    assert geometric_sizes(5, 12, (4, 6, 8)) == [4, 5]
+    assert geometric_sizes(7, 6, (4, 6, 8)) == [4, 6]
     assert geometric_sizes(10, None, ()) == [10]  # every detection at once (the whole-sky simulation)
     assert geometric_sizes(0, None, ()) == [0]
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import glob
 import importlib
 import json
+import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -85,7 +86,8 @@ class DeviceParams:
     measurement (detection's hot-pixel tests, the fit's start); ``colour_correction`` eq. 24 as
     ``{"beta": [6 numbers]}``; ``focal_search`` relative half-range of the focal-length search
     for uncalibrated optics (0 to 0.2; 0 takes the camera as calibrated: no search, no optics
-    fit).
+    fit); ``max_roll_sigma_deg`` the largest 1-sigma roll (deg, about the boresight) a
+    high-confidence answer may have (default ``solver.MAX_ROLL_SIGMA``, 0.1 deg; larger: loosen).
     The same file drives the offline paths (``--params``).
     """
 
@@ -97,6 +99,7 @@ class DeviceParams:
     psf_sigma_px: float | None = None
     colour_beta: tuple | None = None
     focal_search: float | None = None
+    max_roll_sigma_deg: float | None = None
 
     KEYS = (
         "mode",
@@ -107,6 +110,7 @@ class DeviceParams:
         "psf_sigma_px",
         "colour_correction",
         "focal_search",
+        "max_roll_sigma_deg",
     )
 
     @classmethod
@@ -177,6 +181,7 @@ class DeviceParams:
             number("psf_sigma_px", *PSF_SIGMA_RANGE_PX, lo_open=False),
             beta,
             number("focal_search", 0.0, 0.2, lo_open=False),
+            number("max_roll_sigma_deg", 0.0, 180.0),
         )
 
     def apply(self, base: PipelineParams) -> PipelineParams:
@@ -185,6 +190,8 @@ class DeviceParams:
             value = getattr(self, key)
             if value is not None:
                 solve = replace(solve, **{key: value})
+        if self.max_roll_sigma_deg is not None:
+            solve = replace(solve, max_roll_sigma=math.radians(self.max_roll_sigma_deg))
         if self.psf_sigma_px is not None:
             base = with_psf_sigma(base, self.psf_sigma_px)
         if self.focal_search == 0.0:

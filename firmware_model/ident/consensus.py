@@ -92,6 +92,10 @@ class ConsensusParams:
         so it is low confidence.
     adaptive_seeds: seed pairs move away from detections whose seeds failed (``SeedOrder``);
         False is the fixed brightest-first order.
+    eta_prefix_min: the geometric matcher's eta test is also passed when, for some ``k`` of at
+        least this many, at least ``eta k`` of the ``k`` brightest detections are matched (the
+        brightest detections are the ones most likely to be catalog stars; this replaces the
+        4/6/8 ladder of solves on the brightest detections, which applied eta to each; 0: off).
     """
 
     p_correct: float = 0.99
@@ -115,6 +119,7 @@ class ConsensusParams:
     chance_alpha: float = 1e-9
     last_resort: int = 12
     adaptive_seeds: bool = True
+    eta_prefix_min: int = 4
 
 
 @dataclass

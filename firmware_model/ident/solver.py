@@ -31,6 +31,11 @@ from firmware_model.ident.triangle import TriangleParams
 from firmware_model.ident.verify import FieldOfView, VerifiedMatch, VerifyParams
 from protocol.result import MethodCode
 
+#: Default bound on the 1-sigma roll of a high-confidence answer (rad): 0.1 deg, the roll error a
+#: user stops calling high confidence (docs/identification.md, "Confidence and the attitude's own
+#: uncertainty").
+MAX_ROLL_SIGMA = float(np.radians(0.1))
+
 #: Per-axis direction noise of the Enright & McVittie reference design: 0.2 px at f = 7383 px (rad).
 REFERENCE_SIGMA_VEC = 0.2 / 7383.1
 
@@ -83,6 +88,8 @@ class SolveParams:
         outermost detection.
     time_budget_s: wall-clock budget checked between consensus attempts (hard stop).
     max_detections: detections considered (brightest first); the matchers use fewer.
+    max_roll_sigma: the largest 1-sigma roll (rotation about the boresight, rad) a high-confidence
+        answer may have (:data:`MAX_ROLL_SIGMA`; ``strategy.bound_roll``); inf: no bound.
     """
 
     mode: Mode | str = Mode.AUTO
@@ -97,6 +104,7 @@ class SolveParams:
     fov: FieldOfView | None = None
     time_budget_s: float = 0.05
     max_detections: int = 200
+    max_roll_sigma: float = MAX_ROLL_SIGMA
 
     @property
     def pair_sigma_phi(self) -> float:
@@ -131,7 +139,8 @@ class SolveResult:
     consensus_rms: RMS residual (rad) of the final matched set;
     confidence: coverage of predicted stars times matched fraction of used detections, in [0, 1];
     method: the :class:`Method` (None before one was chosen); timings: :class:`SolveTimings`;
-    notes: input cleaning.
+    notes: input cleaning; roll_limited: high confidence but for the roll bound
+    (``SolveParams.max_roll_sigma``): the matcher's decision was high, the attitude too loose.
     """
 
     status: Outcome
@@ -152,6 +161,14 @@ class SolveResult:
     attempts: int = 0
     timings: SolveTimings = field(default_factory=SolveTimings)
     notes: list[str] = field(default_factory=list)
+    roll_limited: bool = False
+
+    @property
+    def roll_sigma(self) -> float:
+        """1-sigma roll (rad): the attitude covariance about the boresight (sensor z); NaN without one."""
+        if self.covariance is None:
+            return float("nan")
+        return float(np.sqrt(max(float(np.asarray(self.covariance)[2, 2]), 0.0)))
 
     @property
     def matched(self) -> list[tuple[int, int, int]]:

@@ -13,12 +13,15 @@ whole-sky simulation):
    with the photometric gate; in ``auto`` mode, an answer that is not high confidence is tried
    against the geometric route on the same detections (``colour_fallback``): that answer is taken
    when colour found none or geometry is high-confidence.
-3. geometric route (:func:`geometric_route`): :func:`solve_rows` on the brightest ``k`` detections
-   for each ``k`` of :func:`geometric_sizes` (4, 6, 8, then the density cap); the first
-   high-confidence answer is verified again over every detection (:func:`match_all`); else the
-   first answer that found anything.
+3. geometric route (:func:`geometric_route`): one :func:`solve_rows` on the brightest detections up
+   to the density cap (no ladder: the matchers rank their hypotheses brightest first and stop at
+   the first decisive verified set; :func:`brightest_eta` keeps the brightness preference in the
+   confidence); the answer is verified again over every detection (:func:`match_all`).
 4. mono fallback: a geometric route that found nothing runs the consensus matcher on geometry
    alone (``geometric_fallback``; method ``geometric-consensus``).
+
+Every answer is held to the roll bound (:func:`bound_roll`, ``SolveParams.max_roll_sigma``): high
+confidence needs the attitude's own roll sigma within it.
 
 ``solve_rows`` is one :func:`solve` on a subset plus the photometric gate: a low-confidence answer
 is solved again without detections fainter than the catalog holds (zero point from the matched
@@ -64,10 +67,11 @@ from firmware_model.reference_frames import quat_to_matrix, rotation_angle
 
 #: Fewest detections given to the geometric matcher by :func:`geometric_detection_cap`.
 MIN_GEOMETRIC_DETECTIONS = 8
-#: Brightest-detection counts tried in turn by the geometric route before the density cap: a
-#: small set of bright stars is most likely all in the catalog (beyond Dong et al., which takes
-#: its groups from the frame centre whatever their brightness).
-GEOMETRIC_STEPS = (4, 6, 8)
+#: Brightest-detection counts the geometric route may try before the density cap (none by default:
+#: issue 12 measured the old 4, 6, 8 ladder spending 84-98 % of identification time on steps that
+#: failed; the matchers rank their own hypotheses brightest first and stop at the first decisive
+#: verified one, with every detection of the cap available to verification).
+GEOMETRIC_STEPS: tuple[int, ...] = ()
 
 #: A hypothesis check: detection indices and catalog indices -> (verified match or None, reason).
 Check = Callable[[np.ndarray, np.ndarray], tuple[VerifiedMatch | None, str]]
@@ -184,8 +188,8 @@ def colour_route(det: Detections, catalog: OnboardCatalog, params: StrategyParam
 
 
 def geometric_sizes(n: int, cap: int | None, steps: tuple[int, ...] = GEOMETRIC_STEPS) -> list[int]:
-    """Brightest-detection counts the geometric route tries in turn: ``steps``, then ``cap``
-    (None: all ``n``), none beyond ``n`` or the cap."""
+    """Brightest-detection counts the geometric route tries in turn: ``steps`` (none by default),
+    then ``cap`` (None: all ``n``), none beyond ``n`` or the cap."""
     top = n if cap is None else cap
     return sorted({min(k, top, n) for k in (*steps, top)})
 
@@ -193,18 +197,22 @@ def geometric_sizes(n: int, cap: int | None, steps: tuple[int, ...] = GEOMETRIC_
 def geometric_route(
     det: Detections, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings
 ) -> Identification:
-    """4-star matching on the brightest detections, widening the set (:func:`geometric_sizes`)
-    until a high-confidence answer (then :func:`match_all`); the first answer found else."""
+    """Geometric matching on the brightest detections up to the density cap, in one solve: the
+    matchers rank their hypotheses themselves (4-star groups, then triads brightest first, each
+    verified over every detection given, the search ending at the first decisive set), so a
+    hypothesis from the brightest stars is tried first without a ladder of smaller solves. Any
+    ``geometric_steps`` run first (none by default), the first high-confidence answer ending
+    the route. The answer is then matched over every detection (:func:`match_all`)."""
     everything = np.arange(len(det))
     best: Identification | None = None
     for k in geometric_sizes(len(det), params.geometric_cap, params.geometric_steps):
         found = solve_rows(det, everything[:k], catalog, params, params.solve.mode, False, timings)
-        if found.status is Outcome.HIGH_CONFIDENCE:
+        if found.status is Outcome.HIGH_CONFIDENCE or found.solution.roll_limited:
             return match_all(found, det, catalog, params.solve, timings)
         if best is None or (best.status is Outcome.NO_MATCH and found.status is not Outcome.NO_MATCH):
             best = found
     assert best is not None  # geometric_sizes is never empty
-    return best
+    return best if best.status is Outcome.NO_MATCH else match_all(best, det, catalog, params.solve, timings)
 
 
 def solve_rows(
@@ -270,9 +278,10 @@ def _tolerance(det: Detections, rows: np.ndarray, sp: SolveParams) -> float:
 def match_all(
     found: Identification, det: Detections, catalog: OnboardCatalog, base: SolveParams, timings: IdentifyTimings
 ) -> Identification:
-    """A high-confidence answer found on the brightest detections verified again over every
-    detection, so every star in view is matched; the answer stands if that verification fails,
-    finds fewer stars or moves the attitude."""
+    """An answer found on the brightest detections verified again over every detection, so every
+    star in view is matched and the final attitude uses them all; the answer stands if that
+    verification fails, finds fewer stars or moves the attitude. An answer held below high
+    confidence by the roll bound alone is judged again on the wider set (:func:`bound_roll`)."""
     sol, rows = found.solution, found.rows
     if len(rows) >= len(det):
         return found
@@ -284,9 +293,26 @@ def match_all(
         or rotation_angle(match.attitude.a, quat_to_matrix(sol.q_icrs_to_sensor)) > _tolerance(det, everything, base)
     ):
         return found
-    full = solution_from_match(match, sol.status, sol.reason, everything, catalog, sol.method, len(det))
+    status, reason = (Outcome.HIGH_CONFIDENCE, "") if sol.roll_limited else (sol.status, sol.reason)
+    full = solution_from_match(match, status, reason, everything, catalog, sol.method, len(det))
     full.attempts, full.timings, full.notes = sol.attempts, sol.timings, sol.notes
-    return Identification(full, everything)
+    return Identification(bound_roll(full, base.max_roll_sigma), everything)
+
+
+def bound_roll(sol: SolveResult, max_roll_sigma: float) -> SolveResult:
+    """``sol`` held to low confidence (``roll_limited``) when it is high-confidence but its roll
+    sigma (about the boresight, from the attitude covariance) exceeds ``max_roll_sigma`` (rad):
+    the identification may be right, but a user reading "high confidence" expects the roll too
+    (docs/identification.md)."""
+    roll = sol.roll_sigma
+    if sol.status is Outcome.HIGH_CONFIDENCE and np.isfinite(roll) and roll > max_roll_sigma:
+        sol.status = Outcome.LOW_CONFIDENCE
+        sol.roll_limited = True
+        sol.reason = (
+            f"roll sigma {np.degrees(roll):.3g} deg above the {np.degrees(max_roll_sigma):.3g} deg "
+            f"bound for high confidence ({len(sol.matched_det)} stars matched)"
+        )
+    return sol
 
 
 def verify_over(
@@ -351,7 +377,8 @@ def verify_pattern(
         )
     )
     outcome = Outcome.HIGH_CONFIDENCE if high else Outcome.LOW_CONFIDENCE
-    return solution_from_match(match, outcome, reason, np.arange(len(det)), catalog, Method.PATTERN, len(det))
+    sol = solution_from_match(match, outcome, reason, np.arange(len(det)), catalog, Method.PATTERN, len(det))
+    return bound_roll(sol, base.max_roll_sigma)
 
 
 def photometric_gate(flux: np.ndarray, sol: SolveResult, catalog: OnboardCatalog, margin_mag: float):
@@ -485,7 +512,7 @@ def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveP
         out.attempts = groups
     out.timings = timings
     out.notes = scene.notes
-    return out
+    return bound_roll(out, params.max_roll_sigma)
 
 
 def match_geometric(
@@ -535,7 +562,19 @@ def geometric_high(best: VerifiedMatch, rivals: list[VerifiedMatch], n: int, cp:
         return False
     if best.low_coverage and best.n < cp.decisive_stars:
         return False
-    return best.n >= cp.eta * n or confident(best, cp)
+    return best.n >= cp.eta * n or brightest_eta(best.det, cp) or confident(best, cp)
+
+
+def brightest_eta(det: np.ndarray, cp: ConsensusParams) -> bool:
+    """The eta test on the brightest detections: for some ``k >= eta_prefix_min``, at least
+    ``eta k`` of the ``k`` brightest detections (indices below ``k``; detections are brightest
+    first) are matched. The fraction is largest just after a matched detection, so only those
+    ``k`` are checked."""
+    if cp.eta_prefix_min <= 0 or len(det) == 0:
+        return False
+    k = np.sort(np.asarray(det)) + 1
+    matched = np.arange(1, len(k) + 1)
+    return bool(np.any((k >= cp.eta_prefix_min) & (matched >= cp.eta * k)))
 
 
 def check_hypothesis(

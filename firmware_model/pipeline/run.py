@@ -80,7 +80,11 @@ class OpticsSearch:
     distortion and principal-point offset not modelled), as plate solvers do it.
 
     When the nominal camera gives no high-confidence answer, the brightest ``n_bright``
-    detections are matched as scale-free 4-star patterns (``firmware_model.pipeline.scale_free``: edge
+    detections are matched as scale-free 4-star patterns: first the ``first_tier_hypotheses`` best
+    pattern matches among the brightest ``first_tier`` detections (70 patterns, ~8 ms: a frame's
+    brightest stars are its catalog's brightest, and on the tetra3 frames the first one is the
+    answer), then among all ``n_bright`` (4845 patterns, ~80 ms; clutter such as a foreground
+    tree can hold the brightest detections) (``firmware_model.pipeline.scale_free``: edge
     ratios within ``pattern_tolerance``, focal length within ``focal_range`` of the nominal; blended,
     failed-fit and edge detections are left out: clutter such as a foreground tree is).
     Each pattern match, best first, only seeds a predict-match-fit of the focal length (and k1
@@ -101,6 +105,8 @@ class OpticsSearch:
     min_stars: int = 4
     refit_px: float = 1.0
     budget_s: float = 1.5
+    first_tier: int = 8
+    first_tier_hypotheses: int = 4
 
 
 @dataclass
@@ -131,8 +137,8 @@ class PipelineParams:
     again; the second answer is taken only if it is high-confidence and agrees with the first.
 
     ``geometric_density_factor``: the geometric (4-star) method sees only the brightest
-    detections: first ``strategy.GEOMETRIC_STEPS`` of them, then this factor times the catalog
-    stars expected in the field (``strategy.geometric_detection_cap``). ``geometric_fallback``: when that 4-star match finds
+    detections, this factor times the catalog stars expected in the field
+    (``strategy.geometric_detection_cap``), in one solve (no 4/6/8 ladder since issue 12). ``geometric_fallback``: when that 4-star match finds
     nothing, the consensus matcher of Enright & McVittie runs on geometry alone (colours unknown), which
     tolerates missing and extra stars far better; its answers are labelled
     ``geometric-consensus``. ``colour_fallback``: in ``auto`` mode a colour frame that the colour
@@ -450,12 +456,22 @@ def _pattern_seeds(
     for rows in (clean, well):
         if rows is well and np.array_equal(well[: search.n_bright], clean[: search.n_bright]):
             return
-        t1 = time.perf_counter()
-        hyps = scale_free.hypotheses(
-            stars.x[rows], stars.y[rows], camera, catalog, search.n_bright, search.pattern_tolerance, search.focal_range
-        )
-        timings.identify += time.perf_counter() - t1
-        yield from hyps
+        for n, most in ((search.first_tier, search.first_tier_hypotheses), (search.n_bright, 64)):
+            if n <= 0 or most <= 0:
+                continue
+            t1 = time.perf_counter()
+            hyps = scale_free.hypotheses(
+                stars.x[rows],
+                stars.y[rows],
+                camera,
+                catalog,
+                n,
+                search.pattern_tolerance,
+                search.focal_range,
+                max_hypotheses=most,
+            )
+            timings.identify += time.perf_counter() - t1
+            yield from hyps  # the second pass repeats the first's best: the caller skips seeds it tried
 
 
 def _verify_pattern(

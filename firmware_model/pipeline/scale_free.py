@@ -128,16 +128,19 @@ def hypotheses(
     tolerance: float,
     focal_range: float,
     max_hypotheses: int = 64,
+    first: int = 0,
 ) -> list[Hypothesis]:
     """Pattern matches of the ``n_bright`` brightest detections (rows of ``x, y``, brightest first)
     with key distance below ``tolerance`` and focal length within ``focal_range`` (relative) of
-    the nominal camera's, best key distance first."""
+    the nominal camera's, best key distance first. ``first``: only patterns holding a detection
+    at or beyond that rank (the caller has tried those of the ``first`` brightest already)."""
     n = min(len(x), n_bright)
-    if n < 4:
+    if n < 4 or n <= first:
         return []
     groups_c, keys_c, top_c, tree = catalog_patterns(catalog, camera)
     v = camera.pixel_to_vector(x[:n], y[:n])
     groups = np.array(list(combinations(range(n), 4)), np.int64)
+    groups = groups[groups[:, 3] >= first]  # combinations are sorted: the last member is the faintest
     keys, top = _keys(v, groups)
     wide = top <= 2.0 * max(PATTERN_RADIUS_FACTORS) * camera.fov_half_angle_minor * (1 + focal_range)
     groups, keys, top = groups[wide], keys[wide], top[wide]
