@@ -6,7 +6,7 @@ p1, p2) shared by all frames, plus one attitude per frame (a rotation vector app
 an initial attitude from Wahba's problem with the starting camera). Residuals: measured
 minus predicted pixel coordinates of each identified star (``camera.vector_to_pixel(A @
 v_icrs)``), in pixels. Solved with ``scipy.optimize.least_squares`` (trust-region, sparse
-finite-difference Jacobian: each frame's attitude touches only its own stars).
+finite-difference Jacobian: each frame's attitude touches only its own stars; dense for one frame).
 
 With a narrow field, the principal point is nearly degenerate with the per-frame
 attitudes (a shift of (cx, cy) is almost a rotation); its uncertainty is reported and it
@@ -96,12 +96,15 @@ def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_
             out.append(np.column_stack([x - fr.x, y - fr.y]).ravel())
         return np.concatenate(out)
 
-    sparsity = lil_matrix((2 * n_obs, n_par), dtype=int)
-    sparsity[:, : len(fit)] = 1
-    row = 0
-    for j, fr in enumerate(frames):
-        sparsity[row : row + 2 * len(fr.x), len(fit) + 3 * j : len(fit) + 3 * j + 3] = 1
-        row += 2 * len(fr.x)
+    # one frame: every unknown touches every star, and a dense Jacobian (exact trust-region steps)
+    # is several times cheaper than the sparse machinery for a handful of parameters (issue 12)
+    sparsity = lil_matrix((2 * n_obs, n_par), dtype=int) if len(frames) > 1 else None
+    if sparsity is not None:
+        sparsity[:, : len(fit)] = 1
+        row = 0
+        for j, fr in enumerate(frames):
+            sparsity[row : row + 2 * len(fr.x), len(fit) + 3 * j : len(fit) + 3 * j + 3] = 1
+            row += 2 * len(fr.x)
     p0 = np.concatenate([[getattr(initial, k) / s for k, s in zip(fit, scale)], np.zeros(3 * len(frames))])
     res = least_squares(
         residuals,
