@@ -17,6 +17,7 @@ from firmware_model.ident.strategy import (
     StrategyParams,
     bound_roll,
     brightest_eta,
+    geometric_fallback,
     geometric_sizes,
     identify,
     solve,
@@ -161,3 +162,13 @@ def test_mono_fallback_runs_consensus_on_geometry_when_geometry_finds_nothing(ca
     found = identify(det, catalog, StrategyParams(solve=params, geometric_steps=()))
     assert found.status is Outcome.HIGH_CONFIDENCE and found.solution.method is Method.GEOMETRIC_CONSENSUS
     assert np.all(scene.truth[found.rows[found.solution.matched_det]] == found.solution.matched_cat)
+    assert not off.fallback_due and not found.fallback_due
+    # deferred (the pipeline's optics search goes first): the route's answer says the fallback is due,
+    # and the fallback run afterwards is the answer identify would have given
+    deferred = StrategyParams(solve=params, geometric_steps=(), defer_fallback=True)
+    due = identify(det, catalog, deferred)
+    assert due.status is Outcome.NO_MATCH and due.fallback_due
+    late = geometric_fallback(det, catalog, deferred, IdentifyTimings())
+    assert late is not None and late.solution.method is Method.GEOMETRIC_CONSENSUS
+    assert np.array_equal(late.solution.matched_star_id, found.solution.matched_star_id)
+    assert np.array_equal(late.solution.q_icrs_to_sensor, found.solution.q_icrs_to_sensor)

@@ -182,3 +182,26 @@ def test_bad_frames_get_a_status_never_a_confident_answer(catalog, name, frame):
     assert out.status is not Status.OK, name
     assert out.reason, name
     assert out.timings.total < 10.0  # bounded by the search budget, not a hang
+
+
+def test_search_goes_before_the_mono_consensus_with_the_nominal_camera(catalog, monkeypatch):
+    """Issue 12: when the nominal camera finds nothing, the optics search's pattern hypotheses run
+    before the mono consensus fallback with that camera, which is not run when the search answers."""
+    from firmware_model.pipeline import run
+
+    calls = []
+
+    def fallback(*args, **kw):
+        calls.append(args)
+        return original(*args, **kw)
+
+    original = run.geometric_fallback
+    monkeypatch.setattr(run, "geometric_fallback", fallback)
+    true = replace(NOMINAL, f=NOMINAL.f * 1.025, k1=0.25)
+    a, r = render(true, POINTINGS[0], seed=10)
+    out = run_pipeline(r.frame, NOMINAL, catalog)
+    assert out.status is Status.OK and np.isfinite(out.optics.focal_scale) and not calls
+    assert centre_pointing_error_px(out, a, true) < 1.0
+    monkeypatch.setattr(run, "_search_optics", lambda *args: None)  # a search that finds nothing
+    run_pipeline(r.frame, NOMINAL, catalog)
+    assert len(calls) == 1  # then the deferred fallback runs

@@ -18,7 +18,10 @@ whole-sky simulation):
    the first decisive verified set; :func:`brightest_eta` keeps the brightness preference in the
    confidence); the answer is verified again over every detection (:func:`match_all`).
 4. mono fallback: a geometric route that found nothing runs the consensus matcher on geometry
-   alone (``geometric_fallback``; method ``geometric-consensus``).
+   alone (``geometric_fallback``; method ``geometric-consensus``). With ``defer_fallback`` the
+   answer instead comes back with ``fallback_due`` set and the caller runs the fallback itself
+   (:func:`geometric_fallback`) when its cheaper methods fail: the pipeline's optics search tries
+   its pattern hypotheses first when the nominal camera fails (issue 12).
 
 Every answer is held to the roll bound (:func:`bound_roll`, ``SolveParams.max_roll_sigma``): high
 confidence needs the attitude's own roll sigma within it.
@@ -118,7 +121,7 @@ class StrategyParams:
     the brightest-detection counts of the geometric route (:func:`geometric_sizes`; cap None:
     every detection); geometric_fallback: consensus on geometry alone when the geometric route
     finds nothing; colour_fallback: in ``auto`` mode, the geometric route when colour is not
-    high-confidence."""
+    high-confidence; defer_fallback: leave that consensus to the caller (``Identification.fallback_due``)."""
 
     solve: SolveParams = SolveParams()
     photometric_gate: float | None = None
@@ -126,6 +129,7 @@ class StrategyParams:
     geometric_cap: int | None = None
     geometric_fallback: bool = True
     colour_fallback: bool = True
+    defer_fallback: bool = False
 
 
 @dataclass
@@ -144,10 +148,12 @@ class IdentifyTimings:
 @dataclass
 class Identification:
     """The answer of :func:`identify`: the solution (status NO_MATCH when none) and the detections
-    (indices into :class:`Detections`) its ``matched_det`` refers to."""
+    (indices into :class:`Detections`) its ``matched_det`` refers to. ``fallback_due``: the mono
+    fallback would have run but was deferred (``StrategyParams.defer_fallback``)."""
 
     solution: SolveResult
     rows: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    fallback_due: bool = False
 
     @property
     def status(self) -> Outcome:
@@ -160,7 +166,6 @@ def identify(
 ) -> Identification:
     """The order of methods and fallbacks for one frame (module docstring, steps 1-4)."""
     timings = timings if timings is not None else IdentifyTimings()
-    everything = np.arange(len(det))
     mode = params.solve.mode
     geometric = mode == Mode.GEOMETRIC or (mode == Mode.AUTO and (not catalog.has_colour or not det.has_colour))
     if geometric:
@@ -175,11 +180,23 @@ def identify(
             if found.status is Outcome.NO_MATCH or geo.status is Outcome.HIGH_CONFIDENCE:
                 geometric, found = True, geo
     if geometric and found.status is Outcome.NO_MATCH and params.geometric_fallback and catalog.has_colour:
-        again = solve_rows(det, everything, catalog, params, Mode.COLOUR, False, timings)
-        if again.status is not Outcome.NO_MATCH:
-            again.solution.method = Method.GEOMETRIC_CONSENSUS
-            found = again
+        if params.defer_fallback:
+            found.fallback_due = True
+        else:
+            found = geometric_fallback(det, catalog, params, timings) or found
     return found
+
+
+def geometric_fallback(
+    det: Detections, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings
+) -> Identification | None:
+    """Step 4, the mono fallback: the consensus matcher on every detection's geometry alone
+    (method ``geometric-consensus``); None when it finds nothing."""
+    again = solve_rows(det, np.arange(len(det)), catalog, params, Mode.COLOUR, False, timings)
+    if again.status is Outcome.NO_MATCH:
+        return None
+    again.solution.method = Method.GEOMETRIC_CONSENSUS
+    return again
 
 
 def colour_route(det: Detections, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings):

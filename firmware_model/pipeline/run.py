@@ -22,9 +22,11 @@ from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.solver import SolveParams, SolveResult, method_code
 from firmware_model.ident.strategy import (
     Detections,
+    Identification,
     IdentifyTimings,
     StrategyParams,
     geometric_detection_cap,
+    geometric_fallback,
     identify,
     same_attitude,
     verify_pattern,
@@ -174,6 +176,7 @@ class PipelineOutput:
     camera: CameraModel | None = None  #: the camera model the answer was identified with
     optics: OpticsFit | None = None  #: focal length and distortion fitted to the matched stars
     planets: list = field(default_factory=list)  #: ``planets.PlanetLabel`` of detections on a planet / the moon
+    fallback_due: bool = False  #: the mono consensus fallback was deferred (``_identify``'s ``defer_fallback``)
 
     @property
     def ok(self) -> bool:
@@ -255,13 +258,22 @@ def identify_stars(
         fit=stars.timings.get("fit_s", 0.0),
         vectors=stars.timings.get("vectors_s", 0.0),
     )
-    out = _identify(stars, camera, catalog, params, timings)
+    # the mono consensus fallback with the nominal camera waits for the optics search's cheaper
+    # pattern hypotheses: with uncalibrated optics the search is what finds the answer (issue 12)
+    out = _identify(stars, camera, catalog, params, timings, defer_fallback=params.optics is not None)
     frame_t0 = t0 - stars.timings.get("total_s", 0.0)  # the search's budget counts from extraction
     if params.optics is not None and out.status is not Status.TOO_FEW_STARS:
         if out.status is not Status.OK:
             found = _search_optics(stars, camera, catalog, params, timings, frame_t0)
+            if out.fallback_due and (found is None or found.status is not Status.OK):
+                again = _identify(stars, camera, catalog, params, timings, fallback_only=True)
+                out = again if again.status is not Status.NO_MATCH else out
+                if out.status is Status.OK:
+                    found = None  # the nominal camera's consensus answer: its optics are checked below
             if found is not None and (found.status is Status.OK or _rank(found) > _rank(out)):
                 out = found
+            elif out.status is Status.OK and (refined := _refine_optics(out, stars, camera, catalog, params, timings)):
+                out = refined
         elif (refined := _refine_optics(out, stars, camera, catalog, params, timings)) is not None:
             out = refined
         elif out.optics is None:  # too few stars matched to check the optics: a search may match more
@@ -274,10 +286,17 @@ def identify_stars(
 
 
 def _identify(
-    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams, timings: StageTimings
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    timings: StageTimings,
+    defer_fallback: bool = False,
+    fallback_only: bool = False,
 ) -> PipelineOutput:
     """One identification with one camera model (``strategy.identify``: the order of methods and
-    fallbacks)."""
+    fallbacks). ``defer_fallback``: leave the mono consensus fallback out (``fallback_due`` on the
+    answer says it would have run); ``fallback_only``: run that fallback alone."""
     used = _usable(stars)
     if len(used) < 2:
         why = stars.reason or f"{len(stars)} detection(s)"
@@ -288,12 +307,26 @@ def _identify(
         geometric_cap=geometric_detection_cap(camera, catalog, params.geometric_density_factor),
         geometric_fallback=params.geometric_fallback,
         colour_fallback=params.colour_fallback,
+        defer_fallback=defer_fallback,
     )
-    found = identify(_detections(used, stars, camera, params), catalog, strategy, timings)
+    det = _detections(used, stars, camera, params)
+    if fallback_only:
+        found = geometric_fallback(det, catalog, strategy, timings) or Identification(
+            SolveResult(Outcome.NO_MATCH, "mono consensus fallback: no match")
+        )
+    else:
+        found = identify(det, catalog, strategy, timings)
     sol, rows = found.solution, used[found.rows]
     if sol.status is Outcome.NO_MATCH:
         return PipelineOutput(
-            Status.NO_MATCH, sol.reason, stars, rows, sol, colour_beta=params.colour_beta, camera=camera
+            Status.NO_MATCH,
+            sol.reason,
+            stars,
+            rows,
+            sol,
+            colour_beta=params.colour_beta,
+            camera=camera,
+            fallback_due=found.fallback_due,
         )
     status = Status.OK if sol.status is Outcome.HIGH_CONFIDENCE else Status.LOW_CONFIDENCE
     return PipelineOutput(status, sol.reason, stars, rows, sol, colour_beta=params.colour_beta, camera=camera)
