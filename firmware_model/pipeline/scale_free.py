@@ -195,7 +195,8 @@ def refine(
 ):
     """Predict-match-fit from a pattern hypothesis: the camera with the hypothesis' focal length,
     then for each radius in ``radii_px`` match every detection to the nearest predicted catalog
-    star within it (one detection per star) and fit f, k1 (with enough stars) and the attitude.
+    star within it (one detection per star) and fit f, k1 (with enough stars) and the attitude
+    (not again when a radius matches the same stars as the last fit).
     Returns (camera, detection rows, catalog indices, RMS residual of the last fit in px) or None
     with fewer than ``min_stars``."""
     cam, a = replace(camera, f=hyp.f), hyp.a
@@ -214,6 +215,8 @@ def refine(
         rows = rows[np.unique(j[rows], return_index=True)[1]]  # brightest detection per star
         if len(rows) < min_stars:
             return None
+        if det is not None and cat is not None and np.array_equal(rows, det) and np.array_equal(ci[j[rows]], cat):
+            continue  # the same stars as the last fit: fitting them again gives the same camera
         det, cat = rows, ci[j[rows]]
         res = fit_frame(StarObservations(x[det], y[det], catalog.vec[cat]), cam, k1_min_stars)
         if res is None:
