@@ -11,6 +11,7 @@ from firmware_model.ident.attitude import (
     residual_angles,
     solve_attitude,
     svd_attitude,
+    variance_factor,
 )
 from firmware_model.reference_frames import matrix_to_quat, quat_to_matrix
 
@@ -92,3 +93,55 @@ def test_solve_attitude_residuals_and_errors():
     with pytest.raises(ValueError, match="N >= 2"):
         solve_attitude(r[:1] @ a.T, r[:1], 1e-5)
     assert np.all(np.isinf(attitude_covariance(np.array([[0, 0, 1.0], [0, 0, 1.0]]), np.ones(2))))
+
+
+def _error_angles(a_est, a_true):
+    d = a_est @ a_true.T  # = exp([-theta x]) for small error angles
+    return np.array([d[1, 2] - d[2, 1], d[2, 0] - d[0, 2], d[0, 1] - d[1, 0]]) / 2.0
+
+
+def test_clean_fit_keeps_the_a_priori_covariance():
+    """Noise as announced: s0^2 near 1 on average, and a fit with s0^2 <= 1 reports P0 exactly."""
+    rng = np.random.default_rng(21)
+    a = Rotation.random(random_state=21).as_matrix()
+    r = star_set(rng, 8)
+    sigma = 3e-5
+    factors = []
+    for _ in range(400):
+        b = r @ a.T + rng.normal(scale=sigma, size=r.shape)
+        b /= np.linalg.norm(b, axis=1)[:, None]
+        sol = solve_attitude(b, r, sigma)
+        factors.append(sol.variance_factor)
+        np.testing.assert_allclose(sol.covariance, max(1.0, sol.variance_factor) * sol.covariance_apriori)
+        if sol.variance_factor <= 1.0:
+            np.testing.assert_array_equal(sol.covariance, sol.covariance_apriori)
+    assert abs(np.mean(factors) - 1.0) < 0.1  # E[chi^2 / (2n - 3)] = 1 (~2 % standard error)
+    exact = solve_attitude(r @ a.T, r, sigma)
+    np.testing.assert_array_equal(exact.covariance, attitude_covariance(r @ a.T, np.full(8, sigma)))
+    assert variance_factor(np.array([1e-5, 2e-5]), 1e-5) == pytest.approx(5.0)  # 2 stars: 1 dof
+    assert np.isnan(variance_factor(np.array([1e-5]), 1e-5))
+
+
+@pytest.mark.parametrize("n", [4, 8, 20])
+def test_scaled_covariance_covers_unannounced_noise(n):
+    """Real noise 5x the announced one: the a-priori sigma misses the error, the scaled one covers it."""
+    rng = np.random.default_rng(100 + n)
+    sigma = 3e-5
+    z_prior, z_post = [], []
+    for _ in range(600):
+        a = Rotation.random(random_state=rng).as_matrix()
+        r = star_set(rng, n)
+        b = r @ a.T + rng.normal(scale=5 * sigma, size=r.shape)
+        b /= np.linalg.norm(b, axis=1)[:, None]
+        sol = solve_attitude(b, r, sigma)
+        e = _error_angles(sol.a, a)
+        z_prior.append(np.abs(e) / np.sqrt(np.diag(sol.covariance_apriori)))
+        z_post.append(np.abs(e) / np.sqrt(np.diag(sol.covariance)))
+    zp, zq = np.array(z_prior), np.array(z_post)
+    assert np.mean(zp > 3) > 0.3  # the a-priori covariance is far too small
+    # scaled: error/sigma is Student-t with 2n - 3 dof (4 stars, 5 dof: RMS 1.29, 3 % beyond 3 sigma;
+    # 8 stars: RMS 1.08, 1 %; many stars: the Gaussian's 1 and 0.27 %)
+    few = n == 4
+    assert 0.8 < np.sqrt(np.mean(zq**2)) < (1.5 if few else 1.25)
+    assert np.mean(zq > 3) < (0.05 if few else 0.025)
+    assert np.max(zq) < (15 if few else 6)

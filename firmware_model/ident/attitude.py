@@ -8,8 +8,23 @@ noise of detection ``i`` in radians (QUEST measurement model, Shuster & Oh 1981)
 * ``davenport_q``: the largest eigenvector of Davenport's 4x4 ``K`` matrix (Enright & McVittie ref. 21),
   returned as the scalar-first quaternion ``q_icrs_to_sensor`` with ``w >= 0``.
 * ``svd_attitude``: Markley's SVD solution, an independent algorithm for cross-checks.
-* ``attitude_covariance``: ``P = [sum_i sigma_i^-2 (I - b_i b_i^T)]^-1`` (rad^2), the covariance
-  of the small rotation error angles about the sensor axes.
+* ``attitude_covariance``: ``P0 = [sum_i sigma_i^-2 (I - b_i b_i^T)]^-1`` (rad^2), the a-priori
+  covariance of the small rotation error angles about the sensor axes (Shuster & Oh 1981): right
+  only when the ``sigma_i`` given are the real noise.
+* ``variance_factor``: the a-posteriori variance of unit weight ``s0^2 = chi^2 / (2n - 3)`` with
+  ``chi^2 = sum_i (theta_i / sigma_i)^2`` over the residual angles ``theta_i`` of the ``n`` stars
+  (2 measured components per star, 3 attitude parameters): the standard least-squares estimate of
+  how much larger the real noise is than the one assumed (``E[chi^2] = 2n - 3`` when the
+  ``sigma_i`` are right; the same scaling as the QUEST covariance literature's residual-based
+  ``sigma`` estimate, Shuster 1990 "Kalman filtering of spacecraft attitude and the QUEST model").
+* ``solve_attitude`` reports ``P = max(1, s0^2) P0``: centroid noise larger than the caller
+  announced (a defocused or smeared frame, a wrong noise model) shows in the residuals and widens
+  the reported covariance, and so the sigma fields and the roll bound of the confidence decision;
+  a fit whose residuals are no larger than expected keeps the a-priori ``P0`` (a small ``s0^2``
+  from a handful of stars is chance, not evidence that the noise is smaller than assumed). With
+  two stars (1 degree of freedom) the factor is the one residual constraint: noisy, but it can
+  only widen ``P``. ``AttitudeSolution.covariance_apriori`` keeps ``P0``: verification gates are
+  built from the announced noise and use it.
 """
 
 from __future__ import annotations
@@ -68,6 +83,17 @@ def attitude_covariance(b: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     return (vecs / vals) @ vecs.T
 
 
+def variance_factor(residuals: np.ndarray, sigma: np.ndarray | float) -> float:
+    """A-posteriori variance of unit weight ``chi^2 / (2n - 3)`` of a fit to ``n >= 2`` stars
+    (``residuals`` angles in rad, ``sigma`` per-axis noise in rad); NaN below two stars."""
+    res = np.asarray(residuals, float)
+    dof = 2 * len(res) - 3
+    if dof < 1:
+        return float("nan")
+    sig = np.broadcast_to(np.asarray(sigma, float), res.shape)
+    return float(np.sum((res / sig) ** 2) / dof)
+
+
 def residual_angles(b: np.ndarray, r: np.ndarray, a: np.ndarray) -> np.ndarray:
     """Angle in radians between each measured ``b_i`` and its predicted ``A r_i``."""
     d = np.linalg.norm(np.asarray(b, float) - np.asarray(r, float) @ np.asarray(a).T, axis=-1)
@@ -76,14 +102,17 @@ def residual_angles(b: np.ndarray, r: np.ndarray, a: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class AttitudeSolution:
-    """q-method solution: quaternion ICRS -> sensor (scalar first), its matrix, covariance (rad^2),
-    per-star residual angles (rad) and their RMS (rad)."""
+    """q-method solution: quaternion ICRS -> sensor (scalar first), its matrix, covariance (rad^2,
+    the a-priori one scaled by ``max(1, variance_factor)``), per-star residual angles (rad), their
+    RMS (rad), the a-posteriori variance factor and the a-priori covariance (module docstring)."""
 
     q: np.ndarray
     a: np.ndarray
     covariance: np.ndarray
     residuals: np.ndarray
     rms: float
+    variance_factor: float
+    covariance_apriori: np.ndarray
 
 
 def quat_matrix(q: np.ndarray) -> np.ndarray:
@@ -102,7 +131,8 @@ def quat_matrix(q: np.ndarray) -> np.ndarray:
 def solve_attitude(b: np.ndarray, r: np.ndarray, sigma) -> AttitudeSolution:
     """Weighted q-method attitude with covariance and residuals; needs >= 2 non-parallel stars.
 
-    ``sigma`` is the per-axis direction noise in radians, scalar or one per star.
+    ``sigma`` is the per-axis direction noise in radians, scalar or one per star. The covariance is
+    the a-priori one times ``max(1, variance_factor)`` (module docstring).
     """
     b = np.asarray(b, float)
     r = np.asarray(r, float)
@@ -112,7 +142,10 @@ def solve_attitude(b: np.ndarray, r: np.ndarray, sigma) -> AttitudeSolution:
     q = davenport_q(b, r, 1.0 / sig**2)
     a = quat_matrix(q)
     res = residual_angles(b, r, a)
-    return AttitudeSolution(q, a, attitude_covariance(b, sig), res, float(np.sqrt(np.mean(res**2))))
+    p0 = attitude_covariance(b, sig)
+    s0 = variance_factor(res, sig)
+    p = p0 * s0 if s0 > 1.0 else p0
+    return AttitudeSolution(q, a, p, res, float(np.sqrt(np.mean(res**2))), s0, p0)
 
 
 __all__ = [
@@ -124,4 +157,5 @@ __all__ = [
     "residual_angles",
     "solve_attitude",
     "svd_attitude",
+    "variance_factor",
 ]

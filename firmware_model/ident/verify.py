@@ -8,7 +8,9 @@ explains the whole frame:
    re-solved (the hypothesis fails if fewer than two stars remain).
 2. **Refinement**: every unmatched detection is rotated to ICRS and paired with its nearest
    catalog star when the separation is within ``refine_sigmas`` of the predicted scatter
-   ``sqrt(sigma^2 + (tr P - b^T P b)/2)`` (``P`` the attitude covariance) and, when both colours
+   ``sqrt(sigma^2 + (tr P - b^T P b)/2)`` (``P`` the a-priori attitude covariance:
+   the gates stay in units of the announced noise; the reported one is scaled by the residuals,
+   ``attitude`` module docstring) and, when both colours
    are known, the colour distance is below ``colour_gate``. Two passes.
    A matched star with a free detection closer to its prediction (and inside the gates) takes
    that detection instead: a brighter false detection next to a star must not steal its identity.
@@ -209,7 +211,7 @@ def verify(
     if not params.enabled:
         return VerifiedMatch(det, cat, sol, float("nan"), 0, n_consensus), ""
     # 1. residual test
-    scatter = _predicted_scatter(vectors[det], sigma[det], sol.covariance)
+    scatter = _predicted_scatter(vectors[det], sigma[det], sol.covariance_apriori)
     bad = sol.residuals > params.residual_sigmas * np.maximum(scatter, sigma[det])
     if bad.any():
         det, cat = det[~bad], cat[~bad]
@@ -232,7 +234,7 @@ def verify(
         nearest = np.argmax(b @ pred.T, axis=1)
         idx = near[nearest]
         ang = 2.0 * np.arcsin(np.clip(np.linalg.norm(b - pred[nearest], axis=1) / 2.0, 0.0, 1.0))
-        tol = params.refine_sigmas * _predicted_scatter(b, sigma[free], sol.covariance)
+        tol = params.refine_sigmas * _predicted_scatter(b, sigma[free], sol.covariance_apriori)
         ok = (ang < tol) & ~np.isin(idx, cat)
         if ok.any() and noise_rg > 0 and noise_bg > 0:
             d2 = _sq((rg[free] - catalog.rg[idx]) / noise_rg) + _sq((bg[free] - catalog.bg[idx]) / noise_bg)
@@ -252,7 +254,7 @@ def verify(
         sep = 2.0 * np.arcsin(
             np.clip(np.linalg.norm(vectors[free][:, None, :] - pred[None, :, :], axis=2) / 2.0, 0.0, 1.0)
         )
-        tol = params.refine_sigmas * _predicted_scatter(vectors[free], sigma[free], sol.covariance)
+        tol = params.refine_sigmas * _predicted_scatter(vectors[free], sigma[free], sol.covariance_apriori)
         ok = sep < np.minimum(tol[:, None], sol.residuals[None, :])
         if ok.any() and noise_rg > 0 and noise_bg > 0:
             d2 = _sq((rg[free][:, None] - catalog.rg[cat][None, :]) / noise_rg) + _sq(
@@ -277,7 +279,7 @@ def verify(
         pred = near_vec @ sol.a.T
         d = np.linalg.norm(b[:, None, :] - pred[None, :, :], axis=2)
         d[near[None, :] == cat[:, None]] = np.inf
-        gate = chord_of_angle(params.refine_sigmas * _predicted_scatter(b, sigma[det], sol.covariance))
+        gate = chord_of_angle(params.refine_sigmas * _predicted_scatter(b, sigma[det], sol.covariance_apriori))
         clear = d.min(axis=1) >= gate
         if not clear.all() and clear.sum() >= 2:
             det, cat = det[clear], cat[clear]
