@@ -90,6 +90,9 @@ class SolveParams:
     max_detections: detections considered (brightest first); the matchers use fewer.
     max_roll_sigma: the largest 1-sigma roll (rotation about the boresight, rad) a high-confidence
         answer may have (:data:`MAX_ROLL_SIGMA`; ``strategy.bound_roll``); inf: no bound.
+    noise_probe_px: per-axis centroid noise (px) beyond the announced one that the answer's
+        stars are looked for with before the frame's own noise is estimated
+        (``strategy.adapt_noise``); 0: trust the announced noise.
     """
 
     mode: Mode | str = Mode.AUTO
@@ -105,6 +108,7 @@ class SolveParams:
     time_budget_s: float = 0.05
     max_detections: int = 200
     max_roll_sigma: float = MAX_ROLL_SIGMA
+    noise_probe_px: float = 1.0
 
     @property
     def pair_sigma_phi(self) -> float:
@@ -156,12 +160,15 @@ class SolveResult:
     consensus_size: int = 0
     consensus_rms: float = float("nan")
     confidence: float = 0.0
+    coverage: float = float("nan")  #: matched / predicted catalog stars of the verified match
+    chance: float = 1.0  #: chance that its stars beyond two line up by accident (``verify.chance_alignment``)
     method: Method | None = None
     n_used: int = 0
     attempts: int = 0
     timings: SolveTimings = field(default_factory=SolveTimings)
     notes: list[str] = field(default_factory=list)
     roll_limited: bool = False
+    noise_extra: float = 0.0  #: per-axis noise (rad) the residuals showed beyond the announced (strategy.adapt_noise)
 
     @property
     def roll_sigma(self) -> float:
@@ -266,4 +273,6 @@ def solution_from_match(
         confidence=float(match.coverage if np.isfinite(match.coverage) else 1.0) * min(1.0, match.n / max(n_used, 1)),
         method=method,
         n_used=n_used,
+        coverage=float(match.coverage),
+        chance=float(match.chance),
     )

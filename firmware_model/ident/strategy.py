@@ -51,7 +51,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between
-from firmware_model.ident.consensus import ConsensusParams, Outcome, confident, large_set, match_scene
+from firmware_model.ident.consensus import ConsensusParams, Outcome, confident, match_scene
 from firmware_model.ident.four_star import match_four_star
 from firmware_model.ident.pair_match import PairNoise
 from firmware_model.ident.solver import (
@@ -64,7 +64,7 @@ from firmware_model.ident.solver import (
     solution_from_match,
 )
 from firmware_model.ident.triangle import match_triangles
-from firmware_model.ident.verify import FieldOfView, VerifiedMatch, verify
+from firmware_model.ident.verify import FieldOfView, VerifiedMatch, miss_tail, verify
 from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import quat_to_matrix, rotation_angle
 
@@ -184,7 +184,7 @@ def identify(
             found.fallback_due = True
         else:
             found = geometric_fallback(det, catalog, params, timings) or found
-    return found
+    return adapt_noise(found, det, catalog, params.solve, timings)
 
 
 def geometric_fallback(
@@ -316,6 +316,105 @@ def match_all(
     return Identification(bound_roll(full, base.max_roll_sigma), everything)
 
 
+#: The announced centroid noise is rejected when the chance of so many stars beyond its
+#: :data:`NOISE_TAIL` quantile is below this.
+NOISE_TEST_ALPHA = 0.01
+#: Tail probability of a star's chi^2 (2 degrees of freedom) the noise test counts stars beyond.
+NOISE_TAIL = 0.1
+
+
+def adapt_noise(
+    found: Identification, det: Detections, catalog: OnboardCatalog, base: SolveParams, timings: IdentifyTimings
+) -> Identification:
+    """An answer held to the noise its own stars show, when that is more than announced (a
+    defocused or smeared frame, centroids from another extractor, a wrong noise model): the
+    announced noise sets every gate, so a frame noisier than announced loses its stars to them
+    and keeps the few that happen to fit, with a roll too loose for the covariance it reports.
+
+    1. Probe: verify the answer again over every detection with ``noise_probe_px`` (per axis)
+       added in quadrature to every detection's noise, so the stars of a noisier frame are found.
+    2. Test (:func:`noise_rejected`): how many probed stars lie beyond the :data:`NOISE_TAIL`
+       quantile of their announced noise; a binomial tail below :data:`NOISE_TEST_ALPHA` rejects the
+       announced noise. A count, so a false star inside the wide probe gates weighs one star.
+    3. Estimate (:func:`extra_noise`): the extra per-axis noise ``e`` that brings the median of
+       the stars' chi^2 to its expected value (the median: robust to a false star and to the
+       probe's gates, which cut the tail, not the middle), and verify again with ``e`` added:
+       tight gates in units of the noise the frame has, and an attitude and covariance weighted by it.
+
+    The answer keeps its confidence, held again to the roll bound with the new covariance; it
+    stands unchanged when the test passes, a verification fails or the attitude moves beyond the
+    tolerance of the widened noise."""
+    sol = found.solution
+    probe = base.noise_probe_px
+    if sol.status is Outcome.NO_MATCH or det.sigma_px is None or probe <= 0 or len(sol.matched_det) < 3:
+        return found
+    sigma = np.asarray(det.sigma_px, float)  # px
+    everything = np.arange(len(det))
+    seen = verify_over(
+        replace(det, sigma_px=np.hypot(sigma, probe)),
+        found.rows[sol.matched_det],
+        sol.matched_cat,
+        catalog,
+        base,
+        timings,
+    )
+    if seen is None or not noise_rejected(seen.attitude.residuals * det.focal_px, sigma[seen.det]):
+        return found
+    extra = extra_noise(seen.attitude.residuals * det.focal_px, sigma[seen.det])
+    tuned = replace(det, sigma_px=np.hypot(sigma, extra))
+    match = verify_over(tuned, seen.det, seen.cat, catalog, base, timings)
+    if match is None or not within_covariance(match.attitude.a, match.attitude.covariance, sol):
+        return found
+    high = sol.status is Outcome.HIGH_CONFIDENCE or sol.roll_limited
+    status, reason = (Outcome.HIGH_CONFIDENCE, "") if high else (sol.status, sol.reason)
+    out = solution_from_match(match, status, reason, everything, catalog, sol.method, len(det))
+    out.attempts, out.timings = sol.attempts, sol.timings
+    out.noise_extra = extra / det.focal_px
+    out.notes = [*sol.notes, f"residuals reject the announced centroid noise: {extra:.2g} px per axis added"]
+    return Identification(bound_roll(out, base.max_roll_sigma), everything, found.fallback_due)
+
+
+#: Sigmas (per sensor axis, of the two answers' covariances together) within which an answer
+#: verified again must stay of the one it started from.
+SAME_ANSWER_SIGMAS = 5.0
+
+
+def within_covariance(a: np.ndarray, cov: np.ndarray, sol: SolveResult) -> bool:
+    """Whether attitude ``a`` (covariance ``cov``, rad^2) lies within :data:`SAME_ANSWER_SIGMAS` of
+    ``sol``'s attitude on every sensor axis, the two covariances added."""
+    m = a @ quat_to_matrix(sol.q_icrs_to_sensor).T  # small rotation, sensor frame
+    delta = 0.5 * np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
+    var = np.diag(cov) + (np.diag(sol.covariance) if sol.covariance is not None else 0.0)
+    return bool(np.all(np.abs(delta) <= SAME_ANSWER_SIGMAS * np.sqrt(var)))
+
+
+def noise_rejected(residuals: np.ndarray, sigma: np.ndarray) -> bool:
+    """Whether residual angles reject the announced per-axis noise ``sigma`` (same units): the
+    chance that at least as many stars as observed lie beyond the :data:`NOISE_TAIL` quantile of
+    their chi^2 (2 degrees of freedom: ``(r / sigma)^2 > -2 ln NOISE_TAIL``), each with
+    probability ``NOISE_TAIL``, is below :data:`NOISE_TEST_ALPHA`."""
+    n = len(residuals)
+    beyond = int(np.count_nonzero((np.asarray(residuals) / sigma) ** 2 > -2.0 * np.log(NOISE_TAIL)))
+    return n >= 3 and miss_tail(n, beyond, NOISE_TAIL) < NOISE_TEST_ALPHA
+
+
+def extra_noise(residuals: np.ndarray, sigma: np.ndarray) -> float:
+    """The per-axis noise ``e`` (units of ``sigma``) that, added in quadrature to ``sigma``, brings
+    the median of the stars' ``r^2 / (sigma^2 + e^2)`` to the median of chi^2 with 2 degrees of
+    freedom (``2 ln 2``) times ``(2n - 3) / 2n`` (3 degrees of freedom taken by the attitude);
+    bisection, the median falls as ``e`` grows; 0 when it is already no larger."""
+    n = len(residuals)
+    target = 2.0 * np.log(2.0) * (2 * n - 3) / (2 * n)
+    r2, s2 = np.asarray(residuals, float) ** 2, np.asarray(sigma, float) ** 2
+    if np.median(r2 / s2) <= target:
+        return 0.0
+    lo, hi = 0.0, float(np.sqrt(np.max(r2)))
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if np.median(r2 / (s2 + mid * mid)) > target else (lo, mid)
+    return hi
+
+
 def bound_roll(sol: SolveResult, max_roll_sigma: float) -> SolveResult:
     """``sol`` held to low confidence (``roll_limited``) when it is high-confidence but its roll
     sigma (about the boresight, from the attitude covariance) exceeds ``max_roll_sigma`` (rad):
@@ -365,6 +464,43 @@ def verify_over(
     return match
 
 
+#: Chance alignment (``verify.chance_alignment``) below which a small set found with optics fitted to
+#: a search-chosen pattern stays high-confidence: a search tries up to ~1e4 patterns, so 1e-8 keeps
+#: the chance of a coincidental answer over the whole search near 1e-4.
+SEARCHED_CHANCE = 1e-8
+
+
+def searched_confident(n: int, coverage: float, chance: float, cp: ConsensusParams) -> bool:
+    """High confidence for stars matched with optics fitted to a search-chosen pattern: a large
+    set (at least ``confident_stars`` covering ``confident_coverage`` of the predicted stars) or
+    stars beyond two that line up by chance with probability below :data:`SEARCHED_CHANCE`. The
+    camera was fitted to make that pattern fit and the pattern chosen among thousands, so its own
+    stars are weaker evidence than an independent match's (issue 12: with 1 px noise, 3 false
+    stars and 20 % dropped, a wrong pattern with its fitted focal length verified 4 of 54
+    detections at chance 1e-4 to 3e-6, 24 deg off)."""
+    cov = coverage if np.isfinite(coverage) else 0.0
+    return chance <= SEARCHED_CHANCE or (n >= cp.confident_stars and cov >= cp.confident_coverage)
+
+
+def hold_searched(sol: SolveResult, cp: ConsensusParams) -> SolveResult:
+    """``sol``, an answer found with a camera fitted to a search-chosen pattern, held to low
+    confidence unless :func:`searched_confident`."""
+    if sol.status is Outcome.HIGH_CONFIDENCE and not searched_confident(
+        len(sol.matched_det), sol.coverage, sol.chance, cp
+    ):
+        sol.status = Outcome.LOW_CONFIDENCE
+        sol.reason = _searched_reason(len(sol.matched_det), sol.coverage, sol.chance, cp)
+    return sol
+
+
+def _searched_reason(n: int, coverage: float, chance: float, cp: ConsensusParams) -> str:
+    return (
+        f"{n} stars (coverage {coverage:.2f}, chance {chance:.1g}) with optics fitted to a search-chosen "
+        f"pattern: below the {cp.confident_stars} stars and {cp.confident_coverage:g} coverage, or the "
+        f"{SEARCHED_CHANCE:g} chance, it needs"
+    )
+
+
 def verify_pattern(
     det: Detections,
     rows: np.ndarray,
@@ -375,27 +511,20 @@ def verify_pattern(
 ) -> SolveResult | None:
     """A pattern match found by a search (the pipeline's optics search: detections ``rows`` on
     catalog stars ``cat``) verified over every detection (method ``pattern``), or None when
-    verification refuses it. High confidence only as the solver grants a large set (at least
-    ``confident_stars`` matched covering at least ``confident_coverage`` of the predicted stars);
-    else low confidence: the pattern was chosen among thousands of 4-sets, so its own stars do not
-    count as the independent evidence the chance-alignment rule needs."""
+    verification refuses it; high confidence as :func:`searched_confident` grants it, the
+    frame's own noise checked (:func:`adapt_noise`)."""
     match = verify_over(det, rows, cat, catalog, base, timings)
     if match is None:
         return None
     cp = base.consensus
-    high = large_set(match, cp)
-    reason = (
-        ""
-        if high
-        else (
-            f"pattern match of {match.n} stars (coverage {match.coverage:.2f}) "
-            f"below the {cp.confident_stars} stars and {cp.confident_coverage:g} coverage "
-            "a search-chosen pattern needs"
-        )
-    )
+    high = searched_confident(match.n, match.coverage, match.chance, cp)
+    reason = "" if high else _searched_reason(match.n, match.coverage, match.chance, cp)
     outcome = Outcome.HIGH_CONFIDENCE if high else Outcome.LOW_CONFIDENCE
-    sol = solution_from_match(match, outcome, reason, np.arange(len(det)), catalog, Method.PATTERN, len(det))
-    return bound_roll(sol, base.max_roll_sigma)
+    everything = np.arange(len(det))
+    sol = bound_roll(
+        solution_from_match(match, outcome, reason, everything, catalog, Method.PATTERN, len(det)), base.max_roll_sigma
+    )
+    return adapt_noise(Identification(sol, everything), det, catalog, base, timings).solution
 
 
 def photometric_gate(flux: np.ndarray, sol: SolveResult, catalog: OnboardCatalog, margin_mag: float):
@@ -410,6 +539,14 @@ def photometric_gate(flux: np.ndarray, sol: SolveResult, catalog: OnboardCatalog
     with np.errstate(divide="ignore", invalid="ignore"):
         m_est = zero_point - 2.5 * np.log10(flux)
     return np.flatnonzero(np.nan_to_num(m_est, nan=np.inf) <= float(np.max(catalog.mag)) + margin_mag)
+
+
+def agrees(a: SolveResult, b: SolveResult, tol: float = 1e-3) -> bool:
+    """Whether two answers are the same attitude: within ``tol`` (rad) or within their covariances
+    (:func:`within_covariance`; a noisy frame's answers move with the stars they keep)."""
+    return same_attitude(a, b, tol) or (
+        a.covariance is not None and within_covariance(quat_to_matrix(a.q_icrs_to_sensor), a.covariance, b)
+    )
 
 
 def same_attitude(a: SolveResult, b: SolveResult, tol: float) -> bool:

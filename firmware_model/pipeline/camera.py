@@ -23,6 +23,7 @@ Conventions (docs/CONVENTIONS.md):
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
+from functools import cached_property
 
 import numpy as np
 
@@ -122,17 +123,17 @@ class CameraModel:
     def has_distortion(self) -> bool:
         return any(getattr(self, k) != 0.0 for k in ("k1", "k2", "k3", "p1", "p2"))
 
-    @property
+    @cached_property
     def fov_half_angle_minor(self) -> float:
         """Half field of view (rad) from the principal point to the minor-axis array edge."""
         return self._edge_half_angle(minor=True)
 
-    @property
+    @cached_property
     def fov_half_angle_major(self) -> float:
         """Half field of view (rad) from the principal point to the major-axis array edge."""
         return self._edge_half_angle(minor=False)
 
-    @property
+    @cached_property
     def fov_half_angle_diagonal(self) -> float:
         """Largest angle (rad) between the boresight (+z) and any array corner."""
         xs = np.array([-0.5, self.width - 0.5, -0.5, self.width - 0.5])

@@ -20,8 +20,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
-from scipy.spatial.transform import Rotation
 
+from firmware_model.ident.attitude import svd_attitude
 from firmware_model.pipeline.camera import CameraModel
 
 DEFAULT_FIT = ("f", "cx", "cy", "k1", "k2", "p1", "p2")
@@ -56,9 +56,18 @@ class CalibrationResult:
 
 
 def _wahba(camera: CameraModel, obs: StarObservations) -> np.ndarray:
-    v_sensor = camera.pixel_to_vector(obs.x, obs.y)
-    rot, _ = Rotation.align_vectors(v_sensor, obs.v_icrs)
-    return rot.as_matrix()
+    return svd_attitude(camera.pixel_to_vector(obs.x, obs.y), obs.v_icrs)
+
+
+def rotvec_matrix(r: np.ndarray) -> np.ndarray:
+    """Rotation matrix of rotation vector ``r`` (rad; Rodrigues' formula, the small-angle series
+    below 1e-8 rad): scipy's ``Rotation.from_rotvec`` without its per-call overhead, which
+    dominated the fit's residual evaluations (issue 12)."""
+    theta = float(np.sqrt(r @ r))
+    k = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+    if theta < 1e-8:
+        return np.eye(3) + k + 0.5 * (k @ k)
+    return np.eye(3) + (np.sin(theta) / theta) * k + ((1.0 - np.cos(theta)) / theta**2) * (k @ k)
 
 
 def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_FIT) -> CalibrationResult:
@@ -82,10 +91,7 @@ def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_
     def unpack(p):
         vals = {k: (p[i] * scale[i]) for i, k in enumerate(fit)}
         cam = replace(initial, **vals)
-        atts = [
-            Rotation.from_rotvec(p[len(fit) + 3 * j : len(fit) + 3 * j + 3]).as_matrix() @ a0[j]
-            for j in range(len(frames))
-        ]
+        atts = [rotvec_matrix(p[len(fit) + 3 * j : len(fit) + 3 * j + 3]) @ a0[j] for j in range(len(frames))]
         return cam, atts
 
     def residuals(p):
@@ -112,9 +118,9 @@ def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_
         jac_sparsity=sparsity,
         method="trf",
         x_scale="jac",
-        xtol=1e-12,
-        ftol=1e-12,
-        gtol=1e-12,
+        xtol=1e-10,
+        ftol=1e-10,
+        gtol=1e-10,
         max_nfev=200,
     )
     cam, atts = unpack(res.x)

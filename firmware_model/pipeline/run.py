@@ -25,10 +25,11 @@ from firmware_model.ident.strategy import (
     Identification,
     IdentifyTimings,
     StrategyParams,
+    agrees,
     geometric_detection_cap,
     geometric_fallback,
+    hold_searched,
     identify,
-    same_attitude,
     verify_pattern,
 )
 from firmware_model.ident.verify import FieldOfView
@@ -258,13 +259,21 @@ def identify_stars(
         fit=stars.timings.get("fit_s", 0.0),
         vectors=stars.timings.get("vectors_s", 0.0),
     )
+    frame_t0 = t0 - stars.timings.get("total_s", 0.0)  # the search's budget counts from extraction
+    peek = _first_tier(stars, camera, catalog, params, timings)
+    first = None
+    if params.optics is not None and _nominal_off(peek, camera, params.optics):
+        first = _search_optics(stars, camera, catalog, params, timings, frame_t0, peek)
+    if first is not None and first.status is Status.OK:  # else the usual way: the nominal camera first
+        first.timings = timings
+        timings.total = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
+        return first
     # the mono consensus fallback with the nominal camera waits for the optics search's cheaper
     # pattern hypotheses: with uncalibrated optics the search is what finds the answer (issue 12)
     out = _identify(stars, camera, catalog, params, timings, defer_fallback=params.optics is not None)
-    frame_t0 = t0 - stars.timings.get("total_s", 0.0)  # the search's budget counts from extraction
     if params.optics is not None and out.status is not Status.TOO_FEW_STARS:
         if out.status is not Status.OK:
-            found = _search_optics(stars, camera, catalog, params, timings, frame_t0)
+            found = _search_optics(stars, camera, catalog, params, timings, frame_t0, peek or None)
             if out.fallback_due and (found is None or found.status is not Status.OK):
                 again = _identify(stars, camera, catalog, params, timings, fallback_only=True)
                 out = again if again.status is not Status.NO_MATCH else out
@@ -277,12 +286,46 @@ def identify_stars(
         elif (refined := _refine_optics(out, stars, camera, catalog, params, timings)) is not None:
             out = refined
         elif out.optics is None:  # too few stars matched to check the optics: a search may match more
-            found = _search_optics(stars, camera, catalog, params, timings, frame_t0)
+            found = _search_optics(stars, camera, catalog, params, timings, frame_t0, peek or None)
             if found is not None and found.status is Status.OK and _rank(found) > _rank(out):
                 out = found  # a high-confidence answer only: the search may now return a low one
     out.timings = timings
     timings.total = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
     return out
+
+
+def _first_tier(
+    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams, timings: StageTimings
+) -> list:
+    """The optics search's first pattern hypotheses (``first_tier_hypotheses`` of the
+    ``first_tier`` brightest clean detections; none without a search)."""
+    search = params.optics
+    if search is None or search.first_tier <= 0 or search.first_tier_hypotheses <= 0 or len(_usable(stars)) < 4:
+        return []
+    scale_free.catalog_patterns(catalog, camera)  # once per catalog: not this frame's time
+    t1 = time.perf_counter()
+    clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)
+    peek = scale_free.hypotheses(
+        stars.x[clean],
+        stars.y[clean],
+        camera,
+        catalog,
+        search.first_tier,
+        search.pattern_tolerance,
+        search.focal_range,
+        max_hypotheses=search.first_tier_hypotheses,
+    )
+    timings.identify += time.perf_counter() - t1
+    return peek
+
+
+def _nominal_off(peek: list, camera: CameraModel, search: OpticsSearch) -> bool:
+    """Whether the best pattern match puts the focal length far enough from the nominal camera's
+    to move the array's corners by more than ``refit_px``: a nominal camera that cannot match
+    would spend its matchers' whole search failing (issue 12: 10-50 ms per tetra3 frame) before
+    the optics search that finds the answer, so the search goes first."""
+    corner = float(np.hypot(camera.width, camera.height)) / 2.0
+    return bool(peek) and abs(peek[0].f / camera.f - 1.0) * corner > search.refit_px
 
 
 def _identify(
@@ -347,10 +390,12 @@ def _with_camera(stars: StarList, camera: CameraModel) -> StarList:
     return replace(stars, vectors=camera.pixel_to_vector(stars.x, stars.y))
 
 
-def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSearch) -> OpticsFit | None:
+def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSearch, known=None) -> OpticsFit | None:
     """Focal length (and k1 with enough stars) fitted with the attitude to the matched stars; stars
     off by more than :data:`OPTICS_OUTLIER_PX` (or 5 x the median) after a first fit (a blend, a
-    saturated or badly fitted star the answer keeps with a wide noise floor) are left out of a second."""
+    saturated or badly fitted star the answer keeps with a wide noise floor) are left out of a second.
+    ``known`` (detection rows, catalog indices, fit): a fit already made, used when it is of the
+    same stars and the same starting camera's kind (the search's refinement)."""
     sol, stars, camera = out.solution, out.stars, out.camera
     if sol is None or len(sol.matched_det) < search.min_stars:
         return None
@@ -358,7 +403,11 @@ def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSear
     rows, cat = out.used[sol.matched_det], sol.matched_cat
     res = None
     for _ in range(2):
-        res = fit_frame(StarObservations(stars.x[rows], stars.y[rows], catalog.vec[cat]), camera, search.k1_min_stars)
+        if known is not None and _same_stars(known[0], known[1], rows, cat):
+            res, known = known[2], None
+        else:
+            obs = StarObservations(stars.x[rows], stars.y[rows], catalog.vec[cat])
+            res = fit_frame(obs, camera, search.k1_min_stars)
         if res is None or not res.success or not np.isfinite(res.residual_rms_px):
             return None
         err = np.hypot(*res.residuals[0].T)
@@ -368,6 +417,12 @@ def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSear
         rows, cat = rows[keep], cat[keep]
     assert res is not None
     return OpticsFit(res.camera, res.sigmas, res.residual_rms_px, len(rows))
+
+
+def _same_stars(rows_a, cat_a, rows_b, cat_b) -> bool:
+    """Whether two matched sets pair the same detections with the same catalog stars."""
+    a = sorted(zip(np.asarray(rows_a).tolist(), np.asarray(cat_a).tolist()))
+    return a == sorted(zip(np.asarray(rows_b).tolist(), np.asarray(cat_b).tolist()))
 
 
 #: Star residual (px) beyond which a star is left out of the optics fit (with 5 x the median).
@@ -408,7 +463,7 @@ def _refine_optics(
     ):
         return None
     again = _identify(_with_camera(stars, fit.camera), fit.camera, catalog, params, timings)
-    if again.status is Status.OK and again.solution is not None and same_attitude(again.solution, sol, 1e-3):
+    if again.status is Status.OK and again.solution is not None and agrees(again.solution, sol):
         again.optics = _fit_optics(again, catalog, search) or fit
         return again
     return None
@@ -421,10 +476,12 @@ def _search_optics(
     params: PipelineParams,
     timings: StageTimings,
     t0: float,
+    peek: list | None = None,
 ) -> PipelineOutput | None:
     """The scale-free search of :class:`OpticsSearch`: the first pattern match that leads to a
     high-confidence answer with the fitted camera, else the low-confidence answer of a pattern
-    match that explains the most stars (None when no pattern match verifies)."""
+    match that explains the most stars (None when no pattern match verifies). ``peek``: the
+    first tier's hypotheses when the caller has them (:func:`_search_first`)."""
     search = params.optics
     assert search is not None  # called with the optics search on
     t1 = time.perf_counter()
@@ -432,7 +489,7 @@ def _search_optics(
     t0 += time.perf_counter() - t1
     tried: list[np.ndarray] = []
     best: tuple[PipelineOutput, float] | None = None  # (answer, focal scale of its pattern)
-    for hyp in _pattern_seeds(stars, camera, catalog, search, timings):
+    for hyp in _pattern_seeds(stars, camera, catalog, search, timings, peek):
         if time.perf_counter() - t0 > search.budget_s:
             break
         if any(rotation_angle(hyp.a, a) < _SAME_SEED_RAD for a in tried):
@@ -443,30 +500,39 @@ def _search_optics(
         if refined is None:
             continue
         tried.append(hyp.a)  # a seed near one that refined to a failed identification leads there too
-        fitted, rows, cat, rms_px = refined
+        fitted, rows, cat, fit = refined
+        rms_px = fit.residual_rms_px
         seen = _with_camera(stars, fitted)
         # the fitted optics leave residuals no centroid covariance knows about (coma, an unmodelled
         # distortion): per axis, they set the floor of the noise the identification assumes
         floor = max(params.centroid_floor_px, rms_px / np.sqrt(2.0))
         tight = replace(params, optics=None, centroid_floor_px=floor)
-        out = _identify(seen, fitted, catalog, tight, timings)
-        if out.status is not Status.OK:
-            pattern = _verify_pattern(seen, fitted, rows, cat, catalog, tight, timings)
-            out = (
-                pattern if pattern is not None and (pattern.status is Status.OK or _rank(pattern) > _rank(out)) else out
-            )
+        # the refined pattern match verified over the frame first (one verification); the frame
+        # identified from scratch with the fitted camera only when that is not high-confidence
+        pattern = _verify_pattern(seen, fitted, rows, cat, catalog, tight, timings)
+        if pattern is not None and pattern.status is Status.OK:
+            out = pattern
+        else:
+            out = _identify(seen, fitted, catalog, tight, timings)
+            if out.solution is not None and out.status is Status.OK:
+                out.solution = hold_searched(out.solution, params.solve.consensus)
+                if out.solution.status is not Outcome.HIGH_CONFIDENCE:
+                    out.status, out.reason = Status.LOW_CONFIDENCE, out.solution.reason
+            if pattern is not None and _rank(pattern) > _rank(out):
+                out = pattern
         if out.status is Status.OK:
-            return _with_optics(out, hyp.f / camera.f, catalog, search)
+            return _with_optics(out, hyp.f / camera.f, catalog, search, (rows, cat, fit))
         if out.solution is not None and _rank(out) > _rank(best[0] if best else None):
             best = (out, hyp.f / camera.f)
     return _with_optics(*best, catalog=catalog, search=search) if best else None  # the optics of the answer only
 
 
 def _with_optics(
-    out: PipelineOutput, focal_scale: float, catalog: OnboardCatalog, search: OpticsSearch
+    out: PipelineOutput, focal_scale: float, catalog: OnboardCatalog, search: OpticsSearch, known=None
 ) -> PipelineOutput:
-    """``out`` with the optics fitted to its matched stars and the search's focal scale."""
-    out.optics = _fit_optics(out, catalog, search)
+    """``out`` with the optics fitted to its matched stars and the search's focal scale; ``known``
+    (detection rows, catalog indices, fit): a fit of some stars already made (the refinement's)."""
+    out.optics = _fit_optics(out, catalog, search, known)
     if out.optics is not None:
         out.optics.focal_scale = focal_scale
     return out
@@ -479,11 +545,17 @@ def _rank(out: PipelineOutput | None) -> tuple[int, float]:
 
 
 def _pattern_seeds(
-    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, search: OpticsSearch, timings: StageTimings
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    search: OpticsSearch,
+    timings: StageTimings,
+    peek: list | None = None,
 ):
     """Pattern hypotheses (``scale_free.hypotheses``) from the brightest clean detections, then, when
     poor fits were among them (hot-pixel clusters and other unblurred clutter can outshine the
-    stars), from the brightest detections that also fit the PSF well."""
+    stars), from the brightest detections that also fit the PSF well. ``peek``: the first tier of
+    the first pass, already computed."""
     clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)  # clutter is blended or badly fitted
     well = clean[(stars.flags[clean] & int(StarFlag.POOR_FIT)) == 0]
     for rows in (clean, well):
@@ -491,6 +563,9 @@ def _pattern_seeds(
             return
         for n, most in ((search.first_tier, search.first_tier_hypotheses), (search.n_bright, 64)):
             if n <= 0 or most <= 0:
+                continue
+            if peek is not None and rows is clean and n == search.first_tier:
+                yield from peek
                 continue
             t1 = time.perf_counter()
             hyps = scale_free.hypotheses(

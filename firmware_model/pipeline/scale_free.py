@@ -25,9 +25,9 @@ from itertools import combinations, permutations
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between, chord_of_angle
+from firmware_model.ident.attitude import svd_attitude
 from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.camera_fit import StarObservations, fit_frame
 
@@ -153,13 +153,16 @@ def hypotheses(
     ok = np.abs(scale - 1.0) <= focal_range
     gi, ci, scale = gi[ok], ci[ok], scale[ok]
     dist = np.max(np.abs(keys[gi] - keys_c[ci]), axis=1)
+    plane = v[:, :2] / v[:, 2:]  # ideal normalised coordinates through the nominal focal length
     out = []
     for m in np.argsort(dist, kind="stable"):  # best key first; attitudes only for those returned
         g = groups[gi[m]]
-        # directions through the hypothesised focal length: with the nominal one, a pattern off
-        # the boresight would tilt the attitude by the scale error times its field angle
-        b = replace(camera, f=camera.f * scale[m]).pixel_to_vector(x[g], y[g])
-        a = _assign(b, catalog.vec[groups_c[ci[m]]])
+        # directions through the hypothesised focal length (the ideal plane scaled by 1 / scale;
+        # the distortion's own change with f is far below a pattern's tolerance): with the
+        # nominal one, a pattern off the boresight would tilt the attitude by the scale error
+        # times its field angle
+        b = np.column_stack([plane[g] / scale[m], np.ones(4)])
+        a = _assign(b / np.linalg.norm(b, axis=1, keepdims=True), catalog.vec[groups_c[ci[m]]])
         if a is not None:
             out.append(Hypothesis(camera.f * scale[m], a, float(dist[m])))
             if len(out) == max_hypotheses:
@@ -179,8 +182,7 @@ def _assign(b: np.ndarray, r: np.ndarray):
     best = int(np.argmin(mismatch))
     if mismatch[best] > 0.02 * eb.max():
         return None
-    rot, _ = Rotation.align_vectors(b, rp[best])
-    return rot.as_matrix()
+    return svd_attitude(b, rp[best])
 
 
 def refine(
@@ -197,8 +199,8 @@ def refine(
     then for each radius in ``radii_px`` match every detection to the nearest predicted catalog
     star within it (one detection per star) and fit f, k1 (with enough stars) and the attitude
     (not again when a radius matches the same stars as the last fit).
-    Returns (camera, detection rows, catalog indices, RMS residual of the last fit in px) or None
-    with fewer than ``min_stars``."""
+    Returns (camera, detection rows, catalog indices, the last fit) or None with fewer than
+    ``min_stars``."""
     cam, a = replace(camera, f=hyp.f), hyp.a
     near = catalog.stars_within(a[2], camera.fov_half_angle_diagonal * 1.2)
     det = cat = res = None
@@ -223,4 +225,4 @@ def refine(
             return None
         cam, a = res.camera, res.attitudes[0]
     assert res is not None, "radii_px holds no radius"
-    return cam, det, cat, res.residual_rms_px
+    return cam, det, cat, res
