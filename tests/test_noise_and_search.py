@@ -1,0 +1,189 @@
+"""Issue 12 (f9bc762): the frame's own centroid noise (strategy.adapt_noise, extra_noise,
+noise_rejected), high confidence of search-chosen patterns (searched_confident), the fit's
+Rodrigues rotation (camera_fit.rotvec_matrix) and the optics search going first when the best
+pattern says the nominal focal length is off (run._nominal_off)."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from ident_sky import random_attitude
+from scipy.spatial.transform import Rotation
+
+from firmware_model.ident.consensus import ConsensusParams, Outcome
+from firmware_model.ident.solver import Method, Mode, SolveParams
+from firmware_model.ident.strategy import (
+    Detections,
+    StrategyParams,
+    extra_noise,
+    identify,
+    noise_rejected,
+    searched_confident,
+)
+from firmware_model.ident.verify import FieldOfView
+from firmware_model.pipeline import scale_free
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.camera_fit import rotvec_matrix
+from firmware_model.pipeline.extract import extract_stars
+from firmware_model.pipeline.run import OpticsSearch, PipelineParams, StageTimings, run_pipeline
+from firmware_model.reference_frames import attitude_from_radec_roll, quat_to_matrix, rotation_angle
+from ground.catalog.build import build_catalog
+from ground.catalog.design import CatalogDesign
+from ground.sim.sensor_sim import DetectorModel, render_frame
+from ground.sim.sky_model import sky_stars
+from protocol.result import Status
+
+CAM = CameraModel.reference_design()
+#: The open-loop tests' camera (tetra3 geometry: 1024 x 768, 11.4 x 8.6 deg).
+NOMINAL = CameraModel.from_horizontal_fov(1024, 768, 11.4)
+PIXEL_RAD = 1.0 / NOMINAL.f
+
+
+def _residual_angles(rng, n, s):
+    """Angles |N(0, s^2 I_2)| of ``n`` stars."""
+    return np.hypot(*rng.normal(scale=s, size=(2, n)))
+
+
+def test_extra_noise_recovers_the_per_axis_noise_the_residuals_show():
+    rng = np.random.default_rng(12)
+    r = _residual_angles(rng, 40, 1.0)
+    e = extra_noise(r, np.full(40, 0.1))
+    assert e > 0.0 and abs(np.hypot(0.1, e) - 1.0) < 0.25
+    # residuals consistent with the announced noise: nothing added
+    calm = _residual_angles(np.random.default_rng(3), 40, 0.05)
+    assert extra_noise(calm, np.full(40, 0.1)) == 0.0
+
+
+def test_noise_rejected_only_when_the_residuals_exceed_the_announced_noise():
+    sigma = np.full(40, 0.1)
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        assert not noise_rejected(_residual_angles(rng, 40, 0.1), sigma)
+        assert noise_rejected(_residual_angles(rng, 40, 1.0), sigma)
+    assert not noise_rejected(np.array([5.0, 5.0]), np.full(2, 0.1))  # fewer than three stars: no test
+
+
+def test_searched_confident_needs_a_large_set_or_a_negligible_chance():
+    cp = ConsensusParams()
+    assert searched_confident(4, 0.5, 1e-9, cp)
+    assert not searched_confident(4, 1.0, 1e-5, cp)
+    assert not searched_confident(5, 1.0, 1e-7, cp)  # below six stars the chance must reach 1e-8
+    assert searched_confident(6, 0.9, 1e-3, cp)
+    assert not searched_confident(6, 0.5, 1e-3, cp)  # large but covering too little
+    assert not searched_confident(6, float("nan"), 1e-3, cp)  # unknown coverage counts as none
+
+
+@pytest.mark.parametrize(
+    "r",
+    [[0.3, -0.2, 0.1], [2.0, 1.0, -0.5], [0.0, 0.0, np.pi - 1e-6], [1e-10, 0.0, 0.0], [3e-9, -4e-9, 1e-9]],
+)
+def test_rotvec_matrix_is_scipys_rotation(r):
+    r = np.asarray(r, float)
+    m = rotvec_matrix(r)
+    assert np.allclose(m, Rotation.from_rotvec(r).as_matrix(), rtol=0.0, atol=1e-12)
+    assert np.allclose(m @ m.T, np.eye(3), atol=1e-12) and np.linalg.det(m) == pytest.approx(1.0, abs=1e-12)
+
+
+@pytest.fixture(scope="module")
+def catalog():
+    return build_catalog(CatalogDesign(sigma_rg=0.05, sigma_bg=0.05))
+
+
+def _noisy_geometric_frame(catalog, seed=1, noise_px=1.0):
+    """Catalog stars on the reference array under a random attitude, their centroids moved by
+    ``noise_px`` per axis, brightest first: (attitude, vectors, truth catalog indices)."""
+    rng = np.random.default_rng(seed)
+    a = random_attitude(rng)
+    s = catalog.vec @ a.T
+    x, y = CAM.vector_to_pixel(s)
+    on = np.flatnonzero((s[:, 2] > 0) & CAM.in_frame(x, y))
+    on = on[np.argsort(catalog.mag[on])]
+    v = CAM.pixel_to_vector(
+        x[on] + rng.normal(scale=noise_px, size=len(on)), y[on] + rng.normal(scale=noise_px, size=len(on))
+    )
+    return a, v, on
+
+
+def _identify_announcing(catalog, vectors, sigma_px):
+    nan = np.full(len(vectors), np.nan)
+    params = SolveParams(
+        mode=Mode.GEOMETRIC, sigma_vec=sigma_px / CAM.f, fov=FieldOfView.from_camera(CAM, 0.0), time_budget_s=10.0
+    )
+    det = Detections(vectors, nan, nan, sigma_px=np.full(len(vectors), sigma_px), focal_px=CAM.f)
+    return identify(det, catalog, StrategyParams(solve=params))
+
+
+def _error_sigmas(sol, a_true):
+    """The answer's attitude error about each sensor axis over its reported 1-sigma."""
+    m = quat_to_matrix(sol.q_icrs_to_sensor) @ a_true.T  # small rotation, sensor frame
+    delta = 0.5 * np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
+    return delta / np.sqrt(np.diag(sol.covariance))
+
+
+def test_adapt_noise_holds_an_answer_to_the_noise_its_stars_show(catalog):
+    a, v, truth = _noisy_geometric_frame(catalog)
+    under = _identify_announcing(catalog, v, 0.1)  # 1 px centroids announced as 0.1 px
+    sol = under.solution
+    assert sol.status is not Outcome.NO_MATCH and len(sol.matched_det) >= 5
+    assert np.array_equal(truth[under.rows[sol.matched_det]], sol.matched_cat)
+    assert sol.noise_extra > 0.0
+    assert 0.3 < sol.noise_extra * CAM.f < 2.0  # per axis, px: the order of the 1 px the frame has
+    assert any("announced centroid noise" in note for note in sol.notes)
+    assert np.all(np.abs(_error_sigmas(sol, a)) < 3.0)
+    # the same stars with their noise announced: nothing to adapt
+    honest = _identify_announcing(catalog, v, 1.0).solution
+    assert honest.status is Outcome.HIGH_CONFIDENCE and honest.noise_extra == 0.0
+    assert not any("announced centroid noise" in note for note in honest.notes)
+    assert np.all(np.abs(_error_sigmas(honest, a)) < 3.0)
+
+
+@pytest.fixture(scope="module")
+def wide_catalog():
+    return build_catalog(
+        CatalogDesign(
+            theta_fov_deg=4.3,
+            sensor_width_px=1024,
+            sensor_height_px=768,
+            m_thresh=6.0,
+            phi_min_deg=0.05,
+            phi_max_deg=15.0,
+        )
+    )
+
+
+@pytest.fixture(scope="module")
+def tetra_frame():
+    a = attitude_from_radec_roll(*np.radians([296.6, 10.6, 250.0]))
+    det = DetectorModel(pattern="MONO", psf_sigma_px=1.0, aperture_mm=18.0)
+    return a, render_frame(sky_stars(7.0), a, NOMINAL, det, seed=1).frame
+
+
+def _first_pattern_says_off(frame, camera, catalog):
+    from firmware_model.pipeline.run import _first_tier, _nominal_off
+
+    stars = extract_stars(frame, camera)
+    return _nominal_off(_first_tier(stars, camera, catalog, PipelineParams(), StageTimings()), camera, OpticsSearch())
+
+
+def test_search_goes_first_when_the_nominal_focal_length_is_one_percent_off(wide_catalog, tetra_frame):
+    a, frame = tetra_frame
+    long = replace(NOMINAL, f=NOMINAL.f * 1.01)  # 1 % moves the corners ~6 px: beyond refit_px
+    # the catalog's pattern cache for this field is built before the frame (as a device does once):
+    # a first build inside the frame's search budget is not what this test is about
+    scale_free.catalog_patterns(wide_catalog, long)
+    assert _first_pattern_says_off(frame, long, wide_catalog)
+    out = run_pipeline(frame, long, wide_catalog)
+    assert out.status is Status.OK, out.reason
+    assert out.solution.method is Method.PATTERN
+    assert rotation_angle(quat_to_matrix(out.solution.q_icrs_to_sensor), a) < 2 * PIXEL_RAD
+    assert out.optics is not None and abs(out.optics.camera.f / NOMINAL.f - 1.0) < 0.002
+    assert abs(out.optics.focal_scale - 1.0 / 1.01) < 0.002  # the pattern's focal length: the true one
+
+
+def test_exact_camera_goes_the_usual_way(wide_catalog, tetra_frame):
+    a, frame = tetra_frame
+    assert not _first_pattern_says_off(frame, NOMINAL, wide_catalog)
+    out = run_pipeline(frame, NOMINAL, wide_catalog)
+    assert out.status is Status.OK, out.reason
+    assert out.solution.method is not Method.PATTERN
+    assert rotation_angle(quat_to_matrix(out.solution.q_icrs_to_sensor), a) < 2 * PIXEL_RAD
