@@ -341,12 +341,16 @@ def adapt_noise(
        probe's gates, which cut the tail, not the middle), and verify again with ``e`` added:
        tight gates in units of the noise the frame has, and an attitude and covariance weighted by it.
 
-    The answer keeps its confidence, held again to the roll bound with the new covariance; it
-    stands unchanged when the test passes, a verification fails or the attitude moves beyond the
-    tolerance of the widened noise."""
+    Only high-confidence answers (or those held low by the roll bound alone) are checked: a
+    low-confidence answer may be a wrong match, whose residuals would read as noise and whose
+    wider gates would gather more wrong stars. The answer stays high-confidence, held again to the
+    roll bound with the new covariance; it stands unchanged when the test passes, the estimate
+    exceeds twice the probe (residuals the probe did not look for: a wrong match's), a
+    verification fails or the attitude moves beyond 5 sigma (:func:`within_covariance`)."""
     sol = found.solution
     probe = base.noise_probe_px
-    if sol.status is Outcome.NO_MATCH or det.sigma_px is None or probe <= 0 or len(sol.matched_det) < 3:
+    high = sol.status is Outcome.HIGH_CONFIDENCE or sol.roll_limited
+    if not high or det.sigma_px is None or probe <= 0 or len(sol.matched_det) < 3:
         return found
     sigma = np.asarray(det.sigma_px, float)  # px
     everything = np.arange(len(det))
@@ -361,13 +365,13 @@ def adapt_noise(
     if seen is None or not noise_rejected(seen.attitude.residuals * det.focal_px, sigma[seen.det]):
         return found
     extra = extra_noise(seen.attitude.residuals * det.focal_px, sigma[seen.det])
+    if extra > 2.0 * probe:  # beyond what the probe looked for: residuals of a wrong match, not noise
+        return found
     tuned = replace(det, sigma_px=np.hypot(sigma, extra))
     match = verify_over(tuned, seen.det, seen.cat, catalog, base, timings)
     if match is None or not within_covariance(match.attitude.a, match.attitude.covariance, sol):
         return found
-    high = sol.status is Outcome.HIGH_CONFIDENCE or sol.roll_limited
-    status, reason = (Outcome.HIGH_CONFIDENCE, "") if high else (sol.status, sol.reason)
-    out = solution_from_match(match, status, reason, everything, catalog, sol.method, len(det))
+    out = solution_from_match(match, Outcome.HIGH_CONFIDENCE, "", everything, catalog, sol.method, len(det))
     out.attempts, out.timings = sol.attempts, sol.timings
     out.noise_extra = extra / det.focal_px
     out.notes = [*sol.notes, f"residuals reject the announced centroid noise: {extra:.2g} px per axis added"]
@@ -464,40 +468,36 @@ def verify_over(
     return match
 
 
-#: Chance alignment (``verify.chance_alignment``) below which a small set found with optics fitted to
-#: a search-chosen pattern stays high-confidence: a search tries up to ~1e4 patterns, so 1e-8 keeps
-#: the chance of a coincidental answer over the whole search near 1e-4.
-SEARCHED_CHANCE = 1e-8
-
-
-def searched_confident(n: int, coverage: float, chance: float, cp: ConsensusParams) -> bool:
-    """High confidence for stars matched with optics fitted to a search-chosen pattern: a large
-    set (at least ``confident_stars`` covering ``confident_coverage`` of the predicted stars) or
-    stars beyond two that line up by chance with probability below :data:`SEARCHED_CHANCE`. The
-    camera was fitted to make that pattern fit and the pattern chosen among thousands, so its own
-    stars are weaker evidence than an independent match's (issue 12: with 1 px noise, 3 false
-    stars and 20 % dropped, a wrong pattern with its fitted focal length verified 4 of 54
-    detections at chance 1e-4 to 3e-6, 24 deg off)."""
+def searched_confident(n: int, coverage: float, chance: float, cp: ConsensusParams, attempts: int = 1) -> bool:
+    """High confidence for stars matched with optics fitted to a search-chosen pattern, the
+    attempt ``attempts`` of the search: :func:`consensus.confident`'s rule (a large set, or at
+    least ``chance_stars`` whose stars beyond two line up by chance with probability below
+    ``chance_alpha``) with the chance multiplied by the attempts (each pattern the search refines
+    and verifies is one more chance for a coincidence; issue 12: with 1 px noise, 3 false stars
+    and 20 % dropped, a wrong pattern with its fitted focal length verified 4 of 54 detections at
+    chance 1e-4 to 3e-6, 24 deg off)."""
     cov = coverage if np.isfinite(coverage) else 0.0
-    return chance <= SEARCHED_CHANCE or (n >= cp.confident_stars and cov >= cp.confident_coverage)
+    if n >= cp.chance_stars and chance * max(attempts, 1) <= cp.chance_alpha:
+        return True
+    return n >= cp.confident_stars and cov >= cp.confident_coverage
 
 
-def hold_searched(sol: SolveResult, cp: ConsensusParams) -> SolveResult:
-    """``sol``, an answer found with a camera fitted to a search-chosen pattern, held to low
-    confidence unless :func:`searched_confident`."""
+def hold_searched(sol: SolveResult, cp: ConsensusParams, attempts: int = 1) -> SolveResult:
+    """``sol``, an answer found with a camera fitted to a search-chosen pattern (the search's
+    attempt ``attempts``), held to low confidence unless :func:`searched_confident`."""
     if sol.status is Outcome.HIGH_CONFIDENCE and not searched_confident(
-        len(sol.matched_det), sol.coverage, sol.chance, cp
+        len(sol.matched_det), sol.coverage, sol.chance, cp, attempts
     ):
         sol.status = Outcome.LOW_CONFIDENCE
-        sol.reason = _searched_reason(len(sol.matched_det), sol.coverage, sol.chance, cp)
+        sol.reason = _searched_reason(len(sol.matched_det), sol.coverage, sol.chance, cp, attempts)
     return sol
 
 
-def _searched_reason(n: int, coverage: float, chance: float, cp: ConsensusParams) -> str:
+def _searched_reason(n: int, coverage: float, chance: float, cp: ConsensusParams, attempts: int) -> str:
     return (
-        f"{n} stars (coverage {coverage:.2f}, chance {chance:.1g}) with optics fitted to a search-chosen "
-        f"pattern: below the {cp.confident_stars} stars and {cp.confident_coverage:g} coverage, or the "
-        f"{SEARCHED_CHANCE:g} chance, it needs"
+        f"{n} stars (coverage {coverage:.2f}, chance {chance:.1g} at search attempt {attempts}) with optics "
+        f"fitted to a search-chosen pattern: below the {cp.confident_stars} stars and "
+        f"{cp.confident_coverage:g} coverage, or the {cp.chance_alpha:g} chance over the attempts, it needs"
     )
 
 
@@ -508,17 +508,18 @@ def verify_pattern(
     catalog: OnboardCatalog,
     base: SolveParams,
     timings: IdentifyTimings,
+    attempts: int = 1,
 ) -> SolveResult | None:
-    """A pattern match found by a search (the pipeline's optics search: detections ``rows`` on
-    catalog stars ``cat``) verified over every detection (method ``pattern``), or None when
-    verification refuses it; high confidence as :func:`searched_confident` grants it, the
-    frame's own noise checked (:func:`adapt_noise`)."""
+    """A pattern match found by a search (the pipeline's optics search, its attempt ``attempts``:
+    detections ``rows`` on catalog stars ``cat``) verified over every detection (method
+    ``pattern``), or None when verification refuses it; high confidence as
+    :func:`searched_confident` grants it, the frame's own noise checked (:func:`adapt_noise`)."""
     match = verify_over(det, rows, cat, catalog, base, timings)
     if match is None:
         return None
     cp = base.consensus
-    high = searched_confident(match.n, match.coverage, match.chance, cp)
-    reason = "" if high else _searched_reason(match.n, match.coverage, match.chance, cp)
+    high = searched_confident(match.n, match.coverage, match.chance, cp, attempts)
+    reason = "" if high else _searched_reason(match.n, match.coverage, match.chance, cp, attempts)
     outcome = Outcome.HIGH_CONFIDENCE if high else Outcome.LOW_CONFIDENCE
     everything = np.arange(len(det))
     sol = bound_roll(

@@ -260,6 +260,10 @@ def identify_stars(
         vectors=stars.timings.get("vectors_s", 0.0),
     )
     frame_t0 = t0 - stars.timings.get("total_s", 0.0)  # the search's budget counts from extraction
+    if params.optics is not None:
+        t1 = time.perf_counter()
+        scale_free.catalog_patterns(catalog, camera)  # once per catalog and field: not this frame's budget
+        frame_t0 += time.perf_counter() - t1
     peek = _first_tier(stars, camera, catalog, params, timings)
     first = None
     if params.optics is not None and _nominal_off(peek, camera, params.optics):
@@ -437,6 +441,15 @@ def _corner_shift_px(a: CameraModel, b: CameraModel) -> float:
     return float(np.nanmax(np.hypot(x2 - xs, y2 - ys)))
 
 
+def _corner_shift_sigma_px(fit: OpticsFit) -> float:
+    """1-sigma displacement (px) of the farthest array corner from the fitted focal length's and
+    k1's uncertainties (``r sigma_f / f`` and ``r (r / f)^2 sigma_k1`` at the corner radius ``r``)."""
+    cam = fit.camera
+    r = float(np.hypot(max(cam.cx + 0.5, cam.width - 0.5 - cam.cx), max(cam.cy + 0.5, cam.height - 0.5 - cam.cy)))
+    sf, sk = fit.sigmas.get("f", 0.0), fit.sigmas.get("k1", 0.0)
+    return float(np.hypot(r * sf / cam.f, r * (r / cam.f) ** 2 * sk))
+
+
 #: The frame is identified again with the fitted optics when they fit this much better (RMS ratio).
 REFIT_RMS_RATIO = 1.5
 
@@ -450,17 +463,21 @@ def _refine_optics(
     timings: StageTimings,
 ) -> PipelineOutput | None:
     """Attach the optics fit to a high-confidence ``out``; identify again with the fitted camera when
-    it moves a corner by more than ``refit_px`` or fits the stars :data:`REFIT_RMS_RATIO` times
-    better than the answer's camera did, and keep that answer if it is high-confidence and
-    agrees (within 1 mrad): its camera fits the stars better by construction."""
+    it moves a corner by more than ``refit_px`` and by more than 3 sigma of the fit (a focal
+    length and k1 fitted to a few noisy stars move the corners by chance, and a camera fitted to
+    the noise would hide it from the identification's noise check), or fits the stars
+    :data:`REFIT_RMS_RATIO` times better than the answer's camera did; keep that answer if it is
+    high-confidence and agrees (``strategy.agrees``): its camera fits the stars better by construction."""
     search, sol = params.optics, out.solution
     assert search is not None and sol is not None  # called with the optics fit on, for an answer
     fit = _fit_optics(out, catalog, search)
     out.optics = fit
     rms_px = sol.consensus_rms * camera.f
-    if fit is None or (
-        _corner_shift_px(camera, fit.camera) <= search.refit_px and rms_px <= REFIT_RMS_RATIO * fit.residual_rms_px
-    ):
+    if fit is None:
+        return None
+    shift = _corner_shift_px(camera, fit.camera)
+    moved = shift > search.refit_px and shift > 3.0 * _corner_shift_sigma_px(fit)
+    if not moved and rms_px <= REFIT_RMS_RATIO * fit.residual_rms_px:
         return None
     again = _identify(_with_camera(stars, fit.camera), fit.camera, catalog, params, timings)
     if again.status is Status.OK and again.solution is not None and agrees(again.solution, sol):
@@ -481,7 +498,7 @@ def _search_optics(
     """The scale-free search of :class:`OpticsSearch`: the first pattern match that leads to a
     high-confidence answer with the fitted camera, else the low-confidence answer of a pattern
     match that explains the most stars (None when no pattern match verifies). ``peek``: the
-    first tier's hypotheses when the caller has them (:func:`_search_first`)."""
+    first tier's hypotheses when the caller has them (:func:`_first_tier`)."""
     search = params.optics
     assert search is not None  # called with the optics search on
     t1 = time.perf_counter()
@@ -501,7 +518,9 @@ def _search_optics(
             continue
         tried.append(hyp.a)  # a seed near one that refined to a failed identification leads there too
         fitted, rows, cat, fit = refined
-        rms_px = fit.residual_rms_px
+        # per-axis noise of the refined stars: their RMS with the fitted unknowns' degrees of freedom
+        dof = 2 * fit.n_observations - len(fit.sigmas) - 3
+        rms_px = fit.residual_rms_px * np.sqrt(2 * fit.n_observations / max(dof, 1))
         seen = _with_camera(stars, fitted)
         # the fitted optics leave residuals no centroid covariance knows about (coma, an unmodelled
         # distortion): per axis, they set the floor of the noise the identification assumes
@@ -509,13 +528,13 @@ def _search_optics(
         tight = replace(params, optics=None, centroid_floor_px=floor)
         # the refined pattern match verified over the frame first (one verification); the frame
         # identified from scratch with the fitted camera only when that is not high-confidence
-        pattern = _verify_pattern(seen, fitted, rows, cat, catalog, tight, timings)
+        pattern = _verify_pattern(seen, fitted, rows, cat, catalog, tight, timings, len(tried))
         if pattern is not None and pattern.status is Status.OK:
             out = pattern
         else:
             out = _identify(seen, fitted, catalog, tight, timings)
             if out.solution is not None and out.status is Status.OK:
-                out.solution = hold_searched(out.solution, params.solve.consensus)
+                out.solution = hold_searched(out.solution, params.solve.consensus, len(tried))
                 if out.solution.status is not Outcome.HIGH_CONFIDENCE:
                     out.status, out.reason = Status.LOW_CONFIDENCE, out.solution.reason
             if pattern is not None and _rank(pattern) > _rank(out):
@@ -590,10 +609,12 @@ def _verify_pattern(
     catalog: OnboardCatalog,
     params: PipelineParams,
     timings: StageTimings,
+    attempts: int,
 ) -> PipelineOutput | None:
-    """The refined pattern match itself (detection ``rows`` on catalog stars ``cat``), verified over
-    every usable detection with the fitted camera and the tight noise model and judged by
-    ``strategy.verify_pattern`` (method "pattern"), or None when verification refuses it."""
+    """The refined pattern match itself (detection ``rows`` on catalog stars ``cat``, the search's
+    attempt ``attempts``), verified over every usable detection with the fitted camera and the
+    tight noise model and judged by ``strategy.verify_pattern`` (method "pattern"), or None when
+    verification refuses it."""
     used = _usable(stars)
     rows, cat = np.asarray(rows), np.asarray(cat)
     inside = np.isin(rows, used)
@@ -604,6 +625,7 @@ def _verify_pattern(
         catalog,
         _solve_params(stars, camera, catalog, params),
         timings,
+        attempts,
     )
     if sol is None:
         return None
