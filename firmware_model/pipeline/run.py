@@ -265,19 +265,22 @@ def identify_stars(
         scale_free.catalog_patterns(catalog, camera)  # once per catalog and field: not this frame's budget
         frame_t0 += time.perf_counter() - t1
     peek = _first_tier(stars, camera, catalog, params, timings)
-    first = None
-    if params.optics is not None and _nominal_off(peek, camera, params.optics):
-        first = _search_optics(stars, camera, catalog, params, timings, frame_t0, peek)
+    searched = params.optics is not None and _nominal_off(peek, camera, params.optics)
+    first = _search_optics(stars, camera, catalog, params, timings, frame_t0, peek) if searched else None
     if first is not None and first.status is Status.OK:  # else the usual way: the nominal camera first
         first.timings = timings
         timings.total = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
         return first
+
+    def search() -> PipelineOutput | None:  # the search once per frame: its answer kept when it went first
+        return first if searched else _search_optics(stars, camera, catalog, params, timings, frame_t0, peek)
+
     # the mono consensus fallback with the nominal camera waits for the optics search's cheaper
     # pattern hypotheses: with uncalibrated optics the search is what finds the answer (issue 12)
     out = _identify(stars, camera, catalog, params, timings, defer_fallback=params.optics is not None)
     if params.optics is not None and out.status is not Status.TOO_FEW_STARS:
         if out.status is not Status.OK:
-            found = _search_optics(stars, camera, catalog, params, timings, frame_t0, peek or None)
+            found = search()
             if out.fallback_due and (found is None or found.status is not Status.OK):
                 again = _identify(stars, camera, catalog, params, timings, fallback_only=True)
                 out = again if again.status is not Status.NO_MATCH else out
@@ -290,7 +293,7 @@ def identify_stars(
         elif (refined := _refine_optics(out, stars, camera, catalog, params, timings)) is not None:
             out = refined
         elif out.optics is None:  # too few stars matched to check the optics: a search may match more
-            found = _search_optics(stars, camera, catalog, params, timings, frame_t0, peek or None)
+            found = search()
             if found is not None and found.status is Status.OK and _rank(found) > _rank(out):
                 out = found  # a high-confidence answer only: the search may now return a low one
     out.timings = timings
@@ -300,36 +303,31 @@ def identify_stars(
 
 def _first_tier(
     stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams, timings: StageTimings
-) -> list:
-    """The optics search's first pattern hypotheses (``first_tier_hypotheses`` of the
-    ``first_tier`` brightest clean detections; none without a search)."""
+) -> scale_free.PatternMatches | None:
+    """The optics search's first pattern matches (the ``first_tier`` brightest clean detections;
+    None without a search)."""
     search = params.optics
     if search is None or search.first_tier <= 0 or search.first_tier_hypotheses <= 0 or len(_usable(stars)) < 4:
-        return []
+        return None
     scale_free.catalog_patterns(catalog, camera)  # once per catalog: not this frame's time
     t1 = time.perf_counter()
     clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)
-    peek = scale_free.hypotheses(
-        stars.x[clean],
-        stars.y[clean],
-        camera,
-        catalog,
-        search.first_tier,
-        search.pattern_tolerance,
-        search.focal_range,
-        max_hypotheses=search.first_tier_hypotheses,
+    peek = scale_free.pattern_matches(
+        stars.x[clean], stars.y[clean], camera, catalog, search.first_tier, search.pattern_tolerance, search.focal_range
     )
     timings.identify += time.perf_counter() - t1
     return peek
 
 
-def _nominal_off(peek: list, camera: CameraModel, search: OpticsSearch) -> bool:
+def _nominal_off(peek: scale_free.PatternMatches | None, camera: CameraModel, search: OpticsSearch) -> bool:
     """Whether the best pattern match puts the focal length far enough from the nominal camera's
     to move the array's corners by more than ``refit_px``: a nominal camera that cannot match
     would spend its matchers' whole search failing (issue 12: 10-50 ms per tetra3 frame) before
     the optics search that finds the answer, so the search goes first."""
+    if peek is None or not np.isfinite(peek.best_f):
+        return False
     corner = float(np.hypot(camera.width, camera.height)) / 2.0
-    return bool(peek) and abs(peek[0].f / camera.f - 1.0) * corner > search.refit_px
+    return abs(peek.best_f / camera.f - 1.0) * corner > search.refit_px
 
 
 def _identify(
@@ -493,12 +491,12 @@ def _search_optics(
     params: PipelineParams,
     timings: StageTimings,
     t0: float,
-    peek: list | None = None,
+    peek: scale_free.PatternMatches | None = None,
 ) -> PipelineOutput | None:
     """The scale-free search of :class:`OpticsSearch`: the first pattern match that leads to a
     high-confidence answer with the fitted camera, else the low-confidence answer of a pattern
     match that explains the most stars (None when no pattern match verifies). ``peek``: the
-    first tier's hypotheses when the caller has them (:func:`_first_tier`)."""
+    first tier's pattern matches when the caller has them (:func:`_first_tier`)."""
     search = params.optics
     assert search is not None  # called with the optics search on
     t1 = time.perf_counter()
@@ -569,12 +567,12 @@ def _pattern_seeds(
     catalog: OnboardCatalog,
     search: OpticsSearch,
     timings: StageTimings,
-    peek: list | None = None,
+    peek: scale_free.PatternMatches | None = None,
 ):
     """Pattern hypotheses (``scale_free.hypotheses``) from the brightest clean detections, then, when
     poor fits were among them (hot-pixel clusters and other unblurred clutter can outshine the
-    stars), from the brightest detections that also fit the PSF well. ``peek``: the first tier of
-    the first pass, already computed."""
+    stars), from the brightest detections that also fit the PSF well. ``peek``: the first tier's
+    pattern matches of the first pass, already computed."""
     clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)  # clutter is blended or badly fitted
     well = clean[(stars.flags[clean] & int(StarFlag.POOR_FIT)) == 0]
     for rows in (clean, well):
@@ -584,7 +582,10 @@ def _pattern_seeds(
             if n <= 0 or most <= 0:
                 continue
             if peek is not None and rows is clean and n == search.first_tier:
-                yield from peek
+                t1 = time.perf_counter()
+                first = list(peek.hypotheses(most))
+                timings.identify += time.perf_counter() - t1
+                yield from first
                 continue
             t1 = time.perf_counter()
             hyps = scale_free.hypotheses(

@@ -119,6 +119,85 @@ def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
     return cache[mrad]
 
 
+@dataclass
+class PatternMatches:
+    """Key matches of a frame's patterns, best key distance first: frame 4-sets ``groups`` (rows of
+    the frame's brightest detections), catalog pattern indices ``cat``, focal scale (frame's
+    largest edge over the catalog's) and key distance; attitudes are worked out only for the
+    matches :meth:`hypotheses` returns (each costs an assignment and an SVD)."""
+
+    f_nominal: float
+    plane: np.ndarray  # (n, 2) ideal normalised coordinates through the nominal focal length
+    groups: np.ndarray
+    cat: np.ndarray
+    scale: np.ndarray
+    distance: np.ndarray
+    catalog_vec: np.ndarray  # (P, 4, 3) the catalog patterns' star directions, by ``cat``
+
+    @property
+    def best_f(self) -> float:
+        """Focal length (px) of the best key match; NaN when there is none."""
+        return float(self.f_nominal * self.scale[0]) if len(self.scale) else float("nan")
+
+    def hypotheses(self, most: int = 64):
+        """Up to ``most`` hypotheses, best key first (a generator: attitudes as they are asked for)."""
+        given = 0
+        for m in range(len(self.scale)):
+            if given == most:
+                return
+            # directions through the hypothesised focal length (the ideal plane scaled by 1 / scale;
+            # the distortion's own change with f is far below a pattern's tolerance): with the
+            # nominal one, a pattern off the boresight would tilt the attitude by the scale error
+            # times its field angle
+            b = np.column_stack([self.plane[self.groups[m]] / self.scale[m], np.ones(4)])
+            a = _assign(b / np.linalg.norm(b, axis=1, keepdims=True), self.catalog_vec[m])
+            if a is not None:
+                given += 1
+                yield Hypothesis(self.f_nominal * float(self.scale[m]), a, float(self.distance[m]))
+
+
+def pattern_matches(
+    x: np.ndarray,
+    y: np.ndarray,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    n_bright: int,
+    tolerance: float,
+    focal_range: float,
+    first: int = 0,
+) -> PatternMatches:
+    """Pattern matches of the ``n_bright`` brightest detections (rows of ``x, y``, brightest first)
+    with key distance below ``tolerance`` and focal length within ``focal_range`` (relative) of
+    the nominal camera's, best key distance first. ``first``: only patterns holding a detection
+    at or beyond that rank (the caller has tried those of the ``first`` brightest already)."""
+    n = min(len(x), n_bright)
+    none = np.zeros(0)
+    empty = PatternMatches(camera.f, np.zeros((0, 2)), np.zeros((0, 4), np.int64), none, none, none, none)
+    if n < 4 or n <= first:
+        return empty
+    groups_c, keys_c, top_c, tree = catalog_patterns(catalog, camera)
+    v = camera.pixel_to_vector(x[:n], y[:n])
+    groups = np.array(list(combinations(range(n), 4)), np.int64)
+    groups = groups[groups[:, 3] >= first]  # combinations are sorted: the last member is the faintest
+    keys, top = _keys(v, groups)
+    wide = top <= 2.0 * max(PATTERN_RADIUS_FACTORS) * camera.fov_half_angle_minor * (1 + focal_range)
+    groups, keys, top = groups[wide], keys[wide], top[wide]
+    if len(groups) == 0:
+        return empty
+    found = tree.query_ball_point(keys, tolerance, p=np.inf)
+    gi = np.repeat(np.arange(len(groups)), [len(f) for f in found])
+    ci = np.fromiter((k for f in found for k in f), dtype=np.int64, count=len(gi))
+    scale = top[gi] / top_c[ci]
+    ok = np.abs(scale - 1.0) <= focal_range
+    gi, ci, scale = gi[ok], ci[ok], scale[ok]
+    dist = np.max(np.abs(keys[gi] - keys_c[ci]), axis=1)
+    order = np.argsort(dist, kind="stable")
+    gi, ci = gi[order], ci[order]
+    return PatternMatches(
+        camera.f, v[:, :2] / v[:, 2:], groups[gi], ci, scale[order], dist[order], catalog.vec[groups_c[ci]]
+    )
+
+
 def hypotheses(
     x: np.ndarray,
     y: np.ndarray,
@@ -130,44 +209,10 @@ def hypotheses(
     max_hypotheses: int = 64,
     first: int = 0,
 ) -> list[Hypothesis]:
-    """Pattern matches of the ``n_bright`` brightest detections (rows of ``x, y``, brightest first)
-    with key distance below ``tolerance`` and focal length within ``focal_range`` (relative) of
-    the nominal camera's, best key distance first. ``first``: only patterns holding a detection
-    at or beyond that rank (the caller has tried those of the ``first`` brightest already)."""
-    n = min(len(x), n_bright)
-    if n < 4 or n <= first:
-        return []
-    groups_c, keys_c, top_c, tree = catalog_patterns(catalog, camera)
-    v = camera.pixel_to_vector(x[:n], y[:n])
-    groups = np.array(list(combinations(range(n), 4)), np.int64)
-    groups = groups[groups[:, 3] >= first]  # combinations are sorted: the last member is the faintest
-    keys, top = _keys(v, groups)
-    wide = top <= 2.0 * max(PATTERN_RADIUS_FACTORS) * camera.fov_half_angle_minor * (1 + focal_range)
-    groups, keys, top = groups[wide], keys[wide], top[wide]
-    if len(groups) == 0:
-        return []
-    found = tree.query_ball_point(keys, tolerance, p=np.inf)
-    gi = np.repeat(np.arange(len(groups)), [len(f) for f in found])
-    ci = np.fromiter((k for f in found for k in f), dtype=np.int64, count=len(gi))
-    scale = top[gi] / top_c[ci]
-    ok = np.abs(scale - 1.0) <= focal_range
-    gi, ci, scale = gi[ok], ci[ok], scale[ok]
-    dist = np.max(np.abs(keys[gi] - keys_c[ci]), axis=1)
-    plane = v[:, :2] / v[:, 2:]  # ideal normalised coordinates through the nominal focal length
-    out = []
-    for m in np.argsort(dist, kind="stable"):  # best key first; attitudes only for those returned
-        g = groups[gi[m]]
-        # directions through the hypothesised focal length (the ideal plane scaled by 1 / scale;
-        # the distortion's own change with f is far below a pattern's tolerance): with the
-        # nominal one, a pattern off the boresight would tilt the attitude by the scale error
-        # times its field angle
-        b = np.column_stack([plane[g] / scale[m], np.ones(4)])
-        a = _assign(b / np.linalg.norm(b, axis=1, keepdims=True), catalog.vec[groups_c[ci[m]]])
-        if a is not None:
-            out.append(Hypothesis(camera.f * scale[m], a, float(dist[m])))
-            if len(out) == max_hypotheses:
-                break
-    return out
+    """The first ``max_hypotheses`` hypotheses of :func:`pattern_matches` (each a focal length and
+    an attitude: the four stars, best of the 24 assignments)."""
+    found = pattern_matches(x, y, camera, catalog, n_bright, tolerance, focal_range, first)
+    return list(found.hypotheses(max_hypotheses))
 
 
 def _assign(b: np.ndarray, r: np.ndarray):
