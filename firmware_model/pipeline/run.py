@@ -588,16 +588,10 @@ def _pattern_seeds(
                 yield from first
                 continue
             t1 = time.perf_counter()
-            hyps = scale_free.hypotheses(
-                stars.x[rows],
-                stars.y[rows],
-                camera,
-                catalog,
-                n,
-                search.pattern_tolerance,
-                search.focal_range,
-                max_hypotheses=most,
+            found = scale_free.pattern_matches(
+                stars.x[rows], stars.y[rows], camera, catalog, n, search.pattern_tolerance, search.focal_range
             )
+            hyps = list(found.hypotheses(most))
             timings.identify += time.perf_counter() - t1
             yield from hyps  # the second pass repeats the first's best: the caller skips seeds it tried
 

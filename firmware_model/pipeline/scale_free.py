@@ -7,7 +7,7 @@ unchanged; radial distortion of a few pixels changes it by well under a per cent
 few hundred pixels. Catalog patterns (the module constants say which 4-sets) are built once per
 (catalog, field) and kept in a KD-tree (L-infinity ball queries).
 
-``hypotheses`` matches the frame's patterns (every 4-combination of its brightest detections no
+``pattern_matches`` matches the frame's patterns (every 4-combination of its brightest detections no
 wider than the widest catalog pattern, directions taken through the nominal camera) and turns
 each key match into a focal length (ratio of the catalog's largest edge to the frame's) and an
 attitude (the four stars, best of the 24 assignments). ``refine`` then predicts every catalog
@@ -196,23 +196,6 @@ def pattern_matches(
     return PatternMatches(
         camera.f, v[:, :2] / v[:, 2:], groups[gi], ci, scale[order], dist[order], catalog.vec[groups_c[ci]]
     )
-
-
-def hypotheses(
-    x: np.ndarray,
-    y: np.ndarray,
-    camera: CameraModel,
-    catalog: OnboardCatalog,
-    n_bright: int,
-    tolerance: float,
-    focal_range: float,
-    max_hypotheses: int = 64,
-    first: int = 0,
-) -> list[Hypothesis]:
-    """The first ``max_hypotheses`` hypotheses of :func:`pattern_matches` (each a focal length and
-    an attitude: the four stars, best of the 24 assignments)."""
-    found = pattern_matches(x, y, camera, catalog, n_bright, tolerance, focal_range, first)
-    return list(found.hypotheses(max_hypotheses))
 
 
 def _assign(b: np.ndarray, r: np.ndarray):
