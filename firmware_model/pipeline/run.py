@@ -82,24 +82,29 @@ class OpticsSearch:
     """Lost in space with a datasheet camera (focal length off by a few per cent, radial
     distortion and principal-point offset not modelled), as plate solvers do it.
 
-    When the nominal camera gives no high-confidence answer, the brightest ``n_bright``
-    detections are matched as scale-free 4-star patterns: first the ``first_tier_hypotheses`` best
-    pattern matches among the brightest ``first_tier`` detections (70 patterns, ~8 ms: a frame's
-    brightest stars are its catalog's brightest, and on the tetra3 frames the first one is the
-    answer), then among all ``n_bright`` (4845 patterns, ~80 ms; clutter such as a foreground
-    tree can hold the brightest detections) (``firmware_model.pipeline.scale_free``: edge
-    ratios within ``pattern_tolerance``, focal length within ``focal_range`` of the nominal; blended,
-    failed-fit and edge detections are left out: clutter such as a foreground tree is).
-    Each pattern match, best first, only seeds a predict-match-fit of the focal length (and k1
-    when at least ``k1_min_stars`` stars match) with the attitude; the frame is then identified
-    again from scratch with the fitted camera and the normal tight noise model, and the answer
-    taken only if that is high-confidence (else the refined match itself, verified over every
-    detection, when it is large). Every solve reports the fitted optics and their 1-sigma
-    (``PipelineOutput.optics``, from at least ``min_stars`` matched stars); when the fit moves a
-    corner by more than ``refit_px`` or fits the stars :data:`REFIT_RMS_RATIO` times better, the
-    frame is identified again with it so stars the first camera missed are matched. The search
-    stops once ``budget_s`` seconds have passed since the frame's extraction began (the frame's
-    whole budget: GO to result stays under 2 s whatever the frame)."""
+    The brightest ``n_bright`` detections are matched as scale-free 4-star patterns: first the
+    ``first_tier_hypotheses`` best pattern matches among the brightest ``first_tier`` detections
+    (70 patterns, ~1.5 ms: a frame's brightest stars are its catalog's brightest, and on the
+    tetra3 frames the first one is the answer), then among all ``n_bright`` (4845 patterns;
+    clutter such as a foreground tree can hold the brightest detections)
+    (``firmware_model.pipeline.scale_free``: edge ratios within ``pattern_tolerance``, focal length
+    within ``focal_range`` of the nominal; blended, failed-fit and edge detections are left out).
+    The search goes first when the first tier's best match puts the focal length far enough from
+    the nominal one to move a corner by more than ``refit_px`` (a nominal camera that cannot match
+    would spend its matchers' whole search failing); else after the nominal camera gives no
+    high-confidence answer. Each pattern match, best first, seeds a predict-match-fit of the
+    focal length (and k1 when at least ``k1_min_stars`` stars match) with the attitude; the refined
+    match is verified over every detection and taken when it is high-confidence as a
+    search-chosen match (``strategy.searched_confident``: the chance of a coincidence counted over
+    the search's attempts), else the frame is identified from scratch with the fitted camera and
+    the normal tight noise model (held to the same rule). Every solve reports the fitted optics
+    and their 1-sigma (``PipelineOutput.optics``, from at least ``min_stars`` matched stars); when
+    the fit moves a corner by more than ``refit_px`` (and 3 sigma of the fit) or fits the stars
+    :data:`REFIT_RMS_RATIO` times better, the frame is identified again with it so stars the first
+    camera missed are matched. The search stops once ``budget_s`` seconds have passed since the
+    frame's extraction began (the frame's whole budget: GO to result stays under 2 s whatever the
+    frame). ``focal_search 0`` on the device (``optics=None`` here) takes the camera as calibrated:
+    no search, no pattern matches (~1.5 ms a frame)."""
 
     focal_range: float = 0.05
     n_bright: int = 20

@@ -7,13 +7,15 @@ unchanged; radial distortion of a few pixels changes it by well under a per cent
 few hundred pixels. Catalog patterns (the module constants say which 4-sets) are built once per
 (catalog, field) and kept in a KD-tree (L-infinity ball queries).
 
-``pattern_matches`` matches the frame's patterns (every 4-combination of its brightest detections no
-wider than the widest catalog pattern, directions taken through the nominal camera) and turns
-each key match into a focal length (ratio of the catalog's largest edge to the frame's) and an
-attitude (the four stars, best of the 24 assignments). ``refine`` then predicts every catalog
-star in the field, matches detections within a shrinking radius and fits focal length (and k1)
-with the attitude (``firmware_model.pipeline.camera_fit``). The caller identifies the frame again from scratch with the
-fitted camera: a pattern match is only a seed.
+``pattern_matches`` matches the frame's patterns (every 4-combination of its brightest detections
+no wider than the widest catalog pattern, directions taken through the nominal camera), best key
+first; each key match gives a focal length (ratio of the catalog's largest edge to the frame's)
+and, when asked for (``PatternMatches.hypotheses``), an attitude (the four stars, best of the 24
+assignments). ``refine`` then predicts every catalog star in the field, matches detections within
+a shrinking radius and fits focal length (and k1) with the attitude
+(``firmware_model.pipeline.camera_fit``). The caller verifies the refined match over the whole
+frame and judges it as a search-chosen one, or identifies the frame from scratch with the fitted
+camera (``firmware_model.pipeline.run``).
 
 Units: radians for angles, pixels for image positions (docs/CONVENTIONS.md).
 """
