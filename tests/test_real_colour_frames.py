@@ -71,12 +71,16 @@ def test_colour_frames_solve_through_the_cli_with_fov_only(colour_real, tmp_path
         rec = json.loads(run.stdout, parse_constant=lambda name: pytest.fail(f"bare {name} in --json output"))
         assert rec["status"] and (rec["status"] == "OK" or rec["reason"]), rec["status"]
         assert (run.returncode == 0) == (rec["status"] == "OK")
-        if rec["status"] != "OK":
+        if rec.get("ra_deg") is None:
             continue
         # boresight = the nominal centre pixel of the (possibly cropped by one row) re-mosaiced frame
         a = radec_to_vec(np.radians(rec["ra_deg"]), np.radians(rec["dec_deg"]))
         b = radec_to_vec(np.radians(ref["centre_ra_deg"]), np.radians(ref["centre_dec_deg"]))
         sep_px = np.degrees(np.arccos(np.clip(a @ b, -1, 1))) * 3600 / ref["plate_scale_arcsec_per_px"]
+        if name == "tree.jpg":  # the search's 4-star pattern answer, not the nominal camera's 3-star one (issue 12)
+            assert sep_px < 3, sep_px
+        if rec["status"] != "OK":
+            continue
         assert sep_px < 1.5, (name, sep_px)  # never a confident wrong answer
         assert rec["optics"]["psf_measured"] or rec["optics"]["psf_sigma_px"] == 1.0
         solved.append(name)

@@ -587,10 +587,7 @@ def _pattern_seeds(
             if n <= 0 or most <= 0:
                 continue
             if peek is not None and rows is clean and n == search.first_tier:
-                t1 = time.perf_counter()
-                first = list(peek.hypotheses(most))
-                timings.identify += time.perf_counter() - t1
-                yield from first
+                yield from _timed(peek.hypotheses(most), timings)  # one at a time: the first is usually it
                 continue
             t1 = time.perf_counter()
             found = scale_free.pattern_matches(
@@ -599,6 +596,17 @@ def _pattern_seeds(
             hyps = list(found.hypotheses(most))
             timings.identify += time.perf_counter() - t1
             yield from hyps  # the second pass repeats the first's best: the caller skips seeds it tried
+
+
+def _timed(hypotheses, timings: StageTimings):
+    """The hypotheses of a generator, the time to work each out added to ``timings.identify``."""
+    while True:
+        t1 = time.perf_counter()
+        hyp = next(hypotheses, None)
+        timings.identify += time.perf_counter() - t1
+        if hyp is None:
+            return
+        yield hyp
 
 
 def _verify_pattern(

@@ -186,9 +186,7 @@ def pattern_matches(
     groups, keys, top = groups[wide], keys[wide], top[wide]
     if len(groups) == 0:
         return empty
-    found = tree.query_ball_point(keys, tolerance, p=np.inf)
-    gi = np.repeat(np.arange(len(groups)), [len(f) for f in found])
-    ci = np.fromiter((k for f in found for k in f), dtype=np.int64, count=len(gi))
+    gi, ci = _within(tree, keys, tolerance)
     scale = top[gi] / top_c[ci]
     ok = np.abs(scale - 1.0) <= focal_range
     gi, ci, scale = gi[ok], ci[ok], scale[ok]
@@ -198,6 +196,29 @@ def pattern_matches(
     return PatternMatches(
         camera.f, v[:, :2] / v[:, 2:], groups[gi], ci, scale[order], dist[order], catalog.vec[groups_c[ci]]
     )
+
+
+#: Nearest catalog keys asked for per frame key (:func:`_within`); a key with this many inside the
+#: tolerance is asked again for all of them.
+NEAREST_KEYS = 16
+
+
+def _within(tree: cKDTree, keys: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """(frame key index, catalog pattern index) of every catalog key within ``tolerance``
+    (L-infinity) of a frame key. A bounded k-nearest query is ~15x faster than a ball query on the
+    catalog's ~6e5 keys when, as here, a key has a few matches at most (issue 12); keys whose
+    :data:`NEAREST_KEYS` nearest are all inside fall back to the ball query."""
+    k = min(NEAREST_KEYS, tree.n)
+    dist, idx = tree.query(keys, k=k, distance_upper_bound=tolerance, p=np.inf)
+    dist, idx = dist.reshape(len(keys), k), idx.reshape(len(keys), k)
+    inside = np.isfinite(dist)
+    full = np.flatnonzero(inside[:, -1])
+    inside[full] = False
+    gi, ci = [np.nonzero(inside)[0]], [idx[inside]]
+    for row, found in zip(full, tree.query_ball_point(keys[full], tolerance, p=np.inf)):
+        gi.append(np.full(len(found), row, np.int64))
+        ci.append(np.asarray(found, np.int64))
+    return np.concatenate(gi).astype(np.int64), np.concatenate(ci).astype(np.int64)
 
 
 def _assign(b: np.ndarray, r: np.ndarray):
