@@ -68,6 +68,15 @@ def test_roll_sigma_bound_holds_high_confidence_back_and_is_a_parameter():
         DeviceParams.from_json(b'{"max_roll_sigma_deg": -1}')
 
 
+def test_noise_probe_is_a_parameter_of_the_device_and_the_offline_paths():
+    assert SolveParams().noise_probe_px == 1.0
+    dp = DeviceParams.from_json(b'{"noise_probe_px": 0}')
+    assert dp.apply(PipelineParams()).solve.noise_probe_px == 0.0
+    assert DeviceParams.from_json(b'{"noise_probe_px": 2.5}').apply(PipelineParams()).solve.noise_probe_px == 2.5
+    with pytest.raises(SlotRejected, match=r"noise_probe_px must be a number in \[0, 20\)"):
+        DeviceParams.from_json(b'{"noise_probe_px": 25}')
+
+
 def test_eta_on_the_brightest_detections():
     from firmware_model.ident.consensus import ConsensusParams
 

@@ -90,7 +90,10 @@ class DeviceParams:
     ``{"beta": [6 numbers]}``; ``focal_search`` relative half-range of the focal-length search
     for uncalibrated optics (0 to 0.2; 0 takes the camera as calibrated: no search, no optics
     fit); ``max_roll_sigma_deg`` the largest 1-sigma roll (deg, about the boresight) a
-    high-confidence answer may have (default ``solver.MAX_ROLL_SIGMA``, 0.1 deg; larger: loosen).
+    high-confidence answer may have (default ``solver.MAX_ROLL_SIGMA``, 0.1 deg; larger: loosen);
+    ``noise_probe_px`` the per-axis centroid noise beyond the announced one that a high-confidence
+    answer's stars are looked for with before the frame's own noise is estimated (0 to 20 px,
+    default 1; 0: trust the announced noise; ``strategy.adapt_noise``).
     The same file drives the offline paths (``--params``).
     """
 
@@ -103,6 +106,7 @@ class DeviceParams:
     colour_beta: tuple | None = None
     focal_search: float | None = None
     max_roll_sigma_deg: float | None = None
+    noise_probe_px: float | None = None
 
     KEYS = (
         "mode",
@@ -114,6 +118,7 @@ class DeviceParams:
         "colour_correction",
         "focal_search",
         "max_roll_sigma_deg",
+        "noise_probe_px",
     )
 
     @classmethod
@@ -185,6 +190,7 @@ class DeviceParams:
             beta,
             number("focal_search", 0.0, 0.2, lo_open=False),
             number("max_roll_sigma_deg", 0.0, 180.0),
+            number("noise_probe_px", 0.0, 20.0, lo_open=False),
         )
 
     def apply(self, base: PipelineParams) -> PipelineParams:
@@ -195,6 +201,8 @@ class DeviceParams:
                 solve = replace(solve, **{key: value})
         if self.max_roll_sigma_deg is not None:
             solve = replace(solve, max_roll_sigma=math.radians(self.max_roll_sigma_deg))
+        if self.noise_probe_px is not None:
+            solve = replace(solve, noise_probe_px=self.noise_probe_px)
         if self.psf_sigma_px is not None:
             base = with_psf_sigma(base, self.psf_sigma_px)
         if self.focal_search == 0.0:
