@@ -5,7 +5,7 @@ detections (:func:`identify`). The matchers themselves live in their modules (``
 typed inputs and outputs, composed top-down:
 
 ``identify(detections, catalog, StrategyParams) -> Identification`` (the device pipeline, the
-whole-sky simulation):
+whole-sky simulation), steps 1-5:
 
 1. route: geometric when the mode says so, or in ``auto`` mode when the catalog or the frame has no
    colour; else colour (:func:`colour_route`).
@@ -22,6 +22,9 @@ whole-sky simulation):
    answer instead comes back with ``fallback_due`` set and the caller runs the fallback itself
    (:func:`geometric_fallback`) when its cheaper methods fail: the pipeline's optics search tries
    its pattern hypotheses first when the nominal camera fails (issue 12).
+5. the frame's own noise: a high-confidence answer whose stars, looked for with wider gates,
+   reject the announced centroid noise is verified again with the noise they show
+   (:func:`adapt_noise`, ``SolveParams.noise_probe_px``).
 
 Every answer is held to the roll bound (:func:`bound_roll`, ``SolveParams.max_roll_sigma``): high
 confidence needs the attitude's own roll sigma within it.
@@ -37,8 +40,10 @@ the first confident set) or geometric matching (:func:`match_geometric`: 4-star 
 triangle fallback when that is not conclusive), and the geometric confidence
 (:func:`decide_geometric`). It never raises on bad input: it answers NO_MATCH with a reason.
 
-The pipeline's optics search (``firmware_model.pipeline.run``) calls :func:`identify` again with
-the fitted camera and judges its own pattern matches with :func:`verify_pattern`.
+The pipeline's optics search (``firmware_model.pipeline.run``) judges its refined pattern matches
+with :func:`verify_pattern` and answers found with a camera fitted to one with
+:func:`hold_searched` (both by :func:`searched_confident`), calling :func:`identify` with the
+fitted camera when the pattern alone is not high-confidence.
 """
 
 from __future__ import annotations
@@ -164,7 +169,7 @@ class Identification:
 def identify(
     det: Detections, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings | None = None
 ) -> Identification:
-    """The order of methods and fallbacks for one frame (module docstring, steps 1-4)."""
+    """The order of methods and fallbacks for one frame (module docstring, steps 1-5)."""
     timings = timings if timings is not None else IdentifyTimings()
     mode = params.solve.mode
     geometric = mode == Mode.GEOMETRIC or (mode == Mode.AUTO and (not catalog.has_colour or not det.has_colour))

@@ -84,7 +84,7 @@ class OpticsSearch:
 
     The brightest ``n_bright`` detections are matched as scale-free 4-star patterns: first the
     ``first_tier_hypotheses`` best pattern matches among the brightest ``first_tier`` detections
-    (70 patterns, ~1.5 ms: a frame's brightest stars are its catalog's brightest, and on the
+    (70 patterns, ~1 ms: a frame's brightest stars are its catalog's brightest, and on the
     tetra3 frames the first one is the answer), then among all ``n_bright`` (4845 patterns;
     clutter such as a foreground tree can hold the brightest detections)
     (``firmware_model.pipeline.scale_free``: edge ratios within ``pattern_tolerance``, focal length
@@ -104,7 +104,7 @@ class OpticsSearch:
     camera missed are matched. The search stops once ``budget_s`` seconds have passed since the
     frame's extraction began (the frame's whole budget: GO to result stays under 2 s whatever the
     frame). ``focal_search 0`` on the device (``optics=None`` here) takes the camera as calibrated:
-    no search, no pattern matches (~1.5 ms a frame)."""
+    no search, no pattern matches (~1 ms a frame)."""
 
     focal_range: float = 0.05
     n_bright: int = 20
@@ -401,8 +401,8 @@ def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSear
     """Focal length (and k1 with enough stars) fitted with the attitude to the matched stars; stars
     off by more than :data:`OPTICS_OUTLIER_PX` (or 5 x the median) after a first fit (a blend, a
     saturated or badly fitted star the answer keeps with a wide noise floor) are left out of a second.
-    ``known`` (detection rows, catalog indices, fit): a fit already made, used when it is of the
-    same stars and the same starting camera's kind (the search's refinement)."""
+    ``known`` (detection rows, catalog indices, fit): a fit already made (the search's
+    refinement), used for the first fit when it is of the same stars."""
     sol, stars, camera = out.solution, out.stars, out.camera
     if sol is None or len(sol.matched_det) < search.min_stars:
         return None

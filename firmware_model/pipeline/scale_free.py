@@ -124,17 +124,16 @@ def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
 @dataclass
 class PatternMatches:
     """Key matches of a frame's patterns, best key distance first: frame 4-sets ``groups`` (rows of
-    the frame's brightest detections), catalog pattern indices ``cat``, focal scale (frame's
-    largest edge over the catalog's) and key distance; attitudes are worked out only for the
-    matches :meth:`hypotheses` returns (each costs an assignment and an SVD)."""
+    the frame's brightest detections), focal scale (frame's largest edge over the catalog's), key
+    distance and the matched catalog patterns' star directions; attitudes are worked out only for
+    the matches :meth:`hypotheses` returns (each costs an assignment and an SVD)."""
 
     f_nominal: float
     plane: np.ndarray  # (n, 2) ideal normalised coordinates through the nominal focal length
     groups: np.ndarray
-    cat: np.ndarray
     scale: np.ndarray
     distance: np.ndarray
-    catalog_vec: np.ndarray  # (P, 4, 3) the catalog patterns' star directions, by ``cat``
+    catalog_vec: np.ndarray  # (M, 4, 3) each match's catalog pattern star directions
 
     @property
     def best_f(self) -> float:
@@ -174,7 +173,7 @@ def pattern_matches(
     at or beyond that rank (the caller has tried those of the ``first`` brightest already)."""
     n = min(len(x), n_bright)
     none = np.zeros(0)
-    empty = PatternMatches(camera.f, np.zeros((0, 2)), np.zeros((0, 4), np.int64), none, none, none, none)
+    empty = PatternMatches(camera.f, np.zeros((0, 2)), np.zeros((0, 4), np.int64), none, none, np.zeros((0, 4, 3)))
     if n < 4 or n <= first:
         return empty
     groups_c, keys_c, top_c, tree = catalog_patterns(catalog, camera)
@@ -194,7 +193,7 @@ def pattern_matches(
     order = np.argsort(dist, kind="stable")
     gi, ci = gi[order], ci[order]
     return PatternMatches(
-        camera.f, v[:, :2] / v[:, 2:], groups[gi], ci, scale[order], dist[order], catalog.vec[groups_c[ci]]
+        camera.f, v[:, :2] / v[:, 2:], groups[gi], scale[order], dist[order], catalog.vec[groups_c[ci]]
     )
 
 
