@@ -6,7 +6,8 @@ p1, p2) shared by all frames, plus one attitude per frame (a rotation vector app
 an initial attitude from Wahba's problem with the starting camera). Residuals: measured
 minus predicted pixel coordinates of each identified star (``camera.vector_to_pixel(A @
 v_icrs)``), in pixels. Solved with ``scipy.optimize.least_squares`` (trust-region, sparse
-finite-difference Jacobian: each frame's attitude touches only its own stars; dense for one frame).
+finite-difference Jacobian: each frame's attitude touches only its own stars; for one frame the
+analytic dense Jacobian, :func:`projection_jacobian`).
 
 With a narrow field, the principal point is nearly degenerate with the per-frame
 attitudes (a shift of (cx, cy) is almost a rotation); its uncertainty is reported and it
@@ -70,6 +71,55 @@ def rotvec_matrix(r: np.ndarray) -> np.ndarray:
     return np.eye(3) + (np.sin(theta) / theta) * k + ((1.0 - np.cos(theta)) / theta**2) * (k @ k)
 
 
+def projection_jacobian(cam: CameraModel, fit, v: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Jacobian (2N x (len(fit) + 3), rows x0, y0, x1, ...) of the pixel positions of sensor-frame
+    directions ``v`` (N, 3) with respect to the camera parameters ``fit`` (px per unit of each) and
+    the rotation vector ``theta`` (rad) of ``v = R(theta) v0``: ``dv/dtheta = -[v]x J_l(theta)``
+    (``J_l`` the left Jacobian of SO(3)), through the pinhole ``u = v_x / v_z`` and the
+    distortion of :meth:`CameraModel.distort`."""
+    vz = v[:, 2]
+    u, w = v[:, 0] / vz, v[:, 1] / vz
+    r2 = u * u + w * w
+    ud, wd = cam.distort(u, w)
+    f = cam.f
+    per_param = {
+        "f": (ud, wd),
+        "cx": (np.ones_like(u), np.zeros_like(u)),
+        "cy": (np.zeros_like(u), np.ones_like(u)),
+        "k1": (f * u * r2, f * w * r2),
+        "k2": (f * u * r2**2, f * w * r2**2),
+        "k3": (f * u * r2**3, f * w * r2**3),
+        "p1": (f * 2.0 * u * w, f * (r2 + 2.0 * w * w)),
+        "p2": (f * (r2 + 2.0 * u * u), f * 2.0 * u * w),
+    }
+    jac = np.zeros((2 * len(v), len(fit) + 3))
+    for i, k in enumerate(fit):
+        jac[0::2, i], jac[1::2, i] = per_param[k]
+    j11, j12, j21, j22 = cam._distort_jacobian(u, w)
+    zero = np.zeros_like(u)
+    du = np.stack([1.0 / vz, zero, -u / vz], axis=1)  # d(u)/d(v)
+    dw = np.stack([zero, 1.0 / vz, -w / vz], axis=1)
+    dx = f * (j11[:, None] * du + j12[:, None] * dw)  # d(x)/d(v), (N, 3)
+    dy = f * (j21[:, None] * du + j22[:, None] * dw)
+    skew = np.zeros((len(v), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    dv = -skew @ _left_jacobian(theta)  # (N, 3, 3)
+    jac[0::2, len(fit) :] = np.einsum("ni,nij->nj", dx, dv)
+    jac[1::2, len(fit) :] = np.einsum("ni,nij->nj", dy, dv)
+    return jac
+
+
+def _left_jacobian(theta: np.ndarray) -> np.ndarray:
+    """Left Jacobian of SO(3) at rotation vector ``theta`` (rad): ``I + (1 - cos t) / t^2 K +
+    (t - sin t) / t^3 K^2`` with ``K = [theta]x``, ``t = |theta|`` (series below 1e-6 rad)."""
+    t = float(np.sqrt(theta @ theta))
+    k = np.array([[0.0, -theta[2], theta[1]], [theta[2], 0.0, -theta[0]], [-theta[1], theta[0], 0.0]])
+    if t < 1e-6:
+        return np.eye(3) + 0.5 * k + (k @ k) / 6.0
+    return np.eye(3) + ((1.0 - np.cos(t)) / t**2) * k + ((t - np.sin(t)) / t**3) * (k @ k)
+
+
 def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_FIT) -> CalibrationResult:
     """Fit camera parameters ``fit`` and per-frame attitudes to the observations."""
     fit = tuple(fit)
@@ -102,8 +152,15 @@ def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_
             out.append(np.column_stack([x - fr.x, y - fr.y]).ravel())
         return np.concatenate(out)
 
-    # one frame: every unknown touches every star, and a dense Jacobian (exact trust-region steps)
-    # is several times cheaper than the sparse machinery for a handful of parameters (issue 12)
+    def jacobian(p):  # one frame (see below)
+        cam, atts = unpack(p)
+        return projection_jacobian(cam, fit, frames[0].v_icrs @ atts[0].T, p[len(fit) :]) * np.concatenate(
+            [scale, np.ones(3)]
+        )
+
+    # one frame: every unknown touches every star, and the analytic dense Jacobian (exact
+    # trust-region steps, no finite differences) is several times cheaper than the sparse
+    # machinery for a handful of parameters (issue 12)
     sparsity = lil_matrix((2 * n_obs, n_par), dtype=int) if len(frames) > 1 else None
     if sparsity is not None:
         sparsity[:, : len(fit)] = 1
@@ -115,6 +172,7 @@ def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_
     res = least_squares(
         residuals,
         p0,
+        jac=jacobian if sparsity is None else "2-point",
         jac_sparsity=sparsity,
         method="trf",
         x_scale="jac",
