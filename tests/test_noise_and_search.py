@@ -187,3 +187,16 @@ def test_exact_camera_goes_the_usual_way(wide_catalog, tetra_frame):
     assert out.status is Status.OK, out.reason
     assert out.solution.method is not Method.PATTERN
     assert rotation_angle(quat_to_matrix(out.solution.q_icrs_to_sensor), a) < 2 * PIXEL_RAD
+
+
+def test_estimated_noise_factor_is_the_student_t_widening():
+    """The covariance factor for a noise estimated from n stars: (t_q(2n-3) / 3)^2 with q the
+    Gaussian 3-sigma quantile, against scipy's t quantile."""
+    from scipy.stats import norm, t
+
+    from firmware_model.ident.strategy import estimated_noise_factor
+
+    for n in (6, 10, 20, 40):
+        exact = (t.ppf(norm.cdf(3.0), 2 * n - 3) / 3.0) ** 2
+        assert estimated_noise_factor(n) == pytest.approx(exact, rel=5e-3)
+    assert estimated_noise_factor(100) < estimated_noise_factor(6)
