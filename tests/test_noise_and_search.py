@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from ident_sky import random_attitude
+from open_loop_sky import NOMINAL, PIXEL_RAD, POINTINGS, open_loop_catalog, render
 from scipy.spatial.transform import Rotation
 
 from firmware_model.ident.consensus import ConsensusParams, Outcome
@@ -26,17 +27,12 @@ from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.camera_fit import rotvec_matrix
 from firmware_model.pipeline.extract import extract_stars
 from firmware_model.pipeline.run import OpticsSearch, PipelineParams, StageTimings, run_pipeline
-from firmware_model.reference_frames import attitude_from_radec_roll, quat_to_matrix, rotation_angle
+from firmware_model.reference_frames import quat_to_matrix, rotation_angle
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
-from ground.sim.sensor_sim import DetectorModel, render_frame
-from ground.sim.sky_model import sky_stars
 from protocol.result import Status
 
 CAM = CameraModel.reference_design()
-#: The open-loop tests' camera (tetra3 geometry: 1024 x 768, 11.4 x 8.6 deg).
-NOMINAL = CameraModel.from_horizontal_fov(1024, 768, 11.4)
-PIXEL_RAD = 1.0 / NOMINAL.f
 
 
 def _residual_angles(rng, n, s):
@@ -139,23 +135,13 @@ def test_adapt_noise_holds_an_answer_to_the_noise_its_stars_show(catalog):
 
 @pytest.fixture(scope="module")
 def wide_catalog():
-    return build_catalog(
-        CatalogDesign(
-            theta_fov_deg=4.3,
-            sensor_width_px=1024,
-            sensor_height_px=768,
-            m_thresh=6.0,
-            phi_min_deg=0.05,
-            phi_max_deg=15.0,
-        )
-    )
+    return open_loop_catalog()
 
 
 @pytest.fixture(scope="module")
 def tetra_frame():
-    a = attitude_from_radec_roll(*np.radians([296.6, 10.6, 250.0]))
-    det = DetectorModel(pattern="MONO", psf_sigma_px=1.0, aperture_mm=18.0)
-    return a, render_frame(sky_stars(7.0), a, NOMINAL, det, seed=1).frame
+    a, r = render(NOMINAL, POINTINGS[2])
+    return a, r.frame
 
 
 def _first_pattern_says_off(frame, camera, catalog):

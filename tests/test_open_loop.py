@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from open_loop_sky import NOMINAL, PIXEL_RAD, POINTINGS, open_loop_catalog, render
 
 from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.extract import (
@@ -30,31 +31,10 @@ from ground.sim.sensor_sim import DetectorModel, FalseObject, render_frame
 from ground.sim.sky_model import sky_stars
 from protocol.result import Status
 
-#: The tetra3 test camera's geometry (1024 x 768, ~41 arcsec/px, 11.4 x 8.6 deg).
-NOMINAL = CameraModel.from_horizontal_fov(1024, 768, 11.4)
-PIXEL_RAD = 1.0 / NOMINAL.f
-#: Pointings with 10-20 catalog stars in view (RA, Dec, roll in deg).
-POINTINGS = [(83.8, -5.4, 20.0), (201.3, -11.2, 100.0), (296.6, 10.6, 250.0)]
-
 
 @pytest.fixture(scope="module")
 def catalog():
-    return build_catalog(
-        CatalogDesign(
-            theta_fov_deg=4.3,
-            sensor_width_px=1024,
-            sensor_height_px=768,
-            m_thresh=6.0,
-            phi_min_deg=0.05,
-            phi_max_deg=15.0,
-        )
-    )
-
-
-def render(camera, pointing, seed=1, pattern="MONO", psf_sigma=1.0, **kw):
-    a = attitude_from_radec_roll(*np.radians(pointing))
-    det = DetectorModel(pattern=pattern, psf_sigma_px=psf_sigma, aperture_mm=18.0)
-    return a, render_frame(sky_stars(7.0), a, camera, det, seed=seed, **kw)
+    return open_loop_catalog()
 
 
 @pytest.mark.parametrize("sigma", [0.5, 1.0, 2.5])
