@@ -310,11 +310,10 @@ def _first_tier(
     stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams, timings: StageTimings
 ) -> scale_free.PatternMatches | None:
     """The optics search's first pattern matches (the ``first_tier`` brightest clean detections;
-    None without a search)."""
+    None without a search); the catalog's patterns for the field are built by the caller."""
     search = params.optics
     if search is None or search.first_tier <= 0 or search.first_tier_hypotheses <= 0 or len(_usable(stars)) < 4:
         return None
-    scale_free.catalog_patterns(catalog, camera)  # once per catalog: not this frame's time
     t1 = time.perf_counter()
     clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)
     peek = scale_free.pattern_matches(
@@ -331,8 +330,7 @@ def _nominal_off(peek: scale_free.PatternMatches | None, camera: CameraModel, se
     the optics search that finds the answer, so the search goes first."""
     if peek is None or not np.isfinite(peek.best_f):
         return False
-    corner = float(np.hypot(camera.width, camera.height)) / 2.0
-    return abs(peek.best_f / camera.f - 1.0) * corner > search.refit_px
+    return _corner_shift_px(camera, replace(camera, f=peek.best_f)) > search.refit_px
 
 
 def _identify(
@@ -503,10 +501,7 @@ def _search_optics(
     match that explains the most stars (None when no pattern match verifies). ``peek``: the
     first tier's pattern matches when the caller has them (:func:`_first_tier`)."""
     search = params.optics
-    assert search is not None  # called with the optics search on
-    t1 = time.perf_counter()
-    scale_free.catalog_patterns(catalog, camera)  # once per catalog: not this frame's budget
-    t0 += time.perf_counter() - t1
+    assert search is not None  # called with the optics search on (the caller built its patterns)
     tried: list[np.ndarray] = []
     best: tuple[PipelineOutput, float] | None = None  # (answer, focal scale of its pattern)
     for hyp in _pattern_seeds(stars, camera, catalog, search, timings, peek):
@@ -574,7 +569,7 @@ def _pattern_seeds(
     timings: StageTimings,
     peek: scale_free.PatternMatches | None = None,
 ):
-    """Pattern hypotheses (``scale_free.hypotheses``) from the brightest clean detections, then, when
+    """Pattern hypotheses (``scale_free.pattern_matches``) from the brightest clean detections, then, when
     poor fits were among them (hot-pixel clusters and other unblurred clutter can outshine the
     stars), from the brightest detections that also fit the PSF well. ``peek``: the first tier's
     pattern matches of the first pass, already computed."""
@@ -586,16 +581,16 @@ def _pattern_seeds(
         for n, most in ((search.first_tier, search.first_tier_hypotheses), (search.n_bright, 64)):
             if n <= 0 or most <= 0:
                 continue
-            if peek is not None and rows is clean and n == search.first_tier:
-                yield from _timed(peek.hypotheses(most), timings)  # one at a time: the first is usually it
-                continue
-            t1 = time.perf_counter()
-            found = scale_free.pattern_matches(
-                stars.x[rows], stars.y[rows], camera, catalog, n, search.pattern_tolerance, search.focal_range
-            )
-            hyps = list(found.hypotheses(most))
-            timings.identify += time.perf_counter() - t1
-            yield from hyps  # the second pass repeats the first's best: the caller skips seeds it tried
+            found = peek if peek is not None and rows is clean and n == search.first_tier else None
+            if found is None:
+                t1 = time.perf_counter()
+                found = scale_free.pattern_matches(
+                    stars.x[rows], stars.y[rows], camera, catalog, n, search.pattern_tolerance, search.focal_range
+                )
+                timings.identify += time.perf_counter() - t1
+            # one at a time (the first is usually it); the second pass repeats the first's best:
+            # the caller skips seeds it tried
+            yield from _timed(found.hypotheses(most), timings)
 
 
 def _timed(hypotheses, timings: StageTimings):
