@@ -73,7 +73,7 @@ HEADER_DTYPE = np.dtype(
         ("sigma_bg", "<f8"),
         ("created_unix", "<i8"),
         ("sections", "<u4", (4, 3)),
-        ("reserved", "<u4"),
+        ("n_pattern_stars", "<u4"),
         ("data_crc32", "<u4"),
         ("header_crc32", "<u4"),
     ]
@@ -94,7 +94,7 @@ _FLOAT_PARAMS = (
     "sigma_rg",
     "sigma_bg",
 )
-_INT_PARAMS = ("n_h", "source_id", "flags", "created_unix")
+_INT_PARAMS = ("n_h", "source_id", "flags", "created_unix", "n_pattern_stars")
 
 
 class Reason(IntEnum):
@@ -117,7 +117,7 @@ class Reason(IntEnum):
     PAIR_ANGLE = 0x020F  # stored angle disagrees with the star vectors
     HASH_INDEX = 0x0210
     KVECTOR = 0x0211
-    COUNTS = 0x0212  # impossible counts (no stars, more pairs than n(n-1)/2)
+    COUNTS = 0x0212  # impossible counts (no stars, more pairs than n(n-1)/2, more pattern stars than stars)
 
 
 class CatalogImageError(ValueError):
@@ -148,6 +148,8 @@ class ImageParams:
     source_id: int = 0  # 0 unknown, 1 Hipparcos, 2 Yale BSC5
     flags: int = 0
     created_unix: int = 0
+    #: stars ``[0, n)`` form the pairs; the rest are verification-only (fainter); 0: every star
+    n_pattern_stars: int = 0
 
 
 @dataclass
@@ -249,6 +251,8 @@ def parse_image(data: bytes | bytearray | memoryview) -> CatalogImage:
     sec = {name: SectionEntry(*(int(x) for x in h["sections"][k])) for k, name in enumerate(SECTIONS)}
     data_crc = int(h["data_crc32"])
     _check_sections(sec, total, n_stars, n_pairs, n_h)
+    if params.n_pattern_stars > n_stars:
+        raise CatalogImageError(Reason.COUNTS, f"{params.n_pattern_stars} pattern stars of {n_stars} stars")
     for name, e in sec.items():
         got = crc32(buf[e.offset : e.offset + e.size])
         if got != e.crc32:
@@ -345,11 +349,12 @@ def _check_stars(img: CatalogImage) -> None:
 
 def _check_pairs(img: CatalogImage) -> None:
     pr, p = img.pairs, img.params
-    bad = np.flatnonzero((pr["i"] >= pr["j"]) | (pr["j"] >= img.n_stars))
+    n = img.params.n_pattern_stars or img.n_stars
+    bad = np.flatnonzero((pr["i"] >= pr["j"]) | (pr["j"] >= n))
     if len(bad):
         k = bad[0]
         raise CatalogImageError(
-            Reason.PAIR_INDEX, f"pair {k}: ({pr['i'][k]}, {pr['j'][k]}) with {img.n_stars} stars (need i < j < n)"
+            Reason.PAIR_INDEX, f"pair {k}: ({pr['i'][k]}, {pr['j'][k]}) with {n} pattern stars (need i < j < n)"
         )
     phi = pr["phi"]
     bad = np.flatnonzero(~(phi > p.phi_min) | ~(phi <= p.phi_max))

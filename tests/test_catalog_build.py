@@ -6,10 +6,10 @@ import math
 import numpy as np
 import pytest
 
-from firmware_model.catalog.image_io import catalog_from_image
+from firmware_model.catalog.image_io import catalog_from_image, catalog_to_image
 from ground.catalog.build import build_catalog
 from ground.catalog.colour import ColourSource
-from ground.catalog.design import CatalogDesign
+from ground.catalog.design import CatalogDesign, DesignError
 from ground.cli.main import main as cli_main
 
 
@@ -109,3 +109,21 @@ def test_bsc5_reproduces_seed000_catalog_and_bad_views(shared_data):
     assert abs(res.n_pairs / 7800 - 1) < 0.05
     assert abs(res.bad_views_pct - 15.92) < 1.0
     assert abs(res.mono_ambiguous_pairs_pct - 99.77) < 0.2
+
+
+def test_verification_only_stars_follow_the_pattern_stars_without_pairs(hip_cat):
+    deep = build_catalog(CatalogDesign(m_thresh=4.0, m_verify=4.5, theta_fov_deg=10.0))
+    n = deep.n_pattern_stars
+    assert n == hip_cat.n_stars and deep.n_stars > n  # the pattern stars are those of m_thresh alone
+    np.testing.assert_array_equal(deep.star_id[:n], hip_cat.star_id)
+    np.testing.assert_array_equal(deep.pair_phi, hip_cat.pair_phi)
+    assert np.all(deep.mag[n:] > 4.0) and np.all(deep.mag[n:] <= 4.5)
+    assert deep.meta["selection"]["verification_only"] == deep.n_stars - n
+    assert catalog_from_image(catalog_to_image(deep)).n_pattern_stars == n
+
+
+def test_for_field_puts_three_times_the_stars_in_view_with_the_verification_only_ones():
+    d = CatalogDesign.for_field(1024, 768, 11.4)
+    assert d.m_verify - d.m_thresh == pytest.approx(math.log10(3.0) / 0.515, abs=0.11)
+    with pytest.raises(DesignError, match="m_verify"):
+        CatalogDesign(m_thresh=5.0, m_verify=4.0)

@@ -183,3 +183,35 @@ def test_device_slot_handler_nacks_with_reason_code(image):
     with pytest.raises(SlotRejected) as info:
         handler.validate(image[:-1])
     assert info.value.code == Reason.TRUNCATED
+
+
+def test_verification_only_stars_round_trip_and_pairs_stay_among_pattern_stars():
+    rng = np.random.default_rng(3)
+    n, n_pattern = 40, 25
+    cat = OnboardCatalog.build(
+        np.arange(n),
+        radec_to_vec(rng.uniform(0, 0.6, n), rng.uniform(-0.3, 0.3, n)),
+        np.sort(rng.uniform(1, 6, n)),
+        phi_min=1e-3,
+        phi_max=0.3,
+        n_h=32,
+        meta={"epoch": 2025.0},
+        n_pattern_stars=n_pattern,
+    )
+    assert cat.has_deep_stars and cat.n_pairs > 0 and max(cat.pair_j) < n_pattern
+    assert cat.pattern_mag_limit == pytest.approx(float(cat.mag[n_pattern - 1]))
+    back = catalog_from_image(catalog_to_image(cat, created_unix=0))
+    assert back.n_pattern_stars == n_pattern and back.n_stars == n
+    assert len(back.stars_within(cat.vec[n - 1], 1e-6)) == 0  # a verification-only star: not a pattern star
+    assert list(back.stars_within(cat.vec[n - 1], 1e-6, deep=True)) == [n - 1]
+    image = catalog_to_image(cat, created_unix=0)
+    assert _code(_repack(image, lambda p, s, pr, h, k: _set(pr, "j", len(pr) - 1, n_pattern))) in (
+        Reason.PAIR_INDEX,
+        Reason.PAIR_ANGLE,
+    )
+    assert _code(_repack(image, lambda p, s, pr, h, k: setattr(p, "n_pattern_stars", n + 1))) == Reason.COUNTS
+
+
+def test_an_image_without_verification_only_stars_says_zero(image, small_catalog):
+    assert parse_image(image).params.n_pattern_stars == 0
+    assert catalog_from_image(image).n_pattern_stars == small_catalog.n_stars

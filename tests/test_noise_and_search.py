@@ -134,6 +134,25 @@ def test_adapt_noise_holds_an_answer_to_the_noise_its_stars_show(catalog):
 
 
 @pytest.fixture(scope="module")
+def deep_catalog():
+    return build_catalog(CatalogDesign(sigma_rg=0.05, sigma_bg=0.05, m_verify=6.0))
+
+
+def test_a_decided_answer_takes_the_verification_only_stars_in_view(catalog, deep_catalog):
+    a, v, truth = _noisy_geometric_frame(deep_catalog, noise_px=0.2)
+    shallow = _identify_announcing(catalog, v, 0.2)
+    deep = _identify_announcing(deep_catalog, v, 0.2)
+    ss, ds = shallow.solution, deep.solution
+    assert ss.status is Outcome.HIGH_CONFIDENCE and ds.status is Outcome.HIGH_CONFIDENCE
+    assert np.array_equal(truth[deep.rows[ds.matched_det]], ds.matched_cat)
+    assert np.count_nonzero(ds.matched_cat >= deep_catalog.n_pattern_stars) >= 5
+    assert len(ds.matched_det) > len(ss.matched_det)
+    assert ds.chance == ss.chance  # the decision is the pattern stars'
+    assert ds.roll_sigma < ss.roll_sigma
+    assert np.all(np.abs(_error_sigmas(ds, a)) < 3.0)
+
+
+@pytest.fixture(scope="module")
 def wide_catalog():
     return open_loop_catalog()
 

@@ -59,6 +59,7 @@ def catalog_to_image(cat: OnboardCatalog, created_unix: int | None = None) -> by
         sigma_bg=float(design.get("sigma_bg", nan)),
         source_id=SOURCE_IDS.get(source, 0) if isinstance(source := cat.meta.get("source"), str) else 0,
         flags=FLAG_COLOUR if cat.has_colour else 0,
+        n_pattern_stars=cat.n_pattern_stars if cat.has_deep_stars else 0,
         created_unix=int(os.environ.get("SOURCE_DATE_EPOCH", time.time()))
         if created_unix is None
         else int(created_unix),
@@ -88,6 +89,7 @@ def catalog_from_parsed(img: CatalogImage) -> OnboardCatalog:
         kvector=img.kvector if img.n_pairs >= 2 else None,
         kv_m=p.kv_m,
         kv_q=p.kv_q,
+        n_pattern_stars=p.n_pattern_stars,
         meta={
             "epoch": p.epoch,
             "source": SOURCE_NAMES.get(p.source_id, "unknown"),
@@ -115,6 +117,7 @@ def image_info(img: CatalogImage) -> dict:
         "version": img.version,
         "n_stars": img.n_stars,
         "n_pairs": img.n_pairs,
+        "n_pattern_stars": p.n_pattern_stars or img.n_stars,
         "n_h": p.n_h,
         "epoch": p.epoch,
         "source": SOURCE_NAMES.get(p.source_id, "unknown"),

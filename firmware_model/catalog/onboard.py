@@ -89,6 +89,10 @@ class OnboardCatalog:
 
     ``rg``/``bg`` are the expected colour ratios of each star for the catalog's detector
     (NaN for a monochrome catalog). ``meta`` holds the build parameters (design, epoch, ...).
+    Stars ``[0, n_pattern_stars)`` are the pattern stars: the pairs, the patterns and every
+    hypothesis test use them alone. The rows after them (0: none) are fainter verification-only
+    stars, matched once an answer is decided (``strategy.match_deep``) so the attitude uses
+    every star in view.
     """
 
     star_id: np.ndarray
@@ -108,20 +112,40 @@ class OnboardCatalog:
     kv_m: float = 0.0
     kv_q: float = 0.0
     meta: dict = field(default_factory=dict)
+    n_pattern_stars: int = 0  #: 0: every star
 
     def __post_init__(self):
+        if self.n_pattern_stars in (0, self.n_stars):
+            self.n_pattern_stars = self.n_stars
+        elif not 0 < self.n_pattern_stars < self.n_stars:
+            raise ValueError(f"n_pattern_stars = {self.n_pattern_stars} outside [0, {self.n_stars}]")
         if self.hash_index is None:
             self.hash_index = build_hash_index(self.pair_phi, self.n_h, self.phi_max, self.dphi_star)
         if self.kvector is None and len(self.pair_phi) >= 2:
             self.kvector, self.kv_m, self.kv_q = build_kvector(self.pair_phi)
 
     @classmethod
-    def build(cls, star_id, vec, mag, rg=None, bg=None, *, phi_min, phi_max, n_h=1024, dphi_star=0.0, meta=None):
-        """Build pair table and both indices from star arrays."""
+    def build(
+        cls,
+        star_id,
+        vec,
+        mag,
+        rg=None,
+        bg=None,
+        *,
+        phi_min,
+        phi_max,
+        n_h=1024,
+        dphi_star=0.0,
+        meta=None,
+        n_pattern_stars=0,
+    ):
+        """Build pair table and both indices from star arrays; the pairs from the first
+        ``n_pattern_stars`` stars (0: all)."""
         vec = np.asarray(vec, dtype=float)
         n = len(vec)
         nan = np.full(n, np.nan, dtype=np.float32)
-        pi, pj, phi = build_pair_table(vec, phi_min, phi_max)
+        pi, pj, phi = build_pair_table(vec[: n_pattern_stars or n], phi_min, phi_max)
         return cls(
             star_id=np.asarray(star_id, dtype=np.int64),
             vec=vec,
@@ -136,6 +160,7 @@ class OnboardCatalog:
             n_h=int(n_h),
             dphi_star=float(dphi_star),
             meta=dict(meta or {}),
+            n_pattern_stars=int(n_pattern_stars),
         )
 
     @property
@@ -149,6 +174,16 @@ class OnboardCatalog:
     @property
     def has_colour(self) -> bool:
         return bool(np.isfinite(self.rg).any())
+
+    @property
+    def has_deep_stars(self) -> bool:
+        """Whether verification-only stars follow the pattern stars."""
+        return self.n_pattern_stars < self.n_stars
+
+    @cached_property
+    def pattern_mag_limit(self) -> float:
+        """Faintest pattern star's magnitude."""
+        return float(np.max(self.mag[: self.n_pattern_stars]))
 
     # --- pair range queries -------------------------------------------------------------
     def hash_range(self, phi: float, tol: float) -> tuple[int, int]:
@@ -196,9 +231,17 @@ class OnboardCatalog:
     # --- spatial queries ----------------------------------------------------------------
     @cached_property
     def _tree(self) -> cKDTree:
-        return cKDTree(self.vec)
+        """KD-tree of the pattern stars (row indices are catalog indices)."""
+        return cKDTree(self.vec[: self.n_pattern_stars])
 
-    def stars_within(self, direction: np.ndarray, radius: float) -> np.ndarray:
-        """Indices of stars within ``radius`` radians of unit vector ``direction``, sorted."""
-        idx = self._tree.query_ball_point(np.asarray(direction, dtype=float), chord_of_angle(radius))
+    @cached_property
+    def _deep_tree(self) -> cKDTree:
+        """KD-tree of every star, verification-only ones included."""
+        return cKDTree(self.vec) if self.has_deep_stars else self._tree
+
+    def stars_within(self, direction: np.ndarray, radius: float, deep: bool = False) -> np.ndarray:
+        """Indices of pattern stars (``deep``: every star) within ``radius`` radians of unit vector
+        ``direction``, sorted."""
+        tree = self._deep_tree if deep else self._tree
+        idx = tree.query_ball_point(np.asarray(direction, dtype=float), chord_of_angle(radius))
         return np.sort(np.asarray(idx, dtype=np.int64))

@@ -22,7 +22,9 @@ whole-sky simulation), steps 1-5:
    answer instead comes back with ``fallback_due`` set and the caller runs the fallback itself
    (:func:`geometric_fallback`) when its cheaper methods fail: the pipeline's optics search tries
    its pattern hypotheses first when the nominal camera fails (issue 12).
-5. the frame's own noise: a high-confidence answer whose stars, looked for with wider gates,
+5. every star in view and the frame's own noise (:func:`finish`): a high-confidence answer is
+   verified again against every catalog star, the verification-only stars fainter than the
+   pattern stars included (:func:`match_deep`); one whose stars, looked for with wider gates,
    reject the announced centroid noise is verified again with the noise they show
    (:func:`adapt_noise`, ``SolveParams.noise_probe_px``).
 
@@ -189,7 +191,7 @@ def identify(
             found.fallback_due = True
         else:
             found = geometric_fallback(det, catalog, params, timings) or found
-    return adapt_noise(found, det, catalog, params.solve, timings)
+    return finish(found, det, catalog, params.solve, timings)
 
 
 def geometric_fallback(
@@ -321,6 +323,43 @@ def match_all(
     return Identification(bound_roll(full, base.max_roll_sigma), everything)
 
 
+def finish(
+    found: Identification, det: Detections, catalog: OnboardCatalog, base: SolveParams, timings: IdentifyTimings
+) -> Identification:
+    """A decided answer matched against every catalog star (:func:`match_deep`), then held to
+    the noise its stars show (:func:`adapt_noise`), both verifications over every catalog star."""
+    if catalog.has_deep_stars:
+        base = replace(base, verify=replace(base.verify, deep=True))
+    return adapt_noise(match_deep(found, det, catalog, base, timings), det, catalog, base, timings)
+
+
+def match_deep(
+    found: Identification, det: Detections, catalog: OnboardCatalog, base: SolveParams, timings: IdentifyTimings
+) -> Identification:
+    """A decided answer (high confidence, or held low by the roll bound alone) verified again over
+    every detection against every catalog star, the verification-only stars below the pattern
+    stars included, so the attitude uses every star in view. The decision is the pattern stars':
+    confidence and chance stay as decided, coverage counts pattern stars as before. The answer
+    stands when the catalog has no verification-only stars, that verification fails or finds no
+    more stars, or it does not keep every star of the answer (:func:`keeps_stars`)."""
+    sol = found.solution
+    high = sol.status is Outcome.HIGH_CONFIDENCE or sol.roll_limited
+    if not (catalog.has_deep_stars and high and base.verify.deep):
+        return found
+    match = verify_over(det, found.rows[sol.matched_det], sol.matched_cat, catalog, base, timings)
+    if (
+        match is None
+        or match.n <= len(sol.matched_det)
+        or not keeps_stars(match, found.rows[sol.matched_det], sol.matched_cat)
+    ):
+        return found
+    everything = np.arange(len(det))
+    status, reason = (Outcome.HIGH_CONFIDENCE, "") if sol.roll_limited else (sol.status, sol.reason)
+    out = solution_from_match(match, status, reason, everything, catalog, sol.method, len(det))
+    out.chance, out.attempts, out.timings, out.notes = sol.chance, sol.attempts, sol.timings, sol.notes
+    return Identification(bound_roll(out, base.max_roll_sigma), everything, found.fallback_due)
+
+
 #: The announced centroid noise is rejected when the chance of so many stars beyond its
 #: :data:`NOISE_TAIL` quantile is below this.
 NOISE_TEST_ALPHA = 0.01
@@ -353,7 +392,7 @@ def adapt_noise(
     wider gates would gather more wrong stars. The answer stays high-confidence, held again to the
     roll bound with the new covariance; it stands unchanged when the test passes, the estimate
     exceeds twice the probe (residuals the probe did not look for: a wrong match's), a
-    verification fails or the attitude moves beyond 5 sigma (:func:`within_covariance`)."""
+    verification fails or the answer's stars are not all kept (:func:`keeps_stars`)."""
     sol = found.solution
     probe = base.noise_probe_px
     high = sol.status is Outcome.HIGH_CONFIDENCE or sol.roll_limited
@@ -376,7 +415,7 @@ def adapt_noise(
         return found
     tuned = replace(det, sigma_px=np.hypot(sigma, extra))
     match = verify_over(tuned, seen.det, seen.cat, catalog, base, timings)
-    if match is None or not within_covariance(match.attitude.a, match.attitude.covariance, sol):
+    if match is None or not keeps_stars(match, found.rows[sol.matched_det], sol.matched_cat):
         return found
     out = solution_from_match(match, Outcome.HIGH_CONFIDENCE, "", everything, catalog, sol.method, len(det))
     out.covariance = np.asarray(out.covariance) * estimated_noise_factor(match.n)
@@ -384,6 +423,14 @@ def adapt_noise(
     out.noise_extra = extra / det.focal_px
     out.notes = [*sol.notes, f"residuals reject the announced centroid noise: {extra:.2g} px per axis added"]
     return Identification(bound_roll(out, base.max_roll_sigma), everything, found.fallback_due)
+
+
+def keeps_stars(match: VerifiedMatch, rows: np.ndarray, cat: np.ndarray) -> bool:
+    """Whether ``match`` holds every detection ``rows[k]`` with its catalog star ``cat[k]``: the
+    same identification, more stars on it (an attitude test would judge the first answer by the
+    covariance of a noise it did not have, and by stars chosen for fitting tight gates)."""
+    pairs = set(zip(np.asarray(match.det).tolist(), np.asarray(match.cat).tolist()))
+    return pairs.issuperset(zip(np.asarray(rows).tolist(), np.asarray(cat).tolist()))
 
 
 #: Sigmas (per sensor axis, of the two answers' covariances together) within which an answer
@@ -551,7 +598,7 @@ def verify_pattern(
     sol = bound_roll(
         solution_from_match(match, outcome, reason, everything, catalog, Method.PATTERN, len(det)), base.max_roll_sigma
     )
-    return adapt_noise(Identification(sol, everything), det, catalog, base, timings).solution
+    return finish(Identification(sol, everything), det, catalog, base, timings).solution
 
 
 def photometric_gate(flux: np.ndarray, sol: SolveResult, catalog: OnboardCatalog, margin_mag: float):
@@ -565,7 +612,7 @@ def photometric_gate(flux: np.ndarray, sol: SolveResult, catalog: OnboardCatalog
     zero_point = np.median(catalog.mag[sol.matched_cat][ok] + 2.5 * np.log10(f_matched[ok]))
     with np.errstate(divide="ignore", invalid="ignore"):
         m_est = zero_point - 2.5 * np.log10(flux)
-    return np.flatnonzero(np.nan_to_num(m_est, nan=np.inf) <= float(np.max(catalog.mag)) + margin_mag)
+    return np.flatnonzero(np.nan_to_num(m_est, nan=np.inf) <= catalog.pattern_mag_limit + margin_mag)
 
 
 def agrees(a: SolveResult, b: SolveResult, tol: float = 1e-3) -> bool:
@@ -589,7 +636,7 @@ def geometric_detection_cap(camera: CameraModel, catalog: OnboardCatalog, factor
     half_x = np.arctan(camera.width / 2.0 / camera.f)
     half_y = np.arctan(camera.height / 2.0 / camera.f)
     solid_angle = 4.0 * np.arcsin(np.sin(half_x) * np.sin(half_y))
-    expected = catalog.n_stars * solid_angle / (4.0 * np.pi)
+    expected = catalog.n_pattern_stars * solid_angle / (4.0 * np.pi)
     return max(MIN_GEOMETRIC_DETECTIONS, int(np.ceil(factor * expected)))
 
 

@@ -11,7 +11,9 @@ explains the whole frame:
    ``sqrt(sigma^2 + (tr P - b^T P b)/2)`` (``P`` the a-priori attitude covariance:
    the gates stay in units of the announced noise; the reported one is scaled by the residuals,
    ``attitude`` module docstring) and, when both colours
-   are known, the colour distance is below ``colour_gate``. Two passes.
+   are known, the colour distance is below ``colour_gate``. Two passes. The catalog stars are
+   its pattern stars, or with ``deep`` every star, verification-only ones included (a decided
+   answer's last verification, ``strategy.match_deep``); coverage counts pattern stars either way.
    A matched star with a free detection closer to its prediction (and inside the gates) takes
    that detection instead: a brighter false detection next to a star must not steal its identity.
    Matched stars with a second catalog star inside the same gate (unresolved doubles at this
@@ -119,6 +121,7 @@ class VerifyParams:
     full_frame: int = 20
     enabled: bool = True
     frame_detections: int = 0  #: detections in the whole frame when the solver sees a subset (chance_alignment)
+    deep: bool = False  #: refine against every catalog star, verification-only ones included
 
 
 @dataclass
@@ -219,7 +222,8 @@ def verify(
             return None, "residual test left fewer than two stars"
         sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
     # 2. refinement with all detections, against the catalog stars near the boresight
-    near = np.asarray(catalog._tree.query_ball_point(sol.a[2], chord_of_angle(min(fov.radius, np.pi))), np.int64)
+    tree = catalog._deep_tree if params.deep else catalog._tree
+    near = np.asarray(tree.query_ball_point(sol.a[2], chord_of_angle(min(fov.radius, np.pi))), np.int64)
     if len(near) == 0:
         return None, "no catalog star in the field of view"
     near_vec = catalog.vec[near]
@@ -299,7 +303,7 @@ def verify(
     if chi > params.max_normalised_rms:
         return None, f"residuals {chi:.1f} sigma RMS: inconsistent with the measurement noise"
     # 3. coverage of predicted-visible catalog stars
-    mag_limit = float(catalog.__dict__.setdefault("_ident_mag_limit", float(np.max(catalog.mag)))) - params.mag_margin
+    mag_limit = catalog.pattern_mag_limit - params.mag_margin
     limit = params.coverage_limit
     if limit == "auto":
         limit = "matched" if len(vectors) >= params.full_frame else "catalog"

@@ -174,7 +174,7 @@ def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_
         p0,
         jac=jacobian if sparsity is None else "2-point",
         jac_sparsity=sparsity,
-        method="trf",
+        method="trf" if sparsity is not None else "lm",
         x_scale="jac",
         xtol=1e-10,
         ftol=1e-10,

@@ -110,7 +110,9 @@ def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
         rank = np.argsort(np.argsort(catalog.mag, kind="stable"), kind="stable")
         parts = [_region_groups(catalog._tree, catalog.mag, field)]
         for factor in PATTERN_RADIUS_FACTORS:
-            near = catalog._tree.query_ball_point(catalog.vec, chord_of_angle(factor * field))
+            near = catalog._tree.query_ball_point(
+                catalog.vec[: catalog.n_pattern_stars], chord_of_angle(factor * field)
+            )
             brighter = np.array([np.count_nonzero(rank[n] < rank[i]) for i, n in enumerate(near)])
             parts.append(_groups(near, rank, np.flatnonzero(brighter < PATTERN_STARS_PER_CAP), CATALOG_NEIGHBOURS))
         groups = np.concatenate(parts)

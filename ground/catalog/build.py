@@ -1,7 +1,8 @@
 """Build an on-board catalog from a :class:`CatalogDesign`: source -> selection -> colour -> pairs.
 
-Stars are ordered by right ascension (Dong et al. sec. 1.2). Per-star provenance (colour source,
-Pickles template) and the selection counts go into ``OnboardCatalog.meta``.
+Stars are ordered by right ascension (Dong et al. sec. 1.2): the pattern stars (``V <= m_thresh``)
+first, then the verification-only stars (``m_thresh < V <= m_verify``), which have no pairs. Per-star
+provenance (colour source, Pickles template) and the selection counts go into ``OnboardCatalog.meta``.
 """
 
 from __future__ import annotations
@@ -64,9 +65,13 @@ def build_catalog(
     table = source if source is not None else load_source(design)
     if table.epoch != design.epoch:
         table = table.at_epoch(design.epoch)
-    sel, stats = select_stars(table, design.m_thresh, design.resolve_angle, design.drop_variable)
-    if len(sel) < 2:
-        raise DesignError(f"m_thresh = {design.m_thresh}: only {len(sel)} star(s) selected")
+    sel, stats = select_stars(table, design.m_verify_limit, design.resolve_angle, design.drop_variable)
+    pattern = sel.vmag <= design.m_thresh
+    n_pattern = int(pattern.sum())
+    if n_pattern < 2:
+        raise DesignError(f"m_thresh = {design.m_thresh}: only {n_pattern} star(s) selected")
+    sel = sel.subset(np.concatenate([np.flatnonzero(pattern), np.flatnonzero(~pattern)]))
+    stats["selected"], stats["verification_only"] = n_pattern, len(sel) - n_pattern
     if design.mk_types_path:
         sel, stats["mk_types_borrowed"] = borrow_mk_types(sel, design.mk_types_path, design.epoch)
     colours = colours or colour_model(design)
@@ -96,6 +101,7 @@ def build_catalog(
         n_h=design.n_h,
         dphi_star=design.dphi_star,
         meta=meta,
+        n_pattern_stars=n_pattern,
     )
     cat.meta["build_seconds"] = time.perf_counter() - t0
     return cat
@@ -107,6 +113,7 @@ def summary(cat: OnboardCatalog) -> dict:
         "source": cat.meta.get("source"),
         "epoch": cat.meta.get("epoch"),
         "n_stars": cat.n_stars,
+        "n_pattern_stars": cat.n_pattern_stars,
         "n_pairs": cat.n_pairs,
         "phi_min_deg": round(float(np.degrees(cat.phi_min)), 9),
         "phi_max_deg": round(float(np.degrees(cat.phi_max)), 9),

@@ -15,6 +15,11 @@ from pathlib import Path
 from typing import Any
 
 SOURCES = ("hipparcos", "bsc5")
+#: Stars in view, pattern and verification-only together, of a :meth:`CatalogDesign.for_field`
+#: design: three times the pattern stars, so a decided answer's attitude rests on every star the
+#: frame shows down to about 1 mag below the pattern stars (issue 12: with 1 px centroid noise, the
+#: roll from the ~15 pattern stars alone missed 0.1 deg on 8 % of the tetra3 inputs).
+VERIFY_STARS_IN_VIEW = 45.0
 
 
 class DesignError(ValueError):
@@ -29,6 +34,7 @@ class CatalogDesign:
     sensor_width_px: int = 2592
     sensor_height_px: int = 1944
     m_thresh: float = 5.0
+    m_verify: float | None = None  # verification-only stars m_thresh < V <= m_verify (no pairs); None: none
     sigma_pix: float = 0.2
     sigma_rg: float = 0.02
     sigma_bg: float = 0.02
@@ -50,13 +56,20 @@ class CatalogDesign:
 
     @classmethod
     def for_field(
-        cls, width_px: int, height_px: int, fov_deg: float, stars_in_view: float = 15.0, **overrides
+        cls,
+        width_px: int,
+        height_px: int,
+        fov_deg: float,
+        stars_in_view: float = 15.0,
+        verify_stars_in_view: float = VERIFY_STARS_IN_VIEW,
+        **overrides,
     ) -> CatalogDesign:
         """A design for a camera known only by its array and horizontal field of view (deg, across
-        the width): the minor half-angle from a pinhole, pairs up to the diagonal, and the limiting
-        magnitude that puts about ``stars_in_view`` catalog stars in the field (star counts
-        ``N(<V) ~ 10^(0.515 V + 0.63)`` over the whole sky, a fit to Hipparcos within ~10 % for
-        V 4-7; clamped to V 4-7.5). ``overrides`` are further CatalogDesign fields."""
+        the width): the minor half-angle from a pinhole, pairs up to the diagonal, the limiting
+        magnitude that puts about ``stars_in_view`` pattern stars in the field and the one that
+        puts about ``verify_stars_in_view`` stars in it with the verification-only ones (star
+        counts ``N(<V) ~ 10^(0.515 V + 0.63)`` over the whole sky, a fit to Hipparcos within ~10 %
+        for V 4-7; clamped to V 4-7.5 and 4-8). ``overrides`` are further CatalogDesign fields."""
         if not 0.0 < fov_deg < 180.0:
             raise DesignError(f"field of view must be in (0, 180) deg, got {fov_deg}")
         from firmware_model.pipeline.camera import CameraModel
@@ -66,12 +79,18 @@ class CatalogDesign:
         diagonal = 2.0 * math.degrees(camera.fov_half_angle_diagonal)
         vertical = camera.fov_half_angle_minor if width_px >= height_px else camera.fov_half_angle_major
         area = fov_deg * 2.0 * math.degrees(vertical)  # deg^2, small-field
-        m = (math.log10(stars_in_view * 41253.0 / area) - 0.63) / 0.515
+
+        def limit(stars: float, brightest: float, faintest: float) -> float:
+            m = (math.log10(stars * 41253.0 / area) - 0.63) / 0.515
+            return math.ceil(min(max(m, brightest), faintest) * 10.0) / 10.0
+
+        m_thresh = limit(stars_in_view, 4.0, 7.5)
         design: dict[str, Any] = {
             "theta_fov_deg": theta,
             "sensor_width_px": width_px,
             "sensor_height_px": height_px,
-            "m_thresh": math.ceil(min(max(m, 4.0), 7.5) * 10.0) / 10.0,
+            "m_thresh": m_thresh,
+            "m_verify": max(m_thresh, limit(verify_stars_in_view, 4.0, 8.0)),
             "phi_max_deg": diagonal,
             "phi_min_deg": theta / 100.0,
         }
@@ -90,6 +109,11 @@ class CatalogDesign:
     @property
     def phi_max(self) -> float:
         return math.radians(self.phi_max_deg) if self.phi_max_deg is not None else 2.0 * self.theta_fov
+
+    @property
+    def m_verify_limit(self) -> float:
+        """Faintest star of the catalog: ``m_verify``, or ``m_thresh`` without verification-only stars."""
+        return self.m_thresh if self.m_verify is None else max(self.m_thresh, self.m_verify)
 
     @property
     def resolve_angle(self) -> float:
@@ -131,6 +155,12 @@ class CatalogDesign:
         for name in ("sensor_width_px", "sensor_height_px"):
             need(isinstance(getattr(self, name), int) and getattr(self, name) >= 2, name, "must be an integer >= 2")
         need(math.isfinite(self.m_thresh) and -2 < self.m_thresh < 15, "m_thresh", "must be a magnitude in (-2, 15)")
+        if self.m_verify is not None:
+            need(
+                isinstance(self.m_verify, (int, float)) and self.m_thresh <= self.m_verify < 15,
+                "m_verify",
+                f"must be a magnitude in [m_thresh = {self.m_thresh}, 15), or unset",
+            )
         for name in ("sigma_pix", "sigma_rg", "sigma_bg"):
             need(math.isfinite(getattr(self, name)) and getattr(self, name) > 0, name, "must be > 0")
         need(0.5 < self.p_correct < 1, "p_correct", "must be in (0.5, 1)")

@@ -18,6 +18,7 @@ _DESIGN_FLAGS = {
     "width": "sensor_width_px",
     "height": "sensor_height_px",
     "m_thresh": "m_thresh",
+    "m_verify": "m_verify",
     "sigma_pix": "sigma_pix",
     "sigma_rg": "sigma_rg",
     "sigma_bg": "sigma_bg",
@@ -45,11 +46,17 @@ def _design_args(p) -> None:
         "--fov-deg",
         type=float,
         help="horizontal field of view across --width, deg: sets theta-fov, "
-        "phi-max (the diagonal) and m-thresh (~15 stars in view) unless given",
+        "phi-max (the diagonal), m-thresh (~15 stars in view) and m-verify unless given",
     )
     g.add_argument("--width", type=SENSOR_PX, help="sensor width, px")
     g.add_argument("--height", type=SENSOR_PX, help="sensor height, px")
-    g.add_argument("--m-thresh", type=float, help="limiting V magnitude")
+    g.add_argument("--m-thresh", type=float, help="limiting V magnitude of the pattern stars (the pairs)")
+    g.add_argument(
+        "--m-verify",
+        type=float,
+        help="limiting V magnitude of verification-only stars (no pairs; matched once an answer is decided); "
+        "--fov-deg sets it for ~45 stars in view",
+    )
     g.add_argument("--sigma-pix", type=float, help="centroid noise, px")
     g.add_argument("--sigma-rg", type=float, help="colour-ratio noise, rg")
     g.add_argument("--sigma-bg", type=float, help="colour-ratio noise, bg")
