@@ -100,7 +100,7 @@ def test_true_identification_with_a_third_missing_is_verified_only_with_the_miss
                 break
         # drop the faintest: 4 of 6, 5 of 8, 6 of 10, 8 of 12 remain (coverage < 0.7)
         keep = np.arange(len(v) - max(2, int(np.ceil(0.31 * len(v)))))
-        for name, vp in (("new", VerifyParams()), ("strict", VerifyParams(miss_rate=0.0))):
+        for name, vp in (("new", VerifyParams()), ("strict", VerifyParams(miss_rate=0.0, coverage_chance=0.0))):
             m, _ = verify(
                 keep, truth[keep], v[keep], rg[keep], bg[keep], np.full(len(keep), SIG), cat, FOV, 0.05, 0.05, vp
             )

@@ -177,8 +177,11 @@ def test_impaired_run_splits_the_availability_loss_by_cause(colour_catalog):
     assert np.all(unsolved["n_true"][~few] >= 2)
     assert np.all(rows["cause"][rows["status"] > 0] == 0)
     assert np.all(rows["n_true"] <= rows["n_visible"]) and np.all(rows["n_true"] <= rows["n_det"])
-    # the verification tolerates 10 % missed stars, not 30 %: some true identifications are refused
-    assert by["verification_rejects_truth"] > 0
+    # the miss model tolerates 10 % missed stars, not 30 %, but a true identification the geometry
+    # decides (chance alignment <= VerifyParams.coverage_chance) is not refused for the stars it
+    # misses (with coverage_chance 0: 22 refused, 33 without solution, 19 wrong, all low confidence)
+    assert by["verification_rejects_truth"] == 0
+    assert s["high_confidence_wrong"] == 0 and s["no_solution"] <= 15
 
 
 def test_cause_of_a_frame_without_true_stars(colour_catalog):

@@ -38,7 +38,11 @@ explains the whole frame:
    ``miss_rate``: the binomial tail ``P(misses >= observed)`` is at least ``coverage_alpha``
    (10 % missed stars: 4 of 6, 6 of 9 or 9 of 13 pass, 4 of 12 or 2 of 8 do not). Sets of two or
    three stars keep the fixed ``min_coverage`` floor: with so few stars the coverage is most of
-   the evidence against a coincidental match.
+   the evidence against a coincidental match. A match whose stars line up by chance with
+   probability at most ``coverage_chance`` (:func:`chance_alignment`) stands whatever its coverage,
+   flagged ``low_coverage``: a frame that lost stars (a cloud, a baffle edge, the issue 12 set with
+   20 % of the stars dropped: 10 of 17 predicted stars matched) keeps an identification the
+   geometry has already decided.
 """
 
 from __future__ import annotations
@@ -121,6 +125,7 @@ class VerifyParams:
     full_frame: int = 20
     enabled: bool = True
     frame_detections: int = 0  #: detections in the whole frame when the solver sees a subset (chance_alignment)
+    coverage_chance: float = 1e-9  #: a match this unlikely by chance stands whatever its coverage (step 3)
     deep: bool = False  #: refine against every catalog star, verification-only ones included
 
 
@@ -314,13 +319,13 @@ def verify(
     n_pred = len(inside)
     matched_inside = int(np.isin(inside, seen).sum())
     coverage = matched_inside / n_pred if n_pred else 1.0
-    if not coverage_ok(n_pred, matched_inside, params):
+    gate = params.residual_sigmas * float(np.median(sigma[det]))
+    chance = chance_alignment(max(len(vectors), params.frame_detections), n_pred, len(det), gate, fov.solid_angle)
+    if not coverage_ok(n_pred, matched_inside, params) and not chance <= params.coverage_chance:
         return None, (
             f"coverage {matched_inside}/{n_pred} predicted stars below {params.min_coverage} "
             f"and not explained by a {params.miss_rate:g} miss rate"
         )
-    gate = params.residual_sigmas * float(np.median(sigma[det]))
-    chance = chance_alignment(max(len(vectors), params.frame_detections), n_pred, len(det), gate, fov.solid_angle)
     return VerifiedMatch(
         det,
         cat,
