@@ -126,3 +126,27 @@ def test_projection_jacobian_matches_finite_differences():
         d[i] = 1e-7
         num[:, len(fit) + i] = (pixels(p0, theta + d) - pixels(p0, theta - d)) / 2e-7
     assert np.max(np.abs(jac - num)) < 1e-8 * np.max(np.abs(num))
+
+
+def test_the_fitted_focal_lengths_uncertainty_tilts_an_off_centre_field_more():
+    """``camera_attitude_covariance``: what fitting f adds to the attitude's covariance (marginal
+    minus camera-held): positive semi-definite, and larger across the boresight for stars all on
+    one side of the array (a focal-length error moves them all one way) than for a centred set."""
+    from firmware_model.pipeline.camera_fit import fit_frame
+
+    cam = CameraModel.from_horizontal_fov(1024, 768, 11.4)
+    rng = np.random.default_rng(2)
+    a = attitude_from_radec_roll(1.0, 0.3, 0.2)
+
+    def added(xmin, xmax):
+        x, y = rng.uniform(xmin, xmax, 20), rng.uniform(50, 718, 20)
+        v = cam.pixel_to_vector(x, y) @ a  # sensor -> ICRS
+        obs = StarObservations(x + rng.normal(0, 0.3, 20), y + rng.normal(0, 0.3, 20), v)
+        res = fit_frame(obs, cam, k1_min_stars=100)
+        assert res is not None and res.success
+        return res.camera_attitude_covariance[0]
+
+    centred, one_side = added(100, 924), added(700, 1000)
+    for c in (centred, one_side):
+        assert np.all(np.linalg.eigvalsh(0.5 * (c + c.T)) > -1e-18)
+    assert one_side[1, 1] > 10 * centred[1, 1]  # tilt about sensor y: the x offset of the stars

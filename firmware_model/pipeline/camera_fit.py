@@ -16,7 +16,7 @@ can be held fixed (``fit=`` without "cx", "cy").
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -54,6 +54,10 @@ class CalibrationResult:
     n_observations: int
     success: bool
     message: str
+    #: per frame, the attitude covariance (rad^2, small rotations about the sensor axes) that the
+    #: fitted camera parameters' uncertainty adds: the attitude's marginal covariance minus its
+    #: covariance with the camera held (a Schur complement, positive semi-definite)
+    camera_attitude_covariance: list = field(default_factory=list)
 
 
 def _wahba(camera: CameraModel, obs: StarObservations) -> np.ndarray:
@@ -186,11 +190,17 @@ def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_
     dof = max(len(r) - n_par, 1)
     s2 = float(r @ r) / dof
     jac = res.jac.toarray() if hasattr(res.jac, "toarray") else res.jac
+    added = []
     try:
-        cov = np.linalg.pinv(jac.T @ jac) * s2
+        info = jac.T @ jac
+        cov = np.linalg.pinv(info) * s2
         sig = np.sqrt(np.maximum(np.diag(cov)[: len(fit)], 0.0)) * scale
+        for j in range(len(frames)):
+            rot = slice(len(fit) + 3 * j, len(fit) + 3 * j + 3)
+            added.append(cov[rot, rot] - np.linalg.pinv(info[rot, rot]) * s2)
     except np.linalg.LinAlgError:
         sig = np.full(len(fit), np.nan)
+        added = [np.full((3, 3), np.nan) for _ in frames]
     per_frame, row = [], 0
     for fr in frames:
         per_frame.append(-r[row : row + 2 * len(fr.x)].reshape(-1, 2))  # measured - predicted
@@ -204,6 +214,7 @@ def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_
         n_observations=n_obs,
         success=bool(res.success),
         message=str(res.message),
+        camera_attitude_covariance=added,
     )
 
 

@@ -26,6 +26,7 @@ from firmware_model.ident.strategy import (
     IdentifyTimings,
     StrategyParams,
     agrees,
+    bound_roll,
     geometric_detection_cap,
     geometric_fallback,
     hold_searched,
@@ -38,7 +39,7 @@ from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.camera_fit import StarObservations, fit_frame
 from firmware_model.pipeline.extract import ExtractParams, StarList, extract_stars
 from firmware_model.pipeline.raw_frame import Frame
-from firmware_model.reference_frames import rotation_angle
+from firmware_model.reference_frames import matrix_to_quat, rotation_angle
 from protocol import result
 from protocol.result import ReturnBits, Status
 from protocol.star_flags import UNTRUSTED, StarFlag
@@ -129,6 +130,11 @@ class OpticsFit:
     residual_rms_px: float
     n_stars: int
     focal_scale: float = float("nan")
+    #: the attitude fitted with the optics (v_sensor = A @ v_icrs) and the covariance (rad^2,
+    #: sensor axes) the fitted parameters' uncertainty adds to it
+    #: (``CalibrationResult.camera_attitude_covariance``)
+    attitude: np.ndarray | None = None
+    attitude_covariance: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -421,7 +427,32 @@ def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSear
             break
         rows, cat = rows[keep], cat[keep]
     assert res is not None
-    return OpticsFit(res.camera, res.sigmas, res.residual_rms_px, len(rows))
+    added = res.camera_attitude_covariance[0] if res.camera_attitude_covariance else None
+    return OpticsFit(
+        res.camera, res.sigmas, res.residual_rms_px, len(rows), attitude=res.attitudes[0], attitude_covariance=added
+    )
+
+
+def _with_fitted_camera_uncertainty(out: PipelineOutput, params: PipelineParams) -> PipelineOutput:
+    """``out``, an answer found with a camera fitted to this frame's stars, with the attitude of its
+    optics fit (fitted with the focal length and k1 to every matched star) and the covariance that
+    those parameters' uncertainty adds, held to the roll bound again. The answer was identified
+    with the camera the search fitted to a few stars; a focal length off by a few pixels tilts
+    the attitude of an off-centre star field, and the solution's covariance treats its camera as
+    exact (issue 12: 1 px noise, 21 stars, a focal length 9 px off, 4.1 sigma off)."""
+    sol, fit = out.solution, out.optics
+    if sol is None or sol.covariance is None or fit is None or fit.attitude_covariance is None:
+        return out
+    added = np.asarray(fit.attitude_covariance)
+    if not np.all(np.isfinite(added)) or fit.attitude is None:
+        return out
+    sol.q_icrs_to_sensor = matrix_to_quat(fit.attitude)
+    sol.covariance = np.asarray(sol.covariance) + added
+    was_high = sol.status is Outcome.HIGH_CONFIDENCE
+    bound_roll(sol, params.solve.max_roll_sigma)
+    if was_high and sol.status is not Outcome.HIGH_CONFIDENCE:
+        out.status, out.reason = Status.LOW_CONFIDENCE, sol.reason
+    return out
 
 
 def _same_stars(rows_a, cat_a, rows_b, cat_b) -> bool:
@@ -483,7 +514,7 @@ def _refine_optics(
     again = _identify(_with_camera(stars, fit.camera), fit.camera, catalog, params, timings)
     if again.status is Status.OK and again.solution is not None and agrees(again.solution, sol):
         again.optics = _fit_optics(again, catalog, search) or fit
-        return again
+        return _with_fitted_camera_uncertainty(again, params)
     return None
 
 
@@ -538,21 +569,23 @@ def _search_optics(
             if pattern is not None and _rank(pattern) > _rank(out):
                 out = pattern
         if out.status is Status.OK:
-            return _with_optics(out, hyp.f / camera.f, catalog, search, (rows, cat, fit))
+            return _with_optics(out, hyp.f / camera.f, catalog, params, (rows, cat, fit))
         if out.solution is not None and _rank(out) > _rank(best[0] if best else None):
             best = (out, hyp.f / camera.f)
-    return _with_optics(*best, catalog=catalog, search=search) if best else None  # the optics of the answer only
+    return _with_optics(*best, catalog=catalog, params=params) if best else None  # the optics of the answer only
 
 
 def _with_optics(
-    out: PipelineOutput, focal_scale: float, catalog: OnboardCatalog, search: OpticsSearch, known=None
+    out: PipelineOutput, focal_scale: float, catalog: OnboardCatalog, params: PipelineParams, known=None
 ) -> PipelineOutput:
-    """``out`` with the optics fitted to its matched stars and the search's focal scale; ``known``
+    """``out`` with the optics fitted to its matched stars and the search's focal scale, its
+    covariance widened by their uncertainty (:func:`_with_fitted_camera_uncertainty`); ``known``
     (detection rows, catalog indices, fit): a fit of some stars already made (the refinement's)."""
-    out.optics = _fit_optics(out, catalog, search, known)
+    assert params.optics is not None  # the search's answers
+    out.optics = _fit_optics(out, catalog, params.optics, known)
     if out.optics is not None:
         out.optics.focal_scale = focal_scale
-    return out
+    return _with_fitted_camera_uncertainty(out, params)
 
 
 def _rank(out: PipelineOutput | None) -> tuple[int, float]:
