@@ -21,7 +21,7 @@ from firmware_model.ident.strategy import (
     noise_rejected,
     searched_confident,
 )
-from firmware_model.ident.verify import FieldOfView
+from firmware_model.ident.verify import FieldOfView, VerifyParams, verify
 from firmware_model.pipeline import scale_free
 from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.camera_fit import rotvec_matrix
@@ -150,6 +150,26 @@ def test_a_decided_answer_takes_the_verification_only_stars_in_view(catalog, dee
     assert ds.chance == ss.chance  # the decision is the pattern stars'
     assert ds.roll_sigma < ss.roll_sigma
     assert np.all(np.abs(_error_sigmas(ds, a)) < 3.0)
+
+
+def test_a_deep_verification_counts_pattern_stars_and_every_star_for_the_chance(deep_catalog):
+    """With ``deep`` the verification-only stars are matched too: the star-count rules see the
+    pattern stars (``n_decisive``), the chance alignment every star looked for and found."""
+    a, v, truth = _noisy_geometric_frame(deep_catalog, noise_px=0.2)
+    seed = np.flatnonzero(truth < deep_catalog.n_pattern_stars)[:3]
+    nan = np.full(len(v), np.nan)
+    fov, sigma = FieldOfView.from_camera(CAM, 0.0), np.full(len(v), 0.2 / CAM.f)
+
+    def run(deep):
+        m, why = verify(seed, truth[seed], v, nan, nan, sigma, deep_catalog, fov, 0.0, 0.0, VerifyParams(deep=deep))
+        assert m is not None, why
+        assert np.array_equal(truth[m.det], m.cat)
+        return m
+
+    pattern_only, every = run(False), run(True)
+    assert pattern_only.n == pattern_only.n_decisive and np.all(pattern_only.cat < deep_catalog.n_pattern_stars)
+    assert every.n > every.n_decisive >= pattern_only.n - 1
+    assert every.chance < pattern_only.chance
 
 
 @pytest.fixture(scope="module")

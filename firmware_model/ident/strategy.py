@@ -328,9 +328,13 @@ def finish(
 ) -> Identification:
     """A decided answer matched against every catalog star (:func:`match_deep`), then held to
     the noise its stars show (:func:`adapt_noise`), both verifications over every catalog star."""
-    if catalog.has_deep_stars:
-        base = replace(base, verify=replace(base.verify, deep=True))
-    return adapt_noise(match_deep(found, det, catalog, base, timings), det, catalog, base, timings)
+    deep = _deep(base, catalog)
+    return adapt_noise(match_deep(found, det, catalog, deep, timings), det, catalog, deep, timings)
+
+
+def _deep(base: SolveParams, catalog: OnboardCatalog) -> SolveParams:
+    """``base`` verifying against every catalog star when the catalog has verification-only stars."""
+    return replace(base, verify=replace(base.verify, deep=True)) if catalog.has_deep_stars else base
 
 
 def match_deep(
@@ -586,19 +590,28 @@ def verify_pattern(
     """A pattern match found by a search (the pipeline's optics search, its attempt ``attempts``:
     detections ``rows`` on catalog stars ``cat``) verified over every detection (method
     ``pattern``), or None when verification refuses it; high confidence as
-    :func:`searched_confident` grants it, the frame's own noise checked (:func:`adapt_noise`)."""
-    match = verify_over(det, rows, cat, catalog, base, timings)
+    :func:`searched_confident` grants it on the matched pattern stars, the frame's own noise
+    checked (:func:`adapt_noise`). Verified against every catalog star at once (the
+    verification-only stars of :func:`match_deep` too: one verification for the usual answer);
+    an answer that is not high-confidence is verified again on the pattern stars alone, as every
+    other low-confidence answer is."""
+    deep = _deep(base, catalog)
+    cp = base.consensus
+    for params in dict.fromkeys((deep, base)):  # deep first; base alone when that is not high
+        match = verify_over(det, rows, cat, catalog, params, timings)
+        high = match is not None and searched_confident(match.n_decisive, match.coverage, match.chance, cp, attempts)
+        if high:
+            break
     if match is None:
         return None
-    cp = base.consensus
-    high = searched_confident(match.n, match.coverage, match.chance, cp, attempts)
-    reason = "" if high else _searched_reason(match.n, match.coverage, match.chance, cp, attempts)
+    n = match.n_decisive
+    reason = "" if high else _searched_reason(n, match.coverage, match.chance, cp, attempts)
     outcome = Outcome.HIGH_CONFIDENCE if high else Outcome.LOW_CONFIDENCE
     everything = np.arange(len(det))
     sol = bound_roll(
         solution_from_match(match, outcome, reason, everything, catalog, Method.PATTERN, len(det)), base.max_roll_sigma
     )
-    return finish(Identification(sol, everything), det, catalog, base, timings).solution
+    return adapt_noise(Identification(sol, everything), det, catalog, deep, timings).solution
 
 
 def photometric_gate(flux: np.ndarray, sol: SolveResult, catalog: OnboardCatalog, margin_mag: float):

@@ -146,6 +146,12 @@ class VerifiedMatch:
     confirmed: int = 1
     low_coverage: bool = False
     chance: float = 1.0  #: probability that its stars beyond the first two line up by chance (chance_alignment)
+    n_pattern: int = -1  #: matched pattern stars (the verification-only ones left out); -1: every matched star
+
+    @property
+    def n_decisive(self) -> int:
+        """Matched stars the star-count rules count: the pattern stars (the chance counts all)."""
+        return self.n if self.n_pattern < 0 else self.n_pattern
 
     @property
     def n(self) -> int:
@@ -320,7 +326,10 @@ def verify(
     matched_inside = int(np.isin(inside, seen).sum())
     coverage = matched_inside / n_pred if n_pred else 1.0
     gate = params.residual_sigmas * float(np.median(sigma[det]))
-    chance = chance_alignment(max(len(vectors), params.frame_detections), n_pred, len(det), gate, fov.solid_angle)
+    # the chance over every catalog star looked for: with ``deep``, the verification-only ones too
+    trials = int(fov.contains(near_vec @ sol.a.T).sum()) if params.deep else n_pred
+    chance = chance_alignment(max(len(vectors), params.frame_detections), trials, len(det), gate, fov.solid_angle)
+    n_pattern = int(np.count_nonzero(cat < catalog.n_pattern_stars))
     if not coverage_ok(n_pred, matched_inside, params) and not chance <= params.coverage_chance:
         return None, (
             f"coverage {matched_inside}/{n_pred} predicted stars below {params.min_coverage} "
@@ -335,4 +344,5 @@ def verify(
         n_consensus,
         low_coverage=bool(n_pred and coverage < params.min_coverage),
         chance=chance,
+        n_pattern=n_pattern,
     ), ""
