@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from firmware_model.catalog.onboard import OnboardCatalog
+from firmware_model.ident.attitude import solve_attitude
 from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.solver import SolveParams, SolveResult, method_code
 from firmware_model.ident.strategy import (
@@ -39,7 +40,7 @@ from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.camera_fit import StarObservations, fit_frame
 from firmware_model.pipeline.extract import ExtractParams, StarList, extract_stars
 from firmware_model.pipeline.raw_frame import Frame
-from firmware_model.reference_frames import matrix_to_quat, rotation_angle
+from firmware_model.reference_frames import rotation_angle
 from protocol import result
 from protocol.result import ReturnBits, Status
 from protocol.star_flags import UNTRUSTED, StarFlag
@@ -130,10 +131,8 @@ class OpticsFit:
     residual_rms_px: float
     n_stars: int
     focal_scale: float = float("nan")
-    #: the attitude fitted with the optics (v_sensor = A @ v_icrs) and the covariance (rad^2,
-    #: sensor axes) the fitted parameters' uncertainty adds to it
+    #: the attitude covariance (rad^2, sensor axes) the fitted parameters' uncertainty adds
     #: (``CalibrationResult.camera_attitude_covariance``)
-    attitude: np.ndarray | None = None
     attitude_covariance: np.ndarray | None = None
 
 
@@ -428,26 +427,33 @@ def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSear
         rows, cat = rows[keep], cat[keep]
     assert res is not None
     added = res.camera_attitude_covariance[0] if res.camera_attitude_covariance else None
-    return OpticsFit(
-        res.camera, res.sigmas, res.residual_rms_px, len(rows), attitude=res.attitudes[0], attitude_covariance=added
-    )
+    return OpticsFit(res.camera, res.sigmas, res.residual_rms_px, len(rows), attitude_covariance=added)
 
 
-def _with_fitted_camera_uncertainty(out: PipelineOutput, params: PipelineParams) -> PipelineOutput:
-    """``out``, an answer found with a camera fitted to this frame's stars, with the attitude of its
-    optics fit (fitted with the focal length and k1 to every matched star) and the covariance that
-    those parameters' uncertainty adds, held to the roll bound again. The answer was identified
-    with the camera the search fitted to a few stars; a focal length off by a few pixels tilts
-    the attitude of an off-centre star field, and the solution's covariance treats its camera as
-    exact (issue 12: 1 px noise, 21 stars, a focal length 9 px off, 4.1 sigma off)."""
-    sol, fit = out.solution, out.optics
-    if sol is None or sol.covariance is None or fit is None or fit.attitude_covariance is None:
+def _with_fitted_camera_uncertainty(
+    out: PipelineOutput, catalog: OnboardCatalog, params: PipelineParams
+) -> PipelineOutput:
+    """``out``, an answer found with a camera fitted to this frame's stars, with its attitude solved
+    again (same stars, same weights) through the camera of its optics fit (fitted to every matched
+    star), that camera as the answer's, and the covariance the fitted parameters' uncertainty adds
+    (``OpticsFit.attitude_covariance``), held to the roll bound again. The answer was identified
+    with the camera the search fitted to a few stars; a focal length off by a few pixels tilts the
+    attitude of an off-centre star field, and the solution's covariance treats its camera as exact
+    (issue 12: 1 px noise, 21 stars, a focal length 9 px off, 4.1 sigma off)."""
+    sol, fit, stars = out.solution, out.optics, out.stars
+    if sol is None or sol.covariance is None or fit is None or fit.attitude_covariance is None or stars is None:
         return out
     added = np.asarray(fit.attitude_covariance)
-    if not np.all(np.isfinite(added)) or fit.attitude is None:
+    if not np.all(np.isfinite(added)):
         return out
-    sol.q_icrs_to_sensor = matrix_to_quat(fit.attitude)
+    seen = _with_camera(stars, fit.camera)
+    det = _detections(out.used, seen, fit.camera, params)
+    rows = sol.matched_det
+    sigma = np.hypot(np.asarray(det.sigma_px)[rows], sol.noise_extra * fit.camera.f) / fit.camera.f
+    att = solve_attitude(det.vectors[rows], catalog.vec[sol.matched_cat], sigma)
+    sol.q_icrs_to_sensor, sol.residuals = att.q, att.residuals
     sol.covariance = np.asarray(sol.covariance) + added
+    out.stars, out.camera = seen, fit.camera
     was_high = sol.status is Outcome.HIGH_CONFIDENCE
     bound_roll(sol, params.solve.max_roll_sigma)
     if was_high and sol.status is not Outcome.HIGH_CONFIDENCE:
@@ -514,7 +520,7 @@ def _refine_optics(
     again = _identify(_with_camera(stars, fit.camera), fit.camera, catalog, params, timings)
     if again.status is Status.OK and again.solution is not None and agrees(again.solution, sol):
         again.optics = _fit_optics(again, catalog, search) or fit
-        return _with_fitted_camera_uncertainty(again, params)
+        return _with_fitted_camera_uncertainty(again, catalog, params)
     return None
 
 
@@ -585,7 +591,7 @@ def _with_optics(
     out.optics = _fit_optics(out, catalog, params.optics, known)
     if out.optics is not None:
         out.optics.focal_scale = focal_scale
-    return _with_fitted_camera_uncertainty(out, params)
+    return _with_fitted_camera_uncertainty(out, catalog, params)
 
 
 def _rank(out: PipelineOutput | None) -> tuple[int, float]:
