@@ -127,3 +127,22 @@ def test_for_field_puts_three_times_the_stars_in_view_with_the_verification_only
     assert d.m_verify - d.m_thresh == pytest.approx(math.log10(3.0) / 0.515, abs=0.11)
     with pytest.raises(DesignError, match="m_verify"):
         CatalogDesign(m_thresh=5.0, m_verify=4.0)
+
+
+def test_sparse_regions_promote_their_brightest_fainter_stars_to_pattern_stars():
+    from firmware_model.reference_frames import radec_to_vec
+    from ground.catalog.build import promote_sparse
+
+    rng = np.random.default_rng(5)
+    # a dense patch (20 pattern stars) and a sparse one (2 pattern stars), 10 fainter stars in each
+    ra = np.concatenate([rng.uniform(0.0, 0.05, 30), rng.uniform(1.0, 1.05, 12)])
+    dec = np.concatenate([rng.uniform(0.0, 0.05, 30), rng.uniform(0.0, 0.05, 12)])
+    pattern = np.zeros(42, bool)
+    pattern[:20] = pattern[30:32] = True
+    vmag = np.where(pattern, 5.0, rng.uniform(6.0, 7.0, 42))
+    promoted = promote_sparse(radec_to_vec(ra, dec), vmag, pattern, radius=0.2, per_cap=8)
+    assert not promoted[:30].any()  # the dense patch has its 8 already
+    assert promoted[30:].sum() == 6  # the sparse one: its 6 brightest fainter stars
+    sparse_faint = np.arange(32, 42)
+    assert np.all(vmag[sparse_faint][promoted[sparse_faint]] <= np.sort(vmag[sparse_faint])[5])
+    assert not promote_sparse(radec_to_vec(ra, dec), vmag, pattern, radius=0.2, per_cap=0).any()

@@ -48,6 +48,24 @@ def borrow_mk_types(sel: StarTable, bsc5_path: str | Path, epoch: float) -> tupl
     return replace(sel, sptype=sptype), int(ok.sum())
 
 
+def promote_sparse(vec: np.ndarray, vmag: np.ndarray, pattern: np.ndarray, radius: float, per_cap: int) -> np.ndarray:
+    """Stars below the pattern limit that become pattern stars where the sky is sparse: brightest
+    first, each star with fewer than ``per_cap`` pattern stars (those promoted before it included)
+    within ``radius`` (rad) of it, as plate solvers keep the N brightest stars of every region
+    (tetra3's database). Returns the mask of promoted stars; none when ``per_cap`` is 0."""
+    promoted = np.zeros(len(vec), bool)
+    if per_cap <= 0:
+        return promoted
+    is_pattern = pattern.copy()
+    candidates = np.flatnonzero(~pattern)
+    candidates = candidates[np.argsort(vmag[candidates], kind="stable")]
+    near = cKDTree(vec).query_ball_point(vec[candidates], 2.0 * np.sin(radius / 2.0))
+    for c, n in zip(candidates, near):
+        if np.count_nonzero(is_pattern[n]) < per_cap:
+            is_pattern[c] = promoted[c] = True
+    return promoted
+
+
 def colour_model(design: CatalogDesign) -> ColourModel:
     """The design's detector colour model (shipped MT9P031-like QE unless ``qe_path``)."""
     qe = load_qe_csv(design.qe_path) if design.qe_path else default_qe()
@@ -67,11 +85,14 @@ def build_catalog(
         table = table.at_epoch(design.epoch)
     sel, stats = select_stars(table, design.m_verify_limit, design.resolve_angle, design.drop_variable)
     pattern = sel.vmag <= design.m_thresh
+    if int(pattern.sum()) < 2:
+        raise DesignError(f"m_thresh = {design.m_thresh}: only {int(pattern.sum())} star(s) selected")
+    promoted = promote_sparse(sel.vec, sel.vmag, pattern, design.theta_fov, design.min_pattern_stars)
+    pattern |= promoted
     n_pattern = int(pattern.sum())
-    if n_pattern < 2:
-        raise DesignError(f"m_thresh = {design.m_thresh}: only {n_pattern} star(s) selected")
     sel = sel.subset(np.concatenate([np.flatnonzero(pattern), np.flatnonzero(~pattern)]))
-    stats["selected"], stats["verification_only"] = n_pattern, len(sel) - n_pattern
+    stats["selected"], stats["promoted_sparse"] = n_pattern, int(promoted.sum())
+    stats["verification_only"] = len(sel) - n_pattern
     if design.mk_types_path:
         sel, stats["mk_types_borrowed"] = borrow_mk_types(sel, design.mk_types_path, design.epoch)
     colours = colours or colour_model(design)

@@ -20,6 +20,9 @@ SOURCES = ("hipparcos", "bsc5")
 #: frame shows down to about 1 mag below the pattern stars (issue 12: with 1 px centroid noise, the
 #: roll from the ~15 pattern stars alone missed 0.1 deg on 8 % of the tetra3 inputs).
 VERIFY_STARS_IN_VIEW = 45.0
+#: Pattern stars a :meth:`CatalogDesign.for_field` design keeps within the minor half-field of
+#: every star, promoting the brightest verification-only ones where the sky is sparse.
+SPARSE_PATTERN_STARS = 8
 
 
 class DesignError(ValueError):
@@ -35,6 +38,7 @@ class CatalogDesign:
     sensor_height_px: int = 1944
     m_thresh: float = 5.0
     m_verify: float | None = None  # verification-only stars m_thresh < V <= m_verify (no pairs); None: none
+    min_pattern_stars: int = 0  # those of them promoted to pattern stars where fewer lie within theta_fov
     sigma_pix: float = 0.2
     sigma_rg: float = 0.02
     sigma_bg: float = 0.02
@@ -91,6 +95,7 @@ class CatalogDesign:
             "sensor_height_px": height_px,
             "m_thresh": m_thresh,
             "m_verify": max(m_thresh, limit(verify_stars_in_view, 4.0, 8.0)),
+            "min_pattern_stars": SPARSE_PATTERN_STARS,
             "phi_max_deg": diagonal,
             "phi_min_deg": theta / 100.0,
         }
@@ -155,6 +160,11 @@ class CatalogDesign:
         for name in ("sensor_width_px", "sensor_height_px"):
             need(isinstance(getattr(self, name), int) and getattr(self, name) >= 2, name, "must be an integer >= 2")
         need(math.isfinite(self.m_thresh) and -2 < self.m_thresh < 15, "m_thresh", "must be a magnitude in (-2, 15)")
+        need(
+            isinstance(self.min_pattern_stars, int) and 0 <= self.min_pattern_stars <= 1000,
+            "min_pattern_stars",
+            "must be an integer in [0, 1000]",
+        )
         if self.m_verify is not None:
             need(
                 isinstance(self.m_verify, (int, float)) and self.m_thresh <= self.m_verify < 15,
