@@ -19,6 +19,7 @@ _DESIGN_FLAGS = {
     "height": "sensor_height_px",
     "m_thresh": "m_thresh",
     "m_verify": "m_verify",
+    "min_pattern_stars": "min_pattern_stars",
     "sigma_pix": "sigma_pix",
     "sigma_rg": "sigma_rg",
     "sigma_bg": "sigma_bg",
@@ -56,6 +57,12 @@ def _design_args(p) -> None:
         type=float,
         help="limiting V magnitude of verification-only stars (no pairs; matched once an answer is decided); "
         "--fov-deg sets it for ~45 stars in view",
+    )
+    g.add_argument(
+        "--min-pattern-stars",
+        type=int,
+        help="promote the brightest verification-only stars to pattern stars where fewer than this many lie "
+        "within theta-fov of a star (sparse sky); --fov-deg sets 8",
     )
     g.add_argument("--sigma-pix", type=float, help="centroid noise, px")
     g.add_argument("--sigma-rg", type=float, help="colour-ratio noise, rg")
