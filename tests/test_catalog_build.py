@@ -146,3 +146,17 @@ def test_sparse_regions_promote_their_brightest_fainter_stars_to_pattern_stars()
     sparse_faint = np.arange(32, 42)
     assert np.all(vmag[sparse_faint][promoted[sparse_faint]] <= np.sort(vmag[sparse_faint])[5])
     assert not promote_sparse(radec_to_vec(ra, dec), vmag, pattern, radius=0.2, per_cap=0).any()
+
+
+def test_cli_fov_build_has_verification_only_and_sparse_sky_stars_and_flags_override(tmp_path, capsys):
+    out = tmp_path / "cat.img"
+    base = ["--json", "catalog", "build", "--width", "1024", "--height", "768", "--fov-deg", "11.4", "-o", str(out)]
+    assert cli_main(base) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["selection"]["promoted_sparse"] > 0 and summary["selection"]["verification_only"] > 0
+    cat = catalog_from_image(out.read_bytes())
+    assert cat.n_pattern_stars == summary["n_pattern_stars"] < cat.n_stars
+    assert cli_main([*base, "--min-pattern-stars", "0"]) == 0
+    plain = json.loads(capsys.readouterr().out)
+    assert plain["selection"]["promoted_sparse"] == 0
+    assert plain["n_pattern_stars"] == summary["n_pattern_stars"] - summary["selection"]["promoted_sparse"]
