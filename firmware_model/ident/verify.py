@@ -320,7 +320,7 @@ def verify(
         limit = "matched" if len(vectors) >= params.full_frame else "catalog"
     if limit == "matched":
         mag_limit = min(mag_limit, float(np.max(catalog.mag[cat])))
-    bright = catalog.mag[near] <= mag_limit
+    bright = (catalog.mag[near] <= mag_limit) & (near < catalog.n_pattern_stars)  # pattern stars, also with deep
     inside = near[bright][fov.contains(near_vec[bright] @ sol.a.T)]
     n_pred = len(inside)
     matched_inside = int(np.isin(inside, seen).sum())

@@ -1,8 +1,9 @@
 """Build an on-board catalog from a :class:`CatalogDesign`: source -> selection -> colour -> pairs.
 
-Stars are ordered by right ascension (Dong et al. sec. 1.2): the pattern stars (``V <= m_thresh``)
-first, then the verification-only stars (``m_thresh < V <= m_verify``), which have no pairs. Per-star
-provenance (colour source, Pickles template) and the selection counts go into ``OnboardCatalog.meta``.
+Stars are ordered by right ascension (Dong et al. sec. 1.2): the pattern stars (``V <= m_thresh``,
+and the fainter ones :func:`promote_sparse` adds where the sky is sparse) first, then the
+verification-only stars (``V <= m_verify``), which have no pairs. Per-star provenance (colour source,
+Pickles template) and the selection counts go into ``OnboardCatalog.meta``.
 """
 
 from __future__ import annotations
