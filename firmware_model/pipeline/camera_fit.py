@@ -180,8 +180,8 @@ def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_
         jac_sparsity=sparsity,
         method="trf" if sparsity is not None else "lm",
         x_scale="jac",
-        xtol=1e-10,
-        ftol=1e-10,
+        xtol=1e-8,
+        ftol=1e-8,
         gtol=1e-10,
         max_nfev=200,
     )
