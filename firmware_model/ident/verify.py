@@ -320,14 +320,15 @@ def verify(
         limit = "matched" if len(vectors) >= params.full_frame else "catalog"
     if limit == "matched":
         mag_limit = min(mag_limit, float(np.max(catalog.mag[cat])))
+    in_view = fov.contains(near_vec @ sol.a.T)
     bright = (catalog.mag[near] <= mag_limit) & (near < catalog.n_pattern_stars)  # pattern stars, also with deep
-    inside = near[bright][fov.contains(near_vec[bright] @ sol.a.T)]
+    inside = near[bright & in_view]
     n_pred = len(inside)
     matched_inside = int(np.isin(inside, seen).sum())
     coverage = matched_inside / n_pred if n_pred else 1.0
     gate = params.residual_sigmas * float(np.median(sigma[det]))
     # the chance over every catalog star looked for: with ``deep``, the verification-only ones too
-    trials = int(fov.contains(near_vec @ sol.a.T).sum()) if params.deep else n_pred
+    trials = int(in_view.sum()) if params.deep else n_pred
     chance = chance_alignment(max(len(vectors), params.frame_detections), trials, len(det), gate, fov.solid_angle)
     n_pattern = int(np.count_nonzero(cat < catalog.n_pattern_stars))
     if not coverage_ok(n_pred, matched_inside, params) and not chance <= params.coverage_chance:

@@ -454,9 +454,15 @@ def _with_fitted_camera_uncertainty(
     sol.q_icrs_to_sensor, sol.residuals = att.q, att.residuals
     sol.covariance = np.asarray(sol.covariance) + added
     out.stars, out.camera = seen, fit.camera
-    was_high = sol.status is Outcome.HIGH_CONFIDENCE
     bound_roll(sol, params.solve.max_roll_sigma)
-    if was_high and sol.status is not Outcome.HIGH_CONFIDENCE:
+    return _held_low(out)
+
+
+def _held_low(out: PipelineOutput) -> PipelineOutput:
+    """``out`` low confidence, with its solution's reason, when it was OK but a later rule (the
+    roll bound, the searched-confidence rule) held its solution below high confidence."""
+    sol = out.solution
+    if out.status is Status.OK and sol is not None and sol.status is not Outcome.HIGH_CONFIDENCE:
         out.status, out.reason = Status.LOW_CONFIDENCE, sol.reason
     return out
 
@@ -570,8 +576,7 @@ def _search_optics(
             out = _identify(seen, fitted, catalog, tight, timings)
             if out.solution is not None and out.status is Status.OK:
                 out.solution = hold_searched(out.solution, params.solve.consensus, len(tried))
-                if out.solution.status is not Outcome.HIGH_CONFIDENCE:
-                    out.status, out.reason = Status.LOW_CONFIDENCE, out.solution.reason
+                out = _held_low(out)
             if pattern is not None and _rank(pattern) > _rank(out):
                 out = pattern
         if out.status is Status.OK:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from firmware_model.catalog.onboard import OnboardCatalog
+from firmware_model.catalog.onboard import OnboardCatalog, chord_of_angle
 from ground.catalog.colour import SHARED_DATA, ColourModel, ColourSource, default_qe, load_qe_csv
 from ground.catalog.design import CatalogDesign, DesignError
 from ground.catalog.sources import StarTable, read_bsc5, read_hipparcos, select_stars
@@ -60,7 +60,7 @@ def promote_sparse(vec: np.ndarray, vmag: np.ndarray, pattern: np.ndarray, radiu
     is_pattern = pattern.copy()
     candidates = np.flatnonzero(~pattern)
     candidates = candidates[np.argsort(vmag[candidates], kind="stable")]
-    near = cKDTree(vec).query_ball_point(vec[candidates], 2.0 * np.sin(radius / 2.0))
+    near = cKDTree(vec).query_ball_point(vec[candidates], chord_of_angle(radius))
     for c, n in zip(candidates, near):
         if np.count_nonzero(is_pattern[n]) < per_cap:
             is_pattern[c] = promoted[c] = True

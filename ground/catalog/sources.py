@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from firmware_model.catalog.onboard import chord_of_angle
 from firmware_model.reference_frames import radec_to_vec, vec_to_radec
 
 MAS = np.pi / (180.0 * 3600.0 * 1000.0)  # radians per milliarcsecond
@@ -283,7 +284,7 @@ def merge_close_doubles(table: StarTable, resolve_angle: float) -> tuple[StarTab
         return table, 0
     order = np.argsort(table.vmag, kind="stable")
     vec = table.vec[order]
-    pairs = cKDTree(vec).query_pairs(2.0 * np.sin(resolve_angle / 2.0), output_type="ndarray")
+    pairs = cKDTree(vec).query_pairs(chord_of_angle(resolve_angle), output_type="ndarray")
     removed = np.zeros(len(order), dtype=bool)
     if len(pairs):
         pairs.sort(axis=1)  # brighter (smaller rank) first
