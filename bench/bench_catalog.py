@@ -30,9 +30,9 @@ from firmware_model.catalog.onboard import angle_between
 from firmware_model.device.catalog_slot import catalog_slot_handler
 from firmware_model.device.device import Device
 from firmware_model.device.link import PtyLink, serve
-from ground.catalog.analyze import TABLE_HEADER, ambiguous_pairs, analyze, plot_views, table_row
+from ground.catalog.analyze import TABLE_HEADER, analyze, plot_views, table_row
 from ground.catalog.build import DEFAULT_BSC5, borrow_mk_types, build_catalog, load_source
-from ground.catalog.colour import SHARED_DATA, ColourModel, ColourSource, ballesteros_temperature, blackbody_ratios
+from ground.catalog.colour import ColourModel, ColourSource, ballesteros_temperature, blackbody_ratios
 from ground.catalog.design import CatalogDesign
 from ground.catalog.sources import read_hipparcos, select_stars
 from ground.link.client import Client
@@ -98,19 +98,6 @@ def table1(n_views: int, out: Path) -> None:
                 png = out / f"bad_views_{source}_m5.0_fov7.5.png"
                 plot_views(png, views, vc, vm, title=f"{source} V<=5.0 thetaFOV=7.5 deg sigma_pix 0.2 sigma_col 0.02")
                 tqdm.write(f"      sky map: {png}")
-        print("colour noise needed for the paper's row-1 ambiguity (0.26 %), same catalog and sigma_pix 0.2:")
-        design = CatalogDesign(source=source, m_thresh=4.5, epoch=2000.0)
-        cat = build_catalog(design, source=table)
-        for sc in (0.02, 0.01, 0.005, 0.002, 0.001):
-            amb = ambiguous_pairs(cat, design.sigma_phi, design.delta_star, sc, sc)
-            print(f"   sigma_rg = sigma_bg = {sc:<6}: ambiguous pairs {100 * amb.mean():6.2f} %")
-        for qe in ("IMX219.csv", "OV5647_QE.csv"):
-            path = SHARED_DATA / "qe" / qe
-            if path.is_file():
-                design = CatalogDesign(source=source, m_thresh=4.5, epoch=2000.0, qe_path=str(path))
-                cat = build_catalog(design, source=table)
-                amb = ambiguous_pairs(cat, design.sigma_phi, design.delta_star, design.sigma_rg, design.sigma_bg)
-                print(f"   row 1 with the {qe} detector instead: ambiguous pairs {100 * amb.mean():6.2f} %")
 
 
 def colour_fallbacks() -> None:

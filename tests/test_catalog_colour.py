@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from ground.catalog.colour import (
+    QE_MODELS,
     ColourDataError,
     ColourModel,
     ColourSource,
@@ -11,6 +12,7 @@ from ground.catalog.colour import (
     QETable,
     blackbody_ratios,
     default_qe,
+    load_qe,
     load_qe_csv,
     match_template,
     parse_mk,
@@ -73,9 +75,13 @@ def test_qe_loader(tmp_path):
     for body, match in [
         ("400,1,2\n", "line 1: expected 4 columns"),
         ("400,0.1,0.2,0.3\n500,0.1,x,0.3\n", "line 2: not numeric"),
-        ("500,0.1,0.2,0.3\n400,0.1,0.2,0.3\n", "wavelengths not increasing at 500.0 -> 400.0 nm"),
-        ("400,0.1,-0.2,0.3\n500,0.1,0.2,0.3\n", "G is negative"),
-        ("", "no QE rows"),
+        ("500,0.1,0.2,0.3\n400,0.1,0.2,0.3\n", "line 2: wavelength 400.0 nm does not increase from 500.0 nm"),
+        ("400,0.1,-0.2,0.3\n500,0.1,0.2,0.3\n", "line 1: G is negative"),
+        ("400,0.1,0.2,0.3\n500,0.1,0.2,\n", "line 2: column B is empty"),
+        ("-5,0.1,0.2,0.3\n500,0.1,0.2,0.3\n", "line 1: wavelength -5.0 nm is not positive"),
+        ("400,1,2,3\n405,1,2,3\n415,1,2,3\n", "line 3: wavelength step 10 nm where the table's step is 5 nm"),
+        ("400,1,2,nan\n405,1,2,3\n", "line 1: column B is not finite"),
+        ("", "0 QE row"),
     ]:
         p.write_text(body)
         with pytest.raises(ColourDataError, match=match) as info:
@@ -113,6 +119,10 @@ def test_sed_reader_errors(tmp_path):
         ("S3.5/2", 63.5, None),
         ("G8III-IV", 48.0, 3),
         ("sgK0", 50.0, 4),
+        ("K0+III", 50.0, 3),
+        ("M2+IIab", 62.0, 2),
+        ("K0III+B9V", 50.0, 3),
+        ("F5 V + G0", 35.0, 5),
     ],
 )
 def test_parse_mk(text, temp, lum):
@@ -137,6 +147,9 @@ def test_template_names_and_rules():
     assert match_template(parse_mk("K0V"), templates) == "k0v"
     assert match_template(parse_mk("K0"), templates) is None  # cool star without luminosity: B-V lookup
     assert match_template(parse_mk("F5"), templates) == "f5v"
+    # the star's own class first (seed 000 table 4): O9.5 II -> O9 V, although B0 I is as near
+    assert match_template(parse_mk("O9.5II"), templates) == "o9v"
+    assert match_template(parse_mk("B0Ia"), templates) == "b0i"
 
 
 def test_shipped_model_works_without_spectra(tmp_path):
@@ -171,10 +184,42 @@ def test_default_qe_is_the_documented_model():
     assert qe.g[i850] / qe.r[i850] > 0.9  # no IR cut: dyes transparent in the NIR
 
 
+def test_qe_models_by_name(tmp_path):
+    assert [load_qe(name).name for name in QE_MODELS] == list(QE_MODELS)
+    assert load_qe(None).name == "mt9p031_like"
+    with pytest.raises(ColourDataError, match="neither a shipped QE model"):
+        load_qe("em2012")
+    cut, free = load_qe("mt9p031_like_ircut"), default_qe()
+    i850 = np.searchsorted(cut.wavelength_nm, 850)
+    assert cut.r[i850] < 1e-6 < free.r[i850]  # the IR-cut filter removes the NIR pass-band
+    # a CSV that only shares a shipped model's name does not borrow its shipped template ratios
+    fake = tmp_path / "em2013.csv"
+    fake.write_text("400,0.1,0.2,0.3\n405,0.1,0.2,0.3\n")
+    with pytest.raises(ColourDataError, match="needs the Pickles spectra"):
+        ColourModel(qe=load_qe_csv(fake), pickles_dir=tmp_path / "absent")
+
+
+def test_em2013_model_reproduces_table4_without_spectra(tmp_path):
+    """Seed 000 table 4 catalog ratios of Orion's belt (BSC5 MK types), within 0.03."""
+    model = ColourModel(qe=load_qe("em2013"), pickles_dir=tmp_path / "absent")
+    belt = {"O9.5II": (0.652, 1.232), "B0Ia": (0.674, 1.161), "O9.7Ib": (0.652, 1.232)}
+    rg, bg, src, tmpl = model.star_ratios(list(belt), np.full(3, np.nan))
+    assert list(tmpl) == ["o9v", "b0i", "o9v"]  # delta and zeta share a template, epsilon differs
+    paper = np.array(list(belt.values()))
+    assert np.abs(np.column_stack([rg, bg]) - paper).max() < 0.03
+    base = ColourModel(pickles_dir=tmp_path / "absent")
+    rg0, bg0, _, _ = base.star_ratios(list(belt), np.full(3, np.nan))
+    assert np.abs(np.column_stack([rg0, bg0]) - paper).max() > 0.1  # the default model does not
+
+
 def test_pickles_model_reproduces_shipped_ratios_and_bv_fit(shared_data):
+    for name in QE_MODELS:  # every shipped model's template ratios are what its spectra give
+        other = ColourModel(qe=load_qe(name), pickles_dir=shared_data / "pickles")
+        for row in shipped_template_table()[::10]:
+            assert other.template_ratios(row["template"]) == pytest.approx(
+                (row[f"rg_{name}"], row[f"bg_{name}"]), rel=1e-5
+            )
     model = ColourModel(pickles_dir=shared_data / "pickles")
-    for row in shipped_template_table()[::10]:
-        assert model.template_ratios(row["template"]) == pytest.approx((row["rg_default"], row["bg_default"]), rel=1e-5)
     assert max(model.bv_lookup.rms_ln) < 0.06 and max(model.vi_lookup.rms_ln) < 0.06  # ln-ratio rms of the quartics
     # alpha Ori (M2I): a 3540 K blackbody misses the template by more than the colour noise 0.02 (seed 000 fig. 6)
     rg_t, bg_t = model.template_ratios("m2i")

@@ -8,8 +8,8 @@ maps to it (:func:`ground.catalog.colour.match_template`, at least ``MIN_STARS``
   within 10 arcsec and 0.5 mag (:func:`ground.catalog.build.borrow_mk_types`).
 
 So the lookups of :class:`ColourModel` are calibrated on the same colour scales they are applied
-to. The default-QE colour ratios of every template let the lookups work on machines without the
-spectra. Run:
+to. The colour ratios of every template for each shipped QE model (``QE_MODELS``) let the lookups
+work on machines without the spectra. Run:
 
     python tools/fit_pickles_bv.py /work/shared/data/bsc5/catalog.dat /work/shared/data/pickles
 """
@@ -24,14 +24,15 @@ import numpy as np
 from ground.atomic_write import write_text
 from ground.catalog.build import borrow_mk_types
 from ground.catalog.colour import (
+    QE_MODELS,
     ColourModel,
-    default_qe,
     match_template,
     parse_mk,
     photon_signals,
     pickles_templates,
     ratios_from_signals,
     read_sed,
+    shipped_qe,
 )
 from ground.catalog.sources import read_bsc5, read_hipparcos
 
@@ -63,26 +64,29 @@ def main(argv=None) -> int:
     hip = read_hipparcos(epoch=2000.0)
     hip, _ = borrow_mk_types(hip.subset(hip.vmag <= HIP_V_LIMIT), args.bsc5, 2000.0)
     vis = median_by_template(hip.sptype, hip.vi, templates)
-    qe = default_qe()
+    qes = [shipped_qe(name) for name in QE_MODELS]
     lines = [
         "# Pickles (1998) solar-metallicity templates: median Yale BSC5 B-V and median Hipparcos V-I of the stars",
-        f"# whose MK type maps to each (blank if fewer than {MIN_STARS}); Lambda_rg/Lambda_bg for the default QE.",
+        f"# whose MK type maps to each (blank if fewer than {MIN_STARS}); Lambda_rg/Lambda_bg per shipped QE model.",
         "# Made by tools/fit_pickles_bv.py.",
-        "template,bv,n_bv,vi,n_vi,rg_default,bg_default",
+        "template,bv,n_bv,vi,n_vi," + ",".join(f"rg_{q.name},bg_{q.name}" for q in qes),
     ]
     for name in sorted(templates):
         bv, nb = bvs.get(name, (np.nan, 0))
         vi, nv = vis.get(name, (np.nan, 0))
-        rg, bg = ratios_from_signals(photon_signals(qe, *read_sed(args.pickles_dir / f"{name}.sed")))
+        sed = read_sed(args.pickles_dir / f"{name}.sed")
+        ratios = [ratios_from_signals(photon_signals(qe, *sed)) for qe in qes]
         bv_text = f"{bv:.3f}" if nb >= MIN_STARS else ""
         vi_text = f"{vi:.3f}" if nv >= MIN_STARS else ""
-        lines.append(f"{name},{bv_text},{nb},{vi_text},{nv},{rg:.6f},{bg:.6f}")
+        lines.append(f"{name},{bv_text},{nb},{vi_text},{nv}," + ",".join(f"{rg:.6f},{bg:.6f}" for rg, bg in ratios))
     write_text(args.out, "\n".join(lines) + "\n")
-    model = ColourModel(qe=qe, pickles_dir=args.pickles_dir)
-    for lk in (model.bv_lookup, model.vi_lookup):
-        print(
-            f"{lk.index} lookup: range {lk.lo:.3f} .. {lk.hi:.3f}, rms ln(rg) {lk.rms_ln[0]:.4f}, ln(bg) {lk.rms_ln[1]:.4f}"
-        )
+    for qe in qes:
+        model = ColourModel(qe=qe, pickles_dir=args.pickles_dir)
+        for lk in (model.bv_lookup, model.vi_lookup):
+            print(
+                f"{qe.name} {lk.index} lookup: range {lk.lo:.3f} .. {lk.hi:.3f}, "
+                f"rms ln(rg) {lk.rms_ln[0]:.4f}, ln(bg) {lk.rms_ln[1]:.4f}"
+            )
     print(f"wrote {args.out}")
     return 0
 

@@ -3,7 +3,7 @@
 Stars are ordered by right ascension (Dong et al. sec. 1.2): the pattern stars (``V <= m_thresh``,
 and the fainter ones :func:`promote_sparse` adds where the sky is sparse) first, then the
 verification-only stars (``V <= m_verify``), which have no pairs. Per-star provenance (colour source,
-Pickles template) and the selection counts go into ``OnboardCatalog.meta``.
+Pickles template), the selection counts and the BSC5 MK cross-match report go into ``OnboardCatalog.meta``.
 """
 
 from __future__ import annotations
@@ -16,8 +16,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from firmware_model.catalog.onboard import OnboardCatalog, chord_of_angle
-from ground.catalog.colour import SHARED_DATA, ColourModel, ColourSource, default_qe, load_qe_csv
+from ground.catalog.colour import SHARED_DATA, ColourModel, ColourSource, load_qe, parse_mk
 from ground.catalog.design import CatalogDesign, DesignError
+from ground.catalog.mk_crossmatch import MkCrossMatch, cross_match_mk
 from ground.catalog.sources import StarTable, read_bsc5, read_hipparcos, select_stars
 
 DEFAULT_BSC5 = SHARED_DATA / "bsc5" / "catalog.dat"
@@ -33,20 +34,21 @@ def load_source(design: CatalogDesign) -> StarTable:
     return read_bsc5(path, epoch=design.epoch)
 
 
-MK_MATCH_RADIUS = np.radians(10.0 / 3600.0)
-MK_MATCH_DMAG = 0.5
-
-
-def borrow_mk_types(sel: StarTable, bsc5_path: str | Path, epoch: float) -> tuple[StarTable, int]:
-    """Give stars without an MK type the type of the BSC5 star within 10 arcsec and 0.5 mag."""
-    bsc = read_bsc5(bsc5_path, epoch=epoch)
-    dist, idx = cKDTree(bsc.vec).query(sel.vec, distance_upper_bound=MK_MATCH_RADIUS)
-    ok = np.isfinite(dist)
-    ok[ok] &= np.abs(bsc.vmag[idx[ok]] - sel.vmag[ok]) < MK_MATCH_DMAG
-    ok &= sel.sptype == ""
+def borrow_mk_types(sel: StarTable, bsc5_path: str | Path, epoch: float) -> tuple[StarTable, MkCrossMatch]:
+    """Give the stars without an MK type the parseable type of their one-to-one BSC5 match
+    (:func:`~ground.catalog.mk_crossmatch.cross_match_mk`: within 10 arcsec and 0.5 mag);
+    returns the updated table and the cross-match report."""
+    path = Path(bsc5_path)
+    if not path.is_file():
+        raise DesignError(f"mk_types_path = {str(path)!r}: BSC5 catalog.dat not found")
+    bsc = read_bsc5(path, epoch=epoch)
+    untyped = np.flatnonzero(sel.sptype == "")
+    row, report = cross_match_mk(sel.subset(untyped), bsc)
+    types = np.where(row >= 0, bsc.sptype[row], "")
+    usable = np.array([parse_mk(t) is not None for t in types], dtype=bool)
     sptype = sel.sptype.copy()
-    sptype[ok] = bsc.sptype[idx[ok]]
-    return replace(sel, sptype=sptype), int(ok.sum())
+    sptype[untyped[usable]] = types[usable]
+    return replace(sel, sptype=sptype), report
 
 
 def promote_sparse(vec: np.ndarray, vmag: np.ndarray, pattern: np.ndarray, radius: float, per_cap: int) -> np.ndarray:
@@ -68,9 +70,15 @@ def promote_sparse(vec: np.ndarray, vmag: np.ndarray, pattern: np.ndarray, radiu
 
 
 def colour_model(design: CatalogDesign) -> ColourModel:
-    """The design's detector colour model (shipped MT9P031-like QE unless ``qe_path``)."""
-    qe = load_qe_csv(design.qe_path) if design.qe_path else default_qe()
+    """The design's detector colour model (a shipped model or CSV named by ``qe_path``; default
+    the MT9P031-like model)."""
+    qe = load_qe(design.qe_path)
     return ColourModel(qe=qe, pickles_dir=Path(design.pickles_dir)) if design.pickles_dir else ColourModel(qe=qe)
+
+
+def colour_source_counts(src: np.ndarray) -> dict[str, int]:
+    """Stars per :class:`ColourSource` name."""
+    return {s.name: int((src == s).sum()) for s in ColourSource}
 
 
 def build_catalog(
@@ -94,8 +102,10 @@ def build_catalog(
     sel = sel.subset(np.concatenate([np.flatnonzero(pattern), np.flatnonzero(~pattern)]))
     stats["selected"], stats["promoted_sparse"] = n_pattern, int(promoted.sum())
     stats["verification_only"] = len(sel) - n_pattern
+    crossmatch = None
     if design.mk_types_path:
-        sel, stats["mk_types_borrowed"] = borrow_mk_types(sel, design.mk_types_path, design.epoch)
+        sel, report = borrow_mk_types(sel, design.mk_types_path, design.epoch)
+        stats["mk_types_borrowed"], crossmatch = report.borrowed, report.summary()
     colours = colours or colour_model(design)
     rg, bg, src, tmpl = colours.star_ratios(sel.sptype, sel.bv, sel.vi)
     meta = {
@@ -105,7 +115,12 @@ def build_catalog(
         "selection": stats,
         "qe": colours.qe.name,
         "colour_source": src,
-        "colour_source_counts": {s.name: int((src == s).sum()) for s in ColourSource},
+        "colour_source_counts": colour_source_counts(src),
+        "colour_source_split": {
+            "pattern": colour_source_counts(src[:n_pattern]),
+            "verification_only": colour_source_counts(src[n_pattern:]),
+        },
+        "mk_crossmatch": crossmatch,
         "template": tmpl,
         "bv": sel.bv,
         "variable": sel.variable,
@@ -143,6 +158,8 @@ def summary(cat: OnboardCatalog) -> dict:
         "dphi_star_deg": round(float(np.degrees(cat.dphi_star)), 9),
         "selection": cat.meta.get("selection"),
         "colour_source_counts": cat.meta.get("colour_source_counts"),
+        "colour_source_split": cat.meta.get("colour_source_split"),
+        "mk_crossmatch": cat.meta.get("mk_crossmatch"),
         "qe": cat.meta.get("qe"),
         "build_seconds": round(cat.meta.get("build_seconds", float("nan")), 3),
     }

@@ -35,6 +35,9 @@ BV_PHYSICAL_MIN = -0.5  # B-V below this is not a stellar colour (Ballesteros T 
 SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 DEFAULT_PICKLES_DIR = SHARED_DATA / "pickles"
 DEFAULT_QE_NAME = "mt9p031_like"
+#: detector responses shipped as ``data/qe_<name>.csv``, each with its template ratios in
+#: ``data/pickles_templates.csv`` (docs/catalog.md says what each assumes)
+QE_MODELS = ("mt9p031_like", "mt9p031_like_ircut", "em2013")
 
 
 class ColourDataError(ValueError):
@@ -95,12 +98,13 @@ class QETable:
 
 
 def load_qe_csv(path: str | Path, name: str | None = None, percent: bool | None = None) -> QETable:
-    """Read ``wavelength_nm, R, G, B`` rows (``#`` comments and one header line allowed).
+    """Read ``wavelength_nm, R, G, B`` rows (``#`` comments and one header line allowed), on one
+    wavelength step; a row that breaks this is named (line, column, value).
 
     Values above 1.5 anywhere are taken as percent (``percent=None``) and divided by 100.
     """
     path = Path(path)
-    rows, header_seen, comments = [], False, []
+    rows, lines, header_seen, comments = [], [], False, []
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as exc:
@@ -117,29 +121,77 @@ def load_qe_csv(path: str | Path, name: str | None = None, percent: bool | None 
             raise ColourDataError(
                 f"{path}: line {lineno}: expected 4 columns (wavelength_nm,R,G,B), got {len(parts)}: {s!r}"
             )
+        missing = [c for c, p in zip(("wavelength", "R", "G", "B"), parts) if not p]
+        if missing:
+            raise ColourDataError(f"{path}: line {lineno}: column {missing[0]} is empty: {s!r}")
         try:
             rows.append([float(p) for p in parts])
         except ValueError:
             if rows or header_seen:
                 raise ColourDataError(f"{path}: line {lineno}: not numeric: {s!r}") from None
             header_seen = True
-    if not rows:
-        raise ColourDataError(f"{path}: no QE rows")
+            continue
+        lines.append(lineno)
+    if len(rows) < 2:
+        raise ColourDataError(f"{path}: {len(rows)} QE row(s); at least two are needed")
     a = np.array(rows)
+    _check_rows(path, a, lines)
     if percent is None:
         percent = bool(a[:, 1:].max() > 1.5)
     if percent:
         a[:, 1:] /= 100.0
-    try:
-        return QETable(a[:, 0], a[:, 1], a[:, 2], a[:, 3], name=name or path.stem, provenance="; ".join(comments))
-    except ColourDataError as exc:
-        raise ColourDataError(f"{path}: {exc}") from None
+    return QETable(a[:, 0], a[:, 1], a[:, 2], a[:, 3], name=name or path.stem, provenance="; ".join(comments))
+
+
+def _check_rows(path: Path, a: np.ndarray, lines: list[int]) -> None:
+    """Finite, non-negative values on positive wavelengths increasing by one step (1 % slack)."""
+    bad = ~np.isfinite(a)
+    if bad.any():
+        k, c = np.argwhere(bad)[0]
+        raise ColourDataError(f"{path}: line {lines[k]}: column {'wRGB'[c]} is not finite ({a[k, c]})")
+    if a[0, 0] <= 0:
+        raise ColourDataError(f"{path}: line {lines[0]}: wavelength {a[0, 0]} nm is not positive")
+    neg = np.argwhere(a[:, 1:] < 0)
+    if len(neg):
+        k, c = neg[0]
+        raise ColourDataError(f"{path}: line {lines[k]}: {'RGB'[c]} is negative ({a[k, c + 1]})")
+    step = np.diff(a[:, 0])
+    k = int(np.argmax(step <= 0)) if (step <= 0).any() else None
+    if k is not None:
+        raise ColourDataError(
+            f"{path}: line {lines[k + 1]}: wavelength {a[k + 1, 0]} nm does not increase from {a[k, 0]} nm"
+        )
+    off = np.flatnonzero(np.abs(step - step[0]) > 0.01 * step[0])
+    if len(off):
+        k = int(off[0])
+        raise ColourDataError(
+            f"{path}: line {lines[k + 1]}: wavelength step {step[k]:g} nm where the table's step is "
+            f"{step[0]:g} nm (resample every channel to one step)"
+        )
+
+
+def shipped_qe(name: str = DEFAULT_QE_NAME) -> QETable:
+    """One of the shipped detector models ``QE_MODELS`` (see docs/catalog.md for what each assumes)."""
+    if name not in QE_MODELS:
+        raise ColourDataError(f"unknown QE model {name!r}; shipped models: {', '.join(QE_MODELS)}")
+    with resources.as_file(resources.files("ground.catalog").joinpath(f"data/qe_{name}.csv")) as p:
+        return load_qe_csv(p, name=name, percent=False)
 
 
 def default_qe() -> QETable:
-    """The shipped MT9P031-like colour CMOS model (see docs/catalog.md for what is assumed)."""
-    with resources.as_file(resources.files("ground.catalog").joinpath(f"data/qe_{DEFAULT_QE_NAME}.csv")) as p:
-        return load_qe_csv(p, name=DEFAULT_QE_NAME, percent=False)
+    """The shipped MT9P031-like colour CMOS model, no IR-cut filter (the ST-16's)."""
+    return shipped_qe(DEFAULT_QE_NAME)
+
+
+def load_qe(spec: str | Path | None) -> QETable:
+    """A shipped model by name, a ``wavelength_nm,R,G,B`` CSV by path, or the default (None)."""
+    if spec is None or spec == "":
+        return default_qe()
+    if str(spec) in QE_MODELS:
+        return shipped_qe(str(spec))
+    if not Path(spec).exists():
+        raise ColourDataError(f"{spec}: neither a shipped QE model ({', '.join(QE_MODELS)}) nor a file")
+    return load_qe_csv(spec)
 
 
 # --- spectra ---------------------------------------------------------------------------------------
@@ -201,10 +253,13 @@ def parse_mk(text: str) -> MKType | None:
     """Primary component's class, subclass and luminosity from an MK string, or None.
 
     Handles Mount Wilson prefixes (d, sd, sg, g, c), Am notation (the hydrogen ``h`` type is used),
-    ranges (``M1-M2Ia-Iab`` -> M1, I) and composites (first component). S stars are treated as M;
+    ranges (``M1-M2Ia-Iab`` -> M1, I), composites (first component of ``K0III+B9V``) and the
+    half-subclass ``+`` (``K0+III`` -> K0 III). S stars are treated as M;
     carbon (C, N, R), Wolf-Rayet (W) and white dwarfs (D) give None.
     """
-    s = text.strip().split("+")[0].strip()
+    # "+" before a class letter joins a composite's components; before anything else (K0+III)
+    # it is "a little later" within the subclass, which the template choice does not resolve
+    s = re.split(r"\+(?=\s*(?:sd|sg|d|g|c)?[OBAFGKMSCNRWD])", text.strip())[0].replace("+", "").strip()
     if not s:
         return None
     prefix_lum = None
@@ -250,7 +305,9 @@ def luminosity_weight(temp_index: float) -> float:
 
 
 def match_template(mk: MKType, templates: dict[str, MKType]) -> str | None:
-    """Nearest template: ``|d temp_index| + w * |d lum|``; ties go to the first name in sorted order.
+    """Nearest template of the star's own class letter when the library has one (O9.5 II -> O9 V,
+    not B0 I: the assignment behind seed 000 table 4), by ``|d temp_index| + w * |d lum|``; ties
+    go to the first name in sorted order.
 
     A missing luminosity class is taken as V for O-F stars; for G-M stars it is too important to
     guess, and the star falls back to the B-V lookup (None).
@@ -261,6 +318,8 @@ def match_template(mk: MKType, templates: dict[str, MKType]) -> str | None:
             return None
         lum = 5
     w = luminosity_weight(mk.temp_index)
+    own_class = {n: t for n, t in templates.items() if t.temp_index // 10 == mk.temp_index // 10}
+    templates = own_class or templates
     best, best_cost = None, np.inf
     for name in sorted(templates):
         t = templates[name]
@@ -348,12 +407,13 @@ def _shipped_template_type(name: str) -> MKType:
 
 
 def shipped_template_table() -> list[dict]:
-    """Rows of ``data/pickles_templates.csv``: template, bv, vi, star counts, rg/bg for the default QE."""
+    """Rows of ``data/pickles_templates.csv``: template, bv, vi, star counts, rg/bg per shipped QE model."""
     text = resources.files("ground.catalog").joinpath("data/pickles_templates.csv").read_text()
     rows = list(csv.DictReader(line for line in text.splitlines() if not line.startswith("#")))
     for r in rows:
-        for k in ("bv", "vi", "rg_default", "bg_default"):
-            r[k] = float(r[k]) if r[k] else np.nan
+        for k in r:
+            if k != "template" and not k.startswith("n_"):
+                r[k] = float(r[k]) if r[k] else np.nan
     return rows
 
 
@@ -391,12 +451,16 @@ class IndexLookup:
         return np.isfinite(x) & (x >= self.lo) & (x <= self.hi)
 
 
+def _same_qe(a: QETable, b: QETable) -> bool:
+    return all(np.array_equal(x, y) for x, y in zip((a.wavelength_nm, a.r, a.g, a.b), (b.wavelength_nm, b.r, b.g, b.b)))
+
+
 @dataclass
 class ColourModel:
     """Colour ratios for one detector: Pickles templates by MK type, colour-index lookups, blackbody.
 
-    Without ``pickles_dir`` on disk, only the default QE can be used (its template ratios are
-    shipped); any other QE needs the spectra.
+    Without ``pickles_dir`` on disk, only the shipped QE models can be used (their template ratios
+    are shipped); any other QE needs the spectra.
     """
 
     qe: QETable = field(default_factory=default_qe)
@@ -413,12 +477,16 @@ class ColourModel:
             )
         spectra = self.pickles_dir if self.pickles_dir is not None and Path(self.pickles_dir).is_dir() else None
         self._have_spectra = spectra is not None
-        shipped_ok = self.qe.name == DEFAULT_QE_NAME and self.band == default_qe().band
+        rows = shipped_template_table()
+        shipped_ok = (
+            f"rg_{self.qe.name}" in rows[0]
+            and _same_qe(self.qe, shipped_qe(self.qe.name))
+            and self.band == self.qe.band
+        )
         if not self._have_spectra and not shipped_ok:
             raise ColourDataError(
                 f"QE table {self.qe.name} needs the Pickles spectra, but {self.pickles_dir} is missing"
             )
-        rows = shipped_template_table()
         self._templates = (
             pickles_templates(spectra)
             if spectra is not None
@@ -426,7 +494,8 @@ class ColourModel:
         )
         self._cache: dict[str, tuple[float, float]] = {}
         if not self._have_spectra:
-            self._cache = {r["template"]: (r["rg_default"], r["bg_default"]) for r in rows}
+            name = self.qe.name
+            self._cache = {r["template"]: (r[f"rg_{name}"], r[f"bg_{name}"]) for r in rows}
         self.bv_lookup = self._fit_lookup(rows, "bv")
         self.vi_lookup = self._fit_lookup(rows, "vi")
 

@@ -49,7 +49,7 @@ class CatalogDesign:
     epoch: float = 2025.0  # Julian year of the catalog positions
     source: str = "hipparcos"
     source_path: str | None = None  # None: bundled Hipparcos / ../shared BSC5
-    qe_path: str | None = None  # None: shipped MT9P031-like model
+    qe_path: str | None = None  # a shipped QE model's name (QE_MODELS) or a CSV path; None: mt9p031_like
     pickles_dir: str | None = None  # None: ../shared/data/pickles
     mk_types_path: str | None = None  # BSC5 catalog.dat lending MK types to Hipparcos stars (cross-match)
     resolve_deg: float | None = None  # double-star merge angle; default phi_min
@@ -177,6 +177,14 @@ class CatalogDesign:
         need(isinstance(self.n_h, int) and 1 <= self.n_h <= 1 << 24, "n_h", "must be an integer in [1, 2^24]")
         need(1900 <= self.epoch <= 2200, "epoch", "must be a Julian year in [1900, 2200]")
         need(self.source in SOURCES, "source", f"must be one of {SOURCES}")
+        if self.qe_path is not None:
+            from ground.catalog.colour import QE_MODELS  # numpy/scipy: not at import (CLI start-up)
+
+            need(
+                self.qe_path in QE_MODELS or Path(self.qe_path).is_file(),
+                "qe_path",
+                f"must be a shipped QE model ({', '.join(QE_MODELS)}) or an existing CSV file",
+            )
         if self.phi_min_deg is not None:
             need(self.phi_min_deg >= 0, "phi_min_deg", "must be >= 0")
         if self.phi_max_deg is not None:

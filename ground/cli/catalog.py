@@ -37,6 +37,12 @@ _DESIGN_FLAGS = {
 }
 
 
+_QE_HELP = (
+    "detector colour response: a shipped model (mt9p031_like [default, no IR-cut], mt9p031_like_ircut, "
+    "em2013 [fitted to Enright & McVittie table 4]) or a CSV wavelength_nm,R,G,B on one step (docs/catalog.md)"
+)
+
+
 def _design_args(p) -> None:
     g = p.add_argument_group("design (flags override --design FILE.toml)")
     g.add_argument("--design", help="TOML design file (keys as in CatalogDesign, top level or [design])")
@@ -72,7 +78,7 @@ def _design_args(p) -> None:
     g.add_argument("--phi-max", type=float, help="deg (default 2 theta_FOV)")
     g.add_argument("--n-h", type=int, help="hash index size")
     g.add_argument("--epoch", type=float, help="Julian year of the positions")
-    g.add_argument("--qe", help="QE CSV (wavelength_nm,R,G,B); default the shipped MT9P031-like model")
+    g.add_argument("--qe", help=_QE_HELP)
     g.add_argument("--pickles", help="directory of Pickles .sed spectra")
     g.add_argument("--mk-types", help="BSC5 catalog.dat lending MK types to Hipparcos stars (positional cross-match)")
     g.add_argument("--resolve", type=float, help="double-star merge angle, deg (default phi_min)")
@@ -175,11 +181,11 @@ def _analyze(args) -> int:
 
 
 def _colours(args) -> int:
-    from ground.catalog.colour import ColourDataError, ColourModel, default_qe, load_qe_csv
+    from ground.catalog.colour import ColourDataError, ColourModel, load_qe
     from ground.catalog.colour_plot import plot_colour_ratios
 
     try:
-        qe = load_qe_csv(args.qe) if args.qe else default_qe()
+        qe = load_qe(args.qe)
         model = ColourModel(qe=qe, pickles_dir=Path(args.pickles)) if args.pickles else ColourModel(qe=qe)
         ratios = plot_colour_ratios(model, args.plot)
     except ColourDataError as exc:
@@ -265,7 +271,7 @@ def register(sub) -> None:
     p.set_defaults(func=_analyze)
 
     p = csub.add_parser("colours", help="plot colour ratios against spectral type (Enright & McVittie fig. 7)")
-    p.add_argument("--qe", help="QE CSV; default the shipped MT9P031-like model")
+    p.add_argument("--qe", help=_QE_HELP)
     p.add_argument("--pickles", help="directory of Pickles .sed spectra")
     p.add_argument("--plot", type=output_file, default="colour_ratios.png", help="PNG to write")
     p.set_defaults(func=_colours)
