@@ -30,6 +30,7 @@ STACKS = {
         ("ground.sim",),
         ("ground.calibration",),
         ("ground.analysis", "ground.fuzz"),
+        ("ground.api",),
         ("ground.cli",),
     ],
 }

@@ -266,11 +266,15 @@ class LinkSolver:
                 self._wait_for_device(exc, say, deadline)
 
 
-def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool = True, resume: bool = False) -> dict:
+def replay(
+    directory, solver, out_dir, progress: bool = True, make_plots: bool = True, resume: bool = False, wcs_camera=None
+) -> dict:
     """Solve every frame of ``directory`` with ``solver`` (Link/OfflineSolver); log and summarise.
     Each record is on disk before the next frame starts, so an interrupted run keeps what it
     solved; ``resume`` continues it (frames already logged in ``out_dir`` are skipped). Without
-    ``resume`` an ``out_dir`` that already holds results is refused (ValueError): runs never mix."""
+    ``resume`` an ``out_dir`` that already holds results is refused (ValueError): runs never mix.
+    With ``wcs_camera`` (frame -> CameraModel) every solved frame's WCS goes to
+    ``out_dir/wcs/NAME.wcs`` (``record["wcs"]`` names it)."""
     from ground.link.client import Nack
 
     paths = frame_files(directory)
@@ -309,6 +313,8 @@ def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool =
         record["residuals_arcsec"] = [
             s["residual_arcsec"] for s in matched_stars(record) if s["residual_arcsec"] is not None
         ]
+        if wcs_camera is not None and record["q_icrs_to_sensor"] is not None:
+            record["wcs"] = str(_write_frame_wcs(record, frame, wcs_camera(frame), Path(out_dir) / "wcs" / path.stem))
         log.append(record)
         bar.set_postfix_str(record["outcome"])
         _log.debug("%s: %s", path.name, record["outcome"])
@@ -322,6 +328,13 @@ def replay(directory, solver, out_dir, progress: bool = True, make_plots: bool =
             say(f"plots skipped: {exc}")
     write_text(Path(out_dir) / "summary.json", json.dumps(summary, indent=2))
     return summary
+
+
+def _write_frame_wcs(record: dict, frame: Frame, camera: CameraModel, stem: Path) -> Path:
+    from ground.analysis.wcs import record_wcs, write_wcs
+
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    return write_wcs(stem.with_suffix(".wcs"), record_wcs(record, frame.width, frame.height, camera)[0])
 
 
 # --------------------------------------------------------------------------- table 5 (Enright & McVittie)

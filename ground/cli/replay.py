@@ -1,5 +1,6 @@
 """``st16-ground replay DIR``: every frame of a directory over the link (or ``--offline``
-in-process), scored against ``NAME.truth.json`` when present; log, summary and plots in ``--out``.
+in-process), scored against ``NAME.truth.json`` when present; log, summary and plots in ``--out``
+(``--wcs``: each solved frame's FITS WCS in ``--out``/wcs).
 ``st16-ground table5 DIR``: Enright & McVittie table 5 (basic / ideal colour / chromatic / both) on
 frames with truth.
 """
@@ -12,7 +13,7 @@ from pathlib import Path
 from ground import json_text
 from ground.arg_types import InputError, progress_on
 from ground.cli.offline_options import load_catalog, offline_solver
-from ground.cli.solve import DEFAULT_RESULTS
+from ground.cli.solve import DEFAULT_RESULTS, user_camera
 
 
 def _replay(args) -> int:
@@ -26,7 +27,14 @@ def _replay(args) -> int:
             raise InputError("--port URL is required (or use --offline)")
         solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, **client_kwargs(args))
     try:
-        summary = replay(args.directory, solver, args.out, progress=progress_on(args), resume=args.resume)
+        summary = replay(
+            args.directory,
+            solver,
+            args.out,
+            progress=progress_on(args),
+            resume=args.resume,
+            wcs_camera=(lambda frame: user_camera(args, frame)) if args.wcs else None,
+        )
     except (ValueError, TimeoutError) as exc:
         print(f"st16-ground: {exc}", file=sys.stderr)
         return 1
@@ -76,6 +84,7 @@ def register(sub) -> None:
         "holds results is refused",
     )
     p.add_argument("--reconnect-timeout", type=float, default=120.0, help="wait this long for a silent device, s")
+    p.add_argument("--wcs", action="store_true", help="write each solved frame's FITS WCS to OUT/wcs/NAME.wcs")
     p.set_defaults(func=_replay)
 
     p = sub.add_parser("table5", help="Enright & McVittie table 5 on frames with truth (offline)")

@@ -1,6 +1,11 @@
 """``st16-ground solve [--frame FILE]``: upload the frame (or let the device capture), GO, print the
 decoded result (``--json`` for the full record) and append it to the results log; ``--offline``
-solves in-process with the same pipeline and parameter file.
+solves in-process with the same pipeline and parameter file. ``--wcs FILE`` writes the solved
+frame's FITS WCS (TAN-SIP, docs/wcs.md).
+
+``st16-ground solve-file FRAME``: one image offline, no device and no log: a catalog for the field
+is built when ``--catalog`` is not given; ``--wcs`` and ``--overlay`` (a PNG naming each identified
+star) as wanted.
 """
 
 from __future__ import annotations
@@ -10,7 +15,7 @@ import time
 from pathlib import Path
 
 from ground import json_text
-from ground.arg_types import InputError, progress_on
+from ground.arg_types import InputError, output_file, progress_on
 from ground.cli.offline_options import offline_solver
 
 DEFAULT_RESULTS = "st16-results"
@@ -52,9 +57,79 @@ def _solve(args) -> int:
         rec.update(score(rec, Truth.for_frame(args.frame, frame)))
     ResultsLog(args.out).append(rec)
     _print_record(rec, args.json)
+    if args.wcs and frame is not None:
+        _write_wcs(args.wcs, rec, frame, user_camera(args, frame))
+    return _exit_code(rec)
+
+
+def _exit_code(rec: dict) -> int:
     if rec["q_icrs_to_sensor"] is None:
         return 3
     return 0 if rec["status"] == "OK" else 1  # an attitude that is not high confidence: use with care
+
+
+def user_camera(args, frame):
+    """The camera the options name for this frame (None: the device's, reported by the record)."""
+    if not (getattr(args, "camera", None) or getattr(args, "fov_deg", None)):
+        return None
+    from ground.cli.offline_options import camera_for_frames
+
+    return camera_for_frames(args)(frame)
+
+
+def _write_wcs(path, rec: dict, frame, camera) -> None:
+    """Write the frame's WCS, or say in one line why there is none (the record is kept either way)."""
+    from ground.analysis.wcs import WcsError, record_wcs, write_wcs
+
+    try:
+        wcs, err = record_wcs(rec, frame.width, frame.height, camera)
+        write_wcs(path, wcs)
+    except WcsError as exc:
+        print(f"st16-ground: --wcs {path} not written: {exc}", file=sys.stderr)
+        return
+    print(f"wcs: {path} (TAN{'-SIP' if wcs.sip is not None else ''}, {err:.3f} px from the camera model)")
+
+
+def _solve_file(args) -> int:
+    from firmware_model.pipeline.frame_readers import FrameReadError, read_frame
+    from ground.analysis.replay import OfflineSolver
+    from ground.cli.offline_options import camera_for_frames, load_catalog, load_params
+
+    if args.catalog is None and args.fov_deg is None and args.camera is None:
+        raise InputError("solve-file needs --fov-deg (or --camera) to build a catalog for the field, or --catalog")
+    camera_of = camera_for_frames(args)
+    params = load_params(args.params)
+    try:
+        frame = read_frame(args.frame)
+    except FrameReadError as exc:
+        raise InputError(str(exc)) from None
+    camera = camera_of(frame)
+    if args.catalog:
+        try:
+            catalog = load_catalog(args.catalog)
+        except (OSError, ValueError) as exc:
+            raise InputError(f"--catalog {args.catalog}: {exc}") from None
+    else:
+        from ground.api import catalog_for_field
+
+        catalog = catalog_for_field(camera.width, camera.height, round(_horizontal_fov_deg(camera), 2))
+    rec = OfflineSolver(camera, catalog, params).solve(frame)
+    rec["frame"] = Path(args.frame).name
+    _print_record(rec, args.json)
+    if args.wcs:
+        _write_wcs(args.wcs, rec, frame, camera)
+    if args.overlay:
+        from ground.analysis.frame_plot import plot_identified
+
+        label = "HR" if catalog.meta.get("source") == "bsc5" else "HIP"
+        print(f"overlay: {plot_identified(frame, rec, args.overlay, label=label)}")
+    return _exit_code(rec)
+
+
+def _horizontal_fov_deg(camera) -> float:
+    import math
+
+    return math.degrees(2.0 * math.atan(camera.width / 2.0 / camera.f))
 
 
 def _solve_on_device(args, frame):
@@ -82,4 +157,14 @@ def register(sub) -> None:
     add_params_option(p)
     p.add_argument("--out", default=DEFAULT_RESULTS, help="results log directory (JSONL + CSV)")
     p.add_argument("--reconnect-timeout", type=float, default=30.0, help="wait this long for a silent device, s")
+    p.add_argument("--wcs", type=output_file, help="write the solved frame's FITS WCS (TAN-SIP) here")
     p.set_defaults(func=_solve)
+
+    p = sub.add_parser("solve-file", help="solve one image offline (no device): attitude, WCS, labelled overlay")
+    p.add_argument("frame", help="image file (DNG/raw, FITS, TIFF, PNG/JPEG, .npy)")
+    p.add_argument("--catalog", help="catalog image (default: built for the field from --fov-deg / --camera)")
+    add_camera_options(p)
+    add_params_option(p)
+    p.add_argument("--wcs", type=output_file, help="write the FITS WCS (TAN-SIP) here")
+    p.add_argument("--overlay", type=output_file, help="write a PNG with each identified star labelled")
+    p.set_defaults(func=_solve_file)
