@@ -2,7 +2,8 @@
 
 ``sim colour``: spiral boresights x rolls on the reference array, Enright & McVittie eqs 19-21 noise; prints
 the table 3 breakdown next to the paper's figures and writes rows (.npy), summary (.json), the
-error CDF (fig. 9) and the Mollweide map (fig. 10). ``sim fourstar``: Dong et al.'s 5 deg grid at one or
+error CDF (fig. 9) and the Mollweide map (fig. 10); ``--true-colours``, ``--gain-error`` and
+``--scintillation`` observe colours the catalog did not predict (open loop, issue 13). ``sim fourstar``: Dong et al.'s 5 deg grid at one or
 more tolerances. Both run on local cores (``--workers``) or a Dask cluster (``--scheduler``).
 """
 
@@ -13,11 +14,15 @@ import sys
 from pathlib import Path
 
 from ground import json_text
-from ground.arg_types import SEED, SENSOR_PX, progress_on
+from ground.arg_types import SEED, SENSOR_PX, progress_on, ranged
 from ground.atomic_write import atomic_path, write_text
 from ground.optional import MissingExtra
 
 log = logging.getLogger(__name__)
+
+#: Open-loop colour impairments (``ground.sim.true_colours`` bounds), refused before any work.
+GAIN_ERROR = ranged(float, 0.0, 0.5, "a gain error")
+SCINTILLATION = ranged(float, 0.0, 1.0, "a scintillation sigma")
 
 #: Enright & McVittie section 5.2 (table 3, fig. 9) for 1e6 poses.
 PAPER_COLOUR = {
@@ -68,6 +73,25 @@ def register(subparsers) -> None:
         action="store_true",
         help="mono frames, solved as the device does: geometric (4-star, triangle) matching, then consensus on geometry alone",
     )
+    c.add_argument(
+        "--true-colours",
+        choices=("catalog", "blackbody"),
+        default="catalog",
+        help="where the observed colours come from: the catalog's own (closed loop) or a Planck "
+        "spectrum at the Ballesteros T(B-V) through the catalog's QE",
+    )
+    c.add_argument(
+        "--gain-error",
+        type=GAIN_ERROR,
+        default=0.0,
+        help="per-frame channel gain error: g_r/g_g and g_b/g_g each 1 +- this (random sign), 0-0.5",
+    )
+    c.add_argument(
+        "--scintillation",
+        type=SCINTILLATION,
+        default=0.0,
+        help="per-star, per-channel log-normal signal sigma (fraction), 0-1",
+    )
     _common(c)
     c.set_defaults(func=run_colour)
     f = sub.add_parser("fourstar", help="Dong et al. 4-star matching test on a 5 deg grid")
@@ -94,6 +118,7 @@ def run_colour(args) -> int:
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign, DesignError
     from ground.sim import whole_sky as skysim
+    from ground.sim.true_colours import TrueColours
 
     try:
         design = CatalogDesign(
@@ -118,7 +143,13 @@ def run_colour(args) -> int:
         n_roll=args.rolls,
         seed=args.seed,
         colour=not args.mono,
-        model=skysim.ErrorModel(args.sigma_pix, args.sigma_colour, args.false_stars, args.drop),
+        model=skysim.ErrorModel(
+            args.sigma_pix,
+            args.sigma_colour,
+            args.false_stars,
+            args.drop,
+            TrueColours(args.true_colours, args.gain_error, args.scintillation),
+        ),
     )
     n = args.boresights * args.rolls
     rows, wall = skysim.execute(
@@ -138,6 +169,9 @@ def run_colour(args) -> int:
         wall_seconds=wall,
         catalog_stars=catalog.n_stars,
         catalog_pairs=catalog.n_pairs,
+        true_colours=args.true_colours,
+        gain_error=args.gain_error,
+        scintillation=args.scintillation,
         workers=args.workers,
         scheduler=args.scheduler,
     )
@@ -154,6 +188,7 @@ def run_colour(args) -> int:
     lines = [
         f"{n} poses ({args.boresights} boresights x {args.rolls} rolls), {catalog.n_stars} stars, "
         f"{catalog.n_pairs} pairs; {wall:.1f} s, {n / wall:.0f} poses/s",
+        f"true colours: {args.true_colours}, gain error {args.gain_error:g}, scintillation {args.scintillation:g}",
         f"{'':32s}{'this run':>14s}{'paper (1e6)':>16s}",
     ]
     for key in ("problem_orientations", "no_solution", "poor_match", "incorrect"):

@@ -5,7 +5,9 @@ Enright & McVittie ("colour" run): boresights on Saff & Kuijlaars' generalized s
 that projects onto the array is observed with the error model of eqs 19-21: ``s~ = (s + n)/|s + n|``
 with ``n`` isotropic Gaussian of ``sigma_pix / f`` per axis (so the perpendicular error is
 Gaussian with that sigma per axis) and zero-mean Gaussian colour noise. Optional false stars
-(uniform over the array, colours drawn from the catalog) and dropped stars. The solver's
+(uniform over the array, colours drawn from the catalog) and dropped stars. The noise-free colours
+are the catalog's (closed loop) unless ``ErrorModel.colours`` takes them from another model with
+per-frame channel gains and scintillation (open loop, ``ground.sim.true_colours``). The solver's
 quaternion is scored by eqs 22-23: ``q_err = q_true (x) q_est^-1``, ``phi_err = 2 acos|q_err,s|``.
 
 Dong et al. ("fourstar" run): boresights on a 5 deg RA x Dec grid (72 x 37 = 2664 observations),
@@ -39,6 +41,7 @@ from firmware_model.ident.verify import FieldOfView
 from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, vec_to_radec
 from ground.atomic_write import save_figure
+from ground.sim.true_colours import TrueColours, impair, true_colour_table
 
 STATUS_CODE = {Outcome.NO_MATCH: 0, Outcome.LOW_CONFIDENCE: 1, Outcome.HIGH_CONFIDENCE: 2}
 
@@ -112,12 +115,13 @@ def attitude_error(q_true: np.ndarray, q_est: np.ndarray) -> float:
 @dataclass(frozen=True)
 class ErrorModel:
     """Observation model: centroid noise (px), colour-ratio noise, false stars per frame (Poisson
-    mean), probability of dropping a true star."""
+    mean), probability of dropping a true star, where the noise-free colours come from."""
 
     sigma_pix: float = 0.2
     sigma_colour: float = 0.05
     false_stars: float = 0.0
     p_drop: float = 0.0
+    colours: TrueColours = TrueColours()
 
 
 @dataclass
@@ -138,8 +142,15 @@ def observe(
     model: ErrorModel,
     rng: np.random.Generator,
     colour: bool = True,
+    table: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Scene:
-    """Detections of the catalog stars on the array for attitude ``a`` (eqs 19-21)."""
+    """Detections of the catalog stars on the array for attitude ``a`` (eqs 19-21).
+
+    ``table``: the noise-free (rg, bg) of every catalog star (default: ``true_colour_table`` of
+    ``model.colours.source``; pass it to skip recomputing it per frame). Gains and scintillation
+    draw from a stream spawned off ``rng``, so they leave every other draw of the frame unchanged.
+    """
+    true_rg, true_bg = table if table is not None else true_colour_table(catalog, model.colours.source)
     boresight = a[2]
     near = catalog.stars_within(boresight, _field_radius(camera))
     s = catalog.vec[near] @ a.T
@@ -154,8 +165,7 @@ def observe(
     noisy = s + rng.normal(scale=sigma, size=s.shape)
     noisy /= np.linalg.norm(noisy, axis=1, keepdims=True)
     mag = catalog.mag[idx].astype(float)
-    rg = catalog.rg[idx].astype(float)
-    bg = catalog.bg[idx].astype(float)
+    rg, bg = true_rg[idx], true_bg[idx]
     truth = idx.astype(np.int64)
     n_false = rng.poisson(model.false_stars) if model.false_stars > 0 else 0
     if n_false:
@@ -164,12 +174,14 @@ def observe(
         pick = rng.integers(0, catalog.n_stars, n_false)
         noisy = np.vstack([noisy, camera.pixel_to_vector(fx, fy)])
         mag = np.concatenate([mag, rng.uniform(mag.min() - 1 if len(mag) else 0, catalog.mag.max(), n_false)])
-        rg = np.concatenate([rg, catalog.rg[pick]])
-        bg = np.concatenate([bg, catalog.bg[pick]])
+        rg = np.concatenate([rg, true_rg[pick]])
+        bg = np.concatenate([bg, true_bg[pick]])
         truth = np.concatenate([truth, np.full(n_false, -1)])
     order = np.argsort(mag, kind="stable")
     noisy, rg, bg, truth = noisy[order], rg[order], bg[order], truth[order]
     if colour:
+        if model.colours.impaired:
+            rg, bg = impair(rg, bg, model.colours, rng.spawn(1)[0])
         rg = rg + rng.normal(scale=model.sigma_colour, size=len(rg))
         bg = bg + rng.normal(scale=model.sigma_colour, size=len(bg))
     else:
@@ -188,7 +200,11 @@ class ColourSimConfig:
     """A whole-sky colour run: ``n_boresights`` spiral directions x ``n_roll`` rolls.
     ``colour`` False: a mono frame, solved in the device's order (``strategy.identify``): geometric
     (4-star, triangle) matching and, when that finds nothing and ``geometric_fallback`` is set, the
-    consensus matcher on geometry alone (``PipelineParams.geometric_fallback``)."""
+    consensus matcher on geometry alone (``PipelineParams.geometric_fallback``).
+    ``solver_sigma_colour``: the colour-ratio sigma the solver is told (None: ``model.sigma_colour``;
+    an open-loop run may tell it the colour model's error too). ``colour_fallback``: a colour frame
+    solved in the device's ``auto`` mode, geometry tried too when colour is not high-confidence
+    (``StrategyParams.colour_fallback``); False: colour matching alone."""
 
     n_boresights: int = 10000
     n_roll: int = 10
@@ -197,32 +213,53 @@ class ColourSimConfig:
     solve: SolveParams | None = None  # None: derived from the camera and model
     colour: bool = True
     geometric_fallback: bool = True
+    solver_sigma_colour: float | None = None
+    colour_fallback: bool = False
 
 
 def _solve_params(camera: CameraModel, cfg: ColourSimConfig) -> SolveParams:
     if cfg.solve is not None:
         return cfg.solve
+    sigma_colour = cfg.model.sigma_colour if cfg.solver_sigma_colour is None else cfg.solver_sigma_colour
     return SolveParams(
         sigma_vec=cfg.model.sigma_pix / camera.f,
-        sigma_rg=max(cfg.model.sigma_colour, 1e-3),
-        sigma_bg=max(cfg.model.sigma_colour, 1e-3),
+        sigma_rg=max(sigma_colour, 1e-3),
+        sigma_bg=max(sigma_colour, 1e-3),
         fov=FieldOfView.from_camera(camera, 0.0),
-        mode=Mode.COLOUR if cfg.colour else Mode.GEOMETRIC,
+        mode=(Mode.AUTO if cfg.colour_fallback else Mode.COLOUR) if cfg.colour else Mode.GEOMETRIC,
     )
 
 
 def _strategy(params: SolveParams, cfg: ColourSimConfig) -> StrategyParams:
     """The device's order of methods (``strategy.identify``) on simulated star vectors: every
-    detection at once (no brightest-first ladder), no photometric gate (no fluxes), the mono
-    fallback as configured, no colour fallback (the mode is the run's)."""
+    detection at once (no brightest-first ladder), no photometric gate (no fluxes), the mono and
+    colour fallbacks as configured."""
     return StrategyParams(
         solve=params,
         photometric_gate=None,
         geometric_steps=(),
         geometric_cap=None,
         geometric_fallback=cfg.geometric_fallback,
-        colour_fallback=False,
+        colour_fallback=cfg.colour_fallback,
     )
+
+
+def pose_scene(
+    catalog: OnboardCatalog,
+    camera: CameraModel,
+    cfg: ColourSimConfig,
+    pid: int,
+    boresights: np.ndarray,
+    table: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, float, Scene]:
+    """Attitude matrix, roll (rad) and scene of pose ``pid`` (``boresight * n_roll + roll``) of a
+    run with spiral ``boresights``; the same for every caller (the pose's own seeded stream)."""
+    b_idx, r_idx = divmod(int(pid), cfg.n_roll)
+    rng = np.random.default_rng([cfg.seed, int(pid)])
+    roll = 2 * np.pi * (r_idx + rng.random()) / cfg.n_roll
+    ra, dec = vec_to_radec(boresights[b_idx])
+    a = attitude_from_radec_roll(float(ra), float(dec), roll)
+    return a, roll, observe(catalog, a, camera, cfg.model, rng, colour=cfg.colour, table=table)
 
 
 def run_poses(catalog: OnboardCatalog, camera: CameraModel, cfg: ColourSimConfig, pose_ids: np.ndarray) -> np.ndarray:
@@ -230,14 +267,11 @@ def run_poses(catalog: OnboardCatalog, camera: CameraModel, cfg: ColourSimConfig
     boresights = spiral_boresights(cfg.n_boresights)
     params = _solve_params(camera, cfg)
     strategy = _strategy(params, cfg)
+    table = true_colour_table(catalog, cfg.model.colours.source)
     out = np.zeros(len(pose_ids), POSE_DTYPE)
     for row, pid in enumerate(np.asarray(pose_ids, np.int64)):
-        b_idx, r_idx = divmod(int(pid), cfg.n_roll)
-        rng = np.random.default_rng([cfg.seed, int(pid)])
-        roll = 2 * np.pi * (r_idx + rng.random()) / cfg.n_roll
-        ra, dec = vec_to_radec(boresights[b_idx])
-        a = attitude_from_radec_roll(float(ra), float(dec), roll)
-        scene = observe(catalog, a, camera, cfg.model, rng, colour=cfg.colour)
+        b_idx = int(pid) // cfg.n_roll
+        a, roll, scene = pose_scene(catalog, camera, cfg, int(pid), boresights, table)
         t = time.perf_counter()
         found = identify(Detections(scene.vectors, scene.rg, scene.bg), catalog, strategy)
         res = found.solution
