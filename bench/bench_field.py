@@ -39,34 +39,23 @@ SCINTILLATION = 0.04  # per-channel, per-star, per-frame relative flux jitter
 CHROMATIC_PX_PER_BG = 3.0  # radial displacement per unit of (bg - 1)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=70)
-    ap.add_argument("--out", default="out/bench_field")
-    args = ap.parse_args(argv)
-
-    from firmware_model.pipeline.camera import CameraModel
-    from firmware_model.pipeline.frame_readers import frame_files
-    from firmware_model.pipeline.run import PipelineParams
+def render_orion(frames_dir, n_frames: int, camera, seed: int = 2013, m_limit: float | None = None) -> None:
+    """Render ``n_frames`` frames of Orion's belt (``orion_NNN.dng`` with truth) into ``frames_dir``:
+    pointing jitter 0.3 deg, random roll, colours through :data:`ATMOSPHERE` and
+    :data:`SCINTILLATION`, stars displaced by :data:`CHROMATIC_PX_PER_BG`; the truth holds the true
+    positions. ``m_limit``: render only stars brighter (V) than this (None: the sky model's default)."""
     from firmware_model.reference_frames import attitude_from_radec_roll, radec_to_vec
-    from ground.analysis.replay import TABLE5_MODES, OfflineSolver, replay, table5
-    from ground.calibration.corrections import ColourCorrection
-    from ground.catalog.build import build_catalog
-    from ground.catalog.design import CatalogDesign
     from ground.sim.frame_writer import write_rendered
     from ground.sim.sensor_sim import DetectorModel, Stars, render_frame
     from ground.sim.sky_model import sky_stars
 
-    out = Path(args.out)
-    frames_dir = out / "frames"
+    frames_dir = Path(frames_dir)
     frames_dir.mkdir(parents=True, exist_ok=True)
-    camera = CameraModel.reference_design()
-    catalog = build_catalog(CatalogDesign())
-    sky = sky_stars()
+    sky = sky_stars() if m_limit is None else sky_stars(m_limit)
     centre = radec_to_vec(np.radians(84.05), np.radians(-1.20))  # epsilon Ori
     near = np.flatnonzero(sky.vectors @ centre > np.cos(np.radians(15)))
-    rng = np.random.default_rng(2013)
-    for k in tqdm(range(args.frames), desc="render"):
+    rng = np.random.default_rng(seed)
+    for k in tqdm(range(n_frames), desc="render"):
         a = attitude_from_radec_roll(
             np.radians(84.05 + rng.normal(0, 0.3)),
             np.radians(-1.2 + rng.normal(0, 0.3)),
@@ -89,6 +78,27 @@ def main(argv=None) -> int:
         for s in r.truth["stars"]:
             s["x"], s["y"] = truth_pos[s["id"]]
         write_rendered(r, frames_dir / f"orion_{k:03d}.dng")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=70)
+    ap.add_argument("--out", default="out/bench_field")
+    args = ap.parse_args(argv)
+
+    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.pipeline.frame_readers import frame_files
+    from firmware_model.pipeline.run import PipelineParams
+    from ground.analysis.replay import TABLE5_MODES, OfflineSolver, replay, table5
+    from ground.calibration.corrections import ColourCorrection
+    from ground.catalog.build import build_catalog
+    from ground.catalog.design import CatalogDesign
+
+    out = Path(args.out)
+    frames_dir = out / "frames"
+    camera = CameraModel.reference_design()
+    catalog = build_catalog(CatalogDesign())
+    render_orion(frames_dir, args.frames, camera)
 
     paths = frame_files(frames_dir)
     print(

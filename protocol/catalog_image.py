@@ -223,6 +223,27 @@ def _pack_header(p: ImageParams, n_stars: int, n_pairs: int, total: int, entries
     return raw[:-4] + struct.pack("<I", crc32(raw[:-4]))
 
 
+def with_star_colours(data: bytes | bytearray | memoryview, rg: np.ndarray, bg: np.ndarray) -> bytes:
+    """A copy of the valid image ``data`` whose STARS rows carry the colour ratios ``rg``/``bg``
+    (one per star, stored as f32), re-signed: the STARS CRC-32, the data CRC-32 and the header
+    CRC-32 are recomputed and the result validated (:class:`CatalogImageError` if it is not)."""
+    img = parse_image(data)
+    rg32, bg32 = np.asarray(rg, dtype="<f4"), np.asarray(bg, dtype="<f4")
+    if rg32.shape != (img.n_stars,) or bg32.shape != (img.n_stars,):
+        raise ValueError(f"need {img.n_stars} colour ratios of each kind, got {rg32.shape} and {bg32.shape}")
+    buf = bytearray(data)
+    e = img.sections["stars"]
+    stars = np.frombuffer(buf, STAR_DTYPE, img.n_stars, e.offset)
+    stars["rg"], stars["bg"] = rg32, bg32
+    head = np.frombuffer(buf, HEADER_DTYPE, 1)
+    head["sections"][0, 0, 2] = crc32(buf[e.offset : e.offset + e.size])
+    head["data_crc32"] = crc32(buf[HEADER_SIZE : img.total_size])
+    head["header_crc32"] = crc32(buf[: HEADER_SIZE - 4])
+    out = bytes(buf)
+    parse_image(out)
+    return out
+
+
 def parse_image(data: bytes | bytearray | memoryview) -> CatalogImage:
     """Validate ``data`` (bytes-like) and return views into it; raise :class:`CatalogImageError`."""
     buf = memoryview(data).cast("B")

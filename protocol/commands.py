@@ -382,6 +382,7 @@ class Slot(IntEnum):
     CATALOG = 0
     FRAME = 1
     PARAMS = 2
+    CATALOG_PATCH = 3  #: a ``protocol.catalog_patch`` applied to slot 0's image at COMMIT
 
 
 MAX_SLOT_BYTES = 64 * 1024 * 1024  #: largest image a slot accepts (ours)

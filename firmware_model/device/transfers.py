@@ -13,6 +13,7 @@ from typing import Any
 from firmware_model.device.dispatch import Refused
 from firmware_model.device.slots import SlotStore
 from protocol import nsp
+from protocol.catalog_patch import PatchError, PatchReason, apply_patch, parse_patch
 from protocol.commands import (
     MAX_SLOT_BYTES,
     MAX_STATUS_RANGES,
@@ -44,6 +45,10 @@ class SlotHandler:
     validate: Callable[[bytes], None]
     activate: Callable[[bytes], Any] = bytes
     info: Callable[[bytes, Any], bytes] = lambda data, obj: b""
+    #: a patch slot: the slot whose active image this slot's images patch (None: an ordinary slot)
+    patches: int | None = None
+    #: ``apply(active image of the patched slot or None, patch)`` -> its new image; raises SlotRejected
+    apply: Callable[[bytes | None, bytes], bytes] | None = None
 
 
 def _reject_empty(data: bytes) -> None:
@@ -60,9 +65,33 @@ def _params_validate(data: bytes) -> None:
         raise SlotRejected(0x0102, "parameter set must be a JSON object")
 
 
+def _patch_validate(data: bytes) -> None:
+    try:
+        parse_patch(data)
+    except PatchError as exc:
+        raise SlotRejected(int(exc.code), exc.message) from None
+
+
+def _patch_apply(base: bytes | None, patch: bytes) -> bytes:
+    if base is None:
+        raise SlotRejected(int(PatchReason.NO_BASE), "no active catalog to patch (upload one to slot 0)")
+    try:
+        return apply_patch(base, patch)
+    except PatchError as exc:
+        raise SlotRejected(int(exc.code), exc.message) from None
+
+
+def patch_slot_handler(target: int) -> SlotHandler:
+    """A slot whose committed image is a ``protocol.catalog_patch`` of slot ``target``'s active image:
+    applied to a copy, its CRC-32s checked and the result validated by ``target``'s handler before
+    it replaces ``target``'s image (docs/ICD.md section 9)."""
+    return SlotHandler(_patch_validate, patches=target, apply=_patch_apply)
+
+
 def default_slots() -> dict[int, SlotHandler]:
     """Handlers used until the real catalog/frame validators are plugged in: slots 0 and 1 accept
-    any non-empty image (kept as bytes); slot 2 accepts a JSON object (activated as a dict)."""
+    any non-empty image (kept as bytes); slot 2 accepts a JSON object (activated as a dict); slot
+    3 patches slot 0."""
 
     def blob(data: bytes, obj: Any) -> bytes:
         return json.dumps({"length": len(data)}).encode()
@@ -75,6 +104,7 @@ def default_slots() -> dict[int, SlotHandler]:
             lambda d: json.loads(d.decode("utf-8")),
             lambda d, obj: json.dumps({"keys": sorted(obj)}).encode(),
         ),
+        Slot.CATALOG_PATCH: patch_slot_handler(Slot.CATALOG),
     }
 
 
@@ -182,9 +212,14 @@ class Transfers:
                 NackReason.CRC_MISMATCH,
                 f"image CRC-32 0x{crc32(image):08X} != announced 0x{tr.crc32:08X}; transfer discarded",
             )
+        target = req.slot if handler.patches is None else handler.patches
         try:
             handler.validate(image)
-            obj = handler.activate(image)
+            if handler.patches is not None:  # the whole new image is built and checked before anything changes
+                assert handler.apply is not None
+                image = handler.apply(self.store.active(target) if target in self.objects else None, image)
+                self.slots[target].validate(image)
+            obj = self.slots[target].activate(image)
         except SlotRejected as exc:
             self.store.drop_transfer(req.slot)
             raise Refused(exc.code, exc.message) from None
@@ -192,11 +227,11 @@ class Transfers:
             self.store.drop_transfer(req.slot)
             raise Refused(NackReason.BAD_PARAMETER, f"slot {req.slot} image refused: {exc}") from None
         try:
-            self.store.set_active(req.slot, image)
+            self.store.set_active(target, image)
         except OSError as exc:
             raise Refused(NackReason.STORAGE_ERROR, str(exc)) from None
-        self.objects[req.slot] = obj
-        if req.slot == Slot.FRAME:  # consumed by the next GO before the capture source
+        self.objects[target] = obj
+        if target == Slot.FRAME:  # consumed by the next GO before the capture source
             self.frame_pending = True
         self.store.drop_transfer(req.slot)
         return SlotImage(req.slot, True, len(image), crc32(image)).pack()

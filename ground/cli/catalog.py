@@ -8,7 +8,7 @@ from dataclasses import fields
 from pathlib import Path
 
 from ground import atomic_write, json_text
-from ground.arg_types import SENSOR_PX, output_file, progress_on
+from ground.arg_types import SENSOR_PX, output_file, progress_on, ranged
 from ground.catalog.design import CatalogDesign, DesignError
 from protocol.commands import Slot
 
@@ -253,6 +253,108 @@ def _info(args) -> int:
     return 0
 
 
+def _correction_beta(path: str):
+    """The eq. 24 coefficients of ``colour fit -o FILE`` or of its ``.params.json``."""
+    from ground.calibration.corrections import ColourCorrection
+
+    try:
+        text = Path(path).read_text()
+        data = json.loads(text)
+        if isinstance(data, dict) and "colour_correction" in data:
+            data = {"kind": "colour_correction", **data["colour_correction"]}
+        return ColourCorrection.from_json(json.dumps(data)).beta
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"--correction {path}: {exc}") from None
+
+
+def _learn_colours(args) -> int:
+    from ground.analysis.results_log import ResultsLog
+    from ground.calibration.learned_colours import learn_image, observations_from_records, plot_learned
+    from protocol.catalog_image import CatalogImageError
+
+    if args.upload and not args.port:
+        return _fail("learn-colours: --upload needs --port URL")
+    results = Path(args.results)
+    if results.is_dir():
+        results = results / "results.jsonl"
+    if not results.is_file():
+        return _fail(f"learn-colours: {args.results}: no results log (a results.jsonl or a replay --out directory)")
+    try:
+        image = Path(args.catalog).read_bytes()
+        beta = _correction_beta(args.correction) if args.correction else None
+    except OSError as exc:
+        return _fail(f"learn-colours: {args.catalog}: {exc.strerror}")
+    except ValueError as exc:
+        return _fail(f"learn-colours: {exc}")
+    log = ResultsLog(results.parent)  # (the directory exists: nothing is created)
+    log.jsonl_path = results
+    obs = observations_from_records(log.records(), beta=beta)
+    try:
+        learned, new_image = learn_image(image, obs, prior_rel=args.prior_rel, clip=args.clip, min_obs=args.min_obs)
+    except CatalogImageError as exc:
+        return _fail(f"learn-colours: {args.catalog}: {exc}")
+    report = {**learned.summary(), "stars": [s.to_dict() for s in learned.stars]}
+    if args.report:
+        atomic_write.write_text(args.report, json_text.dumps(report, indent=2) + "\n")
+    if new_image is not None:
+        atomic_write.write_bytes(args.output, new_image)
+        if args.plot:
+            plot_learned(learned, args.plot, f"Learned colours: {results}")
+    if args.json:
+        print(json_text.dumps(report))
+    else:
+        _print(learned.summary(), False)
+        top = sorted(learned.updated, key=lambda s: -max(abs(v) for v in s.shift_sigma))[: args.show]
+        if top:
+            print(
+                f"{'star':>8} {'used':>5} {'rej':>4}  {'rg cat -> learned (sigma)':>30}  {'bg cat -> learned (sigma)':>30}"
+            )
+        for s in top:
+            cells = [
+                f"{s.catalog[k]:.3f} -> {s.learned[k]:.3f} ({s.sigma[k]:.3f}) {s.shift_sigma[k]:+6.1f}s" for k in (0, 1)
+            ]
+            print(f"{s.star_id:>8} {s.n_used:>5} {s.n_rejected:>4}  {cells[0]:>30}  {cells[1]:>30}")
+        if new_image is not None:
+            print(f"wrote {args.output} ({len(new_image)} bytes, {len(learned.updated)} stars' colours learned)")
+    if new_image is None:
+        print(f"st16-ground catalog: learn-colours: {learned.reason}; no image written", file=sys.stderr)
+        return 1
+    return _upload_patch(args, image, new_image) if args.upload else 0
+
+
+def _upload_patch(args, old: bytes, new: bytes) -> int:
+    """Send only the bytes ``new`` changes to the device's catalog (slot 3 patches slot 0 at COMMIT),
+    after checking that the device holds ``old``; verify the result."""
+    from ground.cli.link import open_client, report_error
+    from ground.link.client import LinkError
+    from protocol.catalog_image import crc32
+    from protocol.catalog_patch import diff_ranges, make_patch
+
+    patch = make_patch(old, new)
+    with open_client(args) as client:
+        try:
+            held = client.slot_info(Slot.CATALOG)
+            if not held.active or held.crc32 != crc32(old):
+                return _fail(
+                    f"learn-colours: the device holds catalog CRC-32 0x{held.crc32:08X}, not {args.catalog} "
+                    f"(0x{crc32(old):08X}) the colours were learned for: nothing sent"
+                )
+            report = client.upload(Slot.CATALOG_PATCH, patch, progress=progress_on(args))
+            info = client.slot_info(Slot.CATALOG)
+        except LinkError as exc:
+            return report_error(exc, args.json)
+    if not info.active or info.crc32 != crc32(new) or info.length != len(new):
+        return _fail(
+            f"learn-colours: device catalog CRC-32 0x{info.crc32:08X} after the patch, want 0x{crc32(new):08X}"
+        )
+    if not args.json:
+        print(
+            f"patched the device's catalog: {len(patch)} bytes sent in {len(diff_ranges(old, new))} ranges "
+            f"(the image is {len(new)}), {report.seconds:.2f} s; CRC-32 0x{info.crc32:08X} verified"
+        )
+    return 0
+
+
 def register(sub) -> None:
     cat = sub.add_parser("catalog", help="build, analyze, upload and inspect on-board star catalogs")
     csub = cat.add_subparsers(dest="catalog_command", metavar="ACTION")
@@ -279,6 +381,44 @@ def register(sub) -> None:
     p = csub.add_parser("upload", help="upload an image to the device (resumable), verify CRC-32, commit")
     p.add_argument("file", help="catalog image (catalog build -o)")
     p.set_defaults(func=_upload)
+
+    p = csub.add_parser(
+        "learn-colours",
+        help="learn each star's colour ratios from the matched stars of a run (docs/learned_colours.md)",
+    )
+    p.add_argument("results", help="results.jsonl of a solve or replay run, or the replay --out directory")
+    p.add_argument("--catalog", required=True, help="catalog image the run used")
+    p.add_argument("--correction", help="the eq. 24 correction the run used (colour fit -o FILE or its .params.json)")
+    p.add_argument("-o", "--output", type=output_file, default="learned.st16cat", help="catalog image to write")
+    p.add_argument("--report", type=output_file, help="write the per-star report as JSON")
+    p.add_argument("--plot", type=output_file, help="write a PNG of catalog against learned rg and bg")
+    p.add_argument(
+        "--prior-rel",
+        type=ranged(float, 1e-4, 10.0, "--prior-rel"),
+        default=0.05,
+        help="prior sigma of a catalog ratio, relative to it",
+    )
+    p.add_argument(
+        "--clip",
+        type=ranged(float, 1.0, 100.0, "--clip"),
+        default=3.0,
+        help="outlier threshold, normalised 2-D distance from the star's estimate",
+    )
+    p.add_argument(
+        "--min-obs",
+        type=ranged(int, 1, 10**6, "--min-obs"),
+        default=3,
+        help="fewest kept observations that update a star",
+    )
+    p.add_argument(
+        "--show", type=ranged(int, 0, 10**6, "--show"), default=10, help="stars printed, largest shift first"
+    )
+    p.add_argument(
+        "--upload",
+        action="store_true",
+        help="then patch the device's catalog (--port): only the changed bytes, applied at once and verified",
+    )
+    p.set_defaults(func=_learn_colours)
 
     p = csub.add_parser("info", help="what catalog the device holds")
     p.set_defaults(func=_info)
