@@ -1,0 +1,83 @@
+"""``st16-ground export openc3 DIR`` and ``export xtce FILE``: ground-system definitions generated
+from ``protocol/`` (docs/ground_systems.md). An existing non-empty DIR or existing FILE is kept
+unless ``--force``; the OpenC3 target is written beside DIR first, parsed back with openc3's own
+``PacketConfig``, and moved into place only then."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+from ground import json_text
+from ground.arg_types import InputError
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _refuse_existing(path: Path, force: bool, directory: bool) -> None:
+    if force or not path.exists():
+        return
+    if directory and path.is_dir() and not any(path.iterdir()):
+        return
+    what = "is not an empty directory" if directory else "exists"
+    raise InputError(f"{path} {what}: add --force to write over it")
+
+
+def _openc3(args) -> int:
+    from ground.export import model, openc3
+
+    root = Path(args.dir)
+    _refuse_existing(root, args.force, directory=True)
+    version = openc3.check_openc3()
+    root.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=f".{root.name}.", dir=root.parent) as tmp:
+        openc3.write_target(Path(tmp), model.build())
+        n_cmd, n_tlm = openc3.validate(Path(tmp))
+        Path(tmp).chmod(0o777 & ~_umask())  # TemporaryDirectory's 0700 would make the target private
+        shutil.copytree(tmp, root, dirs_exist_ok=True)
+    out = {"dir": str(root), "openc3": version, "commands": n_cmd, "telemetry": n_tlm}
+    print(
+        json_text.dumps(out)
+        if args.json
+        else f"wrote {root}: {n_cmd} commands, {n_tlm} telemetry packets (parsed by openc3 {version})"
+    )
+    return 0
+
+
+def _xtce(args) -> int:
+    from ground.atomic_write import atomic_path
+    from ground.export import model, xtce
+
+    path = Path(args.file)
+    _refuse_existing(path, args.force, directory=False)
+    text = xtce.dumps(model.build())
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    out = {"file": str(path), "bytes": len(text.encode())}
+    print(json_text.dumps(out) if args.json else f"wrote {path}: XTCE 1.2, {out['bytes']} bytes")
+    return 0
+
+
+def register(sub) -> None:
+    """Called by ``ground.cli.main``: ``export openc3`` and ``export xtce``."""
+    export = sub.add_parser("export", help="ground-system definitions from protocol/: OpenC3 COSMOS target, XTCE")
+    esub = export.add_subparsers(dest="export_command", metavar="FORMAT")
+    esub.required = True
+    p = esub.add_parser("openc3", help="an OpenC3 COSMOS plugin tree: target, command/telemetry files, interface")
+    p.add_argument("dir", help="directory to write (created; a non-empty one needs --force)")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="write into a non-empty directory (files of the same name are replaced, others kept)",
+    )
+    p.set_defaults(func=_openc3)
+    p = esub.add_parser("xtce", help="the same space system as XTCE 1.2 (via yamcs-pymdb)")
+    p.add_argument("file", help="XTCE file to write (an existing one needs --force)")
+    p.add_argument("--force", action="store_true", help="replace an existing file")
+    p.set_defaults(func=_xtce)
