@@ -1,0 +1,166 @@
+"""``st16-device --attitude-feed URL``: exposures rendered along the attitude path a dynamics
+simulator streams (wire format and URL: ``ground.sim.feed_wire``; docs/hil.md).
+
+A listener thread checks every sample on arrival and keeps the good ones in a ring buffer:
+
+* NaN or infinite values, a quaternion norm off 1 by more than :data:`NORM_TOL`, time not
+  advancing: the sample is dropped and the fault recorded;
+* an attitude jump larger than the rates allow (:func:`allowed_turn`): recorded, and the path
+  restarts at the new sample (no interpolation across it);
+* bytes that do not decode: recorded.
+
+Each GO exposes from the GO time ``t0`` for ``exposure`` s. The capture waits (up to ``timeout`` s
+past the mid-time ``t0 + exposure / 2``) for a sample at or after the mid-time, slerps the
+attitude and interpolates the rate there, and renders the real sky at that attitude with every
+star smeared along its track at that rate (``ground.sim.smear``). The frame is refused with the
+reason as the result's BAD_FRAME text, never rendered, when the feed is stale, has no sample
+before the exposure, a gap over ``max_gap`` s around it, or a fault recorded from ``max_gap`` s
+before the mid-time on (the feed is suspect that long after a fault). Registered as the ``attitude_feed`` entry point of
+``st16.frame_sources``. URL query options: ``format``, ``exposure`` (s, default the detector's
+0.1), ``timeout`` (s, 0.25), ``max_gap`` (s, 0.5), ``pattern`` (RGGB).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+
+import numpy as np
+
+from firmware_model.device.device import FrameUnavailable
+from firmware_model.pipeline.raw_frame import Frame
+from firmware_model.reference_frames import quat_to_matrix
+from ground.sim.exposure import ExposureRenderer
+from ground.sim.feed_wire import FeedUrl, Listener, Sample
+from ground.sim.sensor_sim import DetectorModel
+from ground.sim.smear import SmearPSF
+
+NORM_TOL = 1e-6  #: | |q| - 1 | above this is an unnormalised quaternion
+JUMP_TOL = 1e-3  #: rad of turn between two samples allowed beyond what their rates explain
+RING = 512  #: samples kept (about 5 s at 100 Hz)
+MIN_SMEAR_PX = 0.05  #: below this track length the exposure renders without smear
+
+
+def allowed_turn(a: Sample, b: Sample) -> float:
+    """Largest turn (rad) from ``a`` to ``b`` that is not a jump: twice the larger rate over the gap, plus JUMP_TOL."""
+    return 2.0 * max(float(np.linalg.norm(a.w)), float(np.linalg.norm(b.w))) * abs(b.t - a.t) + JUMP_TOL
+
+
+def turn_angle(q1: np.ndarray, q2: np.ndarray) -> float:
+    """Angle (rad) of the rotation between two unit quaternions."""
+    return 2.0 * math.acos(min(1.0, abs(float(np.dot(q1, q2)))))
+
+
+def slerp(q1: np.ndarray, q2: np.ndarray, f: float) -> np.ndarray:
+    """Unit quaternion a fraction ``f`` of the short way from ``q1`` to ``q2``."""
+    d = float(np.dot(q1, q2))
+    if d < 0.0:
+        q2, d = -q2, -d
+    if d > 0.9995:
+        q = q1 + f * (q2 - q1)
+    else:
+        th = math.acos(d)
+        q = (math.sin((1.0 - f) * th) * q1 + math.sin(f * th) * q2) / math.sin(th)
+    return q / np.linalg.norm(q)
+
+
+def check(sample: Sample, prev: Sample | None) -> str | None:
+    """Why ``sample`` must be dropped, or None (a jump is not checked here)."""
+    if not (math.isfinite(sample.t) and np.all(np.isfinite(sample.q)) and np.all(np.isfinite(sample.w))):
+        return "sample holds NaN or infinite values"
+    norm = float(np.linalg.norm(sample.q))
+    if abs(norm - 1.0) > NORM_TOL:
+        return f"quaternion norm {norm:.9f} is not 1"
+    if prev is not None and sample.t <= prev.t:
+        return f"time does not advance: t {sample.t:.6f} after {prev.t:.6f}"
+    return None
+
+
+class AttitudeFeed:
+    """The checked samples and faults of one feed (module docstring); thread-safe."""
+
+    def __init__(self, clock=time.time):
+        self.clock = clock
+        self._ring: deque[Sample] = deque(maxlen=RING)
+        self._faults: deque[tuple[float, str]] = deque(maxlen=64)
+        self._cond = threading.Condition()
+
+    def offer(self, sample: Sample) -> None:
+        with self._cond:
+            now = self.clock()
+            prev = self._ring[-1] if self._ring else None
+            reason = check(sample, prev)
+            if reason is not None:
+                self._faults.append((now, reason))
+                return
+            if prev is not None and turn_angle(prev.q, sample.q) > allowed_turn(prev, sample):
+                turn = math.degrees(turn_angle(prev.q, sample.q))
+                self._faults.append((now, f"attitude jumps {turn:.4f} deg in {sample.t - prev.t:.3f} s"))
+                self._ring.clear()
+            self._ring.append(sample)
+            self._cond.notify_all()
+
+    def fault(self, reason: str) -> None:
+        with self._cond:
+            self._faults.append((self.clock(), reason))
+
+    def at(self, t: float, timeout: float, max_gap: float) -> tuple[np.ndarray, np.ndarray]:
+        """(q, w) at ``t`` (POSIX s), waiting until ``t + timeout`` (clock) for a sample at or after
+        it; raises FrameUnavailable with the reason when the feed cannot give a sound attitude."""
+        with self._cond:
+            self._cond.wait_for(lambda: bool(self._ring) and self._ring[-1].t >= t, t + timeout - self.clock())
+            if not self._ring:
+                raise FrameUnavailable("attitude feed: no sample received")
+            newest = self._ring[-1]
+            if newest.t < t:
+                raise FrameUnavailable(f"attitude feed stale: newest sample {t - newest.t:.3f} s before the exposure")
+            k = next(i for i, s in enumerate(self._ring) if s.t >= t)
+            if k == 0 and self._ring[0].t > t:
+                raise FrameUnavailable("attitude feed: no sample before the exposure (the path starts after it)")
+            a, b = self._ring[max(k - 1, 0)], self._ring[k]
+            faults = [reason for when, reason in self._faults if when >= t - max_gap]
+            if faults:
+                raise FrameUnavailable(f"attitude feed fault during the exposure: {faults[0]}")
+        if b.t - a.t > max_gap:
+            raise FrameUnavailable(f"attitude feed gap of {b.t - a.t:.3f} s around the exposure")
+        f = 0.0 if b.t == a.t else (t - a.t) / (b.t - a.t)
+        return slerp(a.q, b.q, f), a.w + f * (b.w - a.w)
+
+
+class AttitudeFeedSource:
+    """Capture source: the exposure at each GO rendered along the fed attitude path."""
+
+    def __init__(self, spec: str, camera, renderer: ExposureRenderer | None = None):
+        url = FeedUrl.parse(spec)
+        opts = dict(url.options)
+        try:
+            self.det = DetectorModel(pattern=opts.pop("pattern", "RGGB"))
+            self.exposure_s = float(opts.pop("exposure", self.det.exposure_s))
+            self.timeout = float(opts.pop("timeout", 0.25))
+            self.max_gap = float(opts.pop("max_gap", 0.5))
+        except ValueError as exc:
+            raise ValueError(f"attitude feed {spec!r}: {exc}") from None
+        if opts:
+            raise ValueError(f"attitude feed {spec!r}: unknown option(s) {sorted(opts)}")
+        if not (self.exposure_s > 0 and self.timeout >= 0 and self.max_gap > 0):
+            raise ValueError(f"attitude feed {spec!r}: exposure and max_gap must be > 0, timeout >= 0")
+        self.det = DetectorModel(pattern=self.det.pattern, exposure_s=self.exposure_s)
+        self.camera = camera
+        self.renderer = renderer or ExposureRenderer(camera)
+        self.renderer.bank(self.det)  # drawn at start-up, not inside the first GO
+        self.feed = AttitudeFeed()
+        self.listener = Listener(url, self.feed.offer, self.feed.fault)
+
+    def close(self) -> None:
+        self.listener.close()
+
+    def __call__(self, ctx) -> Frame:
+        q, w = self.feed.at(ctx.started + self.exposure_s / 2.0, self.timeout, self.max_gap)
+        psf = SmearPSF(self.camera, self.det, w, self.exposure_s)
+        frame = self.renderer.render(
+            quat_to_matrix(q), self.det, seed=ctx.sequence, psf=psf if psf.max_track_px >= MIN_SMEAR_PX else None
+        )
+        frame.metadata["attitude_feed"] = {"q_mid": [float(v) for v in q], "w_mid": [float(v) for v in w]}
+        return frame

@@ -1,0 +1,54 @@
+"""One exposure of the device's sky-rendering capture sources (``--sky``, ``--attitude-feed``).
+
+``sensor_sim.render_frame`` at the exposure's attitude with two savings that keep the frame's
+content (docs/hil.md has the timings):
+
+* only the stars in view: the real sky (``sky_model.sky_stars``, cached) is cut to the cone of
+  the field (``camera.fov_half_angle_diagonal`` plus the PSF stamp and smear margin) by one dot
+  product of its unit vectors with the boresight, about 100 of 8 867 stars at V 6.5;
+* the detector noise from a :class:`~ground.sim.noise_bank.NoiseBank` per detector, drawn once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+
+import numpy as np
+
+from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.raw_frame import Frame
+from ground.sim.noise_bank import NoiseBank
+from ground.sim.sensor_sim import DetectorModel, Stars, render_frame, stamp_half_width
+from ground.sim.sky_model import sky_stars
+
+
+def stars_in_view(stars: Stars, attitude: np.ndarray, radius: float) -> Stars:
+    """The stars within ``radius`` (rad) of the boresight of ``attitude`` (A, v_sensor = A v_icrs)."""
+    keep = stars.vectors @ np.asarray(attitude, dtype=float)[2] >= np.cos(radius)
+    return Stars(stars.ids[keep], stars.vectors[keep], stars.vmag[keep], stars.rg[keep], stars.bg[keep])
+
+
+class ExposureRenderer:
+    """Renders exposures of ``camera`` from ``stars`` (default: the real sky to V 6.5)."""
+
+    def __init__(self, camera: CameraModel, stars: Stars | None = None):
+        self.camera = camera
+        self.stars = sky_stars() if stars is None else stars
+        self._banks: dict[DetectorModel, NoiseBank] = {}
+        self._lock = threading.Lock()
+
+    def bank(self, det: DetectorModel) -> NoiseBank:
+        """The noise bank of ``det`` (drawn on first use: ~1 s for the reference design)."""
+        key = dataclasses.replace(det, pattern="MONO")  # the noise does not depend on the CFA
+        with self._lock:
+            if key not in self._banks:
+                self._banks[key] = NoiseBank(det, (self.camera.height, self.camera.width))
+            return self._banks[key]
+
+    def render(self, attitude: np.ndarray, det: DetectorModel, seed: int, psf=None) -> Frame:
+        """The raw frame at ``attitude`` (A), noise from ``seed``; ``psf`` as ``render_frame``'s."""
+        margin_px = stamp_half_width(det) if psf is None else psf.max_half_width
+        radius = self.camera.fov_half_angle_diagonal + (margin_px + 2.0) / self.camera.f
+        near = stars_in_view(self.stars, attitude, radius)
+        return render_frame(near, attitude, self.camera, det, seed=seed, psf=psf, noise=self.bank(det)).frame

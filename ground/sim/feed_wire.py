@@ -1,0 +1,234 @@
+"""The attitude feed's wire format and transports (docs/hil.md): what a dynamics simulator sends
+to ``st16-device --attitude-feed URL``.
+
+A sample is the sensor's attitude at a time: ``t`` POSIX UTC seconds, ``q`` the scalar-first
+``q_icrs_to_sensor`` (docs/CONVENTIONS.md), ``w`` the angular velocity of the sensor frame with
+respect to ICRS in sensor axes (rad/s). Two encodings:
+
+* JSON lines: ``{"t": 1790000000.25, "q": [w, x, y, z], "w": [wx, wy, wz]}`` + ``\\n``;
+* binary: one little-endian record ``<d4d3d`` (64 bytes: t, qw, qx, qy, qz, wx, wy, wz).
+
+Transports on loopback: ``tcp://HOST:PORT`` (the device listens; one simulator connection at a
+time, samples back to back) or ``udp://HOST:PORT`` (the device binds; one or more samples per
+datagram). ``?format=json`` (default) or ``?format=binary`` picks the encoding; further query keys
+configure the capture source (``ground.sim.attitude_feed``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import socket
+import struct
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from urllib.parse import parse_qsl, urlsplit
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+RECORD = struct.Struct("<d4d3d")  #: the binary sample, 64 bytes
+FORMATS = ("json", "binary")
+MAX_LINE = 4096  #: bytes; a longer JSON line is malformed
+POLL_S = 0.2  #: how often the listener thread looks whether it should stop
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One attitude sample: ``t`` POSIX s, ``q`` scalar-first q_icrs_to_sensor, ``w`` rad/s (sensor axes)."""
+
+    t: float
+    q: np.ndarray
+    w: np.ndarray
+
+
+class MalformedSample(ValueError):
+    """Bytes that do not decode to a sample."""
+
+
+def encode_json(s: Sample) -> bytes:
+    return (json.dumps({"t": float(s.t), "q": [float(v) for v in s.q], "w": [float(v) for v in s.w]}) + "\n").encode()
+
+
+def encode_binary(s: Sample) -> bytes:
+    return RECORD.pack(float(s.t), *(float(v) for v in s.q), *(float(v) for v in s.w))
+
+
+def decode_json(line: bytes) -> Sample:
+    """A sample from one JSON line; NaN and infinities decode (the feed's checks flag them)."""
+    try:
+        obj = json.loads(line)
+        t, q, w = float(obj["t"]), np.array(obj["q"], dtype=float), np.array(obj["w"], dtype=float)
+    except (ValueError, TypeError, KeyError) as exc:
+        raise MalformedSample(f"not a JSON sample ({exc}): {line[:80]!r}") from None
+    if q.shape != (4,) or w.shape != (3,):
+        raise MalformedSample(f"q needs 4 numbers and w 3: {line[:80]!r}")
+    return Sample(t, q, w)
+
+
+def decode_binary(record: bytes) -> Sample:
+    if len(record) != RECORD.size:
+        raise MalformedSample(f"binary sample of {len(record)} bytes, not {RECORD.size}")
+    v = RECORD.unpack(record)
+    return Sample(v[0], np.array(v[1:5]), np.array(v[5:8]))
+
+
+@dataclass(frozen=True)
+class FeedUrl:
+    """A parsed feed URL: transport (tcp/udp), host, port, format and the other query options."""
+
+    transport: str
+    host: str
+    port: int
+    format: str
+    options: dict[str, str]
+
+    @classmethod
+    def parse(cls, url: str) -> FeedUrl:
+        parts = urlsplit(url)
+        if parts.scheme not in ("tcp", "udp"):
+            raise ValueError(f"attitude feed {url!r}: scheme must be tcp:// or udp://")
+        try:
+            port = parts.port
+        except ValueError:
+            port = None
+        if not parts.hostname or port is None:
+            raise ValueError(f"attitude feed {url!r}: needs HOST:PORT")
+        options = dict(parse_qsl(parts.query, keep_blank_values=True))
+        fmt = options.pop("format", "json")
+        if fmt not in FORMATS:
+            raise ValueError(f"attitude feed {url!r}: format must be one of {FORMATS}")
+        return cls(parts.scheme, parts.hostname, port, fmt, options)
+
+
+OnSample = Callable[[Sample], None]
+OnError = Callable[[str], None]
+
+
+class Listener:
+    """Receives samples on ``url`` in a daemon thread: ``on_sample(sample)`` for each decoded one,
+    ``on_error(reason)`` for bytes that do not decode. Binds at construction (OSError if it cannot)."""
+
+    def __init__(self, url: FeedUrl, on_sample: OnSample, on_error: OnError):
+        self.url = url
+        self._on_sample, self._on_error = on_sample, on_error
+        kind = socket.SOCK_STREAM if url.transport == "tcp" else socket.SOCK_DGRAM
+        self._sock = socket.socket(socket.AF_INET, kind)
+        self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self._sock.bind((url.host, url.port))
+        if url.transport == "tcp":
+            self._sock.listen(1)
+        self._sock.settimeout(POLL_S)
+        self._stop = threading.Event()
+        target = self._serve_tcp if url.transport == "tcp" else self._serve_udp
+        self._thread = threading.Thread(target=target, name="attitude-feed", daemon=True)
+        self._thread.start()
+
+    @property
+    def address(self) -> tuple[str, int]:
+        return self._sock.getsockname()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self._sock.close()
+
+    def _decode(self, data: bytes) -> None:
+        """Every sample in ``data`` (whole records or lines)."""
+        if self.url.format == "binary":
+            if len(data) % RECORD.size:
+                self._on_error(f"binary data of {len(data)} bytes is not whole {RECORD.size}-byte samples")
+                return
+            chunks = [data[k : k + RECORD.size] for k in range(0, len(data), RECORD.size)]
+        else:
+            chunks = [ln for ln in data.split(b"\n") if ln.strip()]
+        for chunk in chunks:
+            try:
+                sample = decode_binary(chunk) if self.url.format == "binary" else decode_json(chunk)
+            except MalformedSample as exc:
+                self._on_error(str(exc))
+                continue
+            self._on_sample(sample)
+
+    def _serve_udp(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self._sock.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            self._decode(data)
+
+    def _serve_tcp(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._sock.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            with conn:
+                conn.settimeout(POLL_S)
+                self._serve_connection(conn)
+
+    def _serve_connection(self, conn: socket.socket) -> None:
+        buf = b""
+        binary = self.url.format == "binary"
+        while not self._stop.is_set():
+            try:
+                data = conn.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            if not data:
+                if buf:
+                    self._on_error(f"connection closed inside a sample ({len(buf)} bytes left)")
+                return
+            buf += data
+            if binary:
+                whole = len(buf) - len(buf) % RECORD.size
+                if whole:
+                    self._decode(buf[:whole])
+                buf = buf[whole:]
+            else:
+                head, sep, buf = buf.rpartition(b"\n")
+                if sep:
+                    self._decode(head)
+                if len(buf) > MAX_LINE:
+                    self._on_error(f"JSON line longer than {MAX_LINE} bytes")
+                    buf = b""
+
+
+class Sender:
+    """The simulator's side: sends samples to a device's feed ``url`` (connects on TCP, so the
+    device must listen first)."""
+
+    def __init__(self, url: str):
+        self.url = FeedUrl.parse(url)
+        kind = socket.SOCK_STREAM if self.url.transport == "tcp" else socket.SOCK_DGRAM
+        self._sock = socket.socket(socket.AF_INET, kind)
+        if self.url.transport == "tcp":
+            self._sock.connect((self.url.host, self.url.port))
+
+    def send(self, *samples: Sample) -> None:
+        encode = encode_binary if self.url.format == "binary" else encode_json
+        self.send_raw(b"".join(encode(s) for s in samples))
+
+    def send_raw(self, data: bytes) -> None:
+        if self.url.transport == "tcp":
+            self._sock.sendall(data)
+        else:  # unconnected: a device not (yet) listening loses the datagram, as on a real bus
+            self._sock.sendto(data, (self.url.host, self.url.port))
+
+    def close(self) -> None:
+        self._sock.close()
+
+    def __enter__(self) -> Sender:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,188 @@
+"""The HIL closed loop (docs/hil.md): dynamics propagated in real time stream their truth to the
+device's attitude feed, and a flight-software loop reads the tracker's attitude over the serial
+link and feeds it back as the controller's measurement.
+
+* Dynamics thread (the caller's): every ``dt`` s of wall time, step the dynamics (``ground.sim.
+  hil_dynamics``), send the truth sample stamped with its wall time (POSIX s) to the feed, and give
+  the controller the flight loop's estimate.
+* Flight loop thread: COMBINATION (GO 0x0B with a minimal section mask: return code, quaternion,
+  epoch) back to back; an OK attitude, valid at the exposure mid-time ``epoch + exposure / 2``,
+  becomes the estimate, carried forward with the gyro (the truth rate) to the present; statuses
+  other than OK keep the previous estimate.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+from tqdm import tqdm
+
+from firmware_model.reference_frames import matrix_to_quat, quat_to_matrix, rotation_angle
+from ground.sim.attitude_feed import slerp
+from ground.sim.feed_wire import Sample, Sender
+from protocol import result
+
+#: return code (0x0002), quaternion (0x0004), epoch (0x0010): 44 result bytes per update
+MINIMAL_MASK = 0x0016
+GO_CODE = 0x0B  #: ON | LOAD_NAND | COMMAND
+
+
+@dataclass
+class Update:
+    """One COMBINATION of the flight loop: host times (POSIX s), the tracker's answer."""
+
+    sent: float
+    received: float
+    status: str
+    q: list[float] | None
+    t_mid: float | None  #: exposure mid-time (device clock = POSIX s)
+
+
+@dataclass
+class HilLog:
+    """What a closed-loop run recorded: truth every step and every flight-loop update."""
+
+    dynamics: str
+    q_target: list[float]
+    truth_t: list[float] = field(default_factory=list)
+    truth_q: list[list[float]] = field(default_factory=list)
+    updates: list[Update] = field(default_factory=list)
+
+    def truth_at(self, t: float) -> np.ndarray:
+        """Truth quaternion at POSIX ``t`` (slerp between the logged steps)."""
+        k = int(np.clip(np.searchsorted(self.truth_t, t), 1, len(self.truth_t) - 1))
+        t0, t1 = self.truth_t[k - 1], self.truth_t[k]
+        f = float(np.clip((t - t0) / (t1 - t0), 0.0, 1.0))
+        return slerp(np.array(self.truth_q[k - 1]), np.array(self.truth_q[k]), f)
+
+    def rows(self) -> list[dict]:
+        """Per update: time since start, status, latency, measured vs truth (arcsec), truth vs target (deg)."""
+        t0, a_target = self.truth_t[0], quat_to_matrix(self.q_target)
+        out = []
+        for u in self.updates:
+            row = {"t": u.received - t0, "status": u.status, "sent": u.sent, "received": u.received}
+            if u.q is not None and u.t_mid is not None:
+                a_true = quat_to_matrix(self.truth_at(u.t_mid))
+                row |= {
+                    "t_mid": u.t_mid - t0,
+                    "latency_s": u.received - u.t_mid,
+                    "q_measured": u.q,
+                    "q_truth": [float(v) for v in matrix_to_quat(a_true)],
+                    "measured_error_arcsec": math.degrees(rotation_angle(quat_to_matrix(u.q), a_true)) * 3600,
+                    "pointing_error_deg": math.degrees(rotation_angle(a_true, a_target)),
+                }
+            out.append(row)
+        return out
+
+
+class Estimator:
+    """The flight software's attitude: the last tracker attitude carried forward with the gyro."""
+
+    def __init__(self, q0, w0):
+        self._lock = threading.Lock()
+        self.a = quat_to_matrix(q0)
+        self.w = np.asarray(w0, dtype=float)
+        self.t = time.time()
+
+    def propagate(self, w, now: float) -> tuple[np.ndarray, np.ndarray]:
+        """Carry the estimate to ``now`` with gyro rate ``w``; returns (q, w)."""
+        with self._lock:
+            self.a = Rotation.from_rotvec(-np.asarray(w) * (now - self.t)).as_matrix() @ self.a
+            self.w, self.t = np.asarray(w, dtype=float), now
+            return matrix_to_quat(self.a), self.w
+
+    def measured(self, q, t_mid: float) -> None:
+        """A tracker attitude valid at ``t_mid``: carried to the estimate's time with the gyro."""
+        with self._lock:
+            self.a = Rotation.from_rotvec(-self.w * (self.t - t_mid)).as_matrix() @ quat_to_matrix(q)
+
+
+def _parse(parts: dict[int, bytes]) -> tuple[str, list[float] | None, float | None]:
+    rc = struct.unpack("<I", parts[0x004])[0]
+    status = result.status_of(rc)
+    name = status.name if isinstance(status, result.Status) else f"status {status}"
+    if status != result.Status.OK:
+        return name, None, None
+    return name, list(struct.unpack("<4d", parts[0x008])), struct.unpack("<d", parts[0x040])[0]
+
+
+class FlightLoop(threading.Thread):
+    """COMBINATIONs back to back on ``client`` until stopped; OK attitudes go to ``estimator``."""
+
+    def __init__(self, client, estimator: Estimator, log: HilLog, exposure_s: float, mask: int = MINIMAL_MASK):
+        super().__init__(name="flight-loop", daemon=True)
+        self.client, self.estimator, self.log = client, estimator, log
+        self.exposure_s, self.mask = exposure_s, mask
+        self.stop = threading.Event()
+        self.error: Exception | None = None
+
+    def run(self) -> None:
+        try:
+            while not self.stop.is_set():
+                sent = time.time()
+                parts = self.client.combination(GO_CODE, self.mask, timeout=5.0)
+                received = time.time()
+                status, q, epoch = _parse(parts)
+                t_mid = None if epoch is None else epoch + self.exposure_s / 2.0
+                if q is not None and t_mid is not None:
+                    self.estimator.measured(q, t_mid)
+                self.log.updates.append(Update(sent, received, status, q, t_mid))
+        except Exception as exc:  # noqa: BLE001 - reported by the caller after join
+            self.error = exc
+
+
+def run_closed_loop(
+    dynamics,
+    client,
+    feed_url: str,
+    q0,
+    w0,
+    q_target,
+    duration_s: float,
+    dt: float = 0.02,
+    exposure_s: float = 0.1,
+    mask: int = MINIMAL_MASK,
+    progress: bool = True,
+) -> HilLog:
+    """Run the loop for ``duration_s`` of wall time (module docstring); ``client`` is a connected
+    ``ground.link.client.Client`` of a device serving ``--attitude-feed feed_url``."""
+    log = HilLog(dynamics.label, [float(v) for v in q_target])
+    estimator = Estimator(q0, w0)
+    q, w = np.asarray(q0, dtype=float), np.asarray(w0, dtype=float)
+    n = int(round(duration_s / dt))
+    with Sender(feed_url) as sender:
+        start = time.time()
+        sender.send(Sample(start, q, w))
+        log.truth_t.append(start)
+        log.truth_q.append([float(v) for v in q])
+        loop = FlightLoop(client, estimator, log, exposure_s, mask)
+        loop.start()
+        bar = tqdm(total=n, desc="closed loop", unit="step", disable=not progress)
+        k = 0
+        try:
+            while loop.is_alive() and (k < n or time.time() < start + duration_s + 10.0):
+                if k == n:
+                    loop.stop.set()  # the feed goes on until the last COMBINATION is answered
+                k += 1
+                t = start + k * dt
+                time.sleep(max(0.0, t - time.time()))
+                dynamics.set_measurement(*estimator.propagate(w, t))  # gyro: the truth rate
+                q, w = dynamics.step(dt)
+                sender.send(Sample(t, q, w))
+                log.truth_t.append(t)
+                log.truth_q.append([float(v) for v in q])
+                if k <= n:
+                    bar.update()
+        finally:
+            bar.close()
+            loop.stop.set()
+            loop.join(timeout=10.0)
+    if loop.error is not None:
+        raise loop.error
+    return log

@@ -1,0 +1,80 @@
+"""BUSY (docs/ICD.md §7): while a sequence runs, GO and COMBINATION with COMMAND are NACKed BUSY
+and the NACK text names the running sequence; the device keeps answering everything else."""
+
+import struct
+import threading
+import time
+
+import pytest
+
+from firmware_model.device.device import Device
+from protocol import nsp, result, slip
+from protocol.commands import Code, Combination, NackInfo, NackReason, ReadRange
+
+
+def _send(dev, code, data=b""):
+    frames = dev.receive(nsp.command(0x0E, 0x11, code, data).frame())
+    return [nsp.decode(slip.Decoder(nsp.MAX_MESSAGE).feed(f)[0].data) for f in frames]
+
+
+class _Gated:
+    """Solver that runs until its gate opens."""
+
+    def __init__(self):
+        self.gate = threading.Event()
+
+    def __call__(self, ctx):
+        self.gate.wait(10)
+        return {"return_code": result.make_return_code(result.Status.OK)}
+
+
+def _busy_text(dev, code, data) -> str:
+    (rep,) = _send(dev, code, data)
+    info = NackInfo.unpack(rep.data)
+    assert not rep.ack and info.reason == NackReason.BUSY
+    return info.text
+
+
+def test_go_and_combination_nacked_busy_naming_the_running_sequence():
+    solver = _Gated()
+    dev = Device(solver=solver, frame_source=lambda ctx: "frame")
+    dev.runner.transfers.objects[0] = "catalog"
+    assert _send(dev, Code.INIT, struct.pack("<I", 0x2000))[0].ack
+    for seq in (1, 2):
+        solver.gate.clear()
+        assert _send(dev, Code.GO, b"\x0b")[0].ack
+        assert _busy_text(dev, Code.GO, b"\x0b") == f"sequence {seq} still running"
+        assert _busy_text(dev, Code.COMBINATION, Combination(0x0B, 0x0003, 3).pack()) == f"sequence {seq} still running"
+        # without COMMAND nothing starts: acknowledged; everything else keeps answering
+        assert _send(dev, Code.GO, b"\x03")[0].ack
+        assert b"BUSY" in _send(dev, Code.PING)[0].data
+        assert _send(dev, Code.READ_EDAC, ReadRange(0x4C, 4).pack())[0].data[2:] == bytes(4)
+        solver.gate.set()
+        assert dev.wait_idle(5)
+        assert int(result.parse(dev.runner.result)["sequence"]) == seq
+
+
+def test_realistic_timing_holds_the_result_busy():
+    dev = Device(solver=lambda ctx: {"return_code": 0}, frame_source=lambda ctx: "frame")
+    dev.runner.transfers.objects[0] = "catalog"
+    dev.runner.hold_s = 0.3
+    assert _send(dev, Code.INIT, struct.pack("<I", 0x2000))[0].ack
+    t0 = time.monotonic()
+    assert _send(dev, Code.GO, b"\x0b")[0].ack
+    time.sleep(0.05)  # the solve is done; the result is held
+    assert _busy_text(dev, Code.GO, b"\x0b") == "sequence 1 still running"
+    assert _send(dev, Code.READ_EDAC, ReadRange(0x4C, 4).pack())[0].data[2:] == bytes(4)
+    assert dev.wait_idle(5)
+    assert time.monotonic() - t0 >= 0.29
+
+
+def test_timing_options():
+    from firmware_model.device import cli
+
+    args = cli.build_parser().parse_args(
+        ["--pty", "--timing", "realistic", "--exposure-ms", "50", "--processing-ms", "70"]
+    )
+    assert cli.build_device(args).runner.hold_s == pytest.approx(0.12)
+    assert cli.build_device(cli.build_parser().parse_args(["--pty"])).runner.hold_s == 0.0
+    with pytest.raises(SystemExit):
+        cli.main(["--pty", "--exposure-ms", "50"])  # needs --timing realistic
