@@ -7,14 +7,18 @@ Our extension region for colour stars and matching starts at :data:`EXT_OFFSET` 
 length is reported at EDAC 0x0050 as the total :data:`TOTAL_LENGTH`.
 
 Our choices (docs/ICD.md): quaternions are scalar first ``[w, x, y, z]``, ICRS -> sensor
-(docs/CONVENTIONS.md); ``epoch`` is POSIX UTC seconds; ``return_code`` keeps the COSMOS bits in
-bits 0-7 and carries our status (:class:`Status`) in bits 8-15.
+(docs/CONVENTIONS.md), unless the device parameter ``quaternion_order`` makes those of the
+standard structure scalar last (:class:`QuaternionOrder`, flagged in ``hardware.status``);
+``epoch`` is POSIX UTC seconds; ``return_code`` keeps the COSMOS bits in bits 0-6, bit 7 set
+when our status (:class:`Status`, bits 8-15) is not OK, and the status is mirrored into the low
+byte of ``hardware.status`` for readers that keep only the return code's low byte (docs/ICD.md
+section 10.2, COSMOS compatibility).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from enum import IntEnum
+from enum import Enum, IntEnum
 from typing import Any
 
 import numpy as np
@@ -38,6 +42,23 @@ HARDWARE = _struct(
     ],
     56,
 )
+
+#: ``hardware.status`` (ours in bits 0-8; the COSMOS agent names bit 19 memory over-temperature and
+#: bit 31 thermal shutdown, which the emulator never sets): bits 0-7 mirror the status
+#: (return-code bits 8-15), bit 8 says the standard structure's quaternions are scalar last.
+HW_STATUS_MIRROR = 0x00FF
+HW_QUATERNION_SCALAR_LAST = 0x0100
+
+
+def detector_temp_c(raw: int) -> float:
+    """``hardware.detector_temp_raw`` in degC, as COSMOS converts it: ``(raw >> 4) / 16``."""
+    return (int(raw) >> 4) / 16.0
+
+
+def processor_temp_c(raw: int) -> float:
+    """``hardware.processor_temp_raw`` in degC, as COSMOS converts it: ``25 + (raw - 0x32) * 1.5``."""
+    return 25.0 + (int(raw) - 0x32) * 1.5
+
 
 STATISTICS = _struct(
     [
@@ -223,7 +244,8 @@ class MethodCode(IntEnum):
 
 
 class ReturnBits(IntEnum):
-    """COSMOS return-code bits (bits 0-7)."""
+    """Return-code bits 0-7: the COSMOS driver's 0-6 (what each means here: docs/ICD.md section
+    10.2) and ours in bit 7, which the COSMOS agent's comment calls reserved."""
 
     IMAGE1_QUALITY = 0x01
     IMAGE2_QUALITY = 0x02
@@ -232,6 +254,31 @@ class ReturnBits(IntEnum):
     FULL_PROCESSING = 0x10
     DETECTOR_IMAGE = 0x20
     CONSISTENT_SOLUTION = 0x40
+    STATUS_NOT_OK = 0x80  #: ours: the status (bits 8-15) is not OK, for readers of the low byte alone
+
+
+class QuaternionOrder(Enum):
+    """Element order of the quaternions in the standard structure (``quaternion``,
+    ``matching[i].quaternion``); the extension's is always scalar first. The value is the device
+    parameter's spelling."""
+
+    SCALAR_FIRST = "scalar_first"  #: [w, x, y, z]: docs/CONVENTIONS.md, the COSMOS agent's reading
+    SCALAR_LAST = "scalar_last"  #: [x, y, z, w]: the COSMOS result struct's ``quaternion`` type
+
+    def to_wire(self, q_wxyz: Any) -> np.ndarray:
+        """The scalar-first quaternion ``q_wxyz`` in this order."""
+        q = np.asarray(q_wxyz, dtype=float)
+        return np.roll(q, -1) if self is QuaternionOrder.SCALAR_LAST else q
+
+    def from_wire(self, q: Any) -> np.ndarray:
+        """Scalar-first ``[w, x, y, z]`` of a quaternion written in this order."""
+        q = np.asarray(q, dtype=float)
+        return np.roll(q, 1) if self is QuaternionOrder.SCALAR_LAST else q
+
+    @classmethod
+    def of_hardware_status(cls, status: int) -> QuaternionOrder:
+        """The order ``hardware.status`` flags (bit 8)."""
+        return cls.SCALAR_LAST if status & HW_QUATERNION_SCALAR_LAST else cls.SCALAR_FIRST
 
 
 class Status(IntEnum):
@@ -250,7 +297,9 @@ class Status(IntEnum):
 
 
 def make_return_code(status: Status | int, bits: int = 0) -> int:
-    return (int(status) & 0xFF) << 8 | (bits & 0xFF)
+    """``status`` in bits 8-15, the COSMOS ``bits`` 0-6, and bit 7 set exactly when the status is not OK."""
+    not_ok = ReturnBits.STATUS_NOT_OK if int(status) & 0xFF else 0
+    return (int(status) & 0xFF) << 8 | not_ok | (bits & 0x7F)
 
 
 def status_of(return_code: int) -> Status | int:

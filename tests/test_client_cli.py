@@ -150,10 +150,11 @@ def test_combination_sections_decode_to_attitude_and_time():
     assert out["status"] == "OK" and out["bits"] == ["IMAGE1_SUCCESS"] and "sequence" not in out
     assert out["ra_deg"] == pytest.approx(83.8) and out["dec_deg"] == pytest.approx(-5.4)
     assert out["roll_deg"] == pytest.approx(10.0) and out["n_matched"] == 7
-    assert out["epoch_utc"] == "2026-11-24T04:38:22.250Z" and list(out["raw"]) == ["0x0048"]
+    assert out["epoch_utc"] == "2026-11-24T04:38:22.250Z" and "raw" not in out
+    assert out["hardware"]["quaternion_order"] == "scalar_first"  # the hardware section flags the order
     text = format_record(out)
     assert "RA 83.80000 deg, Dec -5.40000 deg, roll 10.0000 deg" in text and "detected 9, matched 7" in text
-    assert "epoch 2026-11-24T04:38:22.250Z UTC" in text and "section at 0x0048 (56 bytes" in text
+    assert "epoch 2026-11-24T04:38:22.250Z UTC" in text and "standard quaternions scalar_first" in text
 
 
 def _console(port, script: str, **kw) -> Console:

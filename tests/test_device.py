@@ -156,7 +156,7 @@ def test_go_without_catalog_never_fakes_an_attitude():
     assert dev.wait_idle(5)
     rec = result.parse(_read_result(dev))
     assert result.status_of(int(rec["return_code"])) == result.Status.NO_CATALOG
-    assert int(rec["return_code"]) & 0xFF == 0 and not rec["quaternion"].any()
+    assert int(rec["return_code"]) & 0xFF == result.ReturnBits.STATUS_NOT_OK and not rec["quaternion"].any()
     assert rec["sequence"] == 1
     assert nack(dev, Code.GO, b"\x37").reason == NackReason.NOT_SUPPORTED  # self-test
     assert nack(dev, Code.GO, b"\x4b").reason == NackReason.BAD_PARAMETER

@@ -26,7 +26,7 @@ STACKS = {
     ],
     "ground": [
         ("ground.atomic_write", "ground.json_text", "ground.optional", "ground.arg_types"),
-        ("ground.link", "ground.catalog"),
+        ("ground.link", "ground.catalog", "ground.export"),
         ("ground.sim",),
         ("ground.calibration",),
         ("ground.analysis", "ground.fuzz"),

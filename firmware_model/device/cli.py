@@ -42,8 +42,11 @@ from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.run import PipelineParams
 from protocol import nsp
 from protocol.commands import Slot
+from protocol.result import QuaternionOrder
 
 DEFAULT_PACED_TURNAROUND_MS = 1.0  #: ours; the research documents no turnaround
+DEFAULT_EXPOSURE_MS = 100.0  #: the simulated detector's exposure (ground.sim.sensor_sim.DetectorModel)
+DEFAULT_PROCESSING_MS = 100.0  #: ours; the research documents no processing time
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -92,7 +95,24 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SCHEDULE",
         help="capture source: render each exposure with the sensor simulator at the attitudes of this schedule file",
     )
+    capture.add_argument(
+        "--attitude-feed",
+        metavar="URL",
+        help="capture source: render each exposure along the attitude path a simulator streams to "
+        "tcp://HOST:PORT or udp://HOST:PORT (docs/hil.md)",
+    )
     parser.add_argument("--loop", action="store_true", help="with --frames, start again after the last file")
+    parser.add_argument(
+        "--timing",
+        choices=("fast", "realistic"),
+        default="fast",
+        help="fast: a result as soon as it is computed (default); realistic: held until "
+        "--exposure-ms + --processing-ms after GO, the cadence of a real sensor",
+    )
+    parser.add_argument("--exposure-ms", type=float, help=f"with --timing realistic (default {DEFAULT_EXPOSURE_MS:g})")
+    parser.add_argument(
+        "--processing-ms", type=float, help=f"with --timing realistic (default {DEFAULT_PROCESSING_MS:g})"
+    )
     parser.add_argument("--params", help="default parameter set JSON (the slot-2 schema); an uploaded set wins")
     parser.add_argument(
         "--log-level",
@@ -114,7 +134,8 @@ def load_camera(path: str | None) -> CameraModel:
 
 def build_device(args: argparse.Namespace) -> Device:
     """The device the options describe: slots for catalog (0), frame (1) and parameters (2), the
-    pipeline solver on the camera model, and the capture source if one is given."""
+    pipeline solver on the camera model, the capture source if one is given, and the ``--params``
+    set's settings as the defaults (pipeline, ``quaternion_order``) until a set is uploaded."""
     if not 0 <= args.address <= 0xFF:
         raise ValueError(f"address 0x{args.address:X} outside 0x00-0xFF")
     camera = load_camera(args.camera)
@@ -123,22 +144,30 @@ def build_device(args: argparse.Namespace) -> Device:
         source = FileFrames(args.frames, camera, loop=args.loop)
     elif args.sky:
         source = load_frame_source("sky", args.sky, camera)
+    elif args.attitude_feed:
+        source = load_frame_source("attitude_feed", args.attitude_feed, camera)
     store = SlotStore(args.state, volatile={Slot.FRAME}) if args.state else None
-    params = DeviceParams.load(args.params).apply(PipelineParams()) if args.params else PipelineParams()
-    solver = PipelineSolver(camera, params)
+    device_params = DeviceParams.load(args.params) if args.params else DeviceParams()
+    solver = PipelineSolver(camera, device_params.apply(PipelineParams()))
     slots: dict[int, SlotHandler] = {
         Slot.CATALOG: catalog_slot_handler(prepare=solver.prepare),
         Slot.FRAME: frame_slot_handler(camera),
         Slot.PARAMS: params_slot_handler(),
     }
-    return Device(
+    device = Device(
         args.address,
         store=store,
         slots=slots,
         solver=solver,
         frame_source=source,
         sensor_shape=(camera.height, camera.width),
+        quaternion_order=device_params.quaternion_order or QuaternionOrder.SCALAR_FIRST,
     )
+    if args.timing == "realistic":
+        exposure = DEFAULT_EXPOSURE_MS if args.exposure_ms is None else args.exposure_ms
+        processing = DEFAULT_PROCESSING_MS if args.processing_ms is None else args.processing_ms
+        device.runner.hold_s = (exposure + processing) / 1000.0
+    return device
 
 
 def build_link(args: argparse.Namespace) -> Link:
@@ -158,6 +187,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--turnaround-ms must be >= 0")
     if not args.tcp_idle > 0:
         parser.error("--tcp-idle must be > 0")
+    if args.timing != "realistic" and (args.exposure_ms is not None or args.processing_ms is not None):
+        parser.error("--exposure-ms and --processing-ms need --timing realistic")
+    if any(v is not None and not 0 <= v <= 60_000 for v in (args.exposure_ms, args.processing_ms)):
+        parser.error("--exposure-ms and --processing-ms must be 0..60000")
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr, format="%(message)s")
     try:
         device = build_device(args)

@@ -38,7 +38,7 @@ from firmware_model.device.sequence import (
 )
 from firmware_model.device.slots import SlotStore
 from firmware_model.device.transfers import SlotHandler, Transfers, default_slots
-from protocol import nsp, slip
+from protocol import nsp, result, slip
 from protocol.commands import APP_START_ADDRESS, Code, DiagnosticRequest, Init, NackReason
 
 log = logging.getLogger(__name__)
@@ -64,7 +64,9 @@ class Device:
     handler of each slot it names; ``solver`` runs GO sequences;
     ``frame_source(ctx)``, if given, captures the frame for each sequence (returning None when it
     has none, raising :class:`FrameUnavailable` for one it cannot read); a frame committed to slot 1
-    since the last GO takes precedence, and without a source the last committed frame is reused."""
+    since the last GO takes precedence, and without a source the last committed frame is reused.
+    ``quaternion_order`` orders the standard result structure's quaternions unless the slot-2
+    parameter set names an order (docs/ICD.md section 10.2)."""
 
     def __init__(
         self,
@@ -76,6 +78,7 @@ class Device:
         frame_source: Callable[[SolveContext], Any] | None = None,
         sensor_shape: tuple[int, int] = (2464, 3280),
         clock: Callable[[], float] = time.time,
+        quaternion_order: result.QuaternionOrder = result.QuaternionOrder.SCALAR_FIRST,
     ):
         if not 0 <= address <= 0xFF:
             raise ValueError("address must be 0..255")
@@ -84,6 +87,7 @@ class Device:
         self.frame_source = frame_source
         self.sensor_shape = sensor_shape
         self.clock = clock
+        self.quaternion_order = quaternion_order
         self.counters = Counters()
         self._mode = Mode()
         self._lock = threading.RLock()

@@ -33,6 +33,7 @@ from firmware_model.pipeline.frame_readers import FrameReadError, frame_files, r
 from firmware_model.pipeline.raw_frame import Frame, frame_from_bytes
 from firmware_model.pipeline.run import PipelineParams, result_fields, run_pipeline, with_psf_sigma
 from protocol.commands import SlotRejected
+from protocol.result import QuaternionOrder
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +94,10 @@ class DeviceParams:
     high-confidence answer may have (default ``solver.MAX_ROLL_SIGMA``, 0.1 deg; larger: loosen);
     ``noise_probe_px`` the per-axis centroid noise beyond the announced one that a high-confidence
     answer's stars are looked for with before the frame's own noise is estimated (0 to 20 px,
-    default 1; 0: trust the announced noise; ``strategy.adapt_noise``).
+    default 1; 0: trust the announced noise; ``strategy.adapt_noise``); ``quaternion_order``
+    "scalar_first" (default) | "scalar_last": the element order of the standard result
+    structure's quaternions (docs/ICD.md section 10.2; the offline paths, which report the
+    extension's scalar-first quaternion, accept and ignore it).
     The same file drives the offline paths (``--params``).
     """
 
@@ -107,6 +111,7 @@ class DeviceParams:
     focal_search: float | None = None
     max_roll_sigma_deg: float | None = None
     noise_probe_px: float | None = None
+    quaternion_order: QuaternionOrder | None = None
 
     KEYS = (
         "mode",
@@ -119,6 +124,7 @@ class DeviceParams:
         "focal_search",
         "max_roll_sigma_deg",
         "noise_probe_px",
+        "quaternion_order",
     )
 
     @classmethod
@@ -191,6 +197,7 @@ class DeviceParams:
             number("focal_search", 0.0, 0.2, lo_open=False),
             number("max_roll_sigma_deg", 0.0, 180.0),
             number("noise_probe_px", 0.0, 20.0, lo_open=False),
+            _quaternion_order(obj.get("quaternion_order")),
         )
 
     def apply(self, base: PipelineParams) -> PipelineParams:
@@ -215,6 +222,17 @@ class DeviceParams:
             colour_beta=self.colour_beta if self.colour_beta is not None else base.colour_beta,
             fixed_sigma_px=self.centroid_sigma_px if self.centroid_sigma_px is not None else base.fixed_sigma_px,
         )
+
+
+def _quaternion_order(value: Any) -> QuaternionOrder | None:
+    """The ``quaternion_order`` parameter (None: not set); SlotRejected for an unknown value."""
+    if value is None:
+        return None
+    try:
+        return QuaternionOrder(value)
+    except ValueError:
+        known = " or ".join(repr(o.value) for o in QuaternionOrder)
+        raise SlotRejected(REJECT_PARAMS_VALUE, f"quaternion_order must be {known}, got {value!r}") from None
 
 
 def params_slot_handler() -> SlotHandler:

@@ -13,6 +13,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+from firmware_model.device.cosmos_compat import finish
 from firmware_model.device.dispatch import Mode, Pending, Refused
 from firmware_model.device.transfers import Transfers
 from protocol import result
@@ -44,6 +45,7 @@ class SolveContext:
     frame_crc32: int
     dark_windows: tuple[DarkWindow, ...]
     sensor_shape: tuple[int, int]
+    quaternion_order: result.QuaternionOrder  #: of the standard structure's quaternions
 
 
 #: ``solver(ctx) -> {result field path: value}``; must set ``"return_code"``.
@@ -57,6 +59,14 @@ class Settings(Protocol):
     frame_source: Callable[[SolveContext], Any] | None
     clock: Callable[[], float]
     sensor_shape: tuple[int, int]
+    quaternion_order: result.QuaternionOrder  #: unless the slot-2 parameter set names one
+
+
+def _quaternion_order(params: Any, default: result.QuaternionOrder) -> result.QuaternionOrder:
+    """The order a sequence writes the standard quaternions in: the slot-2 parameter set's when it
+    names one (``DeviceParams.quaternion_order``), else the device's ``default``."""
+    order = getattr(params, "quaternion_order", None)
+    return order if isinstance(order, result.QuaternionOrder) else default
 
 
 class SequenceRunner:
@@ -69,12 +79,14 @@ class SequenceRunner:
         self.mode = mode
         self.transfers = transfers
         self.settings = settings
-        self.result = result.build({"return_code": result.make_return_code(result.Status.NO_RESULT)}, 0)
+        no_result = {"return_code": result.make_return_code(result.Status.NO_RESULT)}
+        self.result = result.build(finish(no_result, settings.quaternion_order), 0)
         self.result_ready = False
         self.sequence = 0
         self._busy: threading.Thread | None = None
         self.done = threading.Condition(lock)
         self.dark: dict[int, list[DarkWindow]] = {0: [], 1: []}
+        self.hold_s = 0.0  #: a result is published no sooner than this long after its GO (--timing realistic)
 
     @property
     def busy(self) -> bool:
@@ -97,7 +109,7 @@ class SequenceRunner:
             self.mode.app = True
         if code & GoBits.COMMAND:
             if self.busy:
-                raise Refused(NackReason.BUSY, f"sequence {self.sequence + 1} still running")
+                raise Refused(NackReason.BUSY, f"sequence {self.sequence} still running")
             self._start(code)
 
     def read_result(self, req: ReadRange) -> list[bytes]:
@@ -163,17 +175,19 @@ class SequenceRunner:
         self.sequence += 1
         self.result_ready = False
         tr, st = self.transfers, self.settings
+        params = tr.objects.get(Slot.PARAMS)
         ctx = SolveContext(
             go_code=code,
             sequence=self.sequence,
             started=st.clock(),
             catalog=tr.objects.get(Slot.CATALOG),
             frame=tr.objects.get(Slot.FRAME),
-            params=tr.objects.get(Slot.PARAMS),
+            params=params,
             catalog_crc32=crc32(tr.store.active(0) or b""),
             frame_crc32=crc32(tr.store.active(1) or b""),
             dark_windows=tuple(self.dark[0] + self.dark[1]),
             sensor_shape=st.sensor_shape,
+            quaternion_order=_quaternion_order(params, st.quaternion_order),
         )
         uploaded, tr.frame_pending = tr.frame_pending, False
         self._busy = threading.Thread(
@@ -191,12 +205,12 @@ class SequenceRunner:
                 "ext.reason": reason.encode()[: result.EXT_REASON_BYTES],
             }
 
-        frame_source = self.settings.frame_source
+        capture = None if uploaded else self.settings.frame_source  # the emulated detector
         if ctx.catalog is None:
             return status(result.Status.NO_CATALOG, "no catalog: upload one to slot 0")
-        if frame_source is not None and not uploaded:
+        if capture is not None:
             try:
-                frame = frame_source(ctx)
+                frame = capture(ctx)
             except FrameUnavailable as exc:
                 return status(result.Status.BAD_FRAME, str(exc))
             if frame is None:
@@ -215,21 +229,24 @@ class SequenceRunner:
         if "return_code" not in fields:
             raise ValueError("solver returned no return_code")
         fields.setdefault("ext.solve_time", time.perf_counter() - t0)
+        if capture is not None:
+            fields["return_code"] = int(fields["return_code"]) | result.ReturnBits.DETECTOR_IMAGE
         return {**base, **fields}
 
     def _run(self, ctx: SolveContext, uploaded: bool) -> None:
         try:
-            data = result.build(self._fields(ctx, uploaded), ctx.sequence)
+            data = result.build(finish(self._fields(ctx, uploaded), ctx.quaternion_order), ctx.sequence)
         except Exception as exc:
             log.exception("device: bug while handling a command or sequence")
-            data = result.build(
-                {
-                    "epoch": ctx.started,
-                    "return_code": result.make_return_code(result.Status.SOLVER_ERROR),
-                    "ext.reason": f"{type(exc).__name__}: {exc}".encode()[: result.EXT_REASON_BYTES],
-                },
-                ctx.sequence,
-            )
+            failed = {
+                "epoch": ctx.started,
+                "return_code": result.make_return_code(result.Status.SOLVER_ERROR),
+                "ext.reason": f"{type(exc).__name__}: {exc}".encode()[: result.EXT_REASON_BYTES],
+            }
+            data = result.build(finish(failed, ctx.quaternion_order), ctx.sequence)
+        held = ctx.started + self.hold_s - self.settings.clock()
+        if held > 0:
+            time.sleep(held)
         with self._lock:
             self.result = data
             self.result_ready = True

@@ -7,7 +7,7 @@ the matching methods and the confidence; the optics search here calls it again w
 camera). It never raises on bad frames:
 the output carries a :class:`protocol.result.Status` and a reason.
 :func:`result_fields` maps an output onto the result structure (docs/ICD.md): the COSMOS
-sections (quaternion, centroid and matching telemetry for image 1) and our extension region.
+sections (quaternion, return bits, good rows, centroid and matching telemetry for image 1) and our extension region.
 """
 
 from __future__ import annotations
@@ -776,13 +776,33 @@ def _optics_fields(out: PipelineOutput) -> dict:
     return fields
 
 
+#: Statuses of a frame that went through every stage: extraction, identification (and attitude
+#: when it matched); BAD_FRAME stops before extraction, TOO_FEW_STARS before identification.
+FULLY_PROCESSED = (Status.OK, Status.LOW_CONFIDENCE, Status.NO_MATCH)
+
+
+def return_bits(out: PipelineOutput) -> int:
+    """COSMOS return-code bits of one output (docs/ICD.md section 10.2): IMAGE1_SUCCESS the frame
+    was read and its stars extracted, IMAGE1_QUALITY enough usable stars to identify, FULL_PROCESSING
+    every stage ran, CONSISTENT_SOLUTION a high-confidence attitude. There is no image 2, and the
+    sequence adds DETECTOR_IMAGE."""
+    bits = 0
+    if out.stars is not None:
+        bits |= ReturnBits.IMAGE1_SUCCESS
+        if out.status is not Status.TOO_FEW_STARS:
+            bits |= ReturnBits.IMAGE1_QUALITY
+    if out.status in FULLY_PROCESSED:
+        bits |= ReturnBits.FULL_PROCESSING
+    if out.status is Status.OK and out.solution is not None and out.solution.q_icrs_to_sensor is not None:
+        bits |= ReturnBits.CONSISTENT_SOLUTION
+    return bits
+
+
 def result_fields(out: PipelineOutput) -> dict:
     """Result-structure fields (dotted paths of ``protocol.result.RESULT``) for one output."""
-    bits: int = ReturnBits.FULL_PROCESSING
     fields: dict = {}
     stars, sol = out.stars, out.solution
     if stars is not None and len(stars):
-        bits |= ReturnBits.IMAGE1_QUALITY
         top = np.arange(min(10, len(stars)))
         cen = np.zeros((10, 2))
         cen[top] = np.column_stack([stars.x[top], stars.y[top]])
@@ -822,9 +842,6 @@ def result_fields(out: PipelineOutput) -> dict:
                 ext_stars["flags"][row] |= 1
         matched10 = np.full(10, -1, dtype=np.int32)
         matched10[: min(10, n_matched)] = sol.matched_star_id[:10]
-        bits |= ReturnBits.IMAGE1_SUCCESS
-        if out.status is Status.OK:
-            bits |= ReturnBits.CONSISTENT_SOLUTION
         fields.update(
             {
                 "quaternion": q,
@@ -855,5 +872,7 @@ def result_fields(out: PipelineOutput) -> dict:
     fields["ext.stars"] = ext_stars
     fields["ext.stage_times"] = np.array(list(out.timings.to_dict().values()), dtype=np.float32)
     fields["ext.method"] = method_code(sol.method if sol else None)
-    fields["return_code"] = result.make_return_code(out.status, int(bits))
+    if stars is not None and out.camera is not None:
+        fields["statistics.good_rows"] = [out.camera.height, 0]  # every row of image 1 read; no image 2
+    fields["return_code"] = result.make_return_code(out.status, return_bits(out))
     return fields

@@ -36,6 +36,8 @@ COMMAND_MODULES = (
     "ground.cli.params",
     "ground.cli.demo",
     "ground.cli.camera",
+    "ground.cli.hil",
+    "ground.cli.export",
 )
 
 

@@ -5,8 +5,9 @@ quaternion ``q_icrs_to_sensor`` [w, x, y, z], boresight RA/Dec/roll in degrees
 (docs/CONVENTIONS.md), detected and matched counts, the matched stars (catalog id, pixel
 position, colour ratios, residual), attitude 1-sigma per sensor axis (arcsec), and the time per
 pipeline stage. The same function serves offline runs through :func:`record_from_output`.
-:func:`result_record` adds what READ RESULT carries besides (COSMOS bits, epoch, omega),
-:func:`combination_record` decodes the sections a COMBINATION returned, and
+:func:`result_record` adds what READ RESULT carries besides (COSMOS bits, epoch, omega, the
+hardware section), :func:`combination_record` decodes the sections a COMBINATION returned (the
+standard quaternion in the order the hardware section flags, docs/ICD.md section 10.2), and
 :func:`format_record` renders any of these for people.
 """
 
@@ -100,6 +101,8 @@ def solve_record(rec: np.ndarray) -> dict:
                 "flux": _num(s["flux"]),
                 "rg": _num(s["rg"]),
                 "bg": _num(s["bg"]),
+                "rg_sigma": _num(s["rg_sigma"]),
+                "bg_sigma": _num(s["bg_sigma"]),
                 "catalog_id": int(s["catalog_id"]) if int(s["catalog_id"]) >= 0 else None,
                 "residual_arcsec": _num(s["residual"] * ARCSEC) if int(s["flags"]) & 1 else None,
                 "saturated": bool(int(s["flags"]) & 2),
@@ -116,6 +119,40 @@ def record_from_output(out: PipelineOutput, sequence: int = 0) -> dict:
     return solve_record(result.parse(result.build(fields, sequence)))
 
 
+def standard_quaternion(rec: np.ndarray) -> np.ndarray:
+    """Scalar-first ``[w, x, y, z]`` of the standard structure's ``quaternion``, read in the order
+    ``hardware.status`` flags (the device parameter ``quaternion_order``)."""
+    return result.QuaternionOrder.of_hardware_status(int(rec["hardware"]["status"])).from_wire(rec["quaternion"])
+
+
+def hardware_record(rec: np.ndarray) -> dict:
+    """The hardware section: temperatures in degC as COSMOS converts them, the status mirrored
+    into ``hardware.status`` and the order of the standard quaternions."""
+    hw = rec["hardware"]
+    word = int(hw["status"])
+    st = result.status_of((word & result.HW_STATUS_MIRROR) << 8)
+    return {
+        "detector_temp_c": result.detector_temp_c(int(hw["detector_temp_raw"])),
+        "processor_temp_c": result.processor_temp_c(int(hw["processor_temp_raw"])),
+        "status": st.name if isinstance(st, result.Status) else f"UNKNOWN_{st}",
+        "quaternion_order": result.QuaternionOrder.of_hardware_status(word).value,
+    }
+
+
+def _standard_attitude(rec: np.ndarray, order_known: bool) -> dict:
+    """``q_icrs_to_sensor`` and boresight RA/Dec/roll (deg) from the quaternion section: None when
+    it is not a unit quaternion (no attitude, whatever the order); the numbers as sent
+    (``quaternion_wire``) when the hardware section that flags the order is missing."""
+    wire = np.asarray(rec["quaternion"], dtype=float)
+    if not (np.isfinite(wire).all() and abs(np.linalg.norm(wire) - 1) < 1e-6):
+        return {"q_icrs_to_sensor": None}
+    if not order_known:
+        return {"q_icrs_to_sensor": None, "quaternion_wire": [float(v) for v in wire]}
+    q = standard_quaternion(rec)
+    ra, dec, roll = (float(np.degrees(v)) for v in radec_roll_from_attitude(quat_to_matrix(q)))
+    return {"q_icrs_to_sensor": [float(v) for v in q], "ra_deg": ra, "dec_deg": dec, "roll_deg": roll}
+
+
 def utc_iso(epoch_s: float) -> str | None:
     """ISO-8601 UTC time of POSIX seconds (ms resolution); None for 0 (not set) or out of range."""
     if not (np.isfinite(epoch_s) and 0 < epoch_s < 253402300800):  # year 10000
@@ -130,6 +167,7 @@ def _header(rec: np.ndarray) -> dict:
         "epoch": float(rec["epoch"]),
         "epoch_utc": utc_iso(float(rec["epoch"])),
         "omega_rad_s": [float(v) for v in rec["omega"]],
+        "hardware": hardware_record(rec),
     }
 
 
@@ -144,6 +182,7 @@ _SECTION_KEYS = {
     0x004: ("return_code", "status", "bits"),
     0x028: ("omega_rad_s",),
     0x040: ("epoch", "epoch_utc"),
+    0x048: ("hardware",),
     result.EXT_OFFSET: (
         "reason",
         "method",
@@ -162,8 +201,9 @@ _SECTION_KEYS = {
 def combination_record(parts: dict[int, bytes]) -> dict:
     """Readable fields of the result sections a COMBINATION returned (result address -> bytes):
     those of :func:`result_record` that the sections hold, the attitude from the quaternion section
-    (``q_icrs_to_sensor``, boresight RA/Dec/roll in degrees), the matching section's consensus, and
-    the hex of the sections not decoded (``raw``, by address)."""
+    (``q_icrs_to_sensor``, boresight RA/Dec/roll in degrees) when the hardware section says its
+    order (else ``quaternion_wire``, the four numbers as sent, and ``q_icrs_to_sensor`` None), the
+    matching section's consensus, and the hex of the sections not decoded (``raw``, by address)."""
     buf = bytearray(result.TOTAL_LENGTH)
     for address, data in parts.items():
         buf[address : address + len(data)] = data
@@ -174,12 +214,7 @@ def combination_record(parts: dict[int, bytes]) -> dict:
         if address in _SECTION_KEYS:
             out.update({k: full[k] for k in _SECTION_KEYS[address]})
         elif address == 0x008:
-            q = np.asarray(rec["quaternion"], dtype=float)
-            if np.isfinite(q).all() and abs(np.linalg.norm(q) - 1) < 1e-6:
-                ra, dec, roll = (float(np.degrees(v)) for v in radec_roll_from_attitude(quat_to_matrix(q)))
-                out.update(q_icrs_to_sensor=[float(v) for v in q], ra_deg=ra, dec_deg=dec, roll_deg=roll)
-            else:
-                out["q_icrs_to_sensor"] = None  # no attitude
+            out.update(_standard_attitude(rec, order_known=0x048 in parts))
         elif address == 0x7E8:
             m = rec["matching"][0]
             out["matching"] = {
@@ -235,8 +270,20 @@ def format_record(rec: dict) -> str:
             f"boresight RA {rec['ra_deg']:.5f} deg, Dec {rec['dec_deg']:+.5f} deg, roll {rec['roll_deg']:.4f} deg"
             + (f"; 1-sigma x/y/z {', '.join(f'{s:.2f}' for s in sigma)} arcsec" if sigma else "")
         )
+    elif "quaternion_wire" in rec:
+        q = rec["quaternion_wire"]
+        lines.append(
+            f"quaternion as sent = [{q[0]:+.9f} {q[1]:+.9f} {q[2]:+.9f} {q[3]:+.9f}], "
+            "order unknown: request the hardware section (0x0020) too"
+        )
     elif "q_icrs_to_sensor" in rec:
         lines.append("no attitude")
+    if "hardware" in rec:
+        h = rec["hardware"]
+        lines.append(
+            f"hardware: detector {h['detector_temp_c']:.1f} degC, processor {h['processor_temp_c']:.1f} degC, "
+            f"status {h['status']}, standard quaternions {h['quaternion_order']}"
+        )
     if "omega_rad_s" in rec:
         lines.append("omega [x y z] = [" + " ".join(f"{w:+.3e}" for w in rec["omega_rad_s"]) + "] rad/s")
     if "n_detected" in rec:

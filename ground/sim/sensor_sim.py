@@ -164,13 +164,14 @@ def _psf_stamp(det: DetectorModel, x0: float, y0: float, cols: np.ndarray, rows:
     return stamp / total if total > 0 else stamp
 
 
-def _stamp_half_width(det: DetectorModel) -> int:
+def stamp_half_width(det: DetectorModel) -> int:
+    """Half-width (px) of the detector PSF's stamp."""
     return int(np.ceil(5.0 * det.psf_sigma_px + det.defocus_radius_px + 2))
 
 
 def _add_source(img, chan_map, det, x0, y0, s_rgb, mono, psf=None):
     h, w = img.shape
-    hw = _stamp_half_width(det) if psf is None else psf.half_width(x0, y0)
+    hw = stamp_half_width(det) if psf is None else psf.half_width(x0, y0)
     c0, c1 = max(int(np.floor(x0)) - hw, 0), min(int(np.floor(x0)) + hw + 1, w)
     r0, r1 = max(int(np.floor(y0)) - hw, 0), min(int(np.floor(y0)) + hw + 1, h)
     if c0 >= c1 or r0 >= r1:
@@ -195,7 +196,8 @@ def _add_streak(img, chan_map, det, obj, mono, psf=None):
 _FIXED_CACHE: dict = {}  #: last fixed-pattern maps (read-only arrays), keyed by what draws them
 
 
-def _fixed_pattern(det: DetectorModel, shape):
+def fixed_pattern(det: DetectorModel, shape):
+    """(PRNU gain map, DSNU e- map, flat indices of hot pixels) of the simulated sensor; cached."""
     key = (det.sensor_seed, det.prnu, det.dsnu_e, det.hot_pixel_fraction, tuple(shape))
     if key in _FIXED_CACHE:
         return _FIXED_CACHE[key]
@@ -211,6 +213,30 @@ def _fixed_pattern(det: DetectorModel, shape):
     return prnu, dsnu, hot
 
 
+def _fresh_noise(det, signal, chan_map, mono, seed, extra_e, channel_gain) -> np.ndarray:
+    """Electrons per pixel (before quantisation) with every noise term drawn afresh from ``seed``;
+    scales ``signal`` in place by ``channel_gain``."""
+    h, w = signal.shape
+    prnu, dsnu, hot = fixed_pattern(det, (h, w))
+    rng = np.random.default_rng(seed)
+    dark = np.full((h, w), det.dark_e_per_s * det.exposure_s)
+    dark.ravel()[hot] += det.hot_pixel_e_per_s * det.exposure_s
+    sky = det.sky_e_per_s * det.exposure_s
+    if channel_gain is not None and not mono:
+        gmap = np.asarray(channel_gain, dtype=float)[chan_map]
+        signal *= gmap
+        sky = sky * gmap
+    expected = (signal + sky) * prnu + dark
+    if extra_e is not None:
+        if np.shape(extra_e) != (h, w):
+            raise ValueError(f"extra_e must have shape {(h, w)}, got {np.shape(extra_e)}")
+        expected = expected + np.asarray(extra_e, dtype=float)
+    electrons = rng.poisson(expected).astype(float) + dsnu
+    electrons = np.minimum(electrons, det.full_well_e)
+    electrons += det.read_noise_e * rng.standard_normal((h, w))
+    return electrons
+
+
 def render_frame(
     stars: Stars,
     attitude: np.ndarray,
@@ -222,6 +248,7 @@ def render_frame(
     psf=None,
     extra_e: np.ndarray | None = None,
     channel_gain: tuple[float, float, float] | None = None,
+    noise=None,
 ) -> RenderResult:
     """Render one frame. ``attitude`` is A (v_sensor = A @ v_icrs). Returns the frame, the
     truth dict (JSON-serialisable) and the noise-free expected signal electrons.
@@ -235,7 +262,11 @@ def render_frame(
     * ``extra_e``: noise-free e- per pixel over the exposure (shape ``(height, width)``) added
       to the Poisson mean after PRNU (sky gradients, hot-pixel clusters);
     * ``channel_gain``: ``(g_r, g_g, g_b)`` multipliers on the signal and sky electrons of the
-      R, G, B sites (per-channel QE/gain error; ignored for MONO).
+      R, G, B sites (per-channel QE/gain error; ignored for MONO);
+    * ``noise``: an object with ``electrons(signal, seed) -> array`` (e- per pixel before
+      quantisation) that draws the detector noise instead of fresh full-frame draws
+      (``ground.sim.noise_bank.NoiseBank``: the device's capture sources); the same
+      distributions, other values; not with ``extra_e`` or ``channel_gain``.
 
     ``camera`` may be any object with ``width``, ``height``, ``vector_to_pixel``, ``in_frame``
     and ``to_dict`` (``ground.sim.openloop.RadialMappedCamera`` renders non-Brown-Conrady optics)."""
@@ -248,7 +279,7 @@ def render_frame(
     a = np.asarray(attitude, dtype=float)
     v_sensor = stars.vectors @ a.T
     x, y = camera.vector_to_pixel(v_sensor)
-    margin = _stamp_half_width(det) if psf is None else psf.max_half_width
+    margin = stamp_half_width(det) if psf is None else psf.max_half_width
     near = np.isfinite(x) & camera.in_frame(x, y, margin=-margin)
     s_g = det.green_electrons(stars.vmag)
     signal = np.zeros((h, w))
@@ -300,23 +331,13 @@ def render_frame(
             raise ValueError(f"unknown false object kind {obj.kind!r}")
         false_rows.append(asdict(obj))
 
-    prnu, dsnu, hot = _fixed_pattern(det, (h, w))
-    rng = np.random.default_rng(seed)
-    dark = np.full((h, w), det.dark_e_per_s * det.exposure_s)
-    dark.ravel()[hot] += det.hot_pixel_e_per_s * det.exposure_s
-    sky = det.sky_e_per_s * det.exposure_s
-    if channel_gain is not None and not mono:
-        gmap = np.asarray(channel_gain, dtype=float)[chan_map]
-        signal *= gmap
-        sky = sky * gmap
-    expected = (signal + sky) * prnu + dark
-    if extra_e is not None:
-        if np.shape(extra_e) != (h, w):
-            raise ValueError(f"extra_e must have shape {(h, w)}, got {np.shape(extra_e)}")
-        expected = expected + np.asarray(extra_e, dtype=float)
-    electrons = rng.poisson(expected).astype(float) + dsnu
-    electrons = np.minimum(electrons, det.full_well_e)
-    electrons += det.read_noise_e * rng.standard_normal((h, w))
+    hot = fixed_pattern(det, (h, w))[2]
+    if noise is not None:
+        if extra_e is not None or channel_gain is not None:
+            raise ValueError("a noise bank does not take extra_e or channel_gain")
+        electrons = noise.electrons(signal, seed)
+    else:
+        electrons = _fresh_noise(det, signal, chan_map, mono, seed, extra_e, channel_gain)
     dn = np.round(det.black_level_dn + electrons / det.gain_e_per_dn)
     dn = np.clip(dn, 0, det.white_level_dn).astype(np.uint16)
 

@@ -6,6 +6,8 @@ The schedule is a CSV file with a header; columns ``qw, qx, qy, qz`` (scalar-fir
 Each GO captures the next row, wrapping around at the end, so a HIL harness that knows the
 schedule knows the truth of every solve. Registered as the ``sky`` entry point of
 ``st16.frame_sources`` (the device never imports ``ground``; the entry point plugs it in).
+Exposures render only the stars in view with the noise from a bank drawn at start-up
+(``ground.sim.exposure``), so GO -> result stays within the device's budget (docs/hil.md).
 """
 
 from __future__ import annotations
@@ -19,8 +21,8 @@ import numpy as np
 
 from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import quat_to_matrix
-from ground.sim.sensor_sim import DetectorModel, render_frame
-from ground.sim.sky_model import sky_stars
+from ground.sim.exposure import ExposureRenderer
+from ground.sim.sensor_sim import DetectorModel
 
 
 @dataclass(frozen=True)
@@ -58,8 +60,8 @@ class SkySource:
 
     def __init__(self, spec: str, camera: CameraModel):
         self.schedule = read_schedule(spec)
-        self.camera = camera
-        self.stars = sky_stars()
+        self.renderer = ExposureRenderer(camera)
+        self.renderer.bank(DetectorModel())  # drawn at start-up, not inside the first GO
         self._next = 0
         self._lock = threading.Lock()
 
@@ -67,5 +69,4 @@ class SkySource:
         with self._lock:
             exp = self.schedule[self._next % len(self.schedule)]
             self._next += 1
-        det = DetectorModel(pattern=exp.pattern)
-        return render_frame(self.stars, quat_to_matrix(exp.q_icrs_to_sensor), self.camera, det, seed=exp.seed).frame
+        return self.renderer.render(quat_to_matrix(exp.q_icrs_to_sensor), DetectorModel(pattern=exp.pattern), exp.seed)
