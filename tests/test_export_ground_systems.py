@@ -331,3 +331,21 @@ def test_an_openc3_without_a_needed_feature_names_its_version(tmp_path, capsys, 
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"st16-ground: openc3 {version('openc3')}: CrcProtocol has no 'reflect' argument")
     assert not out.exists()
+
+
+def test_docs_examples_are_what_the_exporter_writes(tmp_path):
+    """docs/examples holds the generated target and XTCE; regenerate them when protocol/ changes:
+    ``st16-ground export openc3 docs/examples/openc3 --force``, ``export xtce docs/examples/st16.xtce.xml --force``."""
+    pytest.importorskip("openc3")
+    pytest.importorskip("yamcs.pymdb")
+    import filecmp
+    import subprocess
+
+    docs = Path(__file__).resolve().parents[1] / "docs" / "examples"
+    for args in (["openc3", str(tmp_path / "openc3")], ["xtce", str(tmp_path / "st16.xtce.xml")]):
+        run = subprocess.run([sys.executable, "-m", "ground.cli", "export", *args], capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr
+    assert (tmp_path / "st16.xtce.xml").read_bytes() == (docs / "st16.xtce.xml").read_bytes()
+    for path in (docs / "openc3").rglob("*"):
+        if path.is_file():
+            assert filecmp.cmp(path, tmp_path / "openc3" / path.relative_to(docs / "openc3"), shallow=False), path
