@@ -118,7 +118,8 @@ class Analog:
     nominal: float
 
 
-#: The analog frame at EDAC 0x0004 (8 x f32), in order: fixed nominal values the emulator reports.
+#: The analog frame at EDAC 0x0004 (8 x f32), in order, with the nominal values an idle emulator
+#: reports (firmware_model.device.housekeeping: noise, and the current and temperature with activity).
 ANALOG: tuple[Analog, ...] = (
     Analog("current", "A", 0.25),
     Analog("bus", "V", 5.0),

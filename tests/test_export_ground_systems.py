@@ -110,10 +110,11 @@ def test_definitions_parse_with_openc3_and_follow_protocol(tmp_path):
     assert current.units == "A" and current.limits.values["DEFAULT"] == list(
         telemetry_meta.analog_limits(telemetry_meta.ANALOG[0])
     )
-    # the analog frame's declaration matches what the device reports
-    from firmware_model.device.memory import ANALOG_FRAME
+    # the analog frame's declaration is what an idle device reports (within its noise)
+    from firmware_model.device.housekeeping import Housekeeping
 
-    assert tuple(a.nominal for a in telemetry_meta.ANALOG) == ANALOG_FRAME
+    idle = Housekeeping().analog_frame()
+    assert idle == pytest.approx([a.nominal for a in telemetry_meta.ANALOG], rel=0.05)
 
 
 # ----------------------------------------------------------------------------- end to end
@@ -207,8 +208,9 @@ def test_openc3_interface_against_the_device_decodes_what_our_client_does(tmp_pa
             link.close()
         with Client(device.path) as client:
             assert client.ping() == app and boot.read("DATA").startswith("ST16-EMU BOOTLOADER")
-            assert [analog.read(f"ANALOG_{a.name.upper()}") for a in telemetry_meta.ANALOG] == list(
-                struct.unpack("<8f", client.read_edac(edac.offset("analog"), 32))
+            # two reads, possibly of two 1 Hz samples of the supervisor ADC (docs/ICD.md): equal within noise
+            assert [analog.read(f"ANALOG_{a.name.upper()}") for a in telemetry_meta.ANALOG] == pytest.approx(
+                struct.unpack("<8f", client.read_edac(edac.offset("analog"), 32)), rel=0.05
             )
             assert length.read("RESULT_LENGTH") == client.result_length() == result.STANDARD_LENGTH
             ours = client.read_result()

@@ -1,7 +1,8 @@
 """What the device adds to every result so the public COSMOS driver reads it right (docs/ICD.md
 section 10.2): the standard structure's quaternions in the configured order with the order flagged,
-the return code's bit 7 and its status mirrored into ``hardware.status``, and nominal hardware
-temperatures where COSMOS converts zeros to -50 degC."""
+the return code's bit 7 and its status mirrored into ``hardware.status``; and the encodings of
+the hardware temperatures COSMOS converts (``housekeeping`` supplies the values, so COSMOS no
+longer shows a zero as -50 degC)."""
 
 from __future__ import annotations
 
@@ -12,9 +13,6 @@ from protocol import result
 
 #: Quaternions of the standard structure (the extension's stay scalar first).
 STANDARD_QUATERNIONS = ("quaternion", "matching.0.quaternion", "matching.1.quaternion")
-
-NOMINAL_DETECTOR_TEMP_C = 20.0  #: constant until a thermal model (issue 15)
-NOMINAL_PROCESSOR_TEMP_C = 25.0  #: the zero point of COSMOS's processor conversion
 
 
 def detector_temp_raw(temp_c: float) -> int:
@@ -31,7 +29,7 @@ def processor_temp_raw(temp_c: float) -> int:
 def finish(fields: Mapping[str, Any], order: result.QuaternionOrder) -> dict[str, Any]:
     """``fields`` (result paths, quaternions scalar first, ``return_code`` set) as the device writes
     them: standard quaternions in ``order``, bit 7 and the status mirror from the status, the order
-    flag, nominal temperatures unless ``fields`` sets them."""
+    flag."""
     out = dict(fields)
     rc = int(out["return_code"])
     status = result.status_of(rc)
@@ -39,8 +37,6 @@ def finish(fields: Mapping[str, Any], order: result.QuaternionOrder) -> dict[str
     ours = result.HW_STATUS_MIRROR | result.HW_QUATERNION_SCALAR_LAST
     flag = result.HW_QUATERNION_SCALAR_LAST if order is result.QuaternionOrder.SCALAR_LAST else 0
     out["hardware.status"] = int(out.get("hardware.status", 0)) & ~ours | int(status) & result.HW_STATUS_MIRROR | flag
-    out.setdefault("hardware.detector_temp_raw", detector_temp_raw(NOMINAL_DETECTOR_TEMP_C))
-    out.setdefault("hardware.processor_temp_raw", processor_temp_raw(NOMINAL_PROCESSOR_TEMP_C))
     for path in STANDARD_QUATERNIONS:
         if path in out:
             out[path] = order.to_wire(out[path])

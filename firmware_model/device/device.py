@@ -26,6 +26,7 @@ from typing import Any
 
 import protocol
 from firmware_model.device.dispatch import Counters, Dispatcher, Handler, Mode, Refused
+from firmware_model.device.housekeeping import Housekeeping
 from firmware_model.device.memory import Memory, Supervisor
 from firmware_model.device.sequence import (
     COMBINATION_TIMEOUT,
@@ -96,6 +97,7 @@ class Device:
         #: returned (a COMBINATION's, once its sequence is done); None answers synchronously
         self.late_reply: Callable[[list[bytes]], None] | None = None
         self.transfers = Transfers(store, slots)
+        self.housekeeping = Housekeeping()
         self.runner = SequenceRunner(self._lock, self._mode, self.transfers, self)
         self.memory = Memory(
             Supervisor(
@@ -107,6 +109,7 @@ class Device:
                 sequence=lambda: self.runner.sequence,
                 counters=lambda: self.counters,
                 result=lambda: self.runner.result,
+                analog=self.housekeeping.analog_frame,
             )
         )
         self.dispatcher = Dispatcher(self._handlers(), self._lock, lambda: self.counters, lambda: self.late_reply)

@@ -32,10 +32,6 @@ EDAC_SCRATCH = edac.SCRATCH  #: writable user scratch [start, end)
 MAX_PEEK = 1024
 MAX_CRC_SPAN = 1 << 20
 
-#: Emulated "asynchronous analog frame" at EDAC 0x0004 (8 x f32): nominal constants, the emulator
-#: models no electronics. Current (A), bus, Vdd core, Vdd MPU, Vdd IO (V), supervisor temperature
-#: (deg C), Vdd supervisor, Vdd detector (V).
-ANALOG_FRAME = (0.25, 5.0, 1.2, 1.8, 3.3, 20.0, 3.3, 2.8)
 
 # Memory map for PEEK/POKE (ours): name -> (base, size, writable)
 ROM_BASE, ROM_SIZE = 0x00000000, 0x2000
@@ -55,6 +51,7 @@ class Supervisor:
     sequence: Callable[[], int]
     counters: Callable[[], Counters]
     result: Callable[[], bytes]  #: the result structure now
+    analog: Callable[[], tuple[float, ...]]  #: the analog frame now (``housekeeping``)
 
 
 class Memory:
@@ -79,7 +76,7 @@ class Memory:
             | (edac.STATUS_BUSY if busy else 0)
             | (edac.STATUS_RESULT_READY if ready else 0)
         )
-        rec["analog"] = ANALOG_FRAME
+        rec["analog"] = st.analog()
         for name in edac.COUNTERS:
             rec[name] = getattr(counters, name)
         rec["result_length"] = result.STANDARD_LENGTH if ready else 0

@@ -15,6 +15,7 @@ from typing import Any, Protocol
 
 from firmware_model.device.cosmos_compat import finish
 from firmware_model.device.dispatch import Mode, Pending, Refused
+from firmware_model.device.housekeeping import Housekeeping
 from firmware_model.device.transfers import Transfers
 from protocol import result
 from protocol.commands import AddressedBytes, Combination, DarkWindow, Go, GoBits, NackReason, ReadRange, Slot
@@ -60,6 +61,7 @@ class Settings(Protocol):
     clock: Callable[[], float]
     sensor_shape: tuple[int, int]
     quaternion_order: result.QuaternionOrder  #: unless the slot-2 parameter set names one
+    housekeeping: Housekeeping  #: duty-cycle driven temperatures for the hardware section
 
 
 def _quaternion_order(params: Any, default: result.QuaternionOrder) -> result.QuaternionOrder:
@@ -79,7 +81,10 @@ class SequenceRunner:
         self.mode = mode
         self.transfers = transfers
         self.settings = settings
-        no_result = {"return_code": result.make_return_code(result.Status.NO_RESULT)}
+        no_result = {
+            **settings.housekeeping.result_fields(),
+            "return_code": result.make_return_code(result.Status.NO_RESULT),
+        }
         self.result = result.build(finish(no_result, settings.quaternion_order), 0)
         self.result_ready = False
         self.sequence = 0
@@ -174,6 +179,7 @@ class SequenceRunner:
     def _start(self, code: int) -> None:
         self.sequence += 1
         self.result_ready = False
+        self.settings.housekeeping.set_busy(True)
         tr, st = self.transfers, self.settings
         params = tr.objects.get(Slot.PARAMS)
         ctx = SolveContext(
@@ -235,10 +241,12 @@ class SequenceRunner:
 
     def _run(self, ctx: SolveContext, uploaded: bool) -> None:
         try:
-            data = result.build(finish(self._fields(ctx, uploaded), ctx.quaternion_order), ctx.sequence)
+            fields = {**self.settings.housekeeping.result_fields(), **self._fields(ctx, uploaded)}
+            data = result.build(finish(fields, ctx.quaternion_order), ctx.sequence)
         except Exception as exc:
             log.exception("device: bug while handling a command or sequence")
             failed = {
+                **self.settings.housekeeping.result_fields(),
                 "epoch": ctx.started,
                 "return_code": result.make_return_code(result.Status.SOLVER_ERROR),
                 "ext.reason": f"{type(exc).__name__}: {exc}".encode()[: result.EXT_REASON_BYTES],
@@ -251,6 +259,7 @@ class SequenceRunner:
             self.result = data
             self.result_ready = True
             self._busy = None
+            self.settings.housekeeping.set_busy(False)
             self.done.notify_all()
         if log.isEnabledFor(logging.INFO):
             status = result.status_of(int(result.parse(data)["return_code"]))
