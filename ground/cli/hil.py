@@ -130,14 +130,29 @@ def _plot(log, rows: list[dict], path) -> None:
     except MissingExtra as exc:
         logging.getLogger(__name__).warning("no plot: %s", exc)
         return
+    import numpy as np
+
+    from firmware_model.reference_frames import quat_to_matrix, rotation_angle
+
     ok = [r for r in rows if "latency_s" in r]
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
-    ax1.semilogy([r["t_mid"] for r in ok], [r["pointing_error_deg"] for r in ok], ".-")
-    ax1.set_ylabel("truth to target (deg)")
+    t = np.array([r["t_mid"] for r in ok])
+    target = quat_to_matrix(log.q_target)
+    measured_to_target = [np.degrees(rotation_angle(quat_to_matrix(r["q_measured"]), target)) for r in ok]
+    fig, (ax1, ax2, ax3) = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
+    ax1.semilogy(t, [r["pointing_error_deg"] for r in ok], "-", label="truth")
+    ax1.semilogy(t, measured_to_target, ".", ms=3, label="tracker")
+    ax1.set_ylabel("attitude to target (deg)")
     ax1.set_title(f"HIL closed loop: {log.dynamics}", fontsize=9)
-    ax2.plot([r["t_mid"] for r in ok], [r["measured_error_arcsec"] for r in ok], ".")
+    ax1.legend(fontsize=8)
+    ax2.plot(t, [r["measured_error_arcsec"] for r in ok], ".", ms=3)
     ax2.set_ylabel("tracker vs truth (arcsec)")
-    ax2.set_xlabel("exposure mid-time since start (s)")
+    for key, style, label in (("q_truth", "-", "truth"), ("q_measured", ".", "from successive tracker attitudes")):
+        a = [quat_to_matrix(r[key]) for r in ok]
+        rate = [np.degrees(rotation_angle(a[k], a[k - 1])) / (t[k] - t[k - 1]) for k in range(1, len(a))]
+        ax3.plot(t[1:], rate, style, ms=3, label=label)
+    ax3.set_ylabel("body rate (deg/s)")
+    ax3.set_xlabel("exposure mid-time since start (s)")
+    ax3.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
