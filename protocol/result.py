@@ -167,7 +167,7 @@ PSF_MEASURED = 0x04  #: ``psf_sigma`` was measured on this frame (else: the sett
 #: colour correction (the stars' ``rg``, ``bg`` are the raw measurements);
 #: ``stage_times`` seconds for detect, fit, vectors, identify, attitude, total
 #: (``firmware_model.pipeline.run.STAGES``); ``method`` a :class:`MethodCode`: 0 none, 1 colour, 2 geometric (4-star), 3 geometric
-#: consensus, 4 scale-free pattern (uncalibrated optics); ``reason``
+#: consensus, 4 scale-free pattern (uncalibrated optics), 5 tracking; ``reason``
 #: why the status is what it is (UTF-8, truncated to EXT_REASON_BYTES). Optics block: ``psf_sigma``
 #: PSF Gaussian sigma used (px); ``focal_px`` / ``focal_sigma`` fitted focal length and 1-sigma (px),
 #: ``k1`` / ``k1_sigma`` radial distortion (NaN sigma: held), ``optics_rms`` residual of that fit
@@ -241,6 +241,7 @@ class MethodCode(IntEnum):
     GEOMETRIC = 2  #: 4-star voting with the triangle fallback
     GEOMETRIC_CONSENSUS = 3  #: the consensus matcher on geometry alone (mono fallback)
     PATTERN = 4  #: scale-free pattern search (uncalibrated optics)
+    TRACKING = 5  #: tracking: predicted from the last attitude and rate
 
 
 class ReturnBits(IntEnum):

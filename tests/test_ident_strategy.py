@@ -92,10 +92,11 @@ def test_method_codes_are_the_wire_values_and_the_report_names():
         MethodCode.GEOMETRIC,
         MethodCode.GEOMETRIC_CONSENSUS,
         MethodCode.PATTERN,
+        MethodCode.TRACKING,
     ]
-    assert [int(c) for c in MethodCode] == [0, 1, 2, 3, 4]
-    assert method_code(None) == 0 and method_code(Method.PATTERN) == 4
-    assert METHODS == {0: "", 1: "colour", 2: "geometric", 3: "geometric-consensus", 4: "pattern"}
+    assert [int(c) for c in MethodCode] == [0, 1, 2, 3, 4, 5]
+    assert method_code(None) == 0 and method_code(Method.PATTERN) == 4 and method_code(Method.TRACKING) == 5
+    assert METHODS == {0: "", 1: "colour", 2: "geometric", 3: "geometric-consensus", 4: "pattern", 5: "tracking"}
 
 
 def test_outcome_prints_its_value():

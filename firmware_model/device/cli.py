@@ -148,7 +148,7 @@ def build_device(args: argparse.Namespace) -> Device:
         source = load_frame_source("attitude_feed", args.attitude_feed, camera)
     store = SlotStore(args.state, volatile={Slot.FRAME}) if args.state else None
     device_params = DeviceParams.load(args.params) if args.params else DeviceParams()
-    solver = PipelineSolver(camera, device_params.apply(PipelineParams()))
+    solver = PipelineSolver(camera, device_params.apply(PipelineParams()), tracking=bool(device_params.tracking))
     slots: dict[int, SlotHandler] = {
         Slot.CATALOG: catalog_slot_handler(prepare=solver.prepare),
         Slot.FRAME: frame_slot_handler(camera),

@@ -32,7 +32,8 @@ from firmware_model.pipeline.extract import PSF_SIGMA_RANGE_PX, warm_up
 from firmware_model.pipeline.frame_readers import FrameReadError, frame_files, read_frame
 from firmware_model.pipeline.raw_frame import Frame, frame_from_bytes
 from firmware_model.pipeline.run import PipelineParams, result_fields, run_pipeline, with_psf_sigma
-from protocol.commands import SlotRejected
+from firmware_model.pipeline.tracking_run import Tracker, frame_time
+from protocol.commands import GoBits, SlotRejected
 from protocol.result import QuaternionOrder
 
 log = logging.getLogger(__name__)
@@ -97,7 +98,10 @@ class DeviceParams:
     default 1; 0: trust the announced noise; ``strategy.adapt_noise``); ``quaternion_order``
     "scalar_first" (default) | "scalar_last": the element order of the standard result
     structure's quaternions (docs/ICD.md section 10.2; the offline paths, which report the
-    extension's scalar-first quaternion, accept and ignore it).
+    extension's scalar-first quaternion, accept and ignore it); ``tracking`` true | false (not set:
+    the device's default, ``PipelineSolver.tracking``): after a high-confidence fix, track the next frames from the last attitude and rate
+    (``pipeline.tracking_run``; a GO without bit 0x01 ON drops the track, docs/ICD.md section 7;
+    the offline paths ignore it).
     The same file drives the offline paths (``--params``).
     """
 
@@ -112,6 +116,7 @@ class DeviceParams:
     max_roll_sigma_deg: float | None = None
     noise_probe_px: float | None = None
     quaternion_order: QuaternionOrder | None = None
+    tracking: bool | None = None
 
     KEYS = (
         "mode",
@@ -125,6 +130,7 @@ class DeviceParams:
         "max_roll_sigma_deg",
         "noise_probe_px",
         "quaternion_order",
+        "tracking",
     )
 
     @classmethod
@@ -186,6 +192,9 @@ class DeviceParams:
             ):
                 raise SlotRejected(REJECT_PARAMS_VALUE, 'colour_correction must be {"beta": [6 finite numbers]}')
             beta = tuple(float(x) for x in b)
+        tracking = obj.get("tracking")
+        if tracking is not None and not isinstance(tracking, bool):
+            raise SlotRejected(REJECT_PARAMS_VALUE, f"tracking must be true or false, got {tracking!r}")
         return cls(
             mode,
             positive("sigma_rg"),
@@ -198,6 +207,7 @@ class DeviceParams:
             number("max_roll_sigma_deg", 0.0, 180.0),
             number("noise_probe_px", 0.0, 20.0, lo_open=False),
             _quaternion_order(obj.get("quaternion_order")),
+            tracking,
         )
 
     def apply(self, base: PipelineParams) -> PipelineParams:
@@ -292,11 +302,16 @@ def load_frame_source(name: str, spec: str, camera: CameraModel) -> Callable[[So
 
 
 class PipelineSolver:
-    """GO solver: runs :func:`~firmware_model.pipeline.run.run_pipeline` on the sequence's frame."""
+    """GO solver: runs :func:`~firmware_model.pipeline.run.run_pipeline` on the sequence's frame,
+    or, with the parameter ``tracking`` (the slot-2 set's, else ``tracking`` here: ``--params``),
+    the :class:`~firmware_model.pipeline.tracking_run.Tracker` that persists across sequences (a GO
+    without bit 0x01 ON drops its track)."""
 
-    def __init__(self, camera: CameraModel, params: PipelineParams = PipelineParams()):
+    def __init__(self, camera: CameraModel, params: PipelineParams = PipelineParams(), tracking: bool = False):
         self.camera = camera
         self.params = params
+        self.tracking = tracking
+        self.tracker = Tracker()
         # the planet check imports astropy (~0.3 s) and the extraction kernels load (numba, cached
         # on disk; compiled once per install): at start-up, not inside the first GO
         importlib.import_module("firmware_model.pipeline.planets")
@@ -311,8 +326,16 @@ class PipelineSolver:
             ).start()
 
     def __call__(self, ctx: SolveContext) -> dict:
-        params = ctx.params.apply(self.params) if isinstance(ctx.params, DeviceParams) else self.params
-        out = run_pipeline(ctx.frame, self.camera, ctx.catalog, params)
+        device = ctx.params if isinstance(ctx.params, DeviceParams) else DeviceParams()
+        params = device.apply(self.params)
+        tracking = self.tracking if device.tracking is None else device.tracking
+        if not tracking or not ctx.go_code & GoBits.ON:
+            self.tracker.state = None  # tracking off, or the GO asks to drop the track
+        if tracking:
+            t = frame_time(ctx.frame, ctx.started)
+            out = self.tracker.solve(ctx.frame, t, self.camera, ctx.catalog, params)
+        else:
+            out = run_pipeline(ctx.frame, self.camera, ctx.catalog, params)
         fields = result_fields(out)
         fields["ext.reason"] = out.reason
         return fields

@@ -63,6 +63,7 @@ class Method(StrEnum):
     GEOMETRIC = "geometric"  #: 4-star voting (Dong et al.) with the triangle fallback
     GEOMETRIC_CONSENSUS = "geometric-consensus"  #: the consensus matcher on geometry alone
     PATTERN = "pattern"  #: scale-free pattern search (uncalibrated optics, in the pipeline)
+    TRACKING = "tracking"  #: predicted from the last attitude and rate (``ident.tracking``)
 
     @property
     def code(self) -> MethodCode:

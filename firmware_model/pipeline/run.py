@@ -188,6 +188,8 @@ class PipelineOutput:
     optics: OpticsFit | None = None  #: focal length and distortion fitted to the matched stars
     planets: list = field(default_factory=list)  #: ``planets.PlanetLabel`` of detections on a planet / the moon
     fallback_due: bool = False  #: the mono consensus fallback was deferred (``_identify``'s ``defer_fallback``)
+    omega: np.ndarray | None = None  #: body rate (rad/s, sensor axes) of a tracked answer (``tracking_run``)
+    omega_covariance: np.ndarray | None = None  #: its 3x3 covariance ((rad/s)^2)
 
     @property
     def ok(self) -> bool:
@@ -798,6 +800,19 @@ def return_bits(out: PipelineOutput) -> int:
     return bits
 
 
+def omega_fields(omega, covariance) -> dict:
+    """The rate (rad/s, sensor axes) and its 3x3 covariance ((rad/s)^2) in the standard structure:
+    ``omega`` and, as xx, yy, zz, xy, xz, yz, ``matching.0.omega_covariance`` and
+    ``ers.omega_covariance`` (docs/ICD.md section 10)."""
+    c = np.asarray(covariance, dtype=float)
+    upper = np.array([c[0, 0], c[1, 1], c[2, 2], c[0, 1], c[0, 2], c[1, 2]])
+    return {
+        "omega": np.asarray(omega, dtype=float),
+        "matching.0.omega_covariance": upper,
+        "ers.omega_covariance": upper,
+    }
+
+
 def result_fields(out: PipelineOutput) -> dict:
     """Result-structure fields (dotted paths of ``protocol.result.RESULT``) for one output."""
     fields: dict = {}
@@ -866,6 +881,8 @@ def result_fields(out: PipelineOutput) -> dict:
     for lab in out.planets:
         if lab.index < result.EXT_MAX_STARS:
             ext_stars["flags"][lab.index] |= 4 | (1 + result.BODIES.index(lab.body)) << 8
+    if out.omega is not None and out.omega_covariance is not None:
+        fields.update(omega_fields(out.omega, out.omega_covariance))
     fields["ext.n_planets"] = min(len(out.planets), 255)
     fields["ext.n_matched"] = n_matched
     fields.update(_optics_fields(out))

@@ -5,7 +5,7 @@ quaternion ``q_icrs_to_sensor`` [w, x, y, z], boresight RA/Dec/roll in degrees
 (docs/CONVENTIONS.md), detected and matched counts, the matched stars (catalog id, pixel
 position, colour ratios, residual), attitude 1-sigma per sensor axis (arcsec), and the time per
 pipeline stage. The same function serves offline runs through :func:`record_from_output`.
-:func:`result_record` adds what READ RESULT carries besides (COSMOS bits, epoch, omega, the
+:func:`result_record` adds what READ RESULT carries besides (COSMOS bits, epoch, omega and its sigma, the
 hardware section), :func:`combination_record` decodes the sections a COMBINATION returned (the
 standard quaternion in the order the hardware section flags, docs/ICD.md section 10.2), and
 :func:`format_record` renders any of these for people.
@@ -167,12 +167,14 @@ def _header(rec: np.ndarray) -> dict:
         "epoch": float(rec["epoch"]),
         "epoch_utc": utc_iso(float(rec["epoch"])),
         "omega_rad_s": [float(v) for v in rec["omega"]],
+        "omega_sigma_rad_s": [float(np.sqrt(max(v, 0.0))) for v in rec["ers"]["omega_covariance"][:3]],
         "hardware": hardware_record(rec),
     }
 
 
 def result_record(rec: np.ndarray) -> dict:
-    """:func:`solve_record` plus the COSMOS return bits, the epoch (POSIX s and ISO UTC) and omega (rad/s)."""
+    """:func:`solve_record` plus the COSMOS return bits, the epoch (POSIX s and ISO UTC), omega and
+    its 1-sigma per axis (rad/s; the sigma from ``ers.omega_covariance``, 0 when not tracking)."""
     return {**solve_record(rec), **_header(rec)}
 
 
@@ -182,6 +184,7 @@ _SECTION_KEYS = {
     0x004: ("return_code", "status", "bits"),
     0x028: ("omega_rad_s",),
     0x040: ("epoch", "epoch_utc"),
+    0x440: ("omega_sigma_rad_s",),
     0x048: ("hardware",),
     result.EXT_OFFSET: (
         "reason",
@@ -285,7 +288,9 @@ def format_record(rec: dict) -> str:
             f"status {h['status']}, standard quaternions {h['quaternion_order']}"
         )
     if "omega_rad_s" in rec:
-        lines.append("omega [x y z] = [" + " ".join(f"{w:+.3e}" for w in rec["omega_rad_s"]) + "] rad/s")
+        sigma = rec.get("omega_sigma_rad_s") or [0.0]
+        spread = " +- [" + " ".join(f"{s:.1e}" for s in sigma) + "]" if any(sigma) else ""
+        lines.append("omega [x y z] = [" + " ".join(f"{w:+.3e}" for w in rec["omega_rad_s"]) + f"]{spread} rad/s")
     if "n_detected" in rec:
         lines.append(f"detected {rec['n_detected']}, matched {rec['n_matched']}")
     if "matching" in rec:
