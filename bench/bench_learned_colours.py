@@ -120,14 +120,14 @@ def _colour_rms(frames, catalog, beta, learned_ids: set) -> tuple[float, float]:
     return rms[0], rms[1]
 
 
-def run(name: str, paths, camera, catalog, image: bytes) -> None:
+def run(name: str, paths, camera, catalog, image: bytes, figure: Path) -> None:
     from firmware_model.catalog.image_io import catalog_from_image
     from firmware_model.pipeline.extract import extract_stars
     from firmware_model.pipeline.frame_readers import read_frame
     from firmware_model.pipeline.run import PipelineParams, identify_stars
     from ground.analysis.replay import Truth, score
     from ground.calibration.corrections import ColourCorrection
-    from ground.calibration.learned_colours import learn_image, observations_from_records
+    from ground.calibration.learned_colours import learn_image, observations_from_records, plot_learned
     from ground.link.solve_report import record_from_output
 
     auto = PipelineParams()
@@ -156,6 +156,8 @@ def run(name: str, paths, camera, catalog, image: bytes) -> None:
     if img_raw is None or img_corr is None:
         print(f"  nothing learned: {learned.reason or learned_c.reason}")
         return
+    plot_learned(learned_c, figure, f"{name}: colours learned through eq. 24 from {len(train)} frames")
+    print(f"  figure: {figure}")
     ways = {
         "basic": (catalog, None),
         "eq. 24 alone": (catalog, tuple(fit.beta)),
@@ -197,6 +199,7 @@ def main(argv=None) -> int:
         "few stars); default: the sky model's stars and the default catalog",
     )
     ap.add_argument("--out", default="out/bench_learned_colours")
+    ap.add_argument("--figures", default="docs/figures", help="where the learned-colour plots go")
     args = ap.parse_args(argv)
 
     from firmware_model.catalog.image_io import catalog_to_image
@@ -232,7 +235,7 @@ def main(argv=None) -> int:
                 f"bg {args.gain_bg}, "
                 f"scintillation {args.scintillation:.0%}, pointings within {OPENLOOP_RADIUS_DEG} deg of the belt"
             )
-        run(name, frame_files(d), camera, catalog, image)
+        run(name, frame_files(d), camera, catalog, image, Path(args.figures) / f"learned_colours_{name}.png")
     return 0
 
 
