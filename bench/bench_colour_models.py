@@ -30,12 +30,10 @@ from tqdm import tqdm
 
 from ground.catalog.analyze import ambiguous_pairs, analyze
 from ground.catalog.build import DEFAULT_BSC5, build_catalog, load_source
-from ground.catalog.colour import QE_MODELS, SHARED_DATA, ColourModel, load_qe, match_template, parse_mk
+from ground.catalog.colour import EM2013_TABLE4, QE_MODELS, SHARED_DATA, ColourModel, load_qe, match_template, parse_mk
 from ground.catalog.design import CatalogDesign
 from ground.catalog.sources import read_bsc5
 
-#: seed 000 table 4, catalog columns: HR -> (name, Lambda_rg, Lambda_bg)
-TABLE4 = {1852: ("delta-Ori", 0.652, 1.232), 1903: ("epsilon-Ori", 0.674, 1.161), 1948: ("zeta-Ori", 0.652, 1.232)}
 MEASURED = {"imx219 (measured, 400-700 nm)": "IMX219.csv", "ov5647 (measured, 400-700 nm)": "OV5647_QE.csv"}
 
 
@@ -49,7 +47,7 @@ def models() -> dict[str, ColourModel]:
 
 def table4(model: ColourModel, bsc) -> tuple[list[str], float]:
     cells, worst = [], 0.0
-    for hr, (_, rg_p, bg_p) in TABLE4.items():
+    for hr, (_, rg_p, bg_p) in EM2013_TABLE4.items():
         sp = str(bsc.sptype[np.flatnonzero(bsc.star_id == hr)[0]])
         rg, bg = model.template_ratios(match_template(parse_mk(sp), model.templates))
         cells.append(f"{rg:.3f}/{bg:.3f}")
@@ -93,7 +91,7 @@ def main(argv=None) -> int:
     print(
         f"{'model':32s} {'delta-Ori':>11} {'eps-Ori':>11} {'zeta-Ori':>11} {'max |d|':>7}  templates O5-M5 III-V | catalog V<=4.5, 1-99 %"
     )
-    print(f"{'paper (seed 000 table 4)':32s} " + " ".join(f"{rg:.3f}/{bg:.3f}" for _, rg, bg in TABLE4.values()))
+    print(f"{'paper (seed 000 table 4)':32s} " + " ".join(f"{rg:.3f}/{bg:.3f}" for _, rg, bg in EM2013_TABLE4.values()))
     for label, model in ms.items():
         cells, worst = table4(model, bsc)
         cat = build_catalog(row_design(PAPER_TABLE1[0]), source=source, colours=model)
@@ -161,7 +159,7 @@ def plot_models(ms: dict[str, ColourModel], path: Path) -> Path:
             r = np.array([model.template_ratios(n) for n in names])
             ax.plot(r[:, 0], r[:, 1], ls=ls, marker=".", color=colour, label=f"{label}, {'V' if lum == 5 else 'III'}")
     points: dict[tuple[float, float], list[str]] = {}
-    for name, rg, bg in TABLE4.values():
+    for name, rg, bg in EM2013_TABLE4.values():
         points.setdefault((rg, bg), []).append(name)
     for (rg, bg), names in points.items():
         ax.plot(rg, bg, "k*", ms=12)

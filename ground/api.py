@@ -90,7 +90,7 @@ def solve_image(
 
     frame = _frame(image)
     camera = _camera(frame, camera, fov_deg)
-    cat = _catalog(catalog, frame, camera)
+    cat = _catalog(catalog, camera)
     out = run_pipeline(frame, camera, cat, params or PipelineParams())
     return solved_image(out, camera)
 
@@ -156,10 +156,9 @@ def _camera(frame: Frame, camera: CameraModel | None, fov_deg: float | None) -> 
     return CameraModel.from_horizontal_fov(frame.width, frame.height, float(fov_deg))
 
 
-def _catalog(catalog, frame: Frame, camera: CameraModel) -> OnboardCatalog:
+def _catalog(catalog, camera: CameraModel) -> OnboardCatalog:
     if catalog is None:
-        hfov = float(np.degrees(2.0 * np.arctan(camera.width / 2.0 / camera.f)))
-        return catalog_for_field(camera.width, camera.height, round(hfov, 2))
+        return catalog_for_camera(camera)
     if isinstance(catalog, (str, Path)):
         from firmware_model.catalog.image_io import catalog_from_image
 
@@ -168,6 +167,12 @@ def _catalog(catalog, frame: Frame, camera: CameraModel) -> OnboardCatalog:
         except (OSError, ValueError) as exc:
             raise ValueError(f"catalog {catalog}: {exc}") from None
     return catalog
+
+
+def catalog_for_camera(camera: CameraModel) -> OnboardCatalog:
+    """:func:`catalog_for_field` of the camera's array and horizontal field of view (to 0.01 deg)."""
+    hfov = float(np.degrees(2.0 * np.arctan(camera.width / 2.0 / camera.f)))
+    return catalog_for_field(camera.width, camera.height, round(hfov, 2))
 
 
 @lru_cache(maxsize=4)

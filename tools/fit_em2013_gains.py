@@ -20,12 +20,10 @@ from pathlib import Path
 import numpy as np
 
 from ground.atomic_write import write_text
-from ground.catalog.colour import ColourModel, default_qe, match_template, parse_mk
+from ground.catalog.colour import EM2013_TABLE4, ColourModel, default_qe, match_template, parse_mk
 from ground.catalog.sources import read_bsc5
 
 DATA = Path(__file__).resolve().parents[1] / "ground" / "catalog" / "data"
-#: seed 000 table 4, catalog columns: HR -> (name, Lambda_rg, Lambda_bg)
-TABLE4 = {1852: ("delta-Ori", 0.652, 1.232), 1903: ("epsilon-Ori", 0.674, 1.161), 1948: ("zeta-Ori", 0.652, 1.232)}
 
 
 def main(argv=None) -> int:
@@ -38,7 +36,7 @@ def main(argv=None) -> int:
     model = ColourModel(qe=base, pickles_dir=args.pickles_dir)
     bsc = read_bsc5(args.bsc5)
     model_rg, model_bg, paper_rg, paper_bg, names = [], [], [], [], []
-    for hr, (star, rg, bg) in TABLE4.items():
+    for hr, (star, rg, bg) in EM2013_TABLE4.items():
         sptype = str(bsc.sptype[np.flatnonzero(bsc.star_id == hr)[0]])
         template = match_template(parse_mk(sptype), model.templates)
         m_rg, m_bg = model.template_ratios(template)

@@ -38,6 +38,13 @@ DEFAULT_QE_NAME = "mt9p031_like"
 #: detector responses shipped as ``data/qe_<name>.csv``, each with its template ratios in
 #: ``data/pickles_templates.csv`` (docs/catalog.md says what each assumes)
 QE_MODELS = ("mt9p031_like", "mt9p031_like_ircut", "em2013")
+#: Enright & McVittie (seed 000) table 4, catalog columns: BSC5 HR -> (star, Lambda_rg, Lambda_bg);
+#: what ``em2013`` is fitted to (``tools/fit_em2013_gains.py``) and compared with (``bench/bench_colour_models.py``)
+EM2013_TABLE4 = {
+    1852: ("delta-Ori", 0.652, 1.232),
+    1903: ("epsilon-Ori", 0.674, 1.161),
+    1948: ("zeta-Ori", 0.652, 1.232),
+}
 
 
 class ColourDataError(ValueError):
@@ -72,20 +79,15 @@ class QETable:
         w = np.asarray(self.wavelength_nm, dtype=float)
         if w.ndim != 1 or len(w) < 2:
             raise ColourDataError(f"QE table {self.name}: need at least two wavelengths")
-        for label, arr in (("wavelength", w), ("R", self.r), ("G", self.g), ("B", self.b)):
-            arr = np.asarray(arr, dtype=float)
-            if arr.shape != w.shape or not np.isfinite(arr).all():
-                raise ColourDataError(f"QE table {self.name}: column {label} is not a finite column of length {len(w)}")
-            if label != "wavelength" and (arr < 0).any():
-                k = int(np.flatnonzero(arr < 0)[0])
-                raise ColourDataError(f"QE table {self.name}: {label} is negative ({arr[k]}) at {w[k]} nm")
-        bad = np.flatnonzero(np.diff(w) <= 0)
-        if len(bad):
-            raise ColourDataError(
-                f"QE table {self.name}: wavelengths not increasing at {w[bad[0]]} -> {w[bad[0] + 1]} nm"
-            )
+        rgb = [np.asarray(a, dtype=float) for a in (self.r, self.g, self.b)]
+        for label, arr in zip("RGB", rgb):
+            if arr.shape != w.shape:
+                raise ColourDataError(f"QE table {self.name}: column {label} is not a column of length {len(w)}")
+        bad = first_bad_row(np.column_stack([w, *rgb]))
+        if bad is not None:
+            raise ColourDataError(f"QE table {self.name}: row {bad[0] + 1} ({w[bad[0]]} nm): {bad[1]}")
         self.wavelength_nm = w
-        self.r, self.g, self.b = (np.asarray(a, dtype=float) for a in (self.r, self.g, self.b))
+        self.r, self.g, self.b = rgb
 
     @property
     def band(self) -> tuple[float, float]:
@@ -135,7 +137,9 @@ def load_qe_csv(path: str | Path, name: str | None = None, percent: bool | None 
     if len(rows) < 2:
         raise ColourDataError(f"{path}: {len(rows)} QE row(s); at least two are needed")
     a = np.array(rows)
-    _check_rows(path, a, lines)
+    bad = first_bad_row(a, one_step=True)
+    if bad is not None:
+        raise ColourDataError(f"{path}: line {lines[bad[0]]}: {bad[1]}")
     if percent is None:
         percent = bool(a[:, 1:].max() > 1.5)
     if percent:
@@ -143,31 +147,32 @@ def load_qe_csv(path: str | Path, name: str | None = None, percent: bool | None 
     return QETable(a[:, 0], a[:, 1], a[:, 2], a[:, 3], name=name or path.stem, provenance="; ".join(comments))
 
 
-def _check_rows(path: Path, a: np.ndarray, lines: list[int]) -> None:
-    """Finite, non-negative values on positive wavelengths increasing by one step (1 % slack)."""
+def first_bad_row(a: np.ndarray, one_step: bool = False) -> tuple[int, str] | None:
+    """(row, what) of the first row of ``a`` (wavelength_nm, R, G, B) that a QE table cannot hold:
+    a value not finite, a negative response, a wavelength not positive or not increasing, and with
+    ``one_step`` a wavelength step other than the table's first (1 % slack); None if every row is good."""
     bad = ~np.isfinite(a)
     if bad.any():
         k, c = np.argwhere(bad)[0]
-        raise ColourDataError(f"{path}: line {lines[k]}: column {'wRGB'[c]} is not finite ({a[k, c]})")
+        return int(k), f"column {'wRGB'[c]} is not finite ({a[k, c]})"
     if a[0, 0] <= 0:
-        raise ColourDataError(f"{path}: line {lines[0]}: wavelength {a[0, 0]} nm is not positive")
+        return 0, f"wavelength {a[0, 0]} nm is not positive"
     neg = np.argwhere(a[:, 1:] < 0)
     if len(neg):
         k, c = neg[0]
-        raise ColourDataError(f"{path}: line {lines[k]}: {'RGB'[c]} is negative ({a[k, c + 1]})")
+        return int(k), f"{'RGB'[c]} is negative ({a[k, c + 1]})"
     step = np.diff(a[:, 0])
-    k = int(np.argmax(step <= 0)) if (step <= 0).any() else None
-    if k is not None:
-        raise ColourDataError(
-            f"{path}: line {lines[k + 1]}: wavelength {a[k + 1, 0]} nm does not increase from {a[k, 0]} nm"
-        )
+    if (step <= 0).any():
+        k = int(np.argmax(step <= 0))
+        return k + 1, f"wavelength {a[k + 1, 0]} nm does not increase from {a[k, 0]} nm"
     off = np.flatnonzero(np.abs(step - step[0]) > 0.01 * step[0])
-    if len(off):
+    if one_step and len(off):
         k = int(off[0])
-        raise ColourDataError(
-            f"{path}: line {lines[k + 1]}: wavelength step {step[k]:g} nm where the table's step is "
-            f"{step[0]:g} nm (resample every channel to one step)"
+        return k + 1, (
+            f"wavelength step {step[k]:g} nm where the table's step is {step[0]:g} nm "
+            "(resample every channel to one step)"
         )
+    return None
 
 
 def shipped_qe(name: str = DEFAULT_QE_NAME) -> QETable:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from firmware_model.catalog.onboard import chord_of_angle
+from firmware_model.catalog.onboard import angle_between, chord_of_angle
 from ground.catalog.colour import parse_mk
 from ground.catalog.sources import StarTable
 
@@ -102,8 +102,7 @@ def candidate_pairs(stars: StarTable, bsc: StarTable) -> tuple[np.ndarray, np.nd
     near = cKDTree(bsc.vec).query_ball_point(stars.vec, chord_of_angle(MK_MATCH_RADIUS))
     i = np.repeat(np.arange(len(stars)), [len(n) for n in near])
     j = np.fromiter(itertools.chain.from_iterable(near), dtype=np.intp, count=len(i))
-    chord = np.linalg.norm(stars.vec[i] - bsc.vec[j], axis=1)
-    return i, j, 2.0 * np.arcsin(np.minimum(chord / 2.0, 1.0)), bsc.vmag[j] - stars.vmag[i]
+    return i, j, angle_between(stars.vec[i], bsc.vec[j]), bsc.vmag[j] - stars.vmag[i]
 
 
 def one_to_one(i: np.ndarray, j: np.ndarray, cost: np.ndarray) -> np.ndarray:

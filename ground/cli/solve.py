@@ -110,9 +110,9 @@ def _solve_file(args) -> int:
         except (OSError, ValueError) as exc:
             raise InputError(f"--catalog {args.catalog}: {exc}") from None
     else:
-        from ground.api import catalog_for_field
+        from ground.api import catalog_for_camera
 
-        catalog = catalog_for_field(camera.width, camera.height, round(_horizontal_fov_deg(camera), 2))
+        catalog = catalog_for_camera(camera)
     rec = OfflineSolver(camera, catalog, params).solve(frame)
     rec["frame"] = Path(args.frame).name
     _print_record(rec, args.json)
@@ -124,12 +124,6 @@ def _solve_file(args) -> int:
         label = "HR" if catalog.meta.get("source") == "bsc5" else "HIP"
         print(f"overlay: {plot_identified(frame, rec, args.overlay, label=label)}")
     return _exit_code(rec)
-
-
-def _horizontal_fov_deg(camera) -> float:
-    import math
-
-    return math.degrees(2.0 * math.atan(camera.width / 2.0 / camera.f))
 
 
 def _solve_on_device(args, frame):
