@@ -99,16 +99,10 @@ class _Feeder:
         self.sender.close()
 
 
-def _free_udp_port() -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _feed_args(atts, work: Path) -> list:
     """Device options for a UDP feed turning at 0.2 deg/s about sensor x, and (last) the feeder."""
+    from ground.cli.hil import _free_udp_port
+
     url = f"udp://127.0.0.1:{_free_udp_port()}"
     return ["--attitude-feed", url, _Feeder(url, atts[0], np.radians([0.2, 0.0, 0.0]))]
 

@@ -22,22 +22,8 @@ from protocol.commands import SlotRejected
 
 
 @pytest.fixture(scope="module")
-def small_catalog():
-    rng = np.random.default_rng(7)
-    n = 40
-    ra, dec = rng.uniform(0, 0.6, n), rng.uniform(-0.3, 0.3, n)
-    return OnboardCatalog.build(
-        np.arange(100, 100 + n),
-        radec_to_vec(ra, dec),
-        rng.uniform(1, 5, n),
-        rng.uniform(0.7, 1.3, n),
-        rng.uniform(0.6, 1.1, n),
-        phi_min=1e-3,
-        phi_max=0.3,
-        n_h=32,
-        dphi_star=2e-4,
-        meta={"epoch": 2025.0, "source": "hipparcos", "colour_source": np.full(n, 2)},
-    )
+def small_catalog(synthetic_catalog):
+    return synthetic_catalog(40, dphi_star=2e-4)
 
 
 @pytest.fixture(scope="module")

@@ -7,8 +7,6 @@ import numpy as np
 import pytest
 
 from firmware_model.catalog.image_io import catalog_from_image, catalog_to_image
-from firmware_model.catalog.onboard import OnboardCatalog
-from firmware_model.reference_frames import radec_to_vec
 from ground.calibration.learned_colours import Observations, learn_colours, observations_from_records
 from protocol.catalog_image import CatalogImageError, parse_image, with_star_colours
 
@@ -137,21 +135,8 @@ def test_observations_from_records_take_confident_matched_unsaturated_stars():
 
 
 @pytest.fixture(scope="module")
-def image():
-    rng = np.random.default_rng(7)
-    n = 30
-    cat = OnboardCatalog.build(
-        np.arange(100, 100 + n),
-        radec_to_vec(rng.uniform(0, 0.6, n), rng.uniform(-0.3, 0.3, n)),
-        rng.uniform(1, 5, n),
-        rng.uniform(0.7, 1.3, n),
-        rng.uniform(0.6, 1.1, n),
-        phi_min=1e-3,
-        phi_max=0.3,
-        n_h=32,
-        meta={"epoch": 2025.0, "source": "hipparcos", "colour_source": np.full(n, 2)},
-    )
-    return catalog_to_image(cat, created_unix=1_700_000_000)
+def image(synthetic_catalog):
+    return catalog_to_image(synthetic_catalog(30), created_unix=1_700_000_000)
 
 
 def test_image_with_new_colours_is_re_signed_and_changes_only_colours(image):

@@ -29,7 +29,9 @@ AMBIENT_C = 20.0  #: degC
 SAMPLE_HZ = 1.0  #: analog frame samples per second
 VOLTAGE_NOISE = 0.002  #: relative 1-sigma of each voltage sample
 CURRENT_NOISE = 0.01  #: relative 1-sigma of the current sample
-CURRENT_IDLE_A, CURRENT_BUSY_A = 0.25, 0.45
+#: supply current (A) at idle (the analog frame's nominal) and while a sequence runs
+CURRENT_IDLE_A = next(c.nominal for c in ANALOG if c.name == "current")
+CURRENT_BUSY_A = 0.45
 
 
 @dataclass(frozen=True)

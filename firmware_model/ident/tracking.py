@@ -49,6 +49,7 @@ from scipy.spatial.transform import Rotation
 from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.ident.attitude import quat_matrix, solve_attitude
 from firmware_model.pipeline.camera import CameraModel
+from firmware_model.reference_frames import matrix_to_quat
 
 
 @dataclass(frozen=True)
@@ -144,11 +145,6 @@ class TrackResult:
         return self.status is TrackStatus.OK
 
 
-def _quat(a: np.ndarray) -> np.ndarray:
-    q = Rotation.from_matrix(a).as_quat(scalar_first=True)
-    return -q if q[0] < 0 else q
-
-
 def predict(state: TrackState, t: float, params: TrackParams = TrackParams()) -> TrackState:
     """``state`` propagated to ``t`` (s) at its constant rate; covariance grown by the process
     noise (module docstring)."""
@@ -164,7 +160,7 @@ def predict(state: TrackState, t: float, params: TrackParams = TrackParams()) ->
     q[:3, 3:] = q[3:, :3] = -params.rate_noise * dt * adt / 2 * eye
     q[3:, 3:] = params.rate_noise * adt * eye
     p = f @ state.covariance @ f.T + q
-    return TrackState(_quat(turn @ quat_matrix(state.q)), state.omega.copy(), 0.5 * (p + p.T), float(t))
+    return TrackState(matrix_to_quat(turn @ quat_matrix(state.q)), state.omega.copy(), 0.5 * (p + p.T), float(t))
 
 
 def _predicted_stars(a: np.ndarray, catalog: OnboardCatalog, camera: CameraModel, margin_px: float):
@@ -244,14 +240,17 @@ def track(
     b_all = camera.pixel_to_vector(px[finite, 0], px[finite, 1])
     sig_gate = float(np.median(sig_det[finite]))  # a window's centroid noise, before it knows its detection
 
+    def meas_px(rows: np.ndarray, det: np.ndarray) -> np.ndarray:
+        """Per-axis noise (px) of detections ``det`` matched to predicted stars ``rows``: centroid and smear."""
+        return np.sqrt(sig_det[finite[det]] ** 2 + smear[rows] ** 2)
+
     def attempt(p_att: np.ndarray, s: np.ndarray, p: np.ndarray):
         """Match in windows around ``p`` (px) of stars ``s`` with attitude covariance ``p_att`` and solve."""
         spread = camera.f * np.sqrt(np.clip((np.trace(p_att) - np.einsum("ij,jk,ik->i", s, p_att, s)) / 2, 0, None))
         rows, det = _match(p, params.gate_k * np.sqrt(spread**2 + sig_gate**2 + smear**2), tree)
-        meas_px = np.sqrt(sig_det[finite[det]] ** 2 + smear[rows] ** 2)
         if len(rows) < max(params.min_stars, 2):
             return None, rows, det
-        sol, kept = _solve(b_all[det], catalog.vec[cat[rows]], meas_px / camera.f, params.gate_k)
+        sol, kept = _solve(b_all[det], catalog.vec[cat[rows]], meas_px(rows, det) / camera.f, params.gate_k)
         return sol, rows[kept], det[kept]
 
     sol, rows, det = attempt(pred.attitude_covariance, s_pred, p_pred)
@@ -263,7 +262,7 @@ def track(
             sol, rows, det = sol2, rows2, det2
     if sol is None or len(rows) < params.min_stars:
         return lost(f"too few matched stars: {len(rows)} of {n_pred} predicted (need {params.min_stars})")
-    meas_rad = np.sqrt(sig_det[finite[det]] ** 2 + smear[rows] ** 2) / camera.f
+    meas_rad = meas_px(rows, det) / camera.f
     nrms = float(np.sqrt(np.mean((sol.residuals / meas_rad) ** 2)))
     if nrms > params.max_normalised_rms:
         return lost(f"residuals beyond the gate: normalised RMS {nrms:.2f} > {params.max_normalised_rms}")
@@ -290,7 +289,7 @@ def _update(pred: TrackState, z: np.ndarray, r: np.ndarray) -> TrackState:
     ikh = np.eye(6) - gain @ h
     p_new = ikh @ p @ ikh.T + gain @ r @ gain.T
     a = Rotation.from_rotvec(dx[:3]).as_matrix() @ quat_matrix(pred.q)
-    return replace(pred, q=_quat(a), omega=pred.omega + dx[3:], covariance=0.5 * (p_new + p_new.T))
+    return replace(pred, q=matrix_to_quat(a), omega=pred.omega + dx[3:], covariance=0.5 * (p_new + p_new.T))
 
 
 __all__ = ["TrackParams", "TrackResult", "TrackState", "TrackStatus", "predict", "track"]

@@ -213,20 +213,28 @@ def run_pipeline(
 ) -> PipelineOutput:
     """Frame -> stars -> identification -> attitude (module docstring), then planet labelling."""
     t0 = time.perf_counter()
+    stars = frame_stars(frame, camera, params)
+    if isinstance(stars, PipelineOutput):
+        return stars
+    out = identify_stars(stars, camera, catalog, params)
+    if frame.timestamp and out.solution is not None and out.solution.q_icrs_to_sensor is not None:
+        out = _label_planets(out, frame, catalog, params)
+    out.timings.total = time.perf_counter() - t0
+    return out
+
+
+def frame_stars(frame: Frame, camera: CameraModel, params: PipelineParams) -> StarList | PipelineOutput:
+    """The stars extracted from ``frame``, or the BAD_FRAME answer for a frame of another size than
+    ``camera``'s or one the extraction rejects."""
     if (frame.width, frame.height) != (camera.width, camera.height):
         return PipelineOutput(
             Status.BAD_FRAME,
             f"frame is {frame.width} x {frame.height} but the camera is {camera.width} x {camera.height}",
         )
     try:
-        stars = extract_stars(frame, camera, params.extract)
+        return extract_stars(frame, camera, params.extract)
     except ValueError as exc:
         return PipelineOutput(Status.BAD_FRAME, f"frame rejected: {exc}")
-    out = identify_stars(stars, camera, catalog, params)
-    if frame.timestamp and out.solution is not None and out.solution.q_icrs_to_sensor is not None:
-        out = _label_planets(out, frame, catalog, params)
-    out.timings.total = time.perf_counter() - t0
-    return out
 
 
 def _label_planets(out: PipelineOutput, frame: Frame, catalog: OnboardCatalog, params: PipelineParams):

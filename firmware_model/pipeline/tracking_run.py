@@ -23,9 +23,9 @@ from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.solver import Method, SolveResult
 from firmware_model.ident.tracking import TrackParams, TrackResult, TrackState, track
 from firmware_model.pipeline.camera import CameraModel
-from firmware_model.pipeline.extract import StarList, extract_stars
+from firmware_model.pipeline.extract import StarList
 from firmware_model.pipeline.raw_frame import Frame
-from firmware_model.pipeline.run import PipelineOutput, PipelineParams, identify_stars, run_pipeline
+from firmware_model.pipeline.run import PipelineOutput, PipelineParams, frame_stars, identify_stars, run_pipeline
 from protocol.result import Status
 
 
@@ -55,7 +55,7 @@ class Tracker:
     ) -> PipelineOutput:
         """``frame`` taken at mid-exposure time ``t`` (s), tracked when a track exists, else lost
         in space; the track is then kept, restarted from a confident fix, or ended."""
-        if self.state is None or (frame.width, frame.height) != (camera.width, camera.height):
+        if self.state is None:
             out = run_pipeline(frame, camera, catalog, params)
         else:
             out = self._track(frame, t, camera, catalog, params, self.state)
@@ -76,10 +76,9 @@ class Tracker:
         params: PipelineParams,
         state: TrackState,
     ) -> PipelineOutput:
-        try:
-            stars = extract_stars(frame, camera, params.extract)
-        except ValueError:
-            return run_pipeline(frame, camera, catalog, params)  # reports the bad frame
+        stars = frame_stars(frame, camera, params)
+        if isinstance(stars, PipelineOutput):
+            return stars  # a bad frame
         t0 = time.perf_counter()
         res = track(
             np.column_stack([stars.x, stars.y]),

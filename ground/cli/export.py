@@ -51,14 +51,13 @@ def _openc3(args) -> int:
 
 
 def _xtce(args) -> int:
-    from ground.atomic_write import atomic_path
+    from ground.atomic_write import write_text
     from ground.export import model, xtce
 
     path = Path(args.file)
     _refuse_existing(path, args.force, directory=False)
     text = xtce.dumps(model.build())
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
+    write_text(path, text)
     out = {"file": str(path), "bytes": len(text.encode())}
     print(json_text.dumps(out) if args.json else f"wrote {path}: XTCE 1.2, {out['bytes']} bytes")
     return 0

@@ -32,6 +32,17 @@ def _num(v) -> float | None:
     return v if np.isfinite(v) else None
 
 
+def _is_unit(q: np.ndarray) -> bool:
+    """A quaternion that holds an attitude: finite and of unit norm (a zeroed one holds none)."""
+    return bool(np.isfinite(q).all() and abs(np.linalg.norm(q) - 1) < 1e-6)
+
+
+def _attitude(q: np.ndarray) -> dict:
+    """``q_icrs_to_sensor`` and boresight RA/Dec/roll (deg) of the scalar-first unit quaternion ``q``."""
+    ra, dec, roll = (float(np.degrees(v)) for v in radec_roll_from_attitude(quat_to_matrix(q)))
+    return {"q_icrs_to_sensor": [float(v) for v in q], "ra_deg": ra, "dec_deg": dec, "roll_deg": roll}
+
+
 def _body(flags: int) -> str | None:
     """The planet or moon a star's flags name (protocol.result.EXT_STAR), or None."""
     code = (flags >> 8) & 0xF
@@ -83,13 +94,9 @@ def solve_record(rec: np.ndarray) -> dict:
         "stars": stars,
     }
     q = np.asarray(ext["quaternion"], dtype=float)
-    if rc & result.ReturnBits.IMAGE1_SUCCESS and np.isfinite(q).all() and abs(np.linalg.norm(q) - 1) < 1e-6:
-        ra, dec, roll = radec_roll_from_attitude(quat_to_matrix(q))
+    if rc & result.ReturnBits.IMAGE1_SUCCESS and _is_unit(q):
         out.update(
-            q_icrs_to_sensor=[float(v) for v in q],
-            ra_deg=float(np.degrees(ra)),
-            dec_deg=float(np.degrees(dec)),
-            roll_deg=float(np.degrees(roll)),
+            _attitude(q),
             sigma_arcsec=[float(s * ARCSEC) for s in ext["sigma"]],
             residual_rms_arcsec=_num(ext["residual_rms"] * ARCSEC),
         )
@@ -144,13 +151,11 @@ def _standard_attitude(rec: np.ndarray, order_known: bool) -> dict:
     it is not a unit quaternion (no attitude, whatever the order); the numbers as sent
     (``quaternion_wire``) when the hardware section that flags the order is missing."""
     wire = np.asarray(rec["quaternion"], dtype=float)
-    if not (np.isfinite(wire).all() and abs(np.linalg.norm(wire) - 1) < 1e-6):
+    if not _is_unit(wire):
         return {"q_icrs_to_sensor": None}
     if not order_known:
         return {"q_icrs_to_sensor": None, "quaternion_wire": [float(v) for v in wire]}
-    q = standard_quaternion(rec)
-    ra, dec, roll = (float(np.degrees(v)) for v in radec_roll_from_attitude(quat_to_matrix(q)))
-    return {"q_icrs_to_sensor": [float(v) for v in q], "ra_deg": ra, "dec_deg": dec, "roll_deg": roll}
+    return _attitude(standard_quaternion(rec))
 
 
 def utc_iso(epoch_s: float) -> str | None:

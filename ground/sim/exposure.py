@@ -19,14 +19,9 @@ import numpy as np
 from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.raw_frame import Frame
 from ground.sim.noise_bank import NoiseBank
+from ground.sim.openloop import stars_in_cone as stars_in_view
 from ground.sim.sensor_sim import DetectorModel, Stars, render_frame, stamp_half_width
 from ground.sim.sky_model import sky_stars
-
-
-def stars_in_view(stars: Stars, attitude: np.ndarray, radius: float) -> Stars:
-    """The stars within ``radius`` (rad) of the boresight of ``attitude`` (A, v_sensor = A v_icrs)."""
-    keep = stars.vectors @ np.asarray(attitude, dtype=float)[2] >= np.cos(radius)
-    return Stars(stars.ids[keep], stars.vectors[keep], stars.vmag[keep], stars.rg[keep], stars.bg[keep])
 
 
 class ExposureRenderer:
