@@ -132,7 +132,7 @@ def test_the_fitted_focal_lengths_uncertainty_tilts_an_off_centre_field_more():
     """``camera_attitude_covariance``: what fitting f adds to the attitude's covariance (marginal
     minus camera-held): positive semi-definite, and larger across the boresight for stars all on
     one side of the array (a focal-length error moves them all one way) than for a centred set."""
-    from firmware_model.pipeline.camera_fit import fit_frame
+    from firmware_model.pipeline.frame_fit import fit_frame
 
     cam = CameraModel.from_horizontal_fov(1024, 768, 11.4)
     rng = np.random.default_rng(2)
@@ -150,3 +150,37 @@ def test_the_fitted_focal_lengths_uncertainty_tilts_an_off_centre_field_more():
     for c in (centred, one_side):
         assert np.all(np.linalg.eigvalsh(0.5 * (c + c.T)) > -1e-18)
     assert one_side[1, 1] > 10 * centred[1, 1]  # tilt about sensor y: the x offset of the stars
+
+
+@pytest.mark.parametrize("k1_min_stars", [6, 100])
+def test_the_compiled_frame_fit_agrees_with_calibrate(k1_min_stars):
+    """``frame_fit.fit_frame`` (compiled Levenberg-Marquardt, rotations on the group) against
+    ``calibrate`` (scipy's MINPACK) on the same stars: focal length, k1, attitude, residual RMS,
+    sigmas and the covariance the fitted camera adds."""
+    from dataclasses import replace
+
+    from firmware_model.pipeline.frame_fit import fit_frame
+
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        true = CameraModel(1024, 768, 5100.0 * rng.uniform(0.9, 1.1), 511.5, 383.5, k1=rng.uniform(-0.3, 0.3), p1=1e-4)
+        start = replace(true, f=true.f * rng.uniform(0.98, 1.02), k1=0.0)
+        n = int(rng.integers(8, 50))
+        x, y = rng.uniform(0, 1023, n), rng.uniform(0, 767, n)
+        a = attitude_from_radec_roll(rng.uniform(0, 6), rng.uniform(-1, 1), rng.uniform(0, 6))
+        obs = StarObservations(x + rng.normal(0, 0.5, n), y + rng.normal(0, 0.5, n), true.pixel_to_vector(x, y) @ a)
+        fitted = ("f", "k1") if n >= k1_min_stars else ("f",)
+        ref, got = calibrate([obs], start, fit=fitted), fit_frame(obs, start, k1_min_stars)
+        assert got is not None and got.success and ref.success
+        assert got.camera.f == pytest.approx(ref.camera.f, abs=1e-4)
+        assert got.camera.k1 == pytest.approx(ref.camera.k1, abs=1e-6)
+        turn = got.attitudes[0] @ ref.attitudes[0].T
+        assert np.degrees(np.arccos(min(1.0, (np.trace(turn) - 1) / 2))) * 3600 < 0.1  # arcsec
+        assert got.residual_rms_px == pytest.approx(ref.residual_rms_px, rel=1e-9)
+        assert got.sigmas == pytest.approx(ref.sigmas, rel=1e-4)
+        np.testing.assert_allclose(
+            got.camera_attitude_covariance[0],
+            ref.camera_attitude_covariance[0],
+            rtol=0,
+            atol=1e-2 * np.max(np.abs(ref.camera_attitude_covariance[0])),
+        )

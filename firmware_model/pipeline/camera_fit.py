@@ -1,5 +1,5 @@
-"""Camera calibration from identified stars over several frames, or one (``fit_frame``: the
-device's per-solve focal length and distortion).
+"""Camera calibration from identified stars over several frames, or one (the device's per-solve
+fit of one frame's focal length and k1 is ``frame_fit.fit_frame``, compiled).
 
 Unknowns: the chosen camera parameters (``CameraModel`` fields: f, cx, cy, k1, k2, k3,
 p1, p2) shared by all frames, plus one attitude per frame (a rotation vector applied to
@@ -216,12 +216,3 @@ def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_
         message=str(res.message),
         camera_attitude_covariance=added,
     )
-
-
-def fit_frame(obs: StarObservations, camera: CameraModel, k1_min_stars: int) -> CalibrationResult | None:
-    """One frame's focal length, and k1 when at least ``k1_min_stars`` stars are given, fitted with
-    its attitude (principal point held); None when the stars cannot constrain it."""
-    try:
-        return calibrate([obs], camera, fit=("f", "k1") if len(obs.x) >= k1_min_stars else ("f",))
-    except (ValueError, np.linalg.LinAlgError):
-        return None

@@ -37,8 +37,9 @@ from firmware_model.ident.strategy import (
 from firmware_model.ident.verify import FieldOfView
 from firmware_model.pipeline import scale_free
 from firmware_model.pipeline.camera import CameraModel
-from firmware_model.pipeline.camera_fit import StarObservations, fit_frame
+from firmware_model.pipeline.camera_fit import StarObservations
 from firmware_model.pipeline.extract import ExtractParams, StarList, extract_stars
+from firmware_model.pipeline.frame_fit import fit_frame
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.reference_frames import rotation_angle
 from protocol import result

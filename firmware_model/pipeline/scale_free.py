@@ -31,7 +31,8 @@ from scipy.spatial import cKDTree
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between, chord_of_angle
 from firmware_model.ident.attitude import svd_attitude
 from firmware_model.pipeline.camera import CameraModel
-from firmware_model.pipeline.camera_fit import StarObservations, fit_frame
+from firmware_model.pipeline.camera_fit import StarObservations
+from firmware_model.pipeline.frame_fit import fit_frame
 
 #: Catalog patterns of two kinds, both scale free: (1) for each region of the sky the size of the
 #: field (circles of the minor half-field on a Fibonacci lattice spaced REGION_SPACING of that
