@@ -22,10 +22,12 @@ Conventions (docs/CONVENTIONS.md):
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields
 from functools import cached_property
 
 import numpy as np
+from numba import njit
 
 #: Reference design of Enright & McVittie section 2: MT9P031-class 2592 x 1944 array, 2.2 um pixels.
 REFERENCE_WIDTH = 2592
@@ -185,36 +187,25 @@ class CameraModel:
         return j11, j12, j21, j22
 
     def undistort(self, ud, wd):
-        """Distorted normalised coordinates -> ideal normalised coordinates (Newton). Points
-        without a physical inverse (beyond the fold of a strongly distorting model: no
-        convergence, or a solution with a negative radial factor or reversed orientation)
-        come back as NaN rather than a wrong direction."""
+        """Distorted normalised coordinates -> ideal normalised coordinates (Newton, per point,
+        compiled: :func:`_undistort`). Points without a physical inverse (beyond the fold of a
+        strongly distorting model: no convergence, or a solution with a negative radial factor or
+        reversed orientation) come back as NaN rather than a wrong direction."""
         ud = np.asarray(ud, dtype=float)
         wd = np.asarray(wd, dtype=float)
         if not self.has_distortion:
             return ud.copy(), wd.copy()
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            u, w = ud.copy(), wd.copy()
-            for _ in range(_NEWTON_MAX_ITER):
-                fu, fw = self.distort(u, w)
-                eu, ew = fu - ud, fw - wd
-                j11, j12, j21, j22 = self._distort_jacobian(u, w)
-                det = j11 * j22 - j12 * j21
-                du = (j22 * eu - j12 * ew) / det
-                dw = (-j21 * eu + j11 * ew) / det
-                u = u - du
-                w = w - dw
-                if np.all(np.abs(du) + np.abs(dw) < _NEWTON_TOL):
-                    break
-            fu, fw = self.distort(u, w)
-            j11, j12, j21, j22 = self._distort_jacobian(u, w)
-            r2 = u * u + w * w
-            radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
-            # a physical inverse converged, keeps the radial factor positive and the map orientation
-            bad = ~((np.abs(fu - ud) + np.abs(fw - wd) < _CONVERGED) & (radial > 0) & (j11 * j22 - j12 * j21 > 0))
-            if np.any(bad):
-                u, w = np.where(bad, np.nan, u), np.where(bad, np.nan, w)
-        return u, w
+        shape = np.broadcast_shapes(ud.shape, wd.shape)
+        u, w = _undistort(
+            np.broadcast_to(ud, shape).ravel(),
+            np.broadcast_to(wd, shape).ravel(),
+            self.k1,
+            self.k2,
+            self.k3,
+            self.p1,
+            self.p2,
+        )
+        return u.reshape(shape), w.reshape(shape)
 
     # ---------------------------------------------------------------- projection
     def pixel_to_vector(self, x, y) -> np.ndarray:
@@ -242,3 +233,49 @@ class CameraModel:
             w = np.where(front, v[:, 1] / vz, np.nan)
         ud, wd = self.distort(u, w)
         return self.cx + self.f * ud, self.cy + self.f * wd
+
+
+@njit(cache=True, nogil=True)
+def _undistort(ud, wd, k1, k2, k3, p1, p2):  # pragma: no cover - compiled
+    """Newton inversion of :meth:`CameraModel.distort`, point by point (the same formulas as
+    ``distort`` and ``_distort_jacobian``); NaN where no physical inverse converges."""
+    n = len(ud)
+    u_out, w_out = np.empty(n), np.empty(n)
+    for i in range(n):
+        u, w = ud[i], wd[i]
+        ok = math.isfinite(u) and math.isfinite(w)
+        for _ in range(_NEWTON_MAX_ITER):
+            if not ok:
+                break
+            r2 = u * u + w * w
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+            eu = u * radial + 2.0 * p1 * u * w + p2 * (r2 + 2.0 * u * u) - ud[i]
+            ew = w * radial + p1 * (r2 + 2.0 * w * w) + 2.0 * p2 * u * w - wd[i]
+            j11 = radial + 2.0 * u * u * drad + 2.0 * p1 * w + 6.0 * p2 * u
+            j12 = 2.0 * u * w * drad + 2.0 * p1 * u + 2.0 * p2 * w
+            j22 = radial + 2.0 * w * w * drad + 6.0 * p1 * w + 2.0 * p2 * u
+            det = j11 * j22 - j12 * j12
+            if det == 0.0 or not math.isfinite(det):
+                ok = False
+                break
+            du = (j22 * eu - j12 * ew) / det
+            dw = (-j12 * eu + j11 * ew) / det
+            u -= du
+            w -= dw
+            if abs(du) + abs(dw) < _NEWTON_TOL:
+                break
+        if ok:
+            r2 = u * u + w * w
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+            eu = u * radial + 2.0 * p1 * u * w + p2 * (r2 + 2.0 * u * u) - ud[i]
+            ew = w * radial + p1 * (r2 + 2.0 * w * w) + 2.0 * p2 * u * w - wd[i]
+            j11 = radial + 2.0 * u * u * drad + 2.0 * p1 * w + 6.0 * p2 * u
+            j12 = 2.0 * u * w * drad + 2.0 * p1 * u + 2.0 * p2 * w
+            j22 = radial + 2.0 * w * w * drad + 6.0 * p1 * w + 2.0 * p2 * u
+            # a physical inverse: converged, a positive radial factor, the map's orientation kept
+            ok = abs(eu) + abs(ew) < _CONVERGED and radial > 0.0 and j11 * j22 - j12 * j12 > 0.0
+        u_out[i] = u if ok else np.nan
+        w_out[i] = w if ok else np.nan
+    return u_out, w_out
