@@ -236,9 +236,24 @@ class CameraModel:
 
 
 @njit(cache=True, nogil=True)
+def distort_point(u, w, k1, k2, k3, p1, p2):  # pragma: no cover - compiled
+    """:meth:`CameraModel.distort` and its Jacobian at one point: ``(u_d, w_d, radial, j11, j12,
+    j22)`` (``j21 = j12``), compiled for the kernels that loop over stars."""
+    r2 = u * u + w * w
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    ud = u * radial + 2.0 * p1 * u * w + p2 * (r2 + 2.0 * u * u)
+    wd = w * radial + p1 * (r2 + 2.0 * w * w) + 2.0 * p2 * u * w
+    j11 = radial + 2.0 * u * u * drad + 2.0 * p1 * w + 6.0 * p2 * u
+    j12 = 2.0 * u * w * drad + 2.0 * p1 * u + 2.0 * p2 * w
+    j22 = radial + 2.0 * w * w * drad + 6.0 * p1 * w + 2.0 * p2 * u
+    return ud, wd, radial, j11, j12, j22
+
+
+@njit(cache=True, nogil=True)
 def _undistort(ud, wd, k1, k2, k3, p1, p2):  # pragma: no cover - compiled
-    """Newton inversion of :meth:`CameraModel.distort`, point by point (the same formulas as
-    ``distort`` and ``_distort_jacobian``); NaN where no physical inverse converges."""
+    """Newton inversion of :meth:`CameraModel.distort`, point by point; NaN where no physical
+    inverse converges."""
     n = len(ud)
     u_out, w_out = np.empty(n), np.empty(n)
     for i in range(n):
@@ -247,14 +262,8 @@ def _undistort(ud, wd, k1, k2, k3, p1, p2):  # pragma: no cover - compiled
         for _ in range(_NEWTON_MAX_ITER):
             if not ok:
                 break
-            r2 = u * u + w * w
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-            eu = u * radial + 2.0 * p1 * u * w + p2 * (r2 + 2.0 * u * u) - ud[i]
-            ew = w * radial + p1 * (r2 + 2.0 * w * w) + 2.0 * p2 * u * w - wd[i]
-            j11 = radial + 2.0 * u * u * drad + 2.0 * p1 * w + 6.0 * p2 * u
-            j12 = 2.0 * u * w * drad + 2.0 * p1 * u + 2.0 * p2 * w
-            j22 = radial + 2.0 * w * w * drad + 6.0 * p1 * w + 2.0 * p2 * u
+            fu, fw, _radial, j11, j12, j22 = distort_point(u, w, k1, k2, k3, p1, p2)
+            eu, ew = fu - ud[i], fw - wd[i]
             det = j11 * j22 - j12 * j12
             if det == 0.0 or not math.isfinite(det):
                 ok = False
@@ -266,16 +275,9 @@ def _undistort(ud, wd, k1, k2, k3, p1, p2):  # pragma: no cover - compiled
             if abs(du) + abs(dw) < _NEWTON_TOL:
                 break
         if ok:
-            r2 = u * u + w * w
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-            eu = u * radial + 2.0 * p1 * u * w + p2 * (r2 + 2.0 * u * u) - ud[i]
-            ew = w * radial + p1 * (r2 + 2.0 * w * w) + 2.0 * p2 * u * w - wd[i]
-            j11 = radial + 2.0 * u * u * drad + 2.0 * p1 * w + 6.0 * p2 * u
-            j12 = 2.0 * u * w * drad + 2.0 * p1 * u + 2.0 * p2 * w
-            j22 = radial + 2.0 * w * w * drad + 6.0 * p1 * w + 2.0 * p2 * u
+            fu, fw, radial, j11, j12, j22 = distort_point(u, w, k1, k2, k3, p1, p2)
             # a physical inverse: converged, a positive radial factor, the map's orientation kept
-            ok = abs(eu) + abs(ew) < _CONVERGED and radial > 0.0 and j11 * j22 - j12 * j12 > 0.0
+            ok = abs(fu - ud[i]) + abs(fw - wd[i]) < _CONVERGED and radial > 0.0 and j11 * j22 - j12 * j12 > 0.0
         u_out[i] = u if ok else np.nan
         w_out[i] = w if ok else np.nan
     return u_out, w_out

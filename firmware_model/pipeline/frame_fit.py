@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from firmware_model.ident.attitude import svd_attitude
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.pipeline.camera import CameraModel, distort_point
 from firmware_model.pipeline.camera_fit import CalibrationResult, StarObservations
 
 #: Iteration cap, and the relative step and cost-reduction tolerances of the compiled fit.
@@ -82,16 +82,10 @@ def _project(v, f, cx, cy, k1, dist, fit_k1, r, jac):  # pragma: no cover - comp
         vx, vy, vz = v[i, 0], v[i, 1], v[i, 2]
         u, w = vx / vz, vy / vz
         r2 = u * u + w * w
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        ud = u * radial + 2.0 * p1 * u * w + p2 * (r2 + 2.0 * u * u)
-        wd = w * radial + p1 * (r2 + 2.0 * w * w) + 2.0 * p2 * u * w
+        ud, wd, _radial, j11, j12, j22 = distort_point(u, w, k1, k2, k3, p1, p2)
+        j21 = j12
         r[2 * i] = cx + f * ud
         r[2 * i + 1] = cy + f * wd
-        drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-        j11 = radial + 2.0 * u * u * drad + 2.0 * p1 * w + 6.0 * p2 * u
-        j12 = 2.0 * u * w * drad + 2.0 * p1 * u + 2.0 * p2 * w
-        j21 = 2.0 * u * w * drad + 2.0 * p1 * u + 2.0 * p2 * w
-        j22 = radial + 2.0 * w * w * drad + 6.0 * p1 * w + 2.0 * p2 * u
         jac[2 * i, 0] = ud
         jac[2 * i + 1, 0] = wd
         if fit_k1:
