@@ -32,11 +32,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 
 def attitude_profile(b: np.ndarray, r: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Attitude profile matrix ``B = sum_i w_i b_i r_i^T`` (3x3)."""
-    return (np.asarray(b, float) * np.asarray(w, float)[:, None]).T @ np.asarray(r, float)
+    return _profile(_rows(b), _rows(r), np.asarray(w, float).ravel())
 
 
 def davenport_q(b: np.ndarray, r: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
@@ -46,21 +47,8 @@ def davenport_q(b: np.ndarray, r: np.ndarray, w: np.ndarray | None = None) -> np
     ``tr(A B^T) = q^T K q`` with ``K = [[sigma, z^T], [z, S - sigma I]]``, ``S = B + B^T``,
     ``sigma = tr B`` and ``z = [B_zy - B_yz, B_xz - B_zx, B_yx - B_xy]`` (B^T's skew part).
     """
-    b = np.asarray(b, float)
-    w = np.ones(len(b)) if w is None else np.asarray(w, float)
-    bm = attitude_profile(b, r, w)
-    s = bm + bm.T
-    sigma = np.trace(bm)
-    z = np.array([bm[2, 1] - bm[1, 2], bm[0, 2] - bm[2, 0], bm[1, 0] - bm[0, 1]])
-    k = np.empty((4, 4))
-    k[0, 0] = sigma
-    k[0, 1:] = z
-    k[1:, 0] = z
-    k[1:, 1:] = s - sigma * np.eye(3)
-    vals, vecs = np.linalg.eigh(k)
-    q = vecs[:, -1]
-    q = q / np.linalg.norm(q)
-    return -q if q[0] < 0 else q
+    b = _rows(b)
+    return _davenport(b, _rows(r), np.ones(len(b)) if w is None else np.asarray(w, float).ravel())
 
 
 def svd_attitude(b: np.ndarray, r: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
@@ -74,30 +62,114 @@ def svd_attitude(b: np.ndarray, r: np.ndarray, w: np.ndarray | None = None) -> n
 
 def attitude_covariance(b: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     """Covariance (rad^2, 3x3, sensor axes) of the attitude error angles; inf if unobservable."""
-    b = np.asarray(b, float)
-    inv_var = 1.0 / np.asarray(sigma, float) ** 2
-    info = np.einsum("i,ijk->jk", inv_var, np.eye(3)[None] - b[:, :, None] * b[:, None, :])
-    vals, vecs = np.linalg.eigh(info)
-    if vals[0] <= vals[-1] * 1e-12:
-        return np.full((3, 3), np.inf)
-    return (vecs / vals) @ vecs.T
+    b = _rows(b)
+    return _covariance(b, np.broadcast_to(np.asarray(sigma, float), (len(b),)).copy())
 
 
 def variance_factor(residuals: np.ndarray, sigma: np.ndarray | float) -> float:
     """A-posteriori variance of unit weight ``chi^2 / (2n - 3)`` of a fit to ``n >= 2`` stars
     (``residuals`` angles in rad, ``sigma`` per-axis noise in rad); NaN below two stars."""
-    res = np.asarray(residuals, float)
-    dof = 2 * len(res) - 3
-    if dof < 1:
-        return float("nan")
-    sig = np.broadcast_to(np.asarray(sigma, float), res.shape)
-    return float(np.sum((res / sig) ** 2) / dof)
+    res = np.asarray(residuals, float).ravel()
+    return float(_variance_factor(res, np.broadcast_to(np.asarray(sigma, float), res.shape).copy()))
 
 
 def residual_angles(b: np.ndarray, r: np.ndarray, a: np.ndarray) -> np.ndarray:
     """Angle in radians between each measured ``b_i`` and its predicted ``A r_i``."""
-    d = np.linalg.norm(np.asarray(b, float) - np.asarray(r, float) @ np.asarray(a).T, axis=-1)
-    return 2.0 * np.arcsin(np.clip(d / 2.0, 0.0, 1.0))
+    b = np.asarray(b, float)
+    out = _residual_angles(_rows(b), _rows(r), np.ascontiguousarray(a, float))
+    return out.reshape(b.shape[:-1])
+
+
+def _rows(v) -> np.ndarray:
+    return np.ascontiguousarray(np.asarray(v, float).reshape(-1, 3))
+
+
+# --- compiled kernels (numba, cached on disk): solve_attitude runs several times per hypothesis ---
+
+
+@njit(cache=True, nogil=True)
+def _profile(b, r, w):  # pragma: no cover - compiled
+    out = np.zeros((3, 3))
+    for i in range(b.shape[0]):
+        for j in range(3):
+            for k in range(3):
+                out[j, k] += w[i] * b[i, j] * r[i, k]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _davenport(b, r, w):  # pragma: no cover - compiled
+    bm = _profile(b, r, w)
+    sigma = bm[0, 0] + bm[1, 1] + bm[2, 2]
+    k = np.empty((4, 4))
+    k[0, 0] = sigma
+    z0, z1, z2 = bm[2, 1] - bm[1, 2], bm[0, 2] - bm[2, 0], bm[1, 0] - bm[0, 1]
+    k[0, 1], k[0, 2], k[0, 3] = z0, z1, z2
+    k[1, 0], k[2, 0], k[3, 0] = z0, z1, z2
+    for i in range(3):
+        for j in range(3):
+            k[1 + i, 1 + j] = bm[i, j] + bm[j, i] - (sigma if i == j else 0.0)
+    _, vecs = np.linalg.eigh(k)
+    q = vecs[:, 3] / np.sqrt(np.sum(vecs[:, 3] ** 2))
+    return -q if q[0] < 0 else q
+
+
+@njit(cache=True, nogil=True)
+def _covariance(b, sigma):  # pragma: no cover - compiled
+    info = np.zeros((3, 3))
+    for i in range(b.shape[0]):
+        iv = 1.0 / sigma[i] ** 2
+        for j in range(3):
+            for k in range(3):
+                info[j, k] += iv * ((1.0 if j == k else 0.0) - b[i, j] * b[i, k])
+    vals, vecs = np.linalg.eigh(info)
+    if vals[0] <= vals[2] * 1e-12:
+        return np.full((3, 3), np.inf)
+    return (vecs / vals) @ vecs.T
+
+
+@njit(cache=True, nogil=True)
+def _variance_factor(res, sigma):  # pragma: no cover - compiled
+    dof = 2 * len(res) - 3
+    if dof < 1:
+        return np.nan
+    return np.sum((res / sigma) ** 2) / dof
+
+
+@njit(cache=True, nogil=True)
+def _residual_angles(b, r, a):  # pragma: no cover - compiled
+    out = np.empty(b.shape[0])
+    for i in range(b.shape[0]):
+        d2 = 0.0
+        for j in range(3):
+            d = b[i, j] - (a[j, 0] * r[i, 0] + a[j, 1] * r[i, 1] + a[j, 2] * r[i, 2])
+            d2 += d * d
+        out[i] = 2.0 * np.arcsin(min(np.sqrt(d2) / 2.0, 1.0))
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _quat_matrix(q):  # pragma: no cover - compiled
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    return np.array(
+        [
+            [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
+        ]
+    )
+
+
+@njit(cache=True, nogil=True)
+def _solve(b, r, sig):  # pragma: no cover - compiled
+    """solve_attitude's numbers: q, A, P, residuals, RMS, variance factor, P0."""
+    q = _davenport(b, r, 1.0 / sig**2)
+    a = _quat_matrix(q)
+    res = _residual_angles(b, r, a)
+    p0 = _covariance(b, sig)
+    s0 = _variance_factor(res, sig)
+    p = p0 * s0 if s0 > 1.0 else p0
+    return q, a, p, res, np.sqrt(np.mean(res**2)), s0, p0
 
 
 @dataclass(frozen=True)
@@ -118,14 +190,7 @@ class AttitudeSolution:
 def quat_matrix(q: np.ndarray) -> np.ndarray:
     """Attitude matrix of a unit scalar-first quaternion (same as ``frames.quat_to_matrix``, no scipy
     overhead): ``A = (w^2 - v.v) I + 2 v v^T + 2 w [v x]``."""
-    w, x, y, z = q
-    return np.array(
-        [
-            [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
-        ]
-    )
+    return _quat_matrix(np.asarray(q, float))
 
 
 def solve_attitude(b: np.ndarray, r: np.ndarray, sigma) -> AttitudeSolution:
@@ -138,14 +203,9 @@ def solve_attitude(b: np.ndarray, r: np.ndarray, sigma) -> AttitudeSolution:
     r = np.asarray(r, float)
     if b.ndim != 2 or b.shape[1] != 3 or r.shape != b.shape or len(b) < 2:
         raise ValueError(f"need matching (N,3) arrays with N >= 2, got {b.shape} and {r.shape}")
-    sig = np.broadcast_to(np.asarray(sigma, float), (len(b),))
-    q = davenport_q(b, r, 1.0 / sig**2)
-    a = quat_matrix(q)
-    res = residual_angles(b, r, a)
-    p0 = attitude_covariance(b, sig)
-    s0 = variance_factor(res, sig)
-    p = p0 * s0 if s0 > 1.0 else p0
-    return AttitudeSolution(q, a, p, res, float(np.sqrt(np.mean(res**2))), s0, p0)
+    sig = np.broadcast_to(np.asarray(sigma, float), (len(b),)).copy()
+    q, a, p, res, rms, s0, p0 = _solve(np.ascontiguousarray(b), np.ascontiguousarray(r), sig)
+    return AttitudeSolution(q, a, p, res, float(rms), float(s0), p0)
 
 
 __all__ = [
