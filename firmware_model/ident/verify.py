@@ -48,9 +48,9 @@ explains the whole frame:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from math import comb
 
 import numpy as np
+from scipy.special import betainc
 
 from firmware_model.catalog.onboard import OnboardCatalog, chord_of_angle
 from firmware_model.ident.attitude import AttitudeSolution, solve_attitude
@@ -165,8 +165,14 @@ def miss_tail(n_pred: int, n_missed: int, miss_rate: float) -> float:
         return 1.0
     if n_missed > n_pred or miss_rate <= 0.0:
         return 0.0
-    q = min(float(miss_rate), 1.0)
-    return float(sum(comb(n_pred, k) * q**k * (1.0 - q) ** (n_pred - k) for k in range(n_missed, n_pred + 1)))
+    return binomial_tail(n_pred, n_missed, min(float(miss_rate), 1.0))
+
+
+def binomial_tail(n: int, k: int, p: float) -> float:
+    """``P(X >= k)`` for ``X ~ Binomial(n, p)``, ``0 < k <= n``: the regularised incomplete beta
+    function ``I_p(k, n - k + 1)`` (the sum of the terms to relative 1e-12, and well below 1e-250
+    where the sum underflows)."""
+    return float(betainc(k, n - k + 1, p))
 
 
 def chance_alignment(n_det: int, n_pred: int, n_matched: int, gate_rad: float, solid_angle: float) -> float:
@@ -177,8 +183,7 @@ def chance_alignment(n_det: int, n_pred: int, n_matched: int, gate_rad: float, s
     k, trials = n_matched - 2, max(n_pred, n_matched) - 2
     if k <= 0:
         return 1.0
-    p = min(1.0, n_det * np.pi * gate_rad**2 / solid_angle)
-    return float(sum(comb(trials, j) * p**j * (1.0 - p) ** (trials - j) for j in range(k, trials + 1)))
+    return binomial_tail(trials, k, min(1.0, n_det * np.pi * gate_rad**2 / solid_angle))
 
 
 def coverage_ok(n_pred: int, n_matched: int, params: VerifyParams) -> bool:
@@ -196,6 +201,12 @@ def _predicted_scatter(b: np.ndarray, sigma: np.ndarray, cov: np.ndarray) -> np.
         return np.full(len(b), np.inf)
     extra = 0.5 * (np.trace(cov) - np.einsum("ij,jk,ik->i", b, cov, b))
     return np.sqrt(sigma**2 + np.maximum(extra, 0.0))
+
+
+def _chords(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Chord lengths between every unit vector of ``a`` (N, 3) and of ``b`` (M, 3), (N, M), from
+    their dot products (no (N, M, 3) difference array; 4e-8 relative at a 20" chord)."""
+    return np.sqrt(np.maximum(2.0 - 2.0 * (a @ b.T), 0.0))
 
 
 def _sq(x):
@@ -266,9 +277,7 @@ def verify(
     free = np.setdiff1d(np.arange(len(vectors)), det)
     if len(free):
         pred = catalog.vec[cat] @ sol.a.T
-        sep = 2.0 * np.arcsin(
-            np.clip(np.linalg.norm(vectors[free][:, None, :] - pred[None, :, :], axis=2) / 2.0, 0.0, 1.0)
-        )
+        sep = 2.0 * np.arcsin(np.clip(_chords(vectors[free], pred) / 2.0, 0.0, 1.0))
         tol = params.refine_sigmas * _predicted_scatter(vectors[free], sigma[free], sol.covariance_apriori)
         ok = sep < np.minimum(tol[:, None], sol.residuals[None, :])
         if ok.any() and noise_rg > 0 and noise_bg > 0:
@@ -292,7 +301,7 @@ def verify(
     if params.drop_ambiguous and len(det) > 2:
         b = vectors[det]
         pred = near_vec @ sol.a.T
-        d = np.linalg.norm(b[:, None, :] - pred[None, :, :], axis=2)
+        d = _chords(b, pred)
         d[near[None, :] == cat[:, None]] = np.inf
         gate = chord_of_angle(params.refine_sigmas * _predicted_scatter(b, sigma[det], sol.covariance_apriori))
         clear = d.min(axis=1) >= gate
