@@ -86,10 +86,11 @@ class OpticsSearch:
     distortion and principal-point offset not modelled), as plate solvers do it.
 
     The brightest ``n_bright`` detections are matched as scale-free 4-star patterns: first the
-    ``first_tier_hypotheses`` best pattern matches among the brightest ``first_tier`` detections
-    (70 patterns, ~1 ms: a frame's brightest stars are its catalog's brightest, and on the
-    tetra3 frames the first one is the answer), then among all ``n_bright`` (4845 patterns;
-    clutter such as a foreground tree can hold the brightest detections)
+    ``first_tier_hypotheses`` first pattern matches among the brightest ``first_tier`` detections,
+    rank by rank (``scale_free.BrightFirstMatches``: the 4 brightest, then the patterns adding the
+    5th, ... up to 70 patterns: a frame's brightest stars are its catalog's brightest, and on the
+    tetra3 frames the first one is the answer), then the best among all ``n_bright`` (4845
+    patterns; clutter such as a foreground tree can hold the brightest detections)
     (``firmware_model.pipeline.scale_free``: edge ratios within ``pattern_tolerance``, focal length
     within ``focal_range`` of the nominal; blended, failed-fit and edge detections are left out).
     The search goes first when the first tier's best match puts the focal length far enough from
@@ -324,22 +325,23 @@ def identify_stars(
 
 def _first_tier(
     stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams, timings: StageTimings
-) -> scale_free.PatternMatches | None:
-    """The optics search's first pattern matches (the ``first_tier`` brightest clean detections;
-    None without a search); the catalog's patterns for the field are built by the caller."""
+) -> scale_free.BrightFirstMatches | None:
+    """The optics search's first pattern matches (the ``first_tier`` brightest clean detections,
+    rank by rank; None without a search); the catalog's patterns for the field are built by the
+    caller."""
     search = params.optics
     if search is None or search.first_tier <= 0 or search.first_tier_hypotheses <= 0 or len(_usable(stars)) < 4:
         return None
     t1 = time.perf_counter()
     clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)
-    peek = scale_free.pattern_matches(
+    peek = scale_free.BrightFirstMatches(
         stars.x[clean], stars.y[clean], camera, catalog, search.first_tier, search.pattern_tolerance, search.focal_range
     )
     timings.identify += time.perf_counter() - t1
     return peek
 
 
-def _nominal_off(peek: scale_free.PatternMatches | None, camera: CameraModel, search: OpticsSearch) -> bool:
+def _nominal_off(peek: scale_free.BrightFirstMatches | None, camera: CameraModel, search: OpticsSearch) -> bool:
     """Whether the best pattern match puts the focal length far enough from the nominal camera's
     to move the array's corners by more than ``refit_px``: a nominal camera that cannot match
     would spend its matchers' whole search failing (issue 12: 10-50 ms per tetra3 frame) before
@@ -548,7 +550,7 @@ def _search_optics(
     params: PipelineParams,
     timings: StageTimings,
     t0: float,
-    peek: scale_free.PatternMatches | None = None,
+    peek: scale_free.BrightFirstMatches | None = None,
 ) -> PipelineOutput | None:
     """The scale-free search of :class:`OpticsSearch`: the first pattern match that leads to a
     high-confidence answer with the fitted camera, else the low-confidence answer of a pattern
@@ -622,7 +624,7 @@ def _pattern_seeds(
     catalog: OnboardCatalog,
     search: OpticsSearch,
     timings: StageTimings,
-    peek: scale_free.PatternMatches | None = None,
+    peek: scale_free.BrightFirstMatches | None = None,
 ):
     """Pattern hypotheses (``scale_free.pattern_matches``) from the brightest clean detections, then, when
     poor fits were among them (hot-pixel clusters and other unblurred clutter can outshine the
@@ -636,8 +638,14 @@ def _pattern_seeds(
         for n, most in ((search.first_tier, search.first_tier_hypotheses), (search.n_bright, 64)):
             if n <= 0 or most <= 0:
                 continue
-            found = peek if peek is not None and rows is clean and n == search.first_tier else None
-            if found is None:
+            found: scale_free.PatternMatches | scale_free.BrightFirstMatches
+            if peek is not None and rows is clean and n == search.first_tier:
+                found = peek
+            elif n == search.first_tier:  # rank by rank, as the hypotheses are asked for (timed there)
+                found = scale_free.BrightFirstMatches(
+                    stars.x[rows], stars.y[rows], camera, catalog, n, search.pattern_tolerance, search.focal_range
+                )
+            else:
                 t1 = time.perf_counter()
                 found = scale_free.pattern_matches(
                     stars.x[rows], stars.y[rows], camera, catalog, n, search.pattern_tolerance, search.focal_range
