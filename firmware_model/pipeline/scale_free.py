@@ -295,16 +295,19 @@ def refine(
     cam, a = replace(camera, f=hyp.f), hyp.a
     near = catalog.stars_within(a[2], camera.fov_half_angle_diagonal * 1.2)
     det = cat = res = None
+    moved = True  # the camera or attitude changed since the last prediction
     for radius in radii_px:
-        px, py = cam.vector_to_pixel(catalog.vec[near] @ a.T)
-        inside = np.isfinite(px) & cam.in_frame(px, py)
-        if inside.sum() < min_stars:
-            return None
-        cx, cy, ci = px[inside], py[inside], near[inside]
-        d = np.hypot(x[:, None] - cx[None, :], y[:, None] - cy[None, :])
-        j = np.argmin(d, axis=1)
-        ok = d[np.arange(len(x)), j] < radius
-        rows = np.flatnonzero(ok)
+        if moved:  # predict, and each detection's nearest predicted star and its distance
+            px, py = cam.vector_to_pixel(catalog.vec[near] @ a.T)
+            inside = np.isfinite(px) & cam.in_frame(px, py)
+            if inside.sum() < min_stars:
+                return None
+            cx, cy, ci = px[inside], py[inside], near[inside]
+            d = np.hypot(x[:, None] - cx[None, :], y[:, None] - cy[None, :])
+            j = np.argmin(d, axis=1)
+            nearest = d[np.arange(len(x)), j]
+            moved = False
+        rows = np.flatnonzero(nearest < radius)
         rows = rows[np.unique(j[rows], return_index=True)[1]]  # brightest detection per star
         if len(rows) < min_stars:
             return None
@@ -314,6 +317,6 @@ def refine(
         res = fit_frame(StarObservations(x[det], y[det], catalog.vec[cat]), cam, k1_min_stars)
         if res is None:
             return None
-        cam, a = res.camera, res.attitudes[0]
+        cam, a, moved = res.camera, res.attitudes[0], True
     assert res is not None, "radii_px holds no radius"
     return cam, det, cat, res
