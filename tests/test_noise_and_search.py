@@ -1,7 +1,7 @@
 """Issue 12 (f9bc762): the frame's own centroid noise (strategy.adapt_noise, extra_noise,
 noise_rejected), high confidence of search-chosen patterns (searched_confident), the fit's
 Rodrigues rotation (camera_fit.rotvec_matrix) and the optics search going first when the best
-pattern says the nominal focal length is off (run._nominal_off)."""
+pattern's refined optics say the nominal focal length is off (run._nominal_off)."""
 
 from dataclasses import replace
 
@@ -184,10 +184,13 @@ def tetra_frame():
 
 
 def _first_pattern_says_off(frame, camera, catalog):
-    from firmware_model.pipeline.run import _first_tier, _nominal_off
+    from firmware_model.pipeline.run import _first_seed, _first_tier, _nominal_off
 
     stars = extract_stars(frame, camera)
-    return _nominal_off(_first_tier(stars, camera, catalog, PipelineParams(), StageTimings()), camera, OpticsSearch())
+    timings = StageTimings()
+    peek = _first_tier(stars, camera, catalog, PipelineParams(), timings)
+    seed = _first_seed(stars, camera, catalog, OpticsSearch(), timings, peek)
+    return _nominal_off(peek, seed, stars, camera, catalog, OpticsSearch())
 
 
 def test_search_goes_first_when_the_nominal_focal_length_is_one_percent_off(wide_catalog, tetra_frame):
@@ -205,12 +208,14 @@ def test_search_goes_first_when_the_nominal_focal_length_is_one_percent_off(wide
     assert abs(out.optics.focal_scale - 1.0 / 1.01) < 0.002  # the pattern's focal length: the true one
 
 
-def test_exact_camera_goes_the_usual_way(wide_catalog, tetra_frame):
+def test_exact_camera_is_kept(wide_catalog, tetra_frame):
+    """With the exact camera the search does not go first: the first pattern match is verified with
+    the nominal camera (kept) before the geometric matchers run."""
     a, frame = tetra_frame
     assert not _first_pattern_says_off(frame, NOMINAL, wide_catalog)
     out = run_pipeline(frame, NOMINAL, wide_catalog)
     assert out.status is Status.OK, out.reason
-    assert out.solution.method is not Method.PATTERN
+    assert out.solution.method is Method.PATTERN and out.camera == NOMINAL
     assert rotation_angle(quat_to_matrix(out.solution.q_icrs_to_sensor), a) < 2 * PIXEL_RAD
 
 

@@ -168,13 +168,19 @@ class Identification:
 
 
 # ------------------------------------------------------------------ one frame
+def routes_geometric(mode: str, catalog: OnboardCatalog, measured_colour: bool) -> bool:
+    """Whether a frame takes the geometric route: the mode asks for it, or in ``auto`` mode the
+    catalog or the frame (``measured_colour``) has no colour."""
+    return mode == Mode.GEOMETRIC or (mode == Mode.AUTO and (not catalog.has_colour or not measured_colour))
+
+
 def identify(
     det: Detections, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings | None = None
 ) -> Identification:
     """The order of methods and fallbacks for one frame (module docstring, steps 1-5)."""
     timings = timings if timings is not None else IdentifyTimings()
     mode = params.solve.mode
-    geometric = mode == Mode.GEOMETRIC or (mode == Mode.AUTO and (not catalog.has_colour or not det.has_colour))
+    geometric = routes_geometric(mode, catalog, det.has_colour)
     if geometric:
         found = geometric_route(det, catalog, params, timings)
     else:

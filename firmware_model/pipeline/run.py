@@ -32,6 +32,7 @@ from firmware_model.ident.strategy import (
     geometric_fallback,
     hold_searched,
     identify,
+    routes_geometric,
     verify_pattern,
 )
 from firmware_model.ident.verify import FieldOfView
@@ -287,19 +288,28 @@ def identify_stars(
         scale_free.catalog_patterns(catalog, camera)  # once per catalog and field: not this frame's budget
         frame_t0 += time.perf_counter() - t1
     peek = _first_tier(stars, camera, catalog, params, timings)
-    searched = params.optics is not None and _nominal_off(peek, camera, params.optics)
-    first = _search_optics(stars, camera, catalog, params, timings, frame_t0, peek) if searched else None
+    seed = _first_seed(stars, camera, catalog, params.optics, timings, peek)
+    searched = params.optics is not None and _nominal_off(peek, seed, stars, camera, catalog, params.optics)
+    first = _search_optics(stars, camera, catalog, params, timings, frame_t0, peek, seed) if searched else None
     if first is not None and first.status is Status.OK:  # else the usual way: the nominal camera first
         first.timings = timings
         timings.total = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
         return first
 
     def search() -> PipelineOutput | None:  # the search once per frame: its answer kept when it went first
-        return first if searched else _search_optics(stars, camera, catalog, params, timings, frame_t0, peek)
+        return first if searched else _search_optics(stars, camera, catalog, params, timings, frame_t0, peek, seed)
 
-    # the mono consensus fallback with the nominal camera waits for the optics search's cheaper
-    # pattern hypotheses: with uncalibrated optics the search is what finds the answer (issue 12)
-    out = _identify(stars, camera, catalog, params, timings, defer_fallback=params.optics is not None)
+    # the nominal camera stays (the first pattern match's refined optics would not refit it): on
+    # the geometric route, that match is verified with it before the matchers run (issue 12: one
+    # verification, where they took 10 ms on noisy centroids; a colour frame is matched by its
+    # colours, as the mode says); the mono consensus fallback with the nominal camera
+    # waits for the optics search's cheaper pattern hypotheses: with uncalibrated optics the search
+    # is what finds the answer
+    out = None
+    if seed is not None and not searched and routes_geometric(params.solve.mode, catalog, _has_colour(stars)):
+        out = _verify_seed(seed, stars, camera, catalog, params, timings)
+    if out is None or out.status is not Status.OK:
+        out = _identify(stars, camera, catalog, params, timings, defer_fallback=params.optics is not None)
     if params.optics is not None and out.status is not Status.TOO_FEW_STARS:
         if out.status is not Status.OK:
             found = search()
@@ -341,14 +351,82 @@ def _first_tier(
     return peek
 
 
-def _nominal_off(peek: scale_free.BrightFirstMatches | None, camera: CameraModel, search: OpticsSearch) -> bool:
-    """Whether the best pattern match puts the focal length far enough from the nominal camera's
-    to move the array's corners by more than ``refit_px``: a nominal camera that cannot match
-    would spend its matchers' whole search failing (issue 12: 10-50 ms per tetra3 frame) before
-    the optics search that finds the answer, so the search goes first."""
-    if peek is None or not np.isfinite(peek.best_f):
-        return False
-    return _corner_shift_px(camera, replace(camera, f=peek.best_f)) > search.refit_px
+def _first_seed(
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    search: OpticsSearch | None,
+    timings: StageTimings,
+    peek: scale_free.BrightFirstMatches | None,
+) -> tuple[scale_free.Hypothesis, tuple] | None:
+    """The first tier's first hypothesis and its refinement (``scale_free.refine``: focal length
+    and k1 fitted to every star it predicts), or None (no search, no match, a refinement that
+    finds too few stars)."""
+    if search is None or peek is None:
+        return None
+    t1 = time.perf_counter()
+    hyp = next(peek.hypotheses(1), None)
+    timings.identify += time.perf_counter() - t1
+    if hyp is None:
+        return None
+    t1 = time.perf_counter()
+    refined = scale_free.refine(stars.x, stars.y, camera, hyp, catalog, k1_min_stars=search.k1_min_stars)
+    timings.attitude += time.perf_counter() - t1
+    return None if refined is None else (hyp, refined)
+
+
+def _nominal_off(
+    peek: scale_free.BrightFirstMatches | None,
+    seed: tuple[scale_free.Hypothesis, tuple] | None,
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    search: OpticsSearch,
+) -> bool:
+    """Whether the nominal camera would be refitted (:func:`_refine_optics`'s rule) on the first
+    pattern match's refined stars (:func:`_first_seed`): its optics move the array's corners by
+    more than ``refit_px`` and by more than 3 sigma of their fit, or fit those stars
+    :data:`REFIT_RMS_RATIO` times better than the nominal camera does. A nominal camera that cannot
+    match would spend its matchers' whole search failing (issue 12: 10-50 ms per tetra3 frame), and
+    one whose answer is refitted identifies the frame twice, so the search goes first. The refined
+    camera, not the pattern's own scale: one pattern's scale is known to ~0.1 %. Without a
+    refinement, the first tier's best key's focal length decides."""
+    if seed is None:
+        if peek is None or not np.isfinite(peek.best_f):
+            return False
+        return _corner_shift_px(camera, replace(camera, f=peek.best_f)) > search.refit_px
+    fitted, rows, cat, fit = seed[1]
+    shift = _corner_shift_px(camera, fitted)
+    sigma = _corner_shift_sigma_px(OpticsFit(fitted, fit.sigmas, fit.residual_rms_px, fit.n_observations))
+    if shift > search.refit_px and shift > 3.0 * sigma:
+        return True
+    nominal = solve_attitude(camera.pixel_to_vector(stars.x[rows], stars.y[rows]), catalog.vec[cat], 1.0)
+    return nominal.rms * camera.f > REFIT_RMS_RATIO * fit.residual_rms_px
+
+
+def _refined_noise(params: PipelineParams, fit) -> PipelineParams:
+    """``params`` without the search, the floor of the centroid noise raised to the per-axis RMS of
+    a refinement's stars (``fit``, with the fitted unknowns' degrees of freedom): the refined
+    optics leave residuals no centroid covariance knows about (coma, an unmodelled distortion,
+    centroids noisier than announced), and the identification's gates and covariance must know."""
+    dof = 2 * fit.n_observations - len(fit.sigmas) - 3
+    rms_px = fit.residual_rms_px * np.sqrt(2 * fit.n_observations / max(dof, 1))
+    return replace(params, optics=None, centroid_floor_px=max(params.centroid_floor_px, rms_px / np.sqrt(2.0)))
+
+
+def _verify_seed(
+    seed: tuple[scale_free.Hypothesis, tuple],
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    timings: StageTimings,
+) -> PipelineOutput | None:
+    """The first pattern match's refined stars (:func:`_first_seed`) verified over the frame with
+    the nominal ``camera`` and the refinement's noise floor (:func:`_verify_pattern`, the search's
+    first attempt)."""
+    _, rows, cat, fit = seed[1]
+    return _verify_pattern(stars, camera, rows, cat, catalog, _refined_noise(params, fit), timings, 1)
 
 
 def _identify(
@@ -551,11 +629,13 @@ def _search_optics(
     timings: StageTimings,
     t0: float,
     peek: scale_free.BrightFirstMatches | None = None,
+    seed: tuple[scale_free.Hypothesis, tuple] | None = None,
 ) -> PipelineOutput | None:
     """The scale-free search of :class:`OpticsSearch`: the first pattern match that leads to a
     high-confidence answer with the fitted camera, else the low-confidence answer of a pattern
     match that explains the most stars (None when no pattern match verifies). ``peek``: the
-    first tier's pattern matches when the caller has them (:func:`_first_tier`)."""
+    first tier's pattern matches when the caller has them (:func:`_first_tier`); ``seed``: its
+    first hypothesis, already refined (:func:`_first_seed`)."""
     search = params.optics
     assert search is not None  # called with the optics search on (the caller built its patterns)
     tried: list[np.ndarray] = []
@@ -565,21 +645,18 @@ def _search_optics(
             break
         if any(rotation_angle(hyp.a, a) < _SAME_SEED_RAD for a in tried):
             continue
-        t1 = time.perf_counter()
-        refined = scale_free.refine(stars.x, stars.y, camera, hyp, catalog, k1_min_stars=search.k1_min_stars)
-        timings.attitude += time.perf_counter() - t1
+        if seed is not None and hyp.f == seed[0].f and np.array_equal(hyp.a, seed[0].a):
+            refined = seed[1]
+        else:
+            t1 = time.perf_counter()
+            refined = scale_free.refine(stars.x, stars.y, camera, hyp, catalog, k1_min_stars=search.k1_min_stars)
+            timings.attitude += time.perf_counter() - t1
         if refined is None:
             continue
         tried.append(hyp.a)  # a seed near one that refined to a failed identification leads there too
         fitted, rows, cat, fit = refined
-        # per-axis noise of the refined stars: their RMS with the fitted unknowns' degrees of freedom
-        dof = 2 * fit.n_observations - len(fit.sigmas) - 3
-        rms_px = fit.residual_rms_px * np.sqrt(2 * fit.n_observations / max(dof, 1))
         seen = _with_camera(stars, fitted)
-        # the fitted optics leave residuals no centroid covariance knows about (coma, an unmodelled
-        # distortion): per axis, they set the floor of the noise the identification assumes
-        floor = max(params.centroid_floor_px, rms_px / np.sqrt(2.0))
-        tight = replace(params, optics=None, centroid_floor_px=floor)
+        tight = _refined_noise(params, fit)
         # the refined pattern match verified over the frame first (one verification); the frame
         # identified from scratch with the fitted camera only when that is not high-confidence
         pattern = _verify_pattern(seen, fitted, rows, cat, catalog, tight, timings, len(tried))
@@ -755,8 +832,13 @@ def _detections(used: np.ndarray, stars: StarList, camera: CameraModel, params: 
         focal_px=camera.f,
         flux=stars.flux[used],
         colour_sigma=colour_sigma,
-        measured_colour=bool(np.isfinite(stars.rg[used]).any()),
+        measured_colour=_has_colour(stars, used),
     )
+
+
+def _has_colour(stars: StarList, used: np.ndarray | None = None) -> bool:
+    """Whether the frame measured colour on its ``used`` rows (default: the usable ones)."""
+    return bool(np.isfinite(stars.rg[_usable(stars) if used is None else used]).any())
 
 
 def _sigma_axes(cov) -> np.ndarray:
