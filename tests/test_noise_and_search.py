@@ -220,13 +220,14 @@ def test_exact_camera_is_kept(wide_catalog, tetra_frame):
 
 
 def test_estimated_noise_factor_is_the_student_t_widening():
-    """The covariance factor for a noise estimated from n stars: (t_q(2n-3) / 3)^2 with q the
-    Gaussian 3-sigma quantile, against scipy's t quantile."""
+    """The covariance factor for a noise estimated with nu degrees of freedom: (t_q(nu) / 3)^2 with
+    q the Gaussian 3-sigma quantile, against scipy's t quantile; the median's degrees of freedom."""
     from scipy.stats import norm, t
 
-    from firmware_model.ident.strategy import estimated_noise_factor
+    from firmware_model.ident.strategy import MEDIAN_DOF, estimated_noise_factor
 
-    for n in (6, 10, 20, 40):
-        exact = (t.ppf(norm.cdf(3.0), 2 * n - 3) / 3.0) ** 2
-        assert estimated_noise_factor(n) == pytest.approx(exact, rel=5e-3)
-    assert estimated_noise_factor(100) < estimated_noise_factor(6)
+    for nu in (2.5, 9, 17, 37, 77):
+        exact = (t.ppf(norm.cdf(3.0), nu) / 3.0) ** 2
+        assert estimated_noise_factor(nu) == pytest.approx(exact, rel=1e-9)
+    assert estimated_noise_factor(200) < estimated_noise_factor(9) < estimated_noise_factor(3)
+    assert MEDIAN_DOF == pytest.approx(0.4805, abs=1e-4)  # ln(2)^2

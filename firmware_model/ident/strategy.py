@@ -56,8 +56,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.special import ndtr, stdtrit
 
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between
+from firmware_model.ident.attitude import solve_attitude
 from firmware_model.ident.consensus import ConsensusParams, Outcome, confident, match_scene
 from firmware_model.ident.four_star import match_four_star
 from firmware_model.ident.pair_match import PairNoise
@@ -395,14 +397,16 @@ def adapt_noise(
        probe's gates, which cut the tail, not the middle), and verify again with ``e`` added:
        tight gates in units of the noise the frame has, and an attitude and covariance weighted by it,
        the covariance widened for a noise estimated from the answer's own stars
-       (:func:`estimated_noise_factor`).
+       (:func:`estimated_noise_factor` with the median's degrees of freedom, :data:`MEDIAN_DOF`).
 
     Only high-confidence answers (or those held low by the roll bound alone) are checked: a
     low-confidence answer may be a wrong match, whose residuals would read as noise and whose
     wider gates would gather more wrong stars. The answer stays high-confidence, held again to the
-    roll bound with the new covariance; it stands unchanged when the test passes, the estimate
-    exceeds twice the probe (residuals the probe did not look for: a wrong match's), a
-    verification fails or the answer's stars are not all kept (:func:`keeps_stars`)."""
+    roll bound with the new covariance; it stands unchanged when the test passes or the estimate
+    exceeds twice the probe (residuals the probe did not look for: a wrong match's). When the
+    verification with the estimated noise fails or does not keep all the answer's stars
+    (:func:`keeps_stars`), the answer keeps its stars, re-solved and its covariance widened with the
+    estimated noise: the rejected one would leave it too tight (issue 12: 5.9 sigma off)."""
     sol = found.solution
     probe = base.noise_probe_px
     high = sol.status is Outcome.HIGH_CONFIDENCE or sol.roll_limited
@@ -423,15 +427,24 @@ def adapt_noise(
     extra = extra_noise(seen.attitude.residuals * det.focal_px, sigma[seen.det])
     if extra > 2.0 * probe:  # beyond what the probe looked for: residuals of a wrong match, not noise
         return found
-    tuned = replace(det, sigma_px=np.hypot(sigma, extra))
+    tuned_px = np.hypot(sigma, extra)
+    tuned = replace(det, sigma_px=tuned_px)
+    factor = estimated_noise_factor(MEDIAN_DOF * (2 * seen.n - 3))  # the median of the probed stars' chi^2
+    note = f"residuals reject the announced centroid noise: {extra:.2g} px per axis added"
     match = verify_over(tuned, seen.det, seen.cat, catalog, base, timings)
     if match is None or not keeps_stars(match, found.rows[sol.matched_det], sol.matched_cat):
-        return found
+        # the answer's own stars, weighted and judged by the noise they showed (the announced one
+        # was rejected: its covariance would be too tight)
+        rows = found.rows[sol.matched_det]
+        att = solve_attitude(det.vectors[rows], catalog.vec[sol.matched_cat], tuned_px[rows] / det.focal_px)
+        kept = replace(sol, q_icrs_to_sensor=att.q, residuals=att.residuals, covariance=att.covariance * factor)
+        kept.noise_extra, kept.notes = extra / det.focal_px, [*sol.notes, f"{note}; its stars kept"]
+        return Identification(bound_roll(kept, base.max_roll_sigma), found.rows, found.fallback_due)
     out = solution_from_match(match, Outcome.HIGH_CONFIDENCE, "", everything, catalog, sol.method, len(det))
-    out.covariance = np.asarray(out.covariance) * estimated_noise_factor(match.n)
+    out.covariance = np.asarray(out.covariance) * factor
     out.attempts, out.timings = sol.attempts, sol.timings
     out.noise_extra = extra / det.focal_px
-    out.notes = [*sol.notes, f"residuals reject the announced centroid noise: {extra:.2g} px per axis added"]
+    out.notes = [*sol.notes, note]
     return Identification(bound_roll(out, base.max_roll_sigma), everything, found.fallback_due)
 
 
@@ -457,22 +470,23 @@ def within_covariance(a: np.ndarray, cov: np.ndarray, sol: SolveResult) -> bool:
     return bool(np.all(np.abs(delta) <= SAME_ANSWER_SIGMAS * np.sqrt(var)))
 
 
-def estimated_noise_factor(n: int) -> float:
-    """Covariance factor for an attitude whose noise was estimated from its own ``n`` stars: the
-    attitude error over a sigma from a variance estimate with ``2n - 3`` degrees of freedom
-    follows a Student t, so the factor ``(t_q / 3)^2`` (``q`` the Gaussian's 3-sigma quantile,
-    0.99865; Cornish-Fisher expansion of the t quantile: within 0.5 % of the exact factor from 6
-    stars, 14 % low at 3) keeps "beyond 3 sigma" as rare as for a known noise (6 stars: 1.86;
-    10: 1.37; 20: 1.15)."""
-    nu = max(2 * n - 3, 3)
-    z = 3.0
-    t = (
-        z
-        + (z**3 + z) / (4 * nu)
-        + (5 * z**5 + 16 * z**3 + 3 * z) / (96 * nu**2)
-        + (3 * z**7 + 19 * z**5 + 17 * z**3 - 15 * z) / (384 * nu**3)
-    )
-    return float((t / z) ** 2)
+def estimated_noise_factor(dof: float) -> float:
+    """Covariance factor for an attitude whose noise was estimated with ``dof`` degrees of freedom
+    (``2n - 3`` for a sum of squares over ``n`` stars; less for the median, :data:`MEDIAN_DOF`):
+    the attitude error over a sigma from a variance estimate follows a Student t, so the factor
+    ``(t_q / 3)^2`` (``q`` the Gaussian's 3-sigma quantile, 0.99865; scipy's inverse t) keeps
+    "beyond 3 sigma" as rare as for a known noise (9 degrees of freedom: 1.88; 17: 1.39; 37:
+    1.16)."""
+    return float((stdtrit(max(float(dof), 1.0), _THREE_SIGMA) / 3.0) ** 2)
+
+
+#: The Gaussian's 3-sigma quantile.
+_THREE_SIGMA = float(ndtr(3.0))
+
+#: Degrees of freedom of a noise scale read from the median of ``n`` chi^2(2) values, per ``2n - 3``:
+#: ``ln(2)^2`` (the median's relative variance ``1 / (n ln^2 2)`` against ``2 / nu`` for a sum of
+#: squares with ``nu`` degrees of freedom; the median of chi^2(2) at ``2 ln 2``, its density there 1/4).
+MEDIAN_DOF = float(np.log(2.0) ** 2)
 
 
 def noise_rejected(residuals: np.ndarray, sigma: np.ndarray) -> bool:

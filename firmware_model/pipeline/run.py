@@ -28,6 +28,7 @@ from firmware_model.ident.strategy import (
     StrategyParams,
     agrees,
     bound_roll,
+    estimated_noise_factor,
     geometric_detection_cap,
     geometric_fallback,
     hold_searched,
@@ -426,7 +427,9 @@ def _verify_seed(
     the nominal ``camera`` and the refinement's noise floor (:func:`_verify_pattern`, the search's
     first attempt)."""
     _, rows, cat, fit = seed[1]
-    return _verify_pattern(stars, camera, rows, cat, catalog, _refined_noise(params, fit), timings, 1)
+    noise = _refined_noise(params, fit)
+    out = _verify_pattern(stars, camera, rows, cat, catalog, noise, timings, 1)
+    return None if out is None else _with_estimated_floor(out, noise, params)
 
 
 def _identify(
@@ -639,7 +642,7 @@ def _search_optics(
     search = params.optics
     assert search is not None  # called with the optics search on (the caller built its patterns)
     tried: list[np.ndarray] = []
-    best: tuple[PipelineOutput, float] | None = None  # (answer, focal scale of its pattern)
+    best: tuple[PipelineOutput, float, PipelineParams] | None = None  # (answer, its pattern's focal scale, noise)
     for hyp in _pattern_seeds(stars, camera, catalog, search, timings, peek):
         if time.perf_counter() - t0 > search.budget_s:
             break
@@ -670,23 +673,48 @@ def _search_optics(
             if pattern is not None and _rank(pattern) > _rank(out):
                 out = pattern
         if out.status is Status.OK:
-            return _with_optics(out, hyp.f / camera.f, catalog, params, (rows, cat, fit))
+            return _with_optics(out, hyp.f / camera.f, catalog, params, tight, (rows, cat, fit))
         if out.solution is not None and _rank(out) > _rank(best[0] if best else None):
-            best = (out, hyp.f / camera.f)
-    return _with_optics(*best, catalog=catalog, params=params) if best else None  # the optics of the answer only
+            best = (out, hyp.f / camera.f, tight)
+    if best is None:
+        return None
+    answer, scale, noise = best
+    return _with_optics(answer, scale, catalog, params, noise)  # the optics of the answer only
 
 
 def _with_optics(
-    out: PipelineOutput, focal_scale: float, catalog: OnboardCatalog, params: PipelineParams, known=None
+    out: PipelineOutput,
+    focal_scale: float,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    noise: PipelineParams,
+    known=None,
 ) -> PipelineOutput:
     """``out`` with the optics fitted to its matched stars and the search's focal scale, its
-    covariance widened by their uncertainty (:func:`_with_fitted_camera_uncertainty`); ``known``
-    (detection rows, catalog indices, fit): a fit of some stars already made (the refinement's)."""
+    covariance widened by their uncertainty (:func:`_with_fitted_camera_uncertainty`, with
+    ``noise``, the parameters it was identified with) and for its estimated noise floor
+    (:func:`_with_estimated_floor`); ``known`` (detection rows, catalog indices, fit): a fit of some
+    stars already made (the refinement's)."""
     assert params.optics is not None  # the search's answers
     out.optics = _fit_optics(out, catalog, params.optics, known)
     if out.optics is not None:
         out.optics.focal_scale = focal_scale
-    return _with_fitted_camera_uncertainty(out, catalog, params)
+    return _with_estimated_floor(_with_fitted_camera_uncertainty(out, catalog, noise), noise, params)
+
+
+def _with_estimated_floor(out: PipelineOutput, noise: PipelineParams, params: PipelineParams) -> PipelineOutput:
+    """``out`` with its covariance widened for a centroid-noise floor estimated from a refinement's
+    stars (``noise``'s floor above ``params``', :func:`_refined_noise`): the Student t factor of a
+    noise estimated with ``2n - 3`` degrees of freedom over its ``n`` stars
+    (``strategy.estimated_noise_factor``), unless ``adapt_noise`` estimated the noise itself."""
+    sol = out.solution
+    if sol is None or sol.covariance is None or sol.noise_extra > 0:
+        return out
+    if noise.centroid_floor_px <= params.centroid_floor_px:
+        return out
+    sol.covariance = np.asarray(sol.covariance) * estimated_noise_factor(2 * len(sol.matched_det) - 3)
+    bound_roll(sol, params.solve.max_roll_sigma)
+    return _held_low(out)
 
 
 def _rank(out: PipelineOutput | None) -> tuple[int, float]:
