@@ -15,7 +15,9 @@ thread even with ``threads=1``, which the calling thread's CPU time does not see
    the tetra3 frames, every (system, centroid list) pair: our extracted centroids of the frame fed
    to each system's centroid-input API (identification alone). File to attitude: ours
    ``run_pipeline`` with default settings and a ``CatalogDesign.for_field`` catalog; cedar-solve
-   ``solve_from_image(image, fov_estimate=F)``; tetra3rs ``extract_centroids`` +
+   ``solve_from_image(image, fov_estimate=F)`` (and as ``cedar-cold``, its pattern cache emptied
+   before each request: the repeated frames otherwise find every pattern lookup cached from the
+   last solve of the same frame); tetra3rs ``extract_centroids`` +
    ``solve_from_centroids(fov_estimate_deg=F)``, defaults otherwise (``peer_worker.py``).
    Printed per file: status, median wall and CPU time, the split extraction / identification
    (ours from the pipeline's timings, cedar its T_extract / T_solve, tetra3rs timed around its two
@@ -108,7 +110,7 @@ def start_workers(names: list[str], logdir: Path) -> dict[str, Worker]:
         if not PEER_PYTHON.exists():
             print(f"{peer}: not run: no benchmark venv {PEER_PYTHON.parent.parent} (see the module docstring)")
             continue
-        module = {"cedar": "tetra3", "tetra3rs": "tetra3rs"}[peer]
+        module = {"cedar": "tetra3", "cedar-cold": "tetra3", "tetra3rs": "tetra3rs"}[peer]
         probe = subprocess.run([str(PEER_PYTHON), "-c", f"import {module}"], capture_output=True, text=True)
         if probe.returncode:
             why = (probe.stderr.strip().splitlines() or ["?"])[-1]
@@ -610,7 +612,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1, help="order of the rounds and the perturbations")
     ap.add_argument("--inputs", type=int, default=200, help="perturbed inputs per set (0: skip part 2)")
     ap.add_argument("--perturbed-camera", choices=["fitted", "estimate"], default="fitted")
-    ap.add_argument("--peers", nargs="+", default=["cedar", "tetra3rs"], choices=["cedar", "tetra3rs"])
+    ap.add_argument(
+        "--peers", nargs="+", default=["cedar", "cedar-cold", "tetra3rs"], choices=["cedar", "cedar-cold", "tetra3rs"]
+    )
     ap.add_argument("--only", choices=["tetra3", "colour"], help="one frame set only")
     ap.add_argument("--synthetic", action="store_true", help="run the synthetic-centroid grid instead")
     ap.add_argument("--frames", type=int, default=300, help="--synthetic: attitudes per cell")

@@ -1,7 +1,7 @@
 """A peer solver as a long-lived worker of ``bench_peers.py``; runs inside the benchmark-only venv
 (.venv-peers: peer code never enters the project environment)::
 
-    .venv-peers/bin/python bench/peer_worker.py {cedar|tetra3rs}
+    .venv-peers/bin/python bench/peer_worker.py {cedar|cedar-cold|tetra3rs}
 
 JSON lines (``jsonl_worker``). Requests:
 
@@ -14,6 +14,7 @@ JSON lines (``jsonl_worker``). Requests:
   grey by PIL), ``extract_centroids(image, threads=1)`` with its defaults, then
   ``solve_from_centroids(centroids, fov_estimate_deg=fov, image_shape=...)`` with its defaults.
   Reply: status, RA/Dec of the image centre, matches, fitted FOV, the timed split.
+  ``cedar-cold``: the same with cedar-solve's pattern cache emptied before each request (untimed).
 * ``centroids(key, x, y, flux, size, fov, camera, targets)``: the centroid-input API on a given
   list (our pixel convention: zero-based, pixel centres at integers, brightest first).
   ``camera="estimate"``: the FOV estimate (the answer's optics are kept under ``key``);
@@ -97,6 +98,24 @@ class Cedar:
         return rep
 
 
+class CedarCold(Cedar):
+    """cedar-solve with its pattern cache emptied before every solve (untimed): a lost-in-space solve
+    of a sky it has not just solved. With the default cache, the benchmark's repeated frames find
+    every pattern lookup answered from the last solve of the same frame."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.version += " (pattern cache emptied before each solve)"
+
+    def file(self, path, fov) -> dict:
+        self.t3._pattern_cache.clear()
+        return super().file(path, fov)
+
+    def centroids(self, key, x, y, flux, size, fov, camera, targets) -> dict:
+        self.t3._pattern_cache.clear()
+        return super().centroids(key, x, y, flux, size, fov, camera, targets)
+
+
 class Tetra3rs:
     def __init__(self) -> None:
         import tetra3rs
@@ -175,7 +194,7 @@ def _version(dist: str) -> str:
 
 
 def main(peer: str) -> None:
-    solver = {"cedar": Cedar, "tetra3rs": Tetra3rs}[peer]()
+    solver = {"cedar": Cedar, "cedar-cold": CedarCold, "tetra3rs": Tetra3rs}[peer]()
     serve({"setup": solver.setup, "file": solver.file, "centroids": solver.centroids})
 
 
