@@ -352,12 +352,13 @@ def perturbed_sets(workers, jobs, bases, args, rng):
     if not t3jobs:
         return
     sizes = {str(j["path"]): Image.open(j["path"]).size[::-1] for j in t3jobs}
+    draw = np.random.default_rng([args.seed, 2])  # the inputs: the same whichever systems run
     inputs = []
     for set_name, (n_false, p_drop, noise) in SETS.items():
         for i in range(args.inputs):
             j = t3jobs[i % len(t3jobs)]
             key = str(j["path"])
-            inputs.append((set_name, j, perturb(bases[key], n_false, p_drop, noise, rng, sizes[key])))
+            inputs.append((set_name, j, perturb(bases[key], n_false, p_drop, noise, draw, sizes[key])))
     tasks = [(n, i) for n in names for i in range(len(inputs))]
     res: dict[tuple, dict] = {}
     t0 = time.perf_counter()

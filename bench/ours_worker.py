@@ -19,6 +19,8 @@ JSON lines (``jsonl_worker``). Requests:
   every field but the position and brightness from base row ``rows[i]`` (a false star a donor
   row's: fit covariance, flags, colour), unit vectors from the camera: ``"estimate"`` the
   datasheet / FOV camera, ``"fitted"`` the camera of the last ``estimate`` answer for ``key``.
+  Reply: status, method, quaternion, covariance, matched stars, the extra noise the answer
+  estimated (rad per axis, 0 when the announced noise stood).
 """
 
 from __future__ import annotations
@@ -131,6 +133,7 @@ class Ours:
             q=np.asarray(sol.q_icrs_to_sensor).tolist() if found else None,
             cov=np.asarray(sol.covariance).tolist() if found and sol.covariance is not None else None,
             matches=0 if sol is None else len(sol.matched_det),
+            noise_extra=float(sol.noise_extra) if found else None,
         )
         return rep
 
