@@ -184,3 +184,23 @@ def test_the_compiled_frame_fit_agrees_with_calibrate(k1_min_stars):
             rtol=0,
             atol=1e-2 * np.max(np.abs(ref.camera_attitude_covariance[0])),
         )
+
+
+def test_pipeline_warm_up_compiles_every_solve_kernel():
+    """``run.warm_up`` (the device's start-up) leaves no kernel of a solve to compile in the first
+    GO: in a fresh process, after it, the distortion inverse, the attitude solve and the one-frame
+    fit have their signatures (a first solve compiling them took seconds of the optics search's
+    1.5 s budget and of an attitude feed's staleness window)."""
+    import subprocess
+    import sys
+
+    code = (
+        "from firmware_model.pipeline import run, camera, frame_fit\n"
+        "from firmware_model.ident import attitude\n"
+        "run.warm_up()\n"
+        "kernels = (camera._undistort, attitude._solve, frame_fit._levenberg_marquardt)\n"
+        "print(all(k.signatures for k in kernels))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "True"

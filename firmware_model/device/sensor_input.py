@@ -28,10 +28,10 @@ from firmware_model.device.device import FrameUnavailable, SlotHandler, SolveCon
 from firmware_model.ident.solver import Mode
 from firmware_model.pipeline import scale_free
 from firmware_model.pipeline.camera import CameraModel
-from firmware_model.pipeline.extract import PSF_SIGMA_RANGE_PX, warm_up
+from firmware_model.pipeline.extract import PSF_SIGMA_RANGE_PX
 from firmware_model.pipeline.frame_readers import FrameReadError, frame_files, read_frame
 from firmware_model.pipeline.raw_frame import Frame, frame_from_bytes
-from firmware_model.pipeline.run import PipelineParams, result_fields, run_pipeline, with_psf_sigma
+from firmware_model.pipeline.run import PipelineParams, result_fields, run_pipeline, warm_up, with_psf_sigma
 from firmware_model.pipeline.tracking_run import Tracker, frame_time
 from protocol.commands import GoBits, SlotRejected
 from protocol.result import QuaternionOrder
@@ -312,10 +312,10 @@ class PipelineSolver:
         self.params = params
         self.tracking = tracking
         self.tracker = Tracker()
-        # the planet check imports astropy (~0.3 s) and the extraction kernels load (numba, cached
+        # the planet check imports astropy (~0.3 s) and the pipeline's kernels load (numba, cached
         # on disk; compiled once per install): at start-up, not inside the first GO
         importlib.import_module("firmware_model.pipeline.planets")
-        log.info("extraction kernels ready in %.2f s", warm_up())
+        log.info("pipeline kernels ready in %.2f s", warm_up())
 
     def prepare(self, catalog) -> None:
         """Build the catalog's pattern index for the optics search in the background (0.4-1.6 s,
