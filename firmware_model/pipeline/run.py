@@ -96,10 +96,11 @@ class OpticsSearch:
     patterns; clutter such as a foreground tree can hold the brightest detections)
     (``firmware_model.pipeline.scale_free``: edge ratios within ``pattern_tolerance``, focal length
     within ``focal_range`` of the nominal; blended, failed-fit and edge detections are left out).
-    The search goes first when the first tier's best match puts the focal length far enough from
-    the nominal one to move a corner by more than ``refit_px`` (a nominal camera that cannot match
-    would spend its matchers' whole search failing); else after the nominal camera gives no
-    high-confidence answer. Each pattern match, best first, seeds a predict-match-fit of the
+    The first tier's first match is refined (:func:`_first_seed`), and the search goes first when
+    that refinement would refit the nominal camera (:func:`_nominal_off`: a nominal camera that
+    cannot match would spend its matchers' whole search failing); else, on the geometric route,
+    the refined match is verified with the nominal camera first (:func:`_verify_seed`), and the
+    search runs after the nominal camera gives no high-confidence answer. Each pattern match, best first, seeds a predict-match-fit of the
     focal length (and k1 when at least ``k1_min_stars`` stars match) with the attitude; the refined
     match is verified over every detection and taken when it is high-confidence as a
     search-chosen match (``strategy.searched_confident``: the chance of a coincidence counted over
