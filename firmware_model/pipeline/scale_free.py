@@ -22,7 +22,7 @@ Units: radians for angles, pixels for image positions (docs/CONVENTIONS.md).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from itertools import combinations, permutations
 
 import numpy as np
@@ -48,10 +48,14 @@ PATTERN_STARS_PER_CAP = 12
 #: Pattern radii over the minor half-field (kind 2; the frame's widest pattern: twice the largest).
 PATTERN_RADIUS_FACTORS = (1.5, 2.0)
 _PAIRS = list(combinations(range(4), 2))
+_PAIR_I, _PAIR_J = np.array(_PAIRS).T
 _PERMS = np.array(list(permutations(range(4))))
+#: For each assignment ``p`` of frame star ``k`` to catalog star ``p[k]``, the catalog edge (index
+#: into ``_PAIRS``) under each frame edge: an assignment's edges are a permutation of the six.
+_PERM_EDGES = np.array([[_PAIRS.index(tuple(sorted((p[i], p[j])))) for i, j in _PAIRS] for p in _PERMS])
 
 
-@dataclass
+@dataclass(frozen=True)
 class Hypothesis:
     """A pattern match: focal length (px), attitude ``a`` (v_sensor = a @ v_icrs) and the key
     distance (largest difference of the edge ratios)."""
@@ -64,7 +68,7 @@ class Hypothesis:
 def _keys(vectors: np.ndarray, groups: np.ndarray):
     """Sorted normalised edge ratios (G, 5) and the largest edge (G,) of 4-star groups (G, 4)."""
     v = vectors[groups]  # (G, 4, 3)
-    edges = np.stack([angle_between(v[:, i], v[:, j]) for i, j in _PAIRS], axis=1)
+    edges = angle_between(v[:, _PAIR_I], v[:, _PAIR_J])
     edges.sort(axis=1)
     top = edges[:, -1]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -137,6 +141,7 @@ class PatternMatches:
     scale: np.ndarray
     distance: np.ndarray
     catalog_vec: np.ndarray  # (M, 4, 3) each match's catalog pattern star directions
+    _worked: dict = field(default_factory=dict, init=False, repr=False)  # match -> Hypothesis or None
 
     @property
     def best_f(self) -> float:
@@ -153,11 +158,14 @@ class PatternMatches:
             # the distortion's own change with f is far below a pattern's tolerance): with the
             # nominal one, a pattern off the boresight would tilt the attitude by the scale error
             # times its field angle
-            b = np.column_stack([self.plane[self.groups[m]] / self.scale[m], np.ones(4)])
-            a = _assign(b / np.linalg.norm(b, axis=1, keepdims=True), self.catalog_vec[m])
-            if a is not None:
+            if m not in self._worked:  # worked out once: the search asks again for those it has seen
+                b = np.column_stack([self.plane[self.groups[m]] / self.scale[m], np.ones(4)])
+                a = _assign(b / np.linalg.norm(b, axis=1, keepdims=True), self.catalog_vec[m])
+                f = self.f_nominal * float(self.scale[m])
+                self._worked[m] = None if a is None else Hypothesis(f, a, float(self.distance[m]))
+            if self._worked[m] is not None:
                 given += 1
-                yield Hypothesis(self.f_nominal * float(self.scale[m]), a, float(self.distance[m]))
+                yield self._worked[m]
 
 
 def pattern_matches(
@@ -265,15 +273,14 @@ def _assign(b: np.ndarray, r: np.ndarray):
     """Attitude from the best of the 24 assignments of frame directions ``b`` (through the
     hypothesised focal length) to catalog directions ``r`` (edges compared after a common scale),
     or None when even the best leaves an edge mismatch above 2 % of the largest edge."""
-    eb = np.stack([angle_between(b[i], b[j]) for i, j in _PAIRS])
-    rp = r[_PERMS]  # (24, 4, 3)
-    er = np.stack([angle_between(rp[:, i], rp[:, j]) for i, j in _PAIRS], axis=1)
+    eb = angle_between(b[_PAIR_I], b[_PAIR_J])
+    er = angle_between(r[_PAIR_I], r[_PAIR_J])[_PERM_EDGES]  # (24, 6): each assignment's edges
     scale = eb.sum() / er.sum(axis=1)
     mismatch = np.sqrt(np.mean((er * scale[:, None] - eb) ** 2, axis=1))
     best = int(np.argmin(mismatch))
     if mismatch[best] > 0.02 * eb.max():
         return None
-    return svd_attitude(b, rp[best])
+    return svd_attitude(b, r[_PERMS[best]])
 
 
 def refine(
