@@ -377,6 +377,8 @@ def match_deep(
 NOISE_TEST_ALPHA = 0.01
 #: Tail probability of a star's chi^2 (2 degrees of freedom) the noise test counts stars beyond.
 NOISE_TAIL = 0.1
+#: chi^2 (2 degrees of freedom) beyond which a star lies in that tail: ``-2 ln NOISE_TAIL``.
+_TAIL_CHI2 = float(-2.0 * np.log(NOISE_TAIL))
 
 
 def adapt_noise(
@@ -464,7 +466,7 @@ def _probe_cannot_reject(found: Identification, det: Detections, catalog: Onboar
     sigma = np.asarray(det.sigma_px, float)
     wide = np.hypot(sigma, base.noise_probe_px) / det.focal_px  # rad
     chi2 = (np.asarray(sol.residuals) * det.focal_px / sigma[rows]) ** 2
-    beyond = int(np.count_nonzero(chi2 > 0.8 * -2.0 * np.log(NOISE_TAIL)))
+    beyond = int(np.count_nonzero(chi2 > 0.8 * _TAIL_CHI2))
     free = np.setdiff1d(np.arange(len(det)), rows)
     if len(free):
         a = quat_to_matrix(sol.q_icrs_to_sensor)
@@ -524,7 +526,7 @@ def noise_rejected(residuals: np.ndarray, sigma: np.ndarray) -> bool:
     their chi^2 (2 degrees of freedom: ``(r / sigma)^2 > -2 ln NOISE_TAIL``), each with
     probability ``NOISE_TAIL``, is below :data:`NOISE_TEST_ALPHA`."""
     n = len(residuals)
-    beyond = int(np.count_nonzero((np.asarray(residuals) / sigma) ** 2 > -2.0 * np.log(NOISE_TAIL)))
+    beyond = int(np.count_nonzero((np.asarray(residuals) / sigma) ** 2 > _TAIL_CHI2))
     return n >= 3 and miss_tail(n, beyond, NOISE_TAIL) < NOISE_TEST_ALPHA
 
 

@@ -100,9 +100,9 @@ class OpticsSearch:
     that refinement would refit the nominal camera (:func:`_nominal_off`: a nominal camera that
     cannot match would spend its matchers' whole search failing); else, on the geometric route,
     the refined match is verified with the nominal camera first (:func:`_verify_seed`), and the
-    search runs after the nominal camera gives no high-confidence answer. Each pattern match, best first, seeds a predict-match-fit of the
-    focal length (and k1 when at least ``k1_min_stars`` stars match) with the attitude; the refined
-    match is verified over every detection and taken when it is high-confidence as a
+    search runs after the nominal camera gives no high-confidence answer. Each pattern match,
+    best first, seeds a predict-match-fit of the focal length (and k1 when at least
+    ``k1_min_stars`` stars match) with the attitude; the refined match is verified over every detection and taken when it is high-confidence as a
     search-chosen match (``strategy.searched_confident``: the chance of a coincidence counted over
     the search's attempts), else the frame is identified from scratch with the fitted camera and
     the normal tight noise model (held to the same rule). Every solve reports the fitted optics
@@ -414,9 +414,7 @@ def _nominal_off(
             return False
         return _corner_shift_px(camera, replace(camera, f=peek.best_f)) > search.refit_px
     fitted, rows, cat, fit = seed[1]
-    shift = _corner_shift_px(camera, fitted)
-    sigma = _corner_shift_sigma_px(OpticsFit(fitted, fit.sigmas, fit.residual_rms_px, fit.n_observations))
-    if shift > search.refit_px and shift > 3.0 * sigma:
+    if _moves_corners(camera, OpticsFit(fitted, fit.sigmas, fit.residual_rms_px, fit.n_observations), search):
         return True
     nominal = solve_attitude(camera.pixel_to_vector(stars.x[rows], stars.y[rows]), catalog.vec[cat], 1.0)
     return nominal.rms * camera.f > REFIT_RMS_RATIO * fit.residual_rms_px
@@ -605,6 +603,14 @@ def _corner_shift_sigma_px(fit: OpticsFit) -> float:
     return float(np.hypot(r * sf / cam.f, r * (r / cam.f) ** 2 * sk))
 
 
+def _moves_corners(camera: CameraModel, fit: OpticsFit, search: OpticsSearch) -> bool:
+    """Whether fitted optics move the array's farthest corner from where ``camera`` puts it by more
+    than ``refit_px`` and by more than 3 sigma of the fit (a focal length and k1 fitted to a few
+    noisy stars move the corners by chance)."""
+    shift = _corner_shift_px(camera, fit.camera)
+    return shift > search.refit_px and shift > 3.0 * _corner_shift_sigma_px(fit)
+
+
 #: The frame is identified again with the fitted optics when they fit this much better (RMS ratio).
 REFIT_RMS_RATIO = 1.5
 
@@ -630,9 +636,7 @@ def _refine_optics(
     rms_px = sol.consensus_rms * camera.f
     if fit is None:
         return None
-    shift = _corner_shift_px(camera, fit.camera)
-    moved = shift > search.refit_px and shift > 3.0 * _corner_shift_sigma_px(fit)
-    if not moved and rms_px <= REFIT_RMS_RATIO * fit.residual_rms_px:
+    if not _moves_corners(camera, fit, search) and rms_px <= REFIT_RMS_RATIO * fit.residual_rms_px:
         return None
     again = _identify(_with_camera(stars, fit.camera), fit.camera, catalog, params, timings)
     if again.status is Status.OK and again.solution is not None and agrees(again.solution, sol):
@@ -665,7 +669,7 @@ def _search_optics(
             break
         if any(rotation_angle(hyp.a, a) < _SAME_SEED_RAD for a in tried):
             continue
-        if seed is not None and hyp.f == seed[0].f and np.array_equal(hyp.a, seed[0].a):
+        if seed is not None and hyp is seed[0]:  # the first tier keeps its hypotheses: the same object
             refined = seed[1]
         else:
             t1 = time.perf_counter()
