@@ -122,9 +122,9 @@ def test_verification_only_stars_follow_the_pattern_stars_without_pairs(hip_cat)
     assert catalog_from_image(catalog_to_image(deep)).n_pattern_stars == n
 
 
-def test_for_field_puts_three_times_the_stars_in_view_with_the_verification_only_ones():
+def test_for_field_puts_six_times_the_stars_in_view_with_the_verification_only_ones():
     d = CatalogDesign.for_field(1024, 768, 11.4)
-    assert d.m_verify - d.m_thresh == pytest.approx(math.log10(3.0) / 0.515, abs=0.11)
+    assert d.m_verify - d.m_thresh == pytest.approx(math.log10(6.0) / 0.515, abs=0.11)
     with pytest.raises(DesignError, match="m_verify"):
         CatalogDesign(m_thresh=5.0, m_verify=4.0)
 

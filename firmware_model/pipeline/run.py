@@ -140,6 +140,9 @@ class OpticsFit:
     #: the attitude covariance (rad^2, sensor axes) the fitted parameters' uncertainty adds
     #: (``CalibrationResult.camera_attitude_covariance``)
     attitude_covariance: np.ndarray | None = None
+    #: the fitted stars: detection rows (of the answer's star list) and catalog indices
+    rows: np.ndarray | None = None
+    cat: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -324,8 +327,13 @@ def identify_stars(
     # waits for the optics search's cheaper pattern hypotheses: with uncalibrated optics the search
     # is what finds the answer
     out = None
-    if seed is not None and not searched and routes_geometric(params.solve.mode, catalog, _has_colour(stars)):
-        out = _verify_seed(seed, stars, camera, catalog, params, timings)
+    if (
+        seed is not None
+        and seed[1] is not None
+        and not searched
+        and routes_geometric(params.solve.mode, catalog, _has_colour(stars))
+    ):
+        out = _verify_seed(seed[1], stars, camera, catalog, params, timings)
     if out is None or out.status is not Status.OK:
         out = _identify(stars, camera, catalog, params, timings, defer_fallback=params.optics is not None)
     if params.optics is not None and out.status is not Status.TOO_FEW_STARS:
@@ -376,10 +384,10 @@ def _first_seed(
     search: OpticsSearch | None,
     timings: StageTimings,
     peek: scale_free.BrightFirstMatches | None,
-) -> tuple[scale_free.Hypothesis, tuple] | None:
+) -> tuple[scale_free.Hypothesis, tuple | None] | None:
     """The first tier's first hypothesis and its refinement (``scale_free.refine``: focal length
-    and k1 fitted to every star it predicts), or None (no search, no match, a refinement that
-    finds too few stars)."""
+    and k1 fitted to every star it predicts; None when it finds too few stars, so that the search
+    does not refine it again), or None (no search, no match)."""
     if search is None or peek is None:
         return None
     t1 = time.perf_counter()
@@ -390,34 +398,30 @@ def _first_seed(
     t1 = time.perf_counter()
     refined = scale_free.refine(stars.x, stars.y, camera, hyp, catalog, k1_min_stars=search.k1_min_stars)
     timings.attitude += time.perf_counter() - t1
-    return None if refined is None else (hyp, refined)
+    return hyp, refined
 
 
 def _nominal_off(
     peek: scale_free.BrightFirstMatches | None,
-    seed: tuple[scale_free.Hypothesis, tuple] | None,
+    seed: tuple[scale_free.Hypothesis, tuple | None] | None,
     stars: StarList,
     camera: CameraModel,
     catalog: OnboardCatalog,
     search: OpticsSearch,
 ) -> bool:
-    """Whether the nominal camera would be refitted (:func:`_refine_optics`'s rule) on the first
-    pattern match's refined stars (:func:`_first_seed`): its optics move the array's corners by
-    more than ``refit_px`` and by more than 3 sigma of their fit, or fit those stars
-    :data:`REFIT_RMS_RATIO` times better than the nominal camera does. A nominal camera that cannot
+    """Whether the nominal camera would be refitted (:func:`_refit_due`, :func:`_refine_optics`'s
+    rule) on the first pattern match's refined stars (:func:`_first_seed`). A nominal camera that cannot
     match would spend its matchers' whole search failing (issue 12: 10-50 ms per tetra3 frame), and
     one whose answer is refitted identifies the frame twice, so the search goes first. The refined
     camera, not the pattern's own scale: one pattern's scale is known to ~0.1 %. Without a
     refinement, the first tier's best key's focal length decides."""
-    if seed is None:
+    if seed is None or seed[1] is None:
         if peek is None or not np.isfinite(peek.best_f):
             return False
         return _corner_shift_px(camera, replace(camera, f=peek.best_f)) > search.refit_px
     fitted, rows, cat, fit = seed[1]
-    if _moves_corners(camera, OpticsFit(fitted, fit.sigmas, fit.residual_rms_px, fit.n_observations), search):
-        return True
-    nominal = solve_attitude(camera.pixel_to_vector(stars.x[rows], stars.y[rows]), catalog.vec[cat], 1.0)
-    return nominal.rms * camera.f > REFIT_RMS_RATIO * fit.residual_rms_px
+    refined = OpticsFit(fitted, fit.sigmas, fit.residual_rms_px, fit.n_observations, rows=rows, cat=cat)
+    return _refit_due(camera, refined, stars, catalog, search)
 
 
 def _refined_noise(params: PipelineParams, fit) -> PipelineParams:
@@ -431,17 +435,17 @@ def _refined_noise(params: PipelineParams, fit) -> PipelineParams:
 
 
 def _verify_seed(
-    seed: tuple[scale_free.Hypothesis, tuple],
+    refined: tuple,
     stars: StarList,
     camera: CameraModel,
     catalog: OnboardCatalog,
     params: PipelineParams,
     timings: StageTimings,
 ) -> PipelineOutput | None:
-    """The first pattern match's refined stars (:func:`_first_seed`) verified over the frame with
+    """The first pattern match's refinement (:func:`_first_seed`): its stars verified over the frame with
     the nominal ``camera`` and the refinement's noise floor (:func:`_verify_pattern`, the search's
     first attempt)."""
-    _, rows, cat, fit = seed[1]
+    _, rows, cat, fit = refined
     noise = _refined_noise(params, fit)
     out = _verify_pattern(stars, camera, rows, cat, catalog, noise, timings, 1)
     return None if out is None else _with_estimated_floor(out, noise, params)
@@ -536,7 +540,9 @@ def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSear
         rows, cat = rows[keep], cat[keep]
     assert res is not None
     added = res.camera_attitude_covariance[0] if res.camera_attitude_covariance else None
-    return OpticsFit(res.camera, res.sigmas, res.residual_rms_px, len(rows), attitude_covariance=added)
+    return OpticsFit(
+        res.camera, res.sigmas, res.residual_rms_px, len(rows), attitude_covariance=added, rows=rows, cat=cat
+    )
 
 
 def _with_fitted_camera_uncertainty(
@@ -615,6 +621,20 @@ def _moves_corners(camera: CameraModel, fit: OpticsFit, search: OpticsSearch) ->
 REFIT_RMS_RATIO = 1.5
 
 
+def _refit_due(camera: CameraModel, fit: OpticsFit, stars: StarList, catalog: OnboardCatalog, search) -> bool:
+    """Whether fitted optics replace ``camera``: they move the array's corners (:func:`_moves_corners`)
+    or fit their stars (``fit.rows`` of ``stars`` on ``fit.cat``) :data:`REFIT_RMS_RATIO` times
+    better than ``camera`` with its best attitude does: the same stars both ways (issue 12: an
+    answer's own RMS counts the stars the optics fit leaves out, and flagged a camera the fit did
+    not move on 2 of 8 tetra3 frames, each then identified again from scratch)."""
+    if _moves_corners(camera, fit, search):
+        return True
+    assert fit.rows is not None and fit.cat is not None  # every OpticsFit of a solve names its stars
+    x, y = stars.x[fit.rows], stars.y[fit.rows]
+    nominal = solve_attitude(camera.pixel_to_vector(x, y), catalog.vec[fit.cat], 1.0)
+    return nominal.rms * camera.f > REFIT_RMS_RATIO * fit.residual_rms_px
+
+
 def _refine_optics(
     out: PipelineOutput,
     stars: StarList,
@@ -624,19 +644,15 @@ def _refine_optics(
     timings: StageTimings,
 ) -> PipelineOutput | None:
     """Attach the optics fit to a high-confidence ``out``; identify again with the fitted camera when
-    it moves a corner by more than ``refit_px`` and by more than 3 sigma of the fit (a focal
-    length and k1 fitted to a few noisy stars move the corners by chance, and a camera fitted to
-    the noise would hide it from the identification's noise check), or fits the stars
-    :data:`REFIT_RMS_RATIO` times better than the answer's camera did; keep that answer if it is
-    high-confidence and agrees (``strategy.agrees``): its camera fits the stars better by construction."""
+    it replaces ``camera`` (:func:`_refit_due`: a focal length and k1 fitted to a few noisy stars
+    move the corners by chance, and a camera fitted to the noise would hide it from the
+    identification's noise check); keep that answer if it is high-confidence and agrees
+    (``strategy.agrees``): its camera fits the stars better by construction."""
     search, sol = params.optics, out.solution
     assert search is not None and sol is not None  # called with the optics fit on, for an answer
     fit = _fit_optics(out, catalog, search)
     out.optics = fit
-    rms_px = sol.consensus_rms * camera.f
-    if fit is None:
-        return None
-    if not _moves_corners(camera, fit, search) and rms_px <= REFIT_RMS_RATIO * fit.residual_rms_px:
+    if fit is None or not _refit_due(camera, fit, stars, catalog, search):
         return None
     again = _identify(_with_camera(stars, fit.camera), fit.camera, catalog, params, timings)
     if again.status is Status.OK and again.solution is not None and agrees(again.solution, sol):
@@ -653,13 +669,13 @@ def _search_optics(
     timings: StageTimings,
     t0: float,
     peek: scale_free.BrightFirstMatches | None = None,
-    seed: tuple[scale_free.Hypothesis, tuple] | None = None,
+    seed: tuple[scale_free.Hypothesis, tuple | None] | None = None,
 ) -> PipelineOutput | None:
     """The scale-free search of :class:`OpticsSearch`: the first pattern match that leads to a
     high-confidence answer with the fitted camera, else the low-confidence answer of a pattern
     match that explains the most stars (None when no pattern match verifies). ``peek``: the
     first tier's pattern matches when the caller has them (:func:`_first_tier`); ``seed``: its
-    first hypothesis, already refined (:func:`_first_seed`)."""
+    first hypothesis and its refinement, already made (:func:`_first_seed`)."""
     search = params.optics
     assert search is not None  # called with the optics search on (the caller built its patterns)
     tried: list[np.ndarray] = []
