@@ -231,12 +231,11 @@ def test_a_device_run_in_both_orders(field):
     for order, rec in recs.items():
         rc = int(rec["return_code"])
         assert result.status_of(rc) is Status.OK and rc & 0xFF == 0x75  # quality, success, full, detector, consistent
-        assert hardware_record(rec) == {
-            "detector_temp_c": 20.0,
-            "processor_temp_c": 25.0,
-            "status": "OK",
-            "quaternion_order": order.value,
-        }
+        hw = hardware_record(rec)
+        # the detector warms toward +6 degC (180 s) while busy: one 1/16 degC count per ~2 s of
+        # solving, which the first solve's pattern build can reach
+        assert hw.pop("detector_temp_c") in (20.0, 20.0625)
+        assert hw == {"processor_temp_c": 25.0, "status": "OK", "quaternion_order": order.value}
         q = standard_quaternion(rec)
         assert np.allclose(q, rec["ext"]["quaternion"], atol=1e-15) and _angle(q, field["q"]) < 1e-4
         assert np.allclose(order.to_wire(rec["ext"]["quaternion"]), rec["quaternion"], atol=1e-15)

@@ -26,7 +26,7 @@ from firmware_model.pipeline import scale_free
 from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.camera_fit import rotvec_matrix
 from firmware_model.pipeline.extract import extract_stars
-from firmware_model.pipeline.run import OpticsSearch, PipelineParams, StageTimings, run_pipeline
+from firmware_model.pipeline.run import OpticsSearch, StageTimings, run_pipeline
 from firmware_model.reference_frames import quat_to_matrix, rotation_angle
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
@@ -188,7 +188,7 @@ def _first_pattern_says_off(frame, camera, catalog):
 
     stars = extract_stars(frame, camera)
     timings = StageTimings()
-    peek = _first_tier(stars, camera, catalog, PipelineParams(), timings)
+    peek = _first_tier(stars, camera, catalog, OpticsSearch(), timings)
     seed = _first_seed(stars, camera, catalog, OpticsSearch(), timings, peek)
     return _nominal_off(peek, seed, stars, camera, catalog, OpticsSearch())
 

@@ -112,7 +112,8 @@ class OpticsSearch:
     camera missed are matched. The search stops once ``budget_s`` seconds have passed since the
     frame's extraction began (the frame's whole budget: GO to result stays under 2 s whatever the
     frame). ``focal_search 0`` on the device (``optics=None`` here) takes the camera as calibrated:
-    no search, no pattern matches (~1 ms a frame)."""
+    no search and no refit; on the geometric route its first pattern match (``OpticsSearch()``'s
+    first tier, refined to find its stars) is still verified with it before the matchers run."""
 
     focal_range: float = 0.05
     n_bright: int = 20
@@ -304,12 +305,15 @@ def identify_stars(
         vectors=stars.timings.get("vectors_s", 0.0),
     )
     frame_t0 = t0 - stars.timings.get("total_s", 0.0)  # the search's budget counts from extraction
-    if params.optics is not None:
+    # a calibrated camera (no search) still starts from its first pattern match on the geometric route
+    geometric = len(_usable(stars)) >= 4 and routes_geometric(params.solve.mode, catalog, _has_colour(stars))
+    tier = params.optics or (OpticsSearch() if geometric else None)
+    if tier is not None:
         t1 = time.perf_counter()
         scale_free.catalog_patterns(catalog, camera)  # once per catalog and field: not this frame's budget
         frame_t0 += time.perf_counter() - t1
-    peek = _first_tier(stars, camera, catalog, params, timings)
-    seed = _first_seed(stars, camera, catalog, params.optics, timings, peek)
+    peek = _first_tier(stars, camera, catalog, tier, timings)
+    seed = _first_seed(stars, camera, catalog, tier, timings, peek)
     searched = params.optics is not None and _nominal_off(peek, seed, stars, camera, catalog, params.optics)
     first = _search_optics(stars, camera, catalog, params, timings, frame_t0, peek, seed) if searched else None
     if first is not None and first.status is Status.OK:  # else the usual way: the nominal camera first
@@ -327,12 +331,7 @@ def identify_stars(
     # waits for the optics search's cheaper pattern hypotheses: with uncalibrated optics the search
     # is what finds the answer
     out = None
-    if (
-        seed is not None
-        and seed[1] is not None
-        and not searched
-        and routes_geometric(params.solve.mode, catalog, _has_colour(stars))
-    ):
+    if seed is not None and seed[1] is not None and not searched and geometric:
         out = _verify_seed(seed[1], stars, camera, catalog, params, timings)
     if out is None or out.status is not Status.OK:
         out = _identify(stars, camera, catalog, params, timings, defer_fallback=params.optics is not None)
@@ -360,12 +359,11 @@ def identify_stars(
 
 
 def _first_tier(
-    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams, timings: StageTimings
+    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, search: OpticsSearch | None, timings: StageTimings
 ) -> scale_free.BrightFirstMatches | None:
-    """The optics search's first pattern matches (the ``first_tier`` brightest clean detections,
-    rank by rank; None without a search); the catalog's patterns for the field are built by the
+    """The first pattern matches of ``search`` (the ``first_tier`` brightest clean detections,
+    rank by rank; None without one); the catalog's patterns for the field are built by the
     caller."""
-    search = params.optics
     if search is None or search.first_tier <= 0 or search.first_tier_hypotheses <= 0 or len(_usable(stars)) < 4:
         return None
     t1 = time.perf_counter()

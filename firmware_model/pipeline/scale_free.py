@@ -105,11 +105,20 @@ def _region_groups(tree: cKDTree, mag: np.ndarray, field_radius: float) -> np.nd
     return np.concatenate(out)
 
 
+#: A field's catalog patterns serve cameras whose minor half-field is within this fraction of it.
+PATTERN_FIELD_REUSE = 0.02
+
+
 def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
     """(groups, keys, largest edge, KD-tree of keys) of the catalog's patterns for a camera's field
-    (module constants), cached on the catalog object per minor half-field (to 1 mrad)."""
+    (module constants), cached on the catalog object per minor half-field (to 1 mrad) and used for
+    every camera within :data:`PATTERN_FIELD_REUSE` of a cached field (a focal length fitted to
+    one frame moves the field by ~0.1 %; building another field's patterns takes ~2 s: issue 12)."""
     cache = catalog.__dict__.setdefault("_pattern_cache", {})
     mrad = int(round(camera.fov_half_angle_minor * 1000.0))
+    near = [m for m in cache if abs(m - mrad) <= PATTERN_FIELD_REUSE * m]
+    if near:
+        mrad = min(near, key=lambda m: abs(m - mrad))
     if mrad not in cache:
         field = mrad / 1000.0
         rank = np.argsort(np.argsort(catalog.mag, kind="stable"), kind="stable")
