@@ -55,8 +55,8 @@ def test_device_renders_the_sky_from_a_schedule(catalog, tmp_path):
             recs = [solve_record(c.go_and_wait(timeout=60)) for _ in atts]
     finally:
         assert stop_device(proc) == 0
-    for rec, a in zip(recs, atts):  # colour and mono: the brightest stars' pattern first
-        assert rec["status"] == "OK" and rec["method"] == "pattern"
+    for rec, a, method in zip(recs, atts, ("colour", "pattern")):  # mono: the brightest stars' pattern
+        assert rec["status"] == "OK" and rec["method"] == method
         err = np.degrees(rotation_angle(quat_to_matrix(rec["q_icrs_to_sensor"]), a))
         assert err < 0.01
 
@@ -128,6 +128,7 @@ def test_colour_calibration_from_a_run_and_on_the_device(catalog, biased_frames,
     finally:
         assert stop_device(proc) == 0
     assert before[0]["q_icrs_to_sensor"] is not None and after[0]["status"] == "OK"
+    assert after[0]["method"] == "colour"
     assert after[1] < 0.75 * before[1]  # what remains is mostly photon noise of the fainter stars
 
 

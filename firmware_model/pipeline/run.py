@@ -20,7 +20,7 @@ import numpy as np
 from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.ident.attitude import solve_attitude
 from firmware_model.ident.consensus import Outcome
-from firmware_model.ident.solver import Mode, SolveParams, SolveResult, method_code
+from firmware_model.ident.solver import SolveParams, SolveResult, method_code
 from firmware_model.ident.strategy import (
     Detections,
     Identification,
@@ -33,6 +33,7 @@ from firmware_model.ident.strategy import (
     geometric_fallback,
     hold_searched,
     identify,
+    routes_geometric,
     verify_pattern,
 )
 from firmware_model.ident.verify import FieldOfView
@@ -97,8 +98,8 @@ class OpticsSearch:
     within ``focal_range`` of the nominal; blended, failed-fit and edge detections are left out).
     The first tier's first match is refined (:func:`_first_seed`), and the search goes first when
     that refinement would refit the nominal camera (:func:`_nominal_off`: a nominal camera that
-    cannot match would spend its matchers' whole search failing); else (except in ``colour``
-    mode) the refined match is verified with the nominal camera first (:func:`_verify_seed`), and the
+    cannot match would spend its matchers' whole search failing); else, on the geometric route,
+    the refined match is verified with the nominal camera first (:func:`_verify_seed`), and the
     search runs after the nominal camera gives no high-confidence answer. Each pattern match,
     best first, seeds a predict-match-fit of the focal length (and k1 when at least
     ``k1_min_stars`` stars match) with the attitude; the refined match is verified over every detection and taken when it is high-confidence as a
@@ -111,8 +112,8 @@ class OpticsSearch:
     camera missed are matched. The search stops once ``budget_s`` seconds have passed since the
     frame's extraction began (the frame's whole budget: GO to result stays under 2 s whatever the
     frame). ``focal_search 0`` on the device (``optics=None`` here) takes the camera as calibrated:
-    no search and no refit; its first pattern match (``OpticsSearch()``'s first tier, refined to
-    find its stars) is still verified with it before the matchers run (not in ``colour`` mode)."""
+    no search and no refit; on the geometric route its first pattern match (``OpticsSearch()``'s
+    first tier, refined to find its stars) is still verified with it before the matchers run."""
 
     focal_range: float = 0.05
     n_bright: int = 20
@@ -304,10 +305,9 @@ def identify_stars(
         vectors=stars.timings.get("vectors_s", 0.0),
     )
     frame_t0 = t0 - stars.timings.get("total_s", 0.0)  # the search's budget counts from extraction
-    # the first pattern match goes first unless the mode asks for colours alone; a calibrated
-    # camera (no search) takes that step too
-    pattern_first = len(_usable(stars)) >= 4 and params.solve.mode != Mode.COLOUR
-    tier = params.optics or (OpticsSearch() if pattern_first else None)
+    # a calibrated camera (no search) still starts from its first pattern match on the geometric route
+    geometric = len(_usable(stars)) >= 4 and routes_geometric(params.solve.mode, catalog, _has_colour(stars))
+    tier = params.optics or (OpticsSearch() if geometric else None)
     if tier is not None:
         t1 = time.perf_counter()
         scale_free.catalog_patterns(catalog, camera)  # once per catalog and field: not this frame's budget
@@ -324,15 +324,14 @@ def identify_stars(
     def search() -> PipelineOutput | None:  # the search once per frame: its answer kept when it went first
         return first if searched else _search_optics(stars, camera, catalog, params, timings, frame_t0, peek, seed)
 
-    # the nominal camera stays (the first pattern match's refined optics would not refit it): that
-    # match is verified with it before the matchers run, unless the mode asks for colours alone
-    # (issue 12: one verification, where the geometric matchers took 10 ms on noisy centroids and
-    # the colour consensus 20-150 ms on real colour frames; the verification gates every star by
-    # its colour too); the mono consensus fallback with the nominal camera
+    # the nominal camera stays (the first pattern match's refined optics would not refit it): on
+    # the geometric route, that match is verified with it before the matchers run (issue 12: one
+    # verification, where they took 10 ms on noisy centroids; a colour frame is matched by its
+    # colours, as the mode says); the mono consensus fallback with the nominal camera
     # waits for the optics search's cheaper pattern hypotheses: with uncalibrated optics the search
     # is what finds the answer
     out = None
-    if seed is not None and seed[1] is not None and not searched and pattern_first:
+    if seed is not None and seed[1] is not None and not searched and geometric:
         out = _verify_seed(seed[1], stars, camera, catalog, params, timings)
     if out is None or out.status is not Status.OK:
         out = _identify(stars, camera, catalog, params, timings, defer_fallback=params.optics is not None)
