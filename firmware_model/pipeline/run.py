@@ -306,7 +306,8 @@ def identify_stars(
     )
     frame_t0 = t0 - stars.timings.get("total_s", 0.0)  # the search's budget counts from extraction
     # a calibrated camera (no search) still starts from its first pattern match on the geometric route
-    geometric = len(_usable(stars)) >= 4 and routes_geometric(params.solve.mode, catalog, _has_colour(stars))
+    used = _usable(stars)
+    geometric = len(used) >= 4 and routes_geometric(params.solve.mode, catalog, _has_colour(stars, used))
     tier = params.optics or (OpticsSearch() if geometric else None)
     if tier is not None:
         t1 = time.perf_counter()
@@ -619,7 +620,9 @@ def _moves_corners(camera: CameraModel, fit: OpticsFit, search: OpticsSearch) ->
 REFIT_RMS_RATIO = 1.5
 
 
-def _refit_due(camera: CameraModel, fit: OpticsFit, stars: StarList, catalog: OnboardCatalog, search) -> bool:
+def _refit_due(
+    camera: CameraModel, fit: OpticsFit, stars: StarList, catalog: OnboardCatalog, search: OpticsSearch
+) -> bool:
     """Whether fitted optics replace ``camera``: they move the array's corners (:func:`_moves_corners`)
     or fit their stars (``fit.rows`` of ``stars`` on ``fit.cat``) :data:`REFIT_RMS_RATIO` times
     better than ``camera`` with its best attitude does: the same stars both ways (issue 12: an
