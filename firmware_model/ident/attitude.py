@@ -187,7 +187,7 @@ class AttitudeSolution:
     covariance_apriori: np.ndarray
 
 
-def quat_matrix(q: np.ndarray) -> np.ndarray:
+def quat_matrix(q) -> np.ndarray:
     """Attitude matrix of a unit scalar-first quaternion (same as ``frames.quat_to_matrix``, no scipy
     overhead): ``A = (w^2 - v.v) I + 2 v v^T + 2 w [v x]``."""
     return _quat_matrix(np.asarray(q, float))

@@ -59,7 +59,7 @@ import numpy as np
 from scipy.special import ndtr, stdtrit
 
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between
-from firmware_model.ident.attitude import attitude_covariance, solve_attitude
+from firmware_model.ident.attitude import attitude_covariance, quat_matrix, solve_attitude
 from firmware_model.ident.consensus import ConsensusParams, Outcome, confident, match_scene
 from firmware_model.ident.four_star import match_four_star
 from firmware_model.ident.pair_match import PairNoise
@@ -75,7 +75,7 @@ from firmware_model.ident.solver import (
 from firmware_model.ident.triangle import match_triangles
 from firmware_model.ident.verify import FieldOfView, VerifiedMatch, miss_tail, verify
 from firmware_model.pipeline.camera import CameraModel
-from firmware_model.reference_frames import quat_to_matrix, rotation_angle
+from firmware_model.reference_frames import rotation_angle
 
 #: Fewest detections given to the geometric matcher by :func:`geometric_detection_cap`.
 MIN_GEOMETRIC_DETECTIONS = 8
@@ -322,7 +322,7 @@ def match_all(
     if (
         match is None
         or match.n < len(sol.matched_det)
-        or rotation_angle(match.attitude.a, quat_to_matrix(sol.q_icrs_to_sensor)) > _tolerance(det, everything, base)
+        or rotation_angle(match.attitude.a, quat_matrix(sol.q_icrs_to_sensor)) > _tolerance(det, everything, base)
     ):
         return found
     status, reason = (Outcome.HIGH_CONFIDENCE, "") if sol.roll_limited else (sol.status, sol.reason)
@@ -467,9 +467,11 @@ def _probe_cannot_reject(found: Identification, det: Detections, catalog: Onboar
     wide = np.hypot(sigma, base.noise_probe_px) / det.focal_px  # rad
     chi2 = (np.asarray(sol.residuals) * det.focal_px / sigma[rows]) ** 2
     beyond = int(np.count_nonzero(chi2 > 0.8 * _TAIL_CHI2))
-    free = np.setdiff1d(np.arange(len(det)), rows)
+    free = np.ones(len(det), bool)
+    free[rows] = False
+    free = np.flatnonzero(free)
     if len(free):
-        a = quat_to_matrix(sol.q_icrs_to_sensor)
+        a = quat_matrix(sol.q_icrs_to_sensor)
         near = catalog.stars_within(a[2], _fov(base, det.vectors).radius, deep=base.verify.deep)
         if len(near):
             cos = np.max(det.vectors[free] @ (catalog.vec[near] @ a.T).T, axis=1)
@@ -495,7 +497,7 @@ SAME_ANSWER_SIGMAS = 5.0
 def within_covariance(a: np.ndarray, cov: np.ndarray, sol: SolveResult) -> bool:
     """Whether attitude ``a`` (covariance ``cov``, rad^2) lies within :data:`SAME_ANSWER_SIGMAS` of
     ``sol``'s attitude on every sensor axis, the two covariances added."""
-    m = a @ quat_to_matrix(sol.q_icrs_to_sensor).T  # small rotation, sensor frame
+    m = a @ quat_matrix(sol.q_icrs_to_sensor).T  # small rotation, sensor frame
     delta = 0.5 * np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
     var = np.diag(cov) + (np.diag(sol.covariance) if sol.covariance is not None else 0.0)
     return bool(np.all(np.abs(delta) <= SAME_ANSWER_SIGMAS * np.sqrt(var)))
@@ -683,13 +685,13 @@ def agrees(a: SolveResult, b: SolveResult, tol: float = 1e-3) -> bool:
     """Whether two answers are the same attitude: within ``tol`` (rad) or within their covariances
     (:func:`within_covariance`; a noisy frame's answers move with the stars they keep)."""
     return same_attitude(a, b, tol) or (
-        a.covariance is not None and within_covariance(quat_to_matrix(a.q_icrs_to_sensor), a.covariance, b)
+        a.covariance is not None and within_covariance(quat_matrix(a.q_icrs_to_sensor), a.covariance, b)
     )
 
 
 def same_attitude(a: SolveResult, b: SolveResult, tol: float) -> bool:
     """Whether two answers' attitudes agree within ``tol`` (rad)."""
-    return rotation_angle(quat_to_matrix(a.q_icrs_to_sensor), quat_to_matrix(b.q_icrs_to_sensor)) <= tol
+    return rotation_angle(quat_matrix(a.q_icrs_to_sensor), quat_matrix(b.q_icrs_to_sensor)) <= tol
 
 
 def geometric_detection_cap(camera: CameraModel, catalog: OnboardCatalog, factor: float) -> int:

@@ -48,12 +48,14 @@ explains the whole frame:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
+from numba import njit
 from scipy.special import betainc
 
 from firmware_model.catalog.onboard import OnboardCatalog, chord_of_angle
-from firmware_model.ident.attitude import AttitudeSolution, solve_attitude
+from firmware_model.ident.attitude import AttitudeSolution, _solve, solve_attitude
 from firmware_model.pipeline.camera import CameraModel
 
 
@@ -70,11 +72,7 @@ class FieldOfView:
 
     @classmethod
     def from_camera(cls, camera: CameraModel, edge_margin_px: float = 3.0) -> FieldOfView:
-        xs = np.array([-0.5, camera.width - 0.5, -0.5, camera.width - 0.5])
-        ys = np.array([-0.5, -0.5, camera.height - 0.5, camera.height - 0.5])
-        v = camera.pixel_to_vector(xs, ys)
-        radius = float(np.max(np.arccos(np.clip(v[:, 2], -1.0, 1.0))))
-        return cls(radius * 1.02 + 1e-4, camera, float(edge_margin_px))
+        return _camera_field(camera, float(edge_margin_px))
 
     @classmethod
     def cone(cls, half_angle: float) -> FieldOfView:
@@ -158,6 +156,16 @@ class VerifiedMatch:
         return len(self.det)
 
 
+@lru_cache(maxsize=64)
+def _camera_field(camera: CameraModel, edge_margin_px: float) -> FieldOfView:
+    """:meth:`FieldOfView.from_camera`, kept per camera (each solve asks for it several times)."""
+    xs = np.array([-0.5, camera.width - 0.5, -0.5, camera.width - 0.5])
+    ys = np.array([-0.5, -0.5, camera.height - 0.5, camera.height - 0.5])
+    v = camera.pixel_to_vector(xs, ys)
+    radius = float(np.max(np.arccos(np.clip(v[:, 2], -1.0, 1.0))))
+    return FieldOfView(radius * 1.02 + 1e-4, camera, edge_margin_px)
+
+
 def miss_tail(n_pred: int, n_missed: int, miss_rate: float) -> float:
     """``P(X >= n_missed)`` for ``X ~ Binomial(n_pred, miss_rate)``: the chance that a sensor that
     misses each predicted star with probability ``miss_rate`` misses at least this many."""
@@ -195,24 +203,6 @@ def coverage_ok(n_pred: int, n_matched: int, params: VerifyParams) -> bool:
     return miss_tail(n_pred, n_pred - n_matched, params.miss_rate) >= params.coverage_alpha
 
 
-def _predicted_scatter(b: np.ndarray, sigma: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """Per-star 1-sigma angular scatter (rad) of measured vs predicted direction."""
-    if not np.all(np.isfinite(cov)):
-        return np.full(len(b), np.inf)
-    extra = 0.5 * (np.trace(cov) - np.einsum("ij,jk,ik->i", b, cov, b))
-    return np.sqrt(sigma**2 + np.maximum(extra, 0.0))
-
-
-def _chords(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Chord lengths between every unit vector of ``a`` (N, 3) and of ``b`` (M, 3), (N, M), from
-    their dot products (no (N, M, 3) difference array; 4e-8 relative at a 20" chord)."""
-    return np.sqrt(np.maximum(2.0 - 2.0 * (a @ b.T), 0.0))
-
-
-def _sq(x):
-    return np.where(np.isfinite(x), x * x, 0.0)
-
-
 def verify(
     det: np.ndarray,
     cat: np.ndarray,
@@ -229,96 +219,45 @@ def verify(
     """Check one hypothesis; returns ``(VerifiedMatch, "")`` or ``(None, reason)``."""
     det = np.asarray(det, np.int64)
     cat = np.asarray(cat, np.int64)
+    vectors, sigma = np.ascontiguousarray(vectors, float), np.ascontiguousarray(sigma, float)
     n_consensus = len(det)
     if len(det) < 2:
         return None, "fewer than two matched stars"
-    sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
     if not params.enabled:
+        sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
         return VerifiedMatch(det, cat, sol, float("nan"), 0, n_consensus), ""
     # 1. residual test
-    scatter = _predicted_scatter(vectors[det], sigma[det], sol.covariance_apriori)
-    bad = sol.residuals > params.residual_sigmas * np.maximum(scatter, sigma[det])
-    if bad.any():
-        det, cat = det[~bad], cat[~bad]
-        if len(det) < 2:
-            return None, "residual test left fewer than two stars"
-        sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
-    # 2. refinement with all detections, against the catalog stars near the boresight
+    det, cat, boresight = _residual_step(det, cat, vectors, sigma, catalog.vec, float(params.residual_sigmas))
+    if len(det) < 2:
+        return None, "residual test left fewer than two stars"
+    # 2. refinement with all detections, against the catalog stars near the boresight; 2a-2c
     tree = catalog._deep_tree if params.deep else catalog._tree
-    near = np.asarray(tree.query_ball_point(sol.a[2], chord_of_angle(min(fov.radius, np.pi))), np.int64)
+    near = np.asarray(tree.query_ball_point(boresight, chord_of_angle(min(fov.radius, np.pi))), np.int64)
     if len(near) == 0:
         return None, "no catalog star in the field of view"
+    det, cat, seen, kept = _refine_steps(
+        det,
+        cat,
+        vectors,
+        np.ascontiguousarray(rg, float),
+        np.ascontiguousarray(bg, float),
+        sigma,
+        near,
+        catalog.vec,
+        catalog.rg,
+        catalog.bg,
+        float(noise_rg),
+        float(noise_bg),
+        float(params.refine_sigmas),
+        float(params.residual_sigmas),
+        int(params.refine_passes),
+        float(params.colour_gate),
+        bool(params.drop_ambiguous),
+    )
+    if not kept:
+        return None, "final residual test left fewer than two stars"
+    sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
     near_vec = catalog.vec[near]
-    for _ in range(params.refine_passes):
-        free = np.ones(len(vectors), bool)
-        free[det] = False
-        free = np.nonzero(free)[0]
-        if len(free) == 0:
-            break
-        b = vectors[free]
-        pred = near_vec @ sol.a.T
-        nearest = np.argmax(b @ pred.T, axis=1)
-        idx = near[nearest]
-        ang = 2.0 * np.arcsin(np.clip(np.linalg.norm(b - pred[nearest], axis=1) / 2.0, 0.0, 1.0))
-        tol = params.refine_sigmas * _predicted_scatter(b, sigma[free], sol.covariance_apriori)
-        ok = (ang < tol) & ~np.isin(idx, cat)
-        if ok.any() and noise_rg > 0 and noise_bg > 0:
-            d2 = _sq((rg[free] - catalog.rg[idx]) / noise_rg) + _sq((bg[free] - catalog.bg[idx]) / noise_bg)
-            ok &= np.sqrt(d2) < params.colour_gate
-        if not ok.any():
-            break
-        add_det, add_cat = free[ok], idx[ok]
-        _, first = np.unique(add_cat, return_index=True)  # one detection per catalog star
-        det = np.concatenate([det, add_det[first]])
-        cat = np.concatenate([cat, add_cat[first]])
-        sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
-    # 2a. one detection per catalog star, the closest: a false detection near a star (taken
-    # first because it is brighter) must give way to the star's own detection
-    free = np.setdiff1d(np.arange(len(vectors)), det)
-    if len(free):
-        pred = catalog.vec[cat] @ sol.a.T
-        sep = 2.0 * np.arcsin(np.clip(_chords(vectors[free], pred) / 2.0, 0.0, 1.0))
-        tol = params.refine_sigmas * _predicted_scatter(vectors[free], sigma[free], sol.covariance_apriori)
-        ok = sep < np.minimum(tol[:, None], sol.residuals[None, :])
-        if ok.any() and noise_rg > 0 and noise_bg > 0:
-            d2 = _sq((rg[free][:, None] - catalog.rg[cat][None, :]) / noise_rg) + _sq(
-                (bg[free][:, None] - catalog.bg[cat][None, :]) / noise_bg
-            )
-            ok &= np.sqrt(d2) < params.colour_gate
-        if ok.any():
-            sep = np.where(ok, sep, np.inf)
-            best = np.argmin(sep, axis=0)  # per matched star, the closest free detection
-            swap = np.isfinite(sep[best, np.arange(len(cat))])
-            det = det.copy()
-            det[swap] = free[best[swap]]
-            _, first = np.unique(det, return_index=True)
-            keep = np.zeros(len(det), bool)
-            keep[first] = True
-            det, cat = det[keep], cat[keep]
-            sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
-    # 2b. identities that cannot be told apart: another catalog star inside the gate
-    seen = cat  # they were seen all the same: coverage counts them
-    if params.drop_ambiguous and len(det) > 2:
-        b = vectors[det]
-        pred = near_vec @ sol.a.T
-        d = _chords(b, pred)
-        d[near[None, :] == cat[:, None]] = np.inf
-        gate = chord_of_angle(params.refine_sigmas * _predicted_scatter(b, sigma[det], sol.covariance_apriori))
-        clear = d.min(axis=1) >= gate
-        if not clear.all() and clear.sum() >= 2:
-            det, cat = det[clear], cat[clear]
-            sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
-    # 2c. final residual test on the measurement noise alone: refinement gates include the
-    # attitude covariance, which is large for a loose early hypothesis, so stars taken in then
-    # must still fit the final attitude within residual_sigmas of their own noise
-    for _ in range(params.refine_passes + 1):
-        bad = sol.residuals > params.residual_sigmas * sigma[det]
-        if not bad.any():
-            break
-        det, cat = det[~bad], cat[~bad]
-        if len(det) < 2:
-            return None, "final residual test left fewer than two stars"
-        sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
     chi = float(np.sqrt(np.mean((sol.residuals / sigma[det]) ** 2)))
     if chi > params.max_normalised_rms:
         return None, f"residuals {chi:.1f} sigma RMS: inconsistent with the measurement noise"
@@ -333,7 +272,7 @@ def verify(
     bright = (catalog.mag[near] <= mag_limit) & (near < catalog.n_pattern_stars)  # pattern stars, also with deep
     inside = near[bright & in_view]
     n_pred = len(inside)
-    matched_inside = int(np.isin(inside, seen).sum())
+    matched_inside = int(np.count_nonzero((inside[:, None] == seen[None, :]).any(axis=1)))
     coverage = matched_inside / n_pred if n_pred else 1.0
     gate = params.residual_sigmas * float(np.median(sigma[det]))
     # the chance over every catalog star looked for: with ``deep``, the verification-only ones too
@@ -356,3 +295,189 @@ def verify(
         chance=chance,
         n_pattern=n_pattern,
     ), ""
+
+
+# --- compiled steps 1-2c (numba, cached on disk): two calls instead of ~60 small array operations
+# and up to ten attitude solves a hypothesis (issue 12); the arithmetic the module docstring states.
+
+
+@njit(cache=True, nogil=True)
+def _scatter(b, sigma, cov):  # pragma: no cover - compiled
+    """Per-star 1-sigma angular scatter (rad) of measured vs predicted direction (step 2's
+    ``sqrt(sigma^2 + (tr P - b^T P b) / 2)``; inf for an unobservable attitude)."""
+    out = np.empty(len(b))
+    if not np.all(np.isfinite(cov)):
+        out[:] = np.inf
+        return out
+    tr = cov[0, 0] + cov[1, 1] + cov[2, 2]
+    for i in range(len(b)):
+        q = 0.0
+        for j in range(3):
+            for k in range(3):
+                q += b[i, j] * cov[j, k] * b[i, k]
+        out[i] = np.sqrt(sigma[i] ** 2 + max(0.5 * (tr - q), 0.0))
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _colour_ok(rg_d, bg_d, rg_c, bg_c, noise_rg, noise_bg, gate):  # pragma: no cover - compiled
+    """Whether a detection's colours lie within ``gate`` of a catalog star's (unknown ones count 0)."""
+    a = (rg_d - rg_c) / noise_rg
+    b = (bg_d - bg_c) / noise_bg
+    d2 = (a * a if np.isfinite(a) else 0.0) + (b * b if np.isfinite(b) else 0.0)
+    return np.sqrt(d2) < gate
+
+
+@njit(cache=True, nogil=True)
+def _rotated(v, a):  # pragma: no cover - compiled
+    """``v @ a.T``: unit vectors (N, 3) through the attitude matrix ``a``."""
+    out = np.empty((len(v), 3))
+    for i in range(len(v)):
+        for j in range(3):
+            out[i, j] = a[j, 0] * v[i, 0] + a[j, 1] * v[i, 1] + a[j, 2] * v[i, 2]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _free(n, det):  # pragma: no cover - compiled
+    """Rows of ``n`` detections not in ``det``, ascending."""
+    taken = np.zeros(n, np.bool_)
+    taken[det] = True
+    return np.flatnonzero(~taken)
+
+
+@njit(cache=True, nogil=True)
+def _residual_step(det, cat, vectors, sigma, cat_vec, residual_sigmas):  # pragma: no cover - compiled
+    """Step 1 of :func:`verify`: (matched detections, catalog stars, the boresight in ICRS), fewer
+    than two stars when the test leaves fewer."""
+    _, a, _, res, _, _, p0 = _solve(vectors[det], cat_vec[cat], sigma[det])
+    scatter = _scatter(vectors[det], sigma[det], p0)
+    bad = res > residual_sigmas * np.maximum(scatter, sigma[det])
+    if np.any(bad):
+        det, cat = det[~bad], cat[~bad]
+        if len(det) < 2:
+            return det, cat, a[2].copy()
+        _, a, _, _, _, _, _ = _solve(vectors[det], cat_vec[cat], sigma[det])
+    return det, cat, a[2].copy()
+
+
+@njit(cache=True, nogil=True)
+def _refine_steps(
+    det,
+    cat,
+    vectors,
+    rg,
+    bg,
+    sigma,
+    near,
+    cat_vec,
+    cat_rg,
+    cat_bg,
+    noise_rg,
+    noise_bg,
+    refine_sigmas,
+    residual_sigmas,
+    refine_passes,
+    colour_gate,
+    drop_ambiguous,
+):  # pragma: no cover - compiled
+    """Steps 2, 2a, 2b and 2c of :func:`verify` on a hypothesis past step 1: (matched detections,
+    catalog stars, the catalog stars seen before 2b, False when 2c left fewer than two stars)."""
+    n = len(vectors)
+    colour = noise_rg > 0 and noise_bg > 0
+    near_vec = cat_vec[near]
+    _, a, _, res, _, _, p0 = _solve(vectors[det], cat_vec[cat], sigma[det])
+    for _ in range(refine_passes):  # 2. refinement against the catalog stars near the boresight
+        free = _free(n, det)
+        if len(free) == 0:
+            break
+        pred = _rotated(near_vec, a)
+        tol = refine_sigmas * _scatter(vectors[free], sigma[free], p0)
+        add_det = np.empty(len(free), np.int64)
+        add_cat = np.empty(len(free), np.int64)
+        m = 0
+        for i in range(len(free)):
+            b = vectors[free[i]]
+            nearest, best_dot = 0, -np.inf
+            for k in range(len(near)):
+                dot = b[0] * pred[k, 0] + b[1] * pred[k, 1] + b[2] * pred[k, 2]
+                if dot > best_dot:
+                    nearest, best_dot = k, dot
+            d = b - pred[nearest]
+            ang = 2.0 * np.arcsin(min(max(np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) / 2.0, 0.0), 1.0))
+            idx = near[nearest]
+            if not (ang < tol[i]) or np.any(cat == idx):
+                continue
+            if colour and not _colour_ok(
+                rg[free[i]], bg[free[i]], cat_rg[idx], cat_bg[idx], noise_rg, noise_bg, colour_gate
+            ):
+                continue
+            add_det[m], add_cat[m] = free[i], idx
+            m += 1
+        if m == 0:
+            break
+        order = np.argsort(add_cat[:m], kind="mergesort")  # one detection per catalog star, the first
+        keep = np.ones(m, np.bool_)
+        for j in range(1, m):
+            keep[j] = add_cat[order[j]] != add_cat[order[j - 1]]
+        det = np.concatenate((det, add_det[order[keep]]))
+        cat = np.concatenate((cat, add_cat[order[keep]]))
+        _, a, _, res, _, _, p0 = _solve(vectors[det], cat_vec[cat], sigma[det])
+    # 2a. one detection per catalog star, the closest
+    free = _free(n, det)
+    if len(free):
+        pred = _rotated(cat_vec[cat], a)
+        tol = refine_sigmas * _scatter(vectors[free], sigma[free], p0)
+        best = np.full(len(cat), -1)
+        best_sep = np.full(len(cat), np.inf)
+        for i in range(len(free)):
+            b = vectors[free[i]]
+            for k in range(len(cat)):
+                dot = b[0] * pred[k, 0] + b[1] * pred[k, 1] + b[2] * pred[k, 2]
+                sep = 2.0 * np.arcsin(min(max(np.sqrt(max(2.0 - 2.0 * dot, 0.0)) / 2.0, 0.0), 1.0))
+                if not (sep < min(tol[i], res[k])) or not sep < best_sep[k]:
+                    continue
+                if colour and not _colour_ok(
+                    rg[free[i]], bg[free[i]], cat_rg[cat[k]], cat_bg[cat[k]], noise_rg, noise_bg, colour_gate
+                ):
+                    continue
+                best[k], best_sep[k] = i, sep
+        if np.any(best >= 0):
+            det = det.copy()
+            for k in range(len(cat)):
+                if best[k] >= 0:
+                    det[k] = free[best[k]]
+            keep = np.ones(len(det), np.bool_)
+            taken = np.zeros(n, np.bool_)
+            for k in range(len(det)):
+                keep[k] = not taken[det[k]]
+                taken[det[k]] = True
+            det, cat = det[keep], cat[keep]
+            _, a, _, res, _, _, p0 = _solve(vectors[det], cat_vec[cat], sigma[det])
+    seen = cat
+    # 2b. identities that cannot be told apart: another catalog star inside the gate
+    if drop_ambiguous and len(det) > 2:
+        pred = _rotated(near_vec, a)
+        gate = 2.0 * np.sin(refine_sigmas * _scatter(vectors[det], sigma[det], p0) / 2.0)
+        clear = np.ones(len(det), np.bool_)
+        for i in range(len(det)):
+            b = vectors[det[i]]
+            closest = np.inf
+            for k in range(len(near)):
+                if near[k] != cat[i]:
+                    dot = b[0] * pred[k, 0] + b[1] * pred[k, 1] + b[2] * pred[k, 2]
+                    closest = min(closest, np.sqrt(max(2.0 - 2.0 * dot, 0.0)))
+            clear[i] = closest >= gate[i]
+        if not np.all(clear) and np.sum(clear) >= 2:
+            det, cat = det[clear], cat[clear]
+            _, a, _, res, _, _, p0 = _solve(vectors[det], cat_vec[cat], sigma[det])
+    # 2c. final residual test on the measurement noise alone
+    for _ in range(refine_passes + 1):
+        bad = res > residual_sigmas * sigma[det]
+        if not np.any(bad):
+            break
+        det, cat = det[~bad], cat[~bad]
+        if len(det) < 2:
+            return det, cat, seen, False
+        _, a, _, res, _, _, p0 = _solve(vectors[det], cat_vec[cat], sigma[det])
+    return det, cat, seen, True

@@ -215,9 +215,7 @@ class CameraModel:
         y = np.atleast_1d(np.asarray(y, dtype=float)).ravel()
         if x.shape != y.shape:
             raise ValueError(f"x and y must have the same length, got {x.shape} and {y.shape}")
-        u, w = self.undistort((x - self.cx) / self.f, (y - self.cy) / self.f)
-        v = np.stack([u, w, np.ones_like(u)], axis=-1)
-        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+        return _to_vectors(x, y, self.f, self.cx, self.cy, self.k1, self.k2, self.k3, self.p1, self.p2)
 
     def vector_to_pixel(self, v):
         """Pixel coordinates ``(x, y)`` (arrays of length N) of sensor-frame directions
@@ -226,13 +224,7 @@ class CameraModel:
         v = np.atleast_2d(np.asarray(v, dtype=float))
         if v.shape[-1] != 3:
             raise ValueError(f"vectors must have shape (N, 3), got {v.shape}")
-        vz = v[:, 2]
-        front = vz > 0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.where(front, v[:, 0] / vz, np.nan)
-            w = np.where(front, v[:, 1] / vz, np.nan)
-        ud, wd = self.distort(u, w)
-        return self.cx + self.f * ud, self.cy + self.f * wd
+        return _to_pixels(v, self.f, self.cx, self.cy, self.k1, self.k2, self.k3, self.p1, self.p2)
 
 
 @njit(cache=True, nogil=True)
@@ -281,3 +273,35 @@ def _undistort(ud, wd, k1, k2, k3, p1, p2):  # pragma: no cover - compiled
         u_out[i] = u if ok else np.nan
         w_out[i] = w if ok else np.nan
     return u_out, w_out
+
+
+# --- the projections, compiled: the identification projects a frame's stars and its catalog
+# stars a dozen times a solve (issue 12); the same arithmetic as distort / undistort
+
+
+@njit(cache=True, nogil=True)
+def _to_pixels(v, f, cx, cy, k1, k2, k3, p1, p2):  # pragma: no cover - compiled
+    """:meth:`CameraModel.vector_to_pixel`'s numbers."""
+    n = v.shape[0]
+    x, y = np.empty(n), np.empty(n)
+    for i in range(n):
+        vz = v[i, 2]
+        if vz > 0:
+            ud, wd, _radial, _j11, _j12, _j22 = distort_point(v[i, 0] / vz, v[i, 1] / vz, k1, k2, k3, p1, p2)
+            x[i], y[i] = cx + f * ud, cy + f * wd
+        else:
+            x[i], y[i] = np.nan, np.nan
+    return x, y
+
+
+@njit(cache=True, nogil=True)
+def _to_vectors(x, y, f, cx, cy, k1, k2, k3, p1, p2):  # pragma: no cover - compiled
+    """:meth:`CameraModel.pixel_to_vector`'s numbers."""
+    u, w = (x - cx) / f, (y - cy) / f
+    if k1 != 0.0 or k2 != 0.0 or k3 != 0.0 or p1 != 0.0 or p2 != 0.0:
+        u, w = _undistort(u, w, k1, k2, k3, p1, p2)
+    out = np.empty((len(u), 3))
+    for i in range(len(u)):
+        norm = np.sqrt(u[i] * u[i] + w[i] * w[i] + 1.0)
+        out[i, 0], out[i, 1], out[i, 2] = u[i] / norm, w[i] / norm, 1.0 / norm
+    return out

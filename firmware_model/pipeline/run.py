@@ -12,6 +12,7 @@ sections (quaternion, return bits, good rows, centroid and matching telemetry fo
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field, replace
 
@@ -857,10 +858,16 @@ def _solve_params(stars: StarList, camera: CameraModel, catalog: OnboardCatalog,
     return replace(
         params.solve,
         fov=params.solve.fov or FieldOfView.from_camera(camera),
-        sigma_rg=float(np.nanmax([params.solve.sigma_rg, catalog.meta.get("sigma_rg", np.nan)])),
-        sigma_bg=float(np.nanmax([params.solve.sigma_bg, catalog.meta.get("sigma_bg", np.nan)])),
+        sigma_rg=_larger(params.solve.sigma_rg, catalog.meta.get("sigma_rg")),
+        sigma_bg=_larger(params.solve.sigma_bg, catalog.meta.get("sigma_bg")),
         verify=replace(params.solve.verify, frame_detections=len(stars)),
     )
+
+
+def _larger(value: float, design: float | None) -> float:
+    """The larger of a configured noise and a catalog's design value (None or NaN: not set)."""
+    known = [float(v) for v in (value, design) if v is not None and not math.isnan(v)]
+    return max(known) if known else float("nan")
 
 
 def _detections(used: np.ndarray, stars: StarList, camera: CameraModel, params: PipelineParams) -> Detections:

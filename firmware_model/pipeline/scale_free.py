@@ -26,6 +26,7 @@ from dataclasses import dataclass, field, replace
 from itertools import combinations, permutations
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between, chord_of_angle
@@ -318,10 +319,8 @@ def refine(
             inside = np.isfinite(px) & cam.in_frame(px, py)
             if inside.sum() < min_stars:
                 return None
-            cx, cy, ci = px[inside], py[inside], near[inside]
-            d = np.hypot(x[:, None] - cx[None, :], y[:, None] - cy[None, :])
-            j = np.argmin(d, axis=1)
-            nearest = d[np.arange(len(x)), j]
+            ci = near[inside]
+            j, nearest = _nearest(x, y, px[inside], py[inside])
             moved = False
         rows = np.flatnonzero(nearest < radius)
         rows = rows[np.unique(j[rows], return_index=True)[1]]  # brightest detection per star
@@ -336,3 +335,18 @@ def refine(
         cam, a, moved = res.camera, res.attitudes[0], True
     assert res is not None, "radii_px holds no radius"
     return cam, det, cat, res
+
+
+@njit(cache=True, nogil=True)
+def _nearest(x, y, px, py):  # pragma: no cover - compiled
+    """For each detection ``(x, y)`` (px), the nearest predicted star of ``(px, py)`` (the first of
+    equals) and its distance (px; NaN for a detection without a position)."""
+    j, d = np.zeros(len(x), np.int64), np.full(len(x), np.nan)
+    for i in range(len(x)):
+        if not (np.isfinite(x[i]) and np.isfinite(y[i])):
+            continue
+        for k in range(len(px)):
+            dk = np.hypot(x[i] - px[k], y[i] - py[k])
+            if not dk >= d[i]:
+                j[i], d[i] = k, dk
+    return j, d
