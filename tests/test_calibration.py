@@ -195,10 +195,11 @@ def test_pipeline_warm_up_compiles_every_solve_kernel():
     import sys
 
     code = (
-        "from firmware_model.pipeline import run, camera, frame_fit\n"
-        "from firmware_model.ident import attitude\n"
+        "from firmware_model.pipeline import run, camera, frame_fit, scale_free\n"
+        "from firmware_model.ident import attitude, verify\n"
         "run.warm_up()\n"
-        "kernels = (camera._undistort, attitude._solve, frame_fit._levenberg_marquardt)\n"
+        "kernels = (camera._to_vectors, camera._to_pixels, attitude._solve, attitude._svd_attitude,\n"
+        "    frame_fit._levenberg_marquardt, verify._residual_step, verify._refine_steps, scale_free._nearest)\n"
         "print(all(k.signatures for k in kernels))\n"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)

@@ -53,11 +53,8 @@ def davenport_q(b: np.ndarray, r: np.ndarray, w: np.ndarray | None = None) -> np
 
 def svd_attitude(b: np.ndarray, r: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
     """Attitude matrix by Markley's SVD method: ``A = U diag(1, 1, det U det V) V^T``, ``B = U S V^T``."""
-    b = np.asarray(b, float)
-    w = np.ones(len(b)) if w is None else np.asarray(w, float)
-    u, _, vt = np.linalg.svd(attitude_profile(b, r, w))
-    d = np.linalg.det(u) * np.linalg.det(vt)
-    return u @ np.diag([1.0, 1.0, d]) @ vt
+    b = _rows(b)
+    return _svd_attitude(b, _rows(r), np.ones(len(b)) if w is None else np.asarray(w, float).ravel())
 
 
 def attitude_covariance(b: np.ndarray, sigma: np.ndarray) -> np.ndarray:
@@ -112,6 +109,13 @@ def _davenport(b, r, w):  # pragma: no cover - compiled
     _, vecs = np.linalg.eigh(k)
     q = vecs[:, 3] / np.sqrt(np.sum(vecs[:, 3] ** 2))
     return -q if q[0] < 0 else q
+
+
+@njit(cache=True, nogil=True)
+def _svd_attitude(b, r, w):  # pragma: no cover - compiled
+    u, _, vt = np.linalg.svd(_profile(b, r, w))
+    u[:, 2] *= np.linalg.det(u) * np.linalg.det(vt)
+    return u @ vt
 
 
 @njit(cache=True, nogil=True)

@@ -227,7 +227,8 @@ def verify(
         sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
         return VerifiedMatch(det, cat, sol, float("nan"), 0, n_consensus), ""
     # 1. residual test
-    det, cat, boresight = _residual_step(det, cat, vectors, sigma, catalog.vec, float(params.residual_sigmas))
+    keep, boresight = _residual_step(det, cat, vectors, sigma, catalog.vec[cat], float(params.residual_sigmas))
+    det, cat = det[keep], cat[keep]
     if len(det) < 2:
         return None, "residual test left fewer than two stars"
     # 2. refinement with all detections, against the catalog stars near the boresight; 2a-2c
@@ -235,17 +236,21 @@ def verify(
     near = np.asarray(tree.query_ball_point(boresight, chord_of_angle(min(fov.radius, np.pi))), np.int64)
     if len(near) == 0:
         return None, "no catalog star in the field of view"
+    near_vec = catalog.vec[near]
     det, cat, seen, kept = _refine_steps(
         det,
         cat,
+        catalog.vec[cat],
+        catalog.rg[cat].astype(float),
+        catalog.bg[cat].astype(float),
         vectors,
         np.ascontiguousarray(rg, float),
         np.ascontiguousarray(bg, float),
         sigma,
         near,
-        catalog.vec,
-        catalog.rg,
-        catalog.bg,
+        near_vec,
+        catalog.rg[near].astype(float),
+        catalog.bg[near].astype(float),
         float(noise_rg),
         float(noise_bg),
         float(params.refine_sigmas),
@@ -257,7 +262,6 @@ def verify(
     if not kept:
         return None, "final residual test left fewer than two stars"
     sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
-    near_vec = catalog.vec[near]
     chi = float(np.sqrt(np.mean((sol.residuals / sigma[det]) ** 2)))
     if chi > params.max_normalised_rms:
         return None, f"residuals {chi:.1f} sigma RMS: inconsistent with the measurement noise"
@@ -295,6 +299,18 @@ def verify(
         chance=chance,
         n_pattern=n_pattern,
     ), ""
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's disk cache) the verification's kernels, with the array types
+    a solve passes them, on a five-star field."""
+    cam = CameraModel(64, 48, 100.0, 31.5, 23.5)
+    v = cam.pixel_to_vector(np.array([5.0, 60.0, 10.0, 50.0, 30.0]), np.array([4.0, 6.0, 40.0, 44.0, 20.0]))
+    colour = np.zeros(5)
+    catalog = OnboardCatalog.build(np.arange(5), v, np.arange(5.0), colour, colour, phi_min=0.0, phi_max=1.0)
+    three = np.arange(3)
+    field = FieldOfView.from_camera(cam)
+    verify(three, three, v, colour, colour, np.full(5, 1e-3), catalog, field, 0.1, 0.1, VerifyParams())
 
 
 # --- compiled steps 1-2c (numba, cached on disk): two calls instead of ~60 small array operations
@@ -347,32 +363,32 @@ def _free(n, det):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _residual_step(det, cat, vectors, sigma, cat_vec, residual_sigmas):  # pragma: no cover - compiled
-    """Step 1 of :func:`verify`: (matched detections, catalog stars, the boresight in ICRS), fewer
-    than two stars when the test leaves fewer."""
-    _, a, _, res, _, _, p0 = _solve(vectors[det], cat_vec[cat], sigma[det])
-    scatter = _scatter(vectors[det], sigma[det], p0)
-    bad = res > residual_sigmas * np.maximum(scatter, sigma[det])
-    if np.any(bad):
-        det, cat = det[~bad], cat[~bad]
-        if len(det) < 2:
-            return det, cat, a[2].copy()
-        _, a, _, _, _, _, _ = _solve(vectors[det], cat_vec[cat], sigma[det])
-    return det, cat, a[2].copy()
+def _residual_step(det, cat, vectors, sigma, cvec, residual_sigmas):  # pragma: no cover - compiled
+    """Step 1 of :func:`verify` on detections ``det`` matched to catalog stars ``cat`` (directions
+    ``cvec``): the stars kept (a mask, fewer than two when the test leaves fewer) and the boresight
+    in ICRS."""
+    _, a, _, res, _, _, p0 = _solve(vectors[det], cvec, sigma[det])
+    keep = res <= residual_sigmas * np.maximum(_scatter(vectors[det], sigma[det], p0), sigma[det])
+    if not np.all(keep) and np.sum(keep) >= 2:
+        _, a, _, _, _, _, _ = _solve(vectors[det[keep]], cvec[keep], sigma[det[keep]])
+    return keep, a[2].copy()
 
 
 @njit(cache=True, nogil=True)
 def _refine_steps(
     det,
     cat,
+    cvec,
+    crg,
+    cbg,
     vectors,
     rg,
     bg,
     sigma,
     near,
-    cat_vec,
-    cat_rg,
-    cat_bg,
+    near_vec,
+    near_rg,
+    near_bg,
     noise_rg,
     noise_bg,
     refine_sigmas,
@@ -381,12 +397,13 @@ def _refine_steps(
     colour_gate,
     drop_ambiguous,
 ):  # pragma: no cover - compiled
-    """Steps 2, 2a, 2b and 2c of :func:`verify` on a hypothesis past step 1: (matched detections,
-    catalog stars, the catalog stars seen before 2b, False when 2c left fewer than two stars)."""
+    """Steps 2, 2a, 2b and 2c of :func:`verify` on a hypothesis past step 1 (detections ``det`` on
+    catalog stars ``cat``, their directions and colours ``cvec, crg, cbg``; the catalog stars
+    ``near`` the boresight, theirs ``near_vec, near_rg, near_bg``): (matched detections, catalog
+    stars, the catalog stars seen before 2b, False when 2c left fewer than two stars)."""
     n = len(vectors)
     colour = noise_rg > 0 and noise_bg > 0
-    near_vec = cat_vec[near]
-    _, a, _, res, _, _, p0 = _solve(vectors[det], cat_vec[cat], sigma[det])
+    _, a, _, res, _, _, p0 = _solve(vectors[det], cvec, sigma[det])
     for _ in range(refine_passes):  # 2. refinement against the catalog stars near the boresight
         free = _free(n, det)
         if len(free) == 0:
@@ -394,7 +411,7 @@ def _refine_steps(
         pred = _rotated(near_vec, a)
         tol = refine_sigmas * _scatter(vectors[free], sigma[free], p0)
         add_det = np.empty(len(free), np.int64)
-        add_cat = np.empty(len(free), np.int64)
+        add_k = np.empty(len(free), np.int64)
         m = 0
         for i in range(len(free)):
             b = vectors[free[i]]
@@ -405,28 +422,32 @@ def _refine_steps(
                     nearest, best_dot = k, dot
             d = b - pred[nearest]
             ang = 2.0 * np.arcsin(min(max(np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) / 2.0, 0.0), 1.0))
-            idx = near[nearest]
-            if not (ang < tol[i]) or np.any(cat == idx):
+            if not (ang < tol[i]) or np.any(cat == near[nearest]):
                 continue
             if colour and not _colour_ok(
-                rg[free[i]], bg[free[i]], cat_rg[idx], cat_bg[idx], noise_rg, noise_bg, colour_gate
+                rg[free[i]], bg[free[i]], near_rg[nearest], near_bg[nearest], noise_rg, noise_bg, colour_gate
             ):
                 continue
-            add_det[m], add_cat[m] = free[i], idx
+            add_det[m], add_k[m] = free[i], nearest
             m += 1
         if m == 0:
             break
-        order = np.argsort(add_cat[:m], kind="mergesort")  # one detection per catalog star, the first
-        keep = np.ones(m, np.bool_)
+        # one detection per catalog star, the first, in catalog order
+        order = np.argsort(near[add_k[:m]], kind="mergesort")
+        first = np.ones(m, np.bool_)
         for j in range(1, m):
-            keep[j] = add_cat[order[j]] != add_cat[order[j - 1]]
-        det = np.concatenate((det, add_det[order[keep]]))
-        cat = np.concatenate((cat, add_cat[order[keep]]))
-        _, a, _, res, _, _, p0 = _solve(vectors[det], cat_vec[cat], sigma[det])
+            first[j] = near[add_k[order[j]]] != near[add_k[order[j - 1]]]
+        k_new = add_k[order[first]]
+        det = np.concatenate((det, add_det[order[first]]))
+        cat = np.concatenate((cat, near[k_new]))
+        cvec = np.concatenate((cvec, near_vec[k_new]))
+        crg = np.concatenate((crg, near_rg[k_new]))
+        cbg = np.concatenate((cbg, near_bg[k_new]))
+        _, a, _, res, _, _, p0 = _solve(vectors[det], cvec, sigma[det])
     # 2a. one detection per catalog star, the closest
     free = _free(n, det)
     if len(free):
-        pred = _rotated(cat_vec[cat], a)
+        pred = _rotated(cvec, a)
         tol = refine_sigmas * _scatter(vectors[free], sigma[free], p0)
         best = np.full(len(cat), -1)
         best_sep = np.full(len(cat), np.inf)
@@ -437,9 +458,7 @@ def _refine_steps(
                 sep = 2.0 * np.arcsin(min(max(np.sqrt(max(2.0 - 2.0 * dot, 0.0)) / 2.0, 0.0), 1.0))
                 if not (sep < min(tol[i], res[k])) or not sep < best_sep[k]:
                     continue
-                if colour and not _colour_ok(
-                    rg[free[i]], bg[free[i]], cat_rg[cat[k]], cat_bg[cat[k]], noise_rg, noise_bg, colour_gate
-                ):
+                if colour and not _colour_ok(rg[free[i]], bg[free[i]], crg[k], cbg[k], noise_rg, noise_bg, colour_gate):
                     continue
                 best[k], best_sep[k] = i, sep
         if np.any(best >= 0):
@@ -452,8 +471,8 @@ def _refine_steps(
             for k in range(len(det)):
                 keep[k] = not taken[det[k]]
                 taken[det[k]] = True
-            det, cat = det[keep], cat[keep]
-            _, a, _, res, _, _, p0 = _solve(vectors[det], cat_vec[cat], sigma[det])
+            det, cat, cvec, crg, cbg = det[keep], cat[keep], cvec[keep], crg[keep], cbg[keep]
+            _, a, _, res, _, _, p0 = _solve(vectors[det], cvec, sigma[det])
     seen = cat
     # 2b. identities that cannot be told apart: another catalog star inside the gate
     if drop_ambiguous and len(det) > 2:
@@ -469,15 +488,15 @@ def _refine_steps(
                     closest = min(closest, np.sqrt(max(2.0 - 2.0 * dot, 0.0)))
             clear[i] = closest >= gate[i]
         if not np.all(clear) and np.sum(clear) >= 2:
-            det, cat = det[clear], cat[clear]
-            _, a, _, res, _, _, p0 = _solve(vectors[det], cat_vec[cat], sigma[det])
+            det, cat, cvec = det[clear], cat[clear], cvec[clear]
+            _, a, _, res, _, _, p0 = _solve(vectors[det], cvec, sigma[det])
     # 2c. final residual test on the measurement noise alone
     for _ in range(refine_passes + 1):
-        bad = res > residual_sigmas * sigma[det]
-        if not np.any(bad):
+        keep = res <= residual_sigmas * sigma[det]
+        if np.all(keep):
             break
-        det, cat = det[~bad], cat[~bad]
+        det, cat, cvec = det[keep], cat[keep], cvec[keep]
         if len(det) < 2:
             return det, cat, seen, False
-        _, a, _, res, _, _, p0 = _solve(vectors[det], cat_vec[cat], sigma[det])
+        _, a, _, res, _, _, p0 = _solve(vectors[det], cvec, sigma[det])
     return det, cat, seen, True

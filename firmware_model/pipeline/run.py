@@ -38,6 +38,7 @@ from firmware_model.ident.strategy import (
     verify_pattern,
 )
 from firmware_model.ident.verify import FieldOfView
+from firmware_model.ident.verify import warm_up as verify_warm_up
 from firmware_model.pipeline import scale_free
 from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.camera_fit import StarObservations
@@ -236,16 +237,19 @@ def run_pipeline(
 
 def warm_up() -> float:
     """Compile (or, after the first run of an install, load from numba's disk cache) every kernel a
-    solve runs: the extraction's (:func:`extract.warm_up`), the distortion's inverse, the attitude
-    solve and the one-frame optics fit, so that the first frame's solve (and its optics search's
+    solve runs: the extraction's (:func:`extract.warm_up`), the camera's projections, the attitude
+    solve, the one-frame optics fit, the verification's and the refinement's, so that the first frame's solve (and its optics search's
     time budget) does not pay for them. Returns the seconds it took; meant for start-up."""
     t0 = time.perf_counter()
     extract_warm_up()
     cam = CameraModel(64, 48, 100.0, 31.5, 23.5, k1=0.01)
     x, y = np.array([5.0, 60.0, 10.0, 50.0, 30.0, 20.0]), np.array([4.0, 6.0, 40.0, 44.0, 20.0, 30.0])
     v = cam.pixel_to_vector(x, y)
+    cam.vector_to_pixel(v)
     solve_attitude(v, v, 1e-4)
     fit_frame(StarObservations(x + 0.1, y - 0.1, v), cam, k1_min_stars=4)
+    verify_warm_up()
+    scale_free.nearest_warm_up()
     return time.perf_counter() - t0
 
 

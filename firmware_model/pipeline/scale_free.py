@@ -350,3 +350,9 @@ def _nearest(x, y, px, py):  # pragma: no cover - compiled
             if not dk >= d[i]:
                 j[i], d[i] = k, dk
     return j, d
+
+
+def nearest_warm_up() -> None:
+    """Compile (or load from numba's disk cache) :func:`refine`'s kernel."""
+    xy = np.array([1.0, 2.0])
+    _nearest(xy, xy, xy, xy)
