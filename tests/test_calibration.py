@@ -199,7 +199,7 @@ def test_pipeline_warm_up_compiles_every_solve_kernel():
         "from firmware_model.ident import attitude, verify\n"
         "run.warm_up()\n"
         "kernels = (camera._to_vectors, camera._to_pixels, attitude._solve, attitude._svd_attitude,\n"
-        "    frame_fit._levenberg_marquardt, verify._residual_step, verify._refine_steps, scale_free._nearest)\n"
+        "    frame_fit._fit, verify._residual_step, verify._refine_steps, scale_free._nearest)\n"
         "print(all(k.signatures for k in kernels))\n"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)

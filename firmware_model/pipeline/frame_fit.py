@@ -17,7 +17,7 @@ from dataclasses import replace
 import numpy as np
 from numba import njit
 
-from firmware_model.ident.attitude import svd_attitude
+from firmware_model.ident.attitude import _svd_attitude
 from firmware_model.pipeline.camera import CameraModel, distort_point
 from firmware_model.pipeline.camera_fit import CalibrationResult, StarObservations
 
@@ -35,40 +35,56 @@ def fit_frame(obs: StarObservations, camera: CameraModel, k1_min_stars: int) -> 
     if len(obs.x) < 3 or 2 * len(obs.x) <= n_par:
         return None
     c = camera
-    # the start: Wahba's attitude of the pinhole directions (the fit takes the distortion from there)
-    pinhole = np.column_stack([(obs.x - c.cx) / c.f, (obs.y - c.cy) / c.f, np.ones(len(obs.x))])
-    a0 = svd_attitude(pinhole / np.linalg.norm(pinhole, axis=1, keepdims=True), obs.v_icrs)
-    if not np.all(np.isfinite(a0)):
-        return None
     dist = np.array([c.k1, c.k2, c.k3, c.p1, c.p2])
+    v_icrs = np.ascontiguousarray(obs.v_icrs, float)
     try:
-        f, k1, att, r, jac, nit = _levenberg_marquardt(obs.v_icrs @ a0.T, obs.x, obs.y, c.f, c.cx, c.cy, dist, fit_k1)
+        done, f, k1, att, r, sig, added, rms, nit = _fit(
+            np.asarray(obs.x, float), np.asarray(obs.y, float), v_icrs, c.f, c.cx, c.cy, dist, fit_k1
+        )
     except np.linalg.LinAlgError:  # a parameter no star constrains
         return None
-    if not (np.isfinite(f) and np.all(np.isfinite(r)) and np.all(np.isfinite(jac))):
+    if not done:
         return None
-    fitted = replace(camera, f=float(f), k1=float(k1))
     names = ("f", "k1") if fit_k1 else ("f",)
-    s2 = float(r @ r) / max(len(r) - n_par, 1)
-    try:
-        info = jac.T @ jac
-        cov = np.linalg.inv(info) * s2
-        sig = np.sqrt(np.maximum(np.diag(cov)[: len(names)], 0.0))
-        rot = slice(len(names), n_par)
-        added = cov[rot, rot] - np.linalg.inv(info[rot, rot]) * s2
-    except np.linalg.LinAlgError:
-        return None
     return CalibrationResult(
-        camera=fitted,
-        attitudes=[att @ a0],
-        residual_rms_px=float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2)),
+        camera=replace(camera, f=float(f), k1=float(k1)),
+        attitudes=[att],
+        residual_rms_px=float(rms),
         residuals=[-r.reshape(-1, 2)],
-        sigmas=dict(zip(names, (float(s) for s in sig))),
+        sigmas=dict(zip(names, (float(x) for x in sig))),
         n_observations=len(obs.x),
         success=nit < MAX_ITER,
         message=f"converged in {nit} iterations" if nit < MAX_ITER else "iteration limit",
         camera_attitude_covariance=[added],
     )
+
+
+@njit(cache=True, nogil=True)
+def _fit(x, y, v_icrs, f0, cx, cy, dist, fit_k1):  # pragma: no cover - compiled
+    """:func:`fit_frame`'s numbers: (fitted, f, k1, attitude, residuals predicted - measured,
+    1-sigma of f [and k1], the attitude covariance the camera's uncertainty adds, RMS residual
+    (px), iterations). The start: Wahba's attitude of the pinhole directions (the fit takes the
+    distortion from there)."""
+    n = len(x)
+    nk = 2 if fit_k1 else 1
+    pinhole = np.empty((n, 3))
+    for i in range(n):
+        u, w = (x[i] - cx) / f0, (y[i] - cy) / f0
+        norm = np.sqrt(u * u + w * w + 1.0)
+        pinhole[i, 0], pinhole[i, 1], pinhole[i, 2] = u / norm, w / norm, 1.0 / norm
+    a0 = _svd_attitude(pinhole, v_icrs, np.ones(n))
+    none = (False, 0.0, 0.0, a0, np.empty(0), np.empty(0), np.empty((3, 3)), 0.0, 0)
+    if not np.all(np.isfinite(a0)):
+        return none
+    f, k1, att, r, jac, nit = _levenberg_marquardt(v_icrs @ a0.T, x, y, f0, cx, cy, dist, fit_k1)
+    if not (np.isfinite(f) and np.all(np.isfinite(r)) and np.all(np.isfinite(jac))):
+        return none
+    s2 = (r @ r) / max(len(r) - nk - 3, 1)
+    info = jac.T @ jac
+    cov = np.linalg.inv(info) * s2
+    sig = np.sqrt(np.maximum(np.diag(cov)[:nk], 0.0))
+    added = cov[nk:, nk:] - np.linalg.inv(np.ascontiguousarray(info[nk:, nk:])) * s2
+    return True, f, k1, att @ a0, r, sig, added, np.sqrt(np.mean(r * r) * 2.0), nit
 
 
 @njit(cache=True, nogil=True)

@@ -249,7 +249,7 @@ def warm_up() -> float:
     solve_attitude(v, v, 1e-4)
     fit_frame(StarObservations(x + 0.1, y - 0.1, v), cam, k1_min_stars=4)
     verify_warm_up()
-    scale_free.nearest_warm_up()
+    scale_free.warm_up()
     return time.perf_counter() - t0
 
 
@@ -566,10 +566,10 @@ def _with_fitted_camera_uncertainty(
     if not np.all(np.isfinite(added)):
         return out
     seen = _with_camera(stars, fit.camera)
-    det = _detections(out.used, seen, fit.camera, params)
-    rows = sol.matched_det
-    sigma = np.hypot(np.asarray(det.sigma_px)[rows], sol.noise_extra * fit.camera.f) / fit.camera.f
-    att = solve_attitude(det.vectors[rows], catalog.vec[sol.matched_cat], sigma)
+    rows = out.used[sol.matched_det]
+    sigma = np.hypot(_centroid_sigma_px(rows, stars, params), sol.noise_extra * fit.camera.f) / fit.camera.f
+    assert seen.vectors is not None  # _with_camera sets them
+    att = solve_attitude(seen.vectors[rows], catalog.vec[sol.matched_cat], sigma)
     sol.q_icrs_to_sensor, sol.residuals = att.q, att.residuals
     sol.covariance = np.asarray(sol.covariance) + added
     out.stars, out.camera = seen, fit.camera
@@ -888,29 +888,33 @@ def _detections(used: np.ndarray, stars: StarList, camera: CameraModel, params: 
     bg = np.where(colour_ok, stars.bg[used], np.nan)
     if params.colour_beta is not None:
         rg, bg = apply_colour_correction(rg, bg, params.colour_beta)
-    if params.fixed_sigma_px is not None:
-        sigma_px = np.full(len(used), float(params.fixed_sigma_px))
-    else:
-        var = 0.5 * (stars.cov_xy[used, 0, 0] + stars.cov_xy[used, 1, 1])
-        var = np.where(np.isfinite(var), var, UNKNOWN_CENTROID_SIGMA_PX**2)
-        floor = np.where(
-            (flags & int(UNTRUSTED)) != 0,
-            max(UNTRUSTED_CENTROID_FLOOR_PX, params.centroid_floor_px),
-            params.centroid_floor_px,
-        )
-        sigma_px = np.sqrt(var + floor**2)
     colour_sigma = np.sqrt(np.where(colour_ok[:, None], stars.cov_colour[used][:, [0, 1], [0, 1]], np.nan))
     assert stars.vectors is not None  # extracted with a camera
     return Detections(
         vectors=stars.vectors[used],
         rg=rg,
         bg=bg,
-        sigma_px=sigma_px,
+        sigma_px=_centroid_sigma_px(used, stars, params),
         focal_px=camera.f,
         flux=stars.flux[used],
         colour_sigma=colour_sigma,
         measured_colour=_has_colour(stars, used),
     )
+
+
+def _centroid_sigma_px(rows: np.ndarray, stars: StarList, params: PipelineParams) -> np.ndarray:
+    """Per-axis centroid noise (px) of ``rows`` of ``stars``: from the fit covariance with a floor,
+    larger for untrusted fits (or ``fixed_sigma_px``)."""
+    if params.fixed_sigma_px is not None:
+        return np.full(len(rows), float(params.fixed_sigma_px))
+    var = 0.5 * (stars.cov_xy[rows, 0, 0] + stars.cov_xy[rows, 1, 1])
+    var = np.where(np.isfinite(var), var, UNKNOWN_CENTROID_SIGMA_PX**2)
+    floor = np.where(
+        (stars.flags[rows] & int(UNTRUSTED)) != 0,
+        max(UNTRUSTED_CENTROID_FLOOR_PX, params.centroid_floor_px),
+        params.centroid_floor_px,
+    )
+    return np.sqrt(var + floor**2)
 
 
 def _has_colour(stars: StarList, used: np.ndarray | None = None) -> bool:

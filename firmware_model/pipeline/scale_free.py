@@ -352,7 +352,10 @@ def _nearest(x, y, px, py):  # pragma: no cover - compiled
     return j, d
 
 
-def nearest_warm_up() -> None:
-    """Compile (or load from numba's disk cache) :func:`refine`'s kernel."""
+def warm_up() -> None:
+    """Compile (or load from numba's disk cache) the kernels of a pattern hypothesis and of
+    :func:`refine`."""
     xy = np.array([1.0, 2.0])
     _nearest(xy, xy, xy, xy)
+    b = np.array([[0.0, 0.0, 1.0], [0.01, 0.0, 1.0], [0.0, 0.02, 1.0], [0.03, 0.01, 1.0]])
+    _assign(b / np.linalg.norm(b, axis=1, keepdims=True), b / np.linalg.norm(b, axis=1, keepdims=True))
