@@ -188,8 +188,9 @@ def test_the_compiled_frame_fit_agrees_with_calibrate(k1_min_stars):
 
 def test_pipeline_warm_up_compiles_every_solve_kernel():
     """``run.warm_up`` (the device's start-up) leaves no kernel of a solve to compile in the first
-    GO: in a fresh process, after it, the distortion inverse, the attitude solve and the one-frame
-    fit have their signatures (a first solve compiling them took seconds of the optics search's
+    GO: in a fresh process, after it, every compiled kernel a solve calls from Python (the camera's
+    projections, the attitude solve, the one-frame fit, the verification's and the pattern stage's)
+    has its signature (a first solve compiling them took seconds of the optics search's
     1.5 s budget and of an attitude feed's staleness window)."""
     import subprocess
     import sys
@@ -198,8 +199,8 @@ def test_pipeline_warm_up_compiles_every_solve_kernel():
         "from firmware_model.pipeline import run, camera, frame_fit, scale_free\n"
         "from firmware_model.ident import attitude, verify\n"
         "run.warm_up()\n"
-        "kernels = (camera._to_vectors, camera._to_pixels, attitude._solve, attitude._svd_attitude,\n"
-        "    frame_fit._fit, verify._residual_step, verify._refine_steps, scale_free._nearest)\n"
+        "kernels = (camera._to_vectors, camera._to_pixels, attitude._solve, frame_fit._fit,\n"
+        "    verify._residual_step, verify._refine_steps, scale_free._assign_kernel, scale_free._refine)\n"
         "print(all(k.signatures for k in kernels))\n"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)

@@ -38,11 +38,16 @@ def fit_frame(obs: StarObservations, camera: CameraModel, k1_min_stars: int) -> 
     dist = np.array([c.k1, c.k2, c.k3, c.p1, c.p2])
     v_icrs = np.ascontiguousarray(obs.v_icrs, float)
     try:
-        done, f, k1, att, r, sig, added, rms, nit = _fit(
-            np.asarray(obs.x, float), np.asarray(obs.y, float), v_icrs, c.f, c.cx, c.cy, dist, fit_k1
-        )
+        fitted = _fit(np.asarray(obs.x, float), np.asarray(obs.y, float), v_icrs, c.f, c.cx, c.cy, dist, fit_k1)
     except np.linalg.LinAlgError:  # a parameter no star constrains
         return None
+    return fit_result(camera, fitted, fit_k1)
+
+
+def fit_result(camera: CameraModel, fitted: tuple, fit_k1: bool) -> CalibrationResult | None:
+    """The :class:`CalibrationResult` of a compiled fit's numbers (:func:`_fit`) from ``camera``;
+    None when it did not fit."""
+    done, f, k1, att, r, sig, added, rms, nit = fitted
     if not done:
         return None
     names = ("f", "k1") if fit_k1 else ("f",)
@@ -52,7 +57,7 @@ def fit_frame(obs: StarObservations, camera: CameraModel, k1_min_stars: int) -> 
         residual_rms_px=float(rms),
         residuals=[-r.reshape(-1, 2)],
         sigmas=dict(zip(names, (float(x) for x in sig))),
-        n_observations=len(obs.x),
+        n_observations=len(r) // 2,
         success=nit < MAX_ITER,
         message=f"converged in {nit} iterations" if nit < MAX_ITER else "iteration limit",
         camera_attitude_covariance=[added],

@@ -22,7 +22,7 @@ Units: radians for angles, pixels for image positions (docs/CONVENTIONS.md).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from itertools import combinations, permutations
 
 import numpy as np
@@ -30,10 +30,9 @@ from numba import njit
 from scipy.spatial import cKDTree
 
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between, chord_of_angle
-from firmware_model.ident.attitude import svd_attitude
-from firmware_model.pipeline.camera import CameraModel
-from firmware_model.pipeline.camera_fit import StarObservations
-from firmware_model.pipeline.frame_fit import fit_frame
+from firmware_model.ident.attitude import _svd_attitude
+from firmware_model.pipeline.camera import CameraModel, _to_pixels
+from firmware_model.pipeline.frame_fit import _fit, fit_result
 
 #: Catalog patterns of two kinds, both scale free: (1) for each region of the sky the size of the
 #: field (circles of the minor half-field on a Fibonacci lattice spaced REGION_SPACING of that
@@ -49,7 +48,8 @@ PATTERN_STARS_PER_CAP = 12
 #: Pattern radii over the minor half-field (kind 2; the frame's widest pattern: twice the largest).
 PATTERN_RADIUS_FACTORS = (1.5, 2.0)
 _PAIRS = list(combinations(range(4), 2))
-_PAIR_I, _PAIR_J = np.array(_PAIRS).T
+_PAIRS_IJ = np.array(_PAIRS)
+_PAIR_I, _PAIR_J = _PAIRS_IJ.T
 _PERMS = np.array(list(permutations(range(4))))
 #: For each assignment ``p`` of frame star ``k`` to catalog star ``p[k]``, the catalog edge (index
 #: into ``_PAIRS``) under each frame edge: an assignment's edges are a permutation of the six.
@@ -283,14 +283,42 @@ def _assign(b: np.ndarray, r: np.ndarray):
     """Attitude from the best of the 24 assignments of frame directions ``b`` (through the
     hypothesised focal length) to catalog directions ``r`` (edges compared after a common scale),
     or None when even the best leaves an edge mismatch above 2 % of the largest edge."""
-    eb = angle_between(b[_PAIR_I], b[_PAIR_J])
-    er = angle_between(r[_PAIR_I], r[_PAIR_J])[_PERM_EDGES]  # (24, 6): each assignment's edges
-    scale = eb.sum() / er.sum(axis=1)
-    mismatch = np.sqrt(np.mean((er * scale[:, None] - eb) ** 2, axis=1))
-    best = int(np.argmin(mismatch))
-    if mismatch[best] > 0.02 * eb.max():
-        return None
-    return svd_attitude(b, r[_PERMS[best]])
+    found, a = _assign_kernel(
+        np.ascontiguousarray(b, float), np.ascontiguousarray(r, float), _PAIRS_IJ, _PERM_EDGES, _PERMS
+    )
+    return a if found else None
+
+
+@njit(cache=True, nogil=True)
+def _edges(v, pairs):  # pragma: no cover - compiled
+    """The six angles (rad) between four unit vectors (``angle_between``'s arithmetic)."""
+    out = np.empty(len(pairs))
+    for e in range(len(pairs)):
+        i, j = pairs[e, 0], pairs[e, 1]
+        d = np.sqrt((v[i, 0] - v[j, 0]) ** 2 + (v[i, 1] - v[j, 1]) ** 2 + (v[i, 2] - v[j, 2]) ** 2)
+        out[e] = 2.0 * np.arcsin(min(max(d / 2.0, 0.0), 1.0))
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _assign_kernel(b, r, pairs, perm_edges, perms):  # pragma: no cover - compiled
+    """:func:`_assign`'s numbers: (found, attitude)."""
+    eb, er = _edges(b, pairs), _edges(r, pairs)
+    best, best_mismatch = 0, np.inf
+    for p in range(len(perms)):
+        total = 0.0
+        for e in range(6):
+            total += er[perm_edges[p, e]]
+        scale = eb.sum() / total
+        sq = 0.0
+        for e in range(6):
+            sq += (er[perm_edges[p, e]] * scale - eb[e]) ** 2
+        mismatch = np.sqrt(sq / 6.0)
+        if mismatch < best_mismatch:
+            best, best_mismatch = p, mismatch
+    if not best_mismatch <= 0.02 * eb.max():
+        return False, np.eye(3)
+    return True, _svd_attitude(b, r[perms[best]], np.ones(4))
 
 
 def refine(
@@ -309,32 +337,70 @@ def refine(
     (not again when a radius matches the same stars as the last fit).
     Returns (camera, detection rows, catalog indices, the last fit) or None with fewer than
     ``min_stars``."""
-    cam, a = replace(camera, f=hyp.f), hyp.a
-    near = catalog.stars_within(a[2], camera.fov_half_angle_diagonal * 1.2)
-    det = cat = res = None
+    near = catalog.stars_within(hyp.a[2], camera.fov_half_angle_diagonal * 1.2)
+    c = camera
+    try:
+        found, det, cat, fit_k1, fitted = _refine(
+            np.asarray(x, float),
+            np.asarray(y, float),
+            near,
+            catalog.vec[near],
+            hyp.f,
+            c.cx,
+            c.cy,
+            np.array([c.k1, c.k2, c.k3, c.p1, c.p2]),
+            c.width,
+            c.height,
+            np.ascontiguousarray(hyp.a, float),
+            np.asarray(radii_px, float),
+            min_stars,
+            k1_min_stars,
+        )
+    except np.linalg.LinAlgError:  # a parameter no star constrains
+        return None
+    res = fit_result(camera, fitted, fit_k1) if found else None
+    return None if res is None else (res.camera, det, cat, res)
+
+
+@njit(cache=True, nogil=True)
+def _refine(
+    x, y, near, near_vec, f, cx, cy, dist, width, height, a, radii, min_stars, k1_min_stars
+):  # pragma: no cover - compiled
+    """:func:`refine`'s numbers: (found, detection rows, catalog indices, whether k1 was fitted,
+    the last fit's ``frame_fit._fit`` numbers)."""
+    dist = dist.copy()
+    det, cat = np.empty(0, np.int64), np.empty(0, np.int64)
+    fitted = (False, f, dist[0], a, np.empty(0), np.empty(0), np.empty((3, 3)), 0.0, 0)
+    fit_k1 = False
     moved = True  # the camera or attitude changed since the last prediction
-    for radius in radii_px:
+    for radius in radii:
         if moved:  # predict, and each detection's nearest predicted star and its distance
-            px, py = cam.vector_to_pixel(catalog.vec[near] @ a.T)
-            inside = np.isfinite(px) & cam.in_frame(px, py)
+            px, py = _to_pixels(near_vec @ a.T, f, cx, cy, dist[0], dist[1], dist[2], dist[3], dist[4])
+            inside = np.isfinite(px) & (px >= -0.5) & (px < width - 0.5) & (py >= -0.5) & (py < height - 0.5)
             if inside.sum() < min_stars:
-                return None
-            ci = near[inside]
+                return False, det, cat, fit_k1, fitted
+            ci, vi = near[inside], near_vec[inside]
             j, nearest = _nearest(x, y, px[inside], py[inside])
             moved = False
         rows = np.flatnonzero(nearest < radius)
-        rows = rows[np.unique(j[rows], return_index=True)[1]]  # brightest detection per star
+        order = np.argsort(j[rows], kind="mergesort")  # the brightest detection per star, in star order
+        first = np.ones(len(rows), np.bool_)
+        for k in range(1, len(rows)):
+            first[k] = j[rows[order[k]]] != j[rows[order[k - 1]]]
+        rows = rows[order[first]]
         if len(rows) < min_stars:
-            return None
-        if det is not None and cat is not None and np.array_equal(rows, det) and np.array_equal(ci[j[rows]], cat):
+            return False, det, cat, fit_k1, fitted
+        if fitted[0] and len(rows) == len(det) and np.all(rows == det) and np.all(ci[j[rows]] == cat):
             continue  # the same stars as the last fit: fitting them again gives the same camera
         det, cat = rows, ci[j[rows]]
-        res = fit_frame(StarObservations(x[det], y[det], catalog.vec[cat]), cam, k1_min_stars)
-        if res is None:
-            return None
-        cam, a, moved = res.camera, res.attitudes[0], True
-    assert res is not None, "radii_px holds no radius"
-    return cam, det, cat, res
+        fit_k1 = len(det) >= k1_min_stars
+        if len(det) < 3 or 2 * len(det) <= (2 if fit_k1 else 1) + 3:
+            return False, det, cat, fit_k1, fitted
+        fitted = _fit(x[det], y[det], vi[j[rows]], f, cx, cy, dist, fit_k1)
+        if not fitted[0]:
+            return False, det, cat, fit_k1, fitted
+        f, dist[0], a, moved = fitted[1], fitted[2], fitted[3], True
+    return fitted[0], det, cat, fit_k1, fitted
 
 
 @njit(cache=True, nogil=True)
@@ -355,7 +421,9 @@ def _nearest(x, y, px, py):  # pragma: no cover - compiled
 def warm_up() -> None:
     """Compile (or load from numba's disk cache) the kernels of a pattern hypothesis and of
     :func:`refine`."""
-    xy = np.array([1.0, 2.0])
-    _nearest(xy, xy, xy, xy)
-    b = np.array([[0.0, 0.0, 1.0], [0.01, 0.0, 1.0], [0.0, 0.02, 1.0], [0.03, 0.01, 1.0]])
-    _assign(b / np.linalg.norm(b, axis=1, keepdims=True), b / np.linalg.norm(b, axis=1, keepdims=True))
+    cam = CameraModel(64, 48, 100.0, 31.5, 23.5)
+    x, y = np.array([5.0, 60.0, 10.0, 50.0, 30.0, 20.0]), np.array([4.0, 6.0, 40.0, 44.0, 20.0, 30.0])
+    v = cam.pixel_to_vector(x, y)
+    a = _assign(v[:4], v[:4])
+    near, dist = np.arange(6), np.zeros(5)
+    _refine(x, y, near, v, cam.f, cam.cx, cam.cy, dist, cam.width, cam.height, a, np.array([3.0, 1.0]), 4, 6)
