@@ -197,10 +197,11 @@ def test_pipeline_warm_up_compiles_every_solve_kernel():
 
     code = (
         "from firmware_model.pipeline import run, camera, frame_fit, scale_free\n"
-        "from firmware_model.ident import attitude, verify\n"
+        "from firmware_model.ident import attitude, strategy, verify\n"
         "run.warm_up()\n"
         "kernels = (camera._to_vectors, camera._to_pixels, attitude._solve, frame_fit._fit,\n"
-        "    verify._residual_step, verify._refine_steps, scale_free._assign_kernel, scale_free._refine)\n"
+        "    verify._residual_step, verify._refine_steps, strategy._free_in_gate, scale_free._assign_kernel,\n"
+        "    scale_free._refine)\n"
         "print(all(k.signatures for k in kernels))\n"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)

@@ -56,10 +56,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from numba import njit
 from scipy.special import ndtr, stdtrit
 
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between
-from firmware_model.ident.attitude import attitude_covariance, quat_matrix, solve_attitude
+from firmware_model.ident.attitude import _covariance, quat_matrix, solve_attitude
 from firmware_model.ident.consensus import ConsensusParams, Outcome, confident, match_scene
 from firmware_model.ident.four_star import match_four_star
 from firmware_model.ident.pair_match import PairNoise
@@ -467,18 +468,40 @@ def _probe_cannot_reject(found: Identification, det: Detections, catalog: Onboar
     wide = np.hypot(sigma, base.noise_probe_px) / det.focal_px  # rad
     chi2 = (np.asarray(sol.residuals) * det.focal_px / sigma[rows]) ** 2
     beyond = int(np.count_nonzero(chi2 > 0.8 * _TAIL_CHI2))
-    free = np.ones(len(det), bool)
-    free[rows] = False
-    free = np.flatnonzero(free)
-    if len(free):
+    if len(rows) < len(det):
         a = quat_matrix(sol.q_icrs_to_sensor)
         near = catalog.stars_within(a[2], _fov(base, det.vectors).radius, deep=base.verify.deep)
         if len(near):
-            cos = np.max(det.vectors[free] @ (catalog.vec[near] @ a.T).T, axis=1)
-            cov = attitude_covariance(det.vectors[rows], wide[rows])
-            gate = 1.1 * base.verify.refine_sigmas * np.sqrt(wide[free] ** 2 + np.trace(cov))
-            beyond += int(np.count_nonzero(np.arccos(np.clip(cos, -1.0, 1.0)) < gate))
+            vectors = np.ascontiguousarray(det.vectors, float)
+            beyond += _free_in_gate(vectors, rows, catalog.vec[near], a, wide, 1.1 * base.verify.refine_sigmas)
     return miss_tail(len(rows), beyond, NOISE_TAIL) >= NOISE_TEST_ALPHA
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's disk cache) the noise probe's kernel."""
+    v = np.array([[0.0, 0.0, 1.0], [0.01, 0.0, 1.0], [0.0, 0.02, 1.0], [0.03, 0.01, 1.0]])
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    _free_in_gate(v, np.arange(3), v, np.eye(3), np.full(4, 1e-3), 4.0)
+
+
+@njit(cache=True, nogil=True)
+def _free_in_gate(vectors, rows, near_vec, a, sigma, sigmas):  # pragma: no cover - compiled
+    """Detections not in ``rows`` whose nearest catalog star of ``near_vec`` (through attitude ``a``)
+    lies within ``sigmas`` of ``sqrt(sigma^2 + tr P)`` (``sigma`` per detection, rad; ``P`` the
+    covariance of the attitude from the ``rows`` stars at their ``sigma``)."""
+    trace = np.trace(_covariance(vectors[rows], sigma[rows]))
+    taken = np.zeros(len(vectors), np.bool_)
+    taken[rows] = True
+    pred = near_vec @ a.T
+    count = 0
+    for i in range(len(vectors)):
+        if taken[i]:
+            continue
+        cos = -np.inf
+        for k in range(len(pred)):
+            cos = max(cos, vectors[i, 0] * pred[k, 0] + vectors[i, 1] * pred[k, 1] + vectors[i, 2] * pred[k, 2])
+        count += np.arccos(min(max(cos, -1.0), 1.0)) < sigmas * np.sqrt(sigma[i] ** 2 + trace)
+    return count
 
 
 def keeps_stars(match: VerifiedMatch, rows: np.ndarray, cat: np.ndarray) -> bool:

@@ -237,7 +237,7 @@ def verify(
     if len(near) == 0:
         return None, "no catalog star in the field of view"
     near_vec = catalog.vec[near]
-    det, cat, seen, kept = _refine_steps(
+    det, cat, seen, solved = _refine_steps(
         det,
         cat,
         catalog.vec[cat],
@@ -259,10 +259,11 @@ def verify(
         float(params.colour_gate),
         bool(params.drop_ambiguous),
     )
-    if not kept:
+    if len(det) < 2:
         return None, "final residual test left fewer than two stars"
-    sol = solve_attitude(vectors[det], catalog.vec[cat], sigma[det])
-    chi = float(np.sqrt(np.mean((sol.residuals / sigma[det]) ** 2)))
+    q, a, p, res, rms, s0, p0 = solved
+    sol = AttitudeSolution(q, a, p, res, float(rms), float(s0), p0)
+    chi = float(np.sqrt(np.mean((res / sigma[det]) ** 2)))
     if chi > params.max_normalised_rms:
         return None, f"residuals {chi:.1f} sigma RMS: inconsistent with the measurement noise"
     # 3. coverage of predicted-visible catalog stars
@@ -400,10 +401,12 @@ def _refine_steps(
     """Steps 2, 2a, 2b and 2c of :func:`verify` on a hypothesis past step 1 (detections ``det`` on
     catalog stars ``cat``, their directions and colours ``cvec, crg, cbg``; the catalog stars
     ``near`` the boresight, theirs ``near_vec, near_rg, near_bg``): (matched detections, catalog
-    stars, the catalog stars seen before 2b, False when 2c left fewer than two stars)."""
+    stars, the catalog stars seen before 2b, their attitude solve; fewer than two stars when 2c
+    left fewer)."""
     n = len(vectors)
     colour = noise_rg > 0 and noise_bg > 0
-    _, a, _, res, _, _, p0 = _solve(vectors[det], cvec, sigma[det])
+    solved = _solve(vectors[det], cvec, sigma[det])
+    _, a, _, res, _, _, p0 = solved
     for _ in range(refine_passes):  # 2. refinement against the catalog stars near the boresight
         free = _free(n, det)
         if len(free) == 0:
@@ -443,7 +446,8 @@ def _refine_steps(
         cvec = np.concatenate((cvec, near_vec[k_new]))
         crg = np.concatenate((crg, near_rg[k_new]))
         cbg = np.concatenate((cbg, near_bg[k_new]))
-        _, a, _, res, _, _, p0 = _solve(vectors[det], cvec, sigma[det])
+        solved = _solve(vectors[det], cvec, sigma[det])
+        _, a, _, res, _, _, p0 = solved
     # 2a. one detection per catalog star, the closest
     free = _free(n, det)
     if len(free):
@@ -472,7 +476,8 @@ def _refine_steps(
                 keep[k] = not taken[det[k]]
                 taken[det[k]] = True
             det, cat, cvec, crg, cbg = det[keep], cat[keep], cvec[keep], crg[keep], cbg[keep]
-            _, a, _, res, _, _, p0 = _solve(vectors[det], cvec, sigma[det])
+            solved = _solve(vectors[det], cvec, sigma[det])
+            _, a, _, res, _, _, p0 = solved
     seen = cat
     # 2b. identities that cannot be told apart: another catalog star inside the gate
     if drop_ambiguous and len(det) > 2:
@@ -489,7 +494,8 @@ def _refine_steps(
             clear[i] = closest >= gate[i]
         if not np.all(clear) and np.sum(clear) >= 2:
             det, cat, cvec = det[clear], cat[clear], cvec[clear]
-            _, a, _, res, _, _, p0 = _solve(vectors[det], cvec, sigma[det])
+            solved = _solve(vectors[det], cvec, sigma[det])
+            _, a, _, res, _, _, p0 = solved
     # 2c. final residual test on the measurement noise alone
     for _ in range(refine_passes + 1):
         keep = res <= residual_sigmas * sigma[det]
@@ -497,6 +503,7 @@ def _refine_steps(
             break
         det, cat, cvec = det[keep], cat[keep], cvec[keep]
         if len(det) < 2:
-            return det, cat, seen, False
-        _, a, _, res, _, _, p0 = _solve(vectors[det], cvec, sigma[det])
-    return det, cat, seen, True
+            return det, cat, seen, solved
+        solved = _solve(vectors[det], cvec, sigma[det])
+        _, a, _, res, _, _, p0 = solved
+    return det, cat, seen, solved

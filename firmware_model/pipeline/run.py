@@ -37,6 +37,7 @@ from firmware_model.ident.strategy import (
     routes_geometric,
     verify_pattern,
 )
+from firmware_model.ident.strategy import warm_up as strategy_warm_up
 from firmware_model.ident.verify import FieldOfView
 from firmware_model.ident.verify import warm_up as verify_warm_up
 from firmware_model.pipeline import scale_free
@@ -249,6 +250,7 @@ def warm_up() -> float:
     solve_attitude(v, v, 1e-4)
     fit_frame(StarObservations(x + 0.1, y - 0.1, v), cam, k1_min_stars=4)
     verify_warm_up()
+    strategy_warm_up()
     scale_free.warm_up()
     return time.perf_counter() - t0
 
