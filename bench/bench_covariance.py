@@ -25,13 +25,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_peers import SETS, TARGET_OFFSETS, attitude_error, perturb  # noqa: E402
+from bench_peers import P_ANY, SETS, TARGET_OFFSETS, attitude_error, perturb  # noqa: E402
 from bench_realframes import frames  # noqa: E402
 from ours_worker import Ours  # noqa: E402
-
-#: Share of a standard normal beyond 3 on one axis, and on some of three independent axes.
-P_AXIS = 2.0 * 0.0013498980316301035
-P_ANY = 1.0 - (1.0 - P_AXIS) ** 3
 
 
 def solve_sets(args):
