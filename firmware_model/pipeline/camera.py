@@ -60,10 +60,10 @@ class CameraModel:
     def __post_init__(self):
         if int(self.width) <= 0 or int(self.height) <= 0:
             raise ValueError(f"camera array size must be positive, got {self.width} x {self.height}")
-        if not np.isfinite(self.f) or self.f <= 0:
+        if not math.isfinite(self.f) or self.f <= 0:
             raise ValueError(f"focal length must be a positive number of pixels, got {self.f}")
         for name in ("cx", "cy", "k1", "k2", "k3", "p1", "p2"):
-            if not np.isfinite(getattr(self, name)):
+            if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"camera parameter {name} must be finite")
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))

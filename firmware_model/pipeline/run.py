@@ -320,7 +320,7 @@ def identify_stars(
         t1 = time.perf_counter()
         scale_free.catalog_patterns(catalog, camera)  # once per catalog and field: not this frame's budget
         frame_t0 += time.perf_counter() - t1
-    peek = _first_tier(stars, camera, catalog, tier, timings)
+    peek = _first_tier(stars, camera, catalog, tier, timings) if len(used) >= 4 else None
     seed = _first_seed(stars, camera, catalog, tier, timings, peek)
     searched = params.optics is not None and _nominal_off(peek, seed, stars, camera, catalog, params.optics)
     first = _search_optics(stars, camera, catalog, params, timings, frame_t0, peek, seed) if searched else None
@@ -370,9 +370,9 @@ def _first_tier(
     stars: StarList, camera: CameraModel, catalog: OnboardCatalog, search: OpticsSearch | None, timings: StageTimings
 ) -> scale_free.BrightFirstMatches | None:
     """The first pattern matches of ``search`` (the ``first_tier`` brightest clean detections,
-    rank by rank; None without one); the catalog's patterns for the field are built by the
-    caller."""
-    if search is None or search.first_tier <= 0 or search.first_tier_hypotheses <= 0 or len(_usable(stars)) < 4:
+    rank by rank; None without one); the caller builds the catalog's patterns for the field and
+    has at least four usable detections."""
+    if search is None or search.first_tier <= 0 or search.first_tier_hypotheses <= 0:
         return None
     t1 = time.perf_counter()
     clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)
