@@ -47,6 +47,7 @@ explains the whole frame:
 
 from __future__ import annotations
 
+import statistics
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -279,7 +280,7 @@ def verify(
     n_pred = len(inside)
     matched_inside = int(np.count_nonzero((inside[:, None] == seen[None, :]).any(axis=1)))
     coverage = matched_inside / n_pred if n_pred else 1.0
-    gate = params.residual_sigmas * float(np.median(sigma[det]))
+    gate = params.residual_sigmas * statistics.median(sigma[det].tolist())
     # the chance over every catalog star looked for: with ``deep``, the verification-only ones too
     trials = int(in_view.sum()) if params.deep else n_pred
     chance = chance_alignment(max(len(vectors), params.frame_detections), trials, len(det), gate, fov.solid_angle)

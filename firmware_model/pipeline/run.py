@@ -13,6 +13,7 @@ sections (quaternion, return bits, good rows, centroid and matching telemetry fo
 from __future__ import annotations
 
 import math
+import statistics
 import time
 from dataclasses import dataclass, field, replace
 
@@ -540,7 +541,7 @@ def _fit_optics(out: PipelineOutput, catalog: OnboardCatalog, search: OpticsSear
         if res is None or not res.success or not np.isfinite(res.residual_rms_px):
             return None
         err = np.hypot(*res.residuals[0].T)
-        keep = err <= max(OPTICS_OUTLIER_PX, 5.0 * float(np.median(err)))
+        keep = err <= max(OPTICS_OUTLIER_PX, 5.0 * statistics.median(err.tolist()))
         if keep.all() or keep.sum() < search.min_stars:
             break
         rows, cat = rows[keep], cat[keep]
@@ -833,7 +834,9 @@ def _verify_pattern(
     verification refuses it."""
     used = _usable(stars)
     rows, cat = np.asarray(rows), np.asarray(cat)
-    inside = np.isin(rows, used)
+    usable = np.zeros(len(stars), bool)
+    usable[used] = True
+    inside = usable[rows]
     sol = verify_pattern(
         _detections(used, stars, camera, params),
         np.searchsorted(used, rows[inside]),
