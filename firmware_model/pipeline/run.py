@@ -240,8 +240,9 @@ def run_pipeline(
 def warm_up() -> float:
     """Compile (or, after the first run of an install, load from numba's disk cache) every kernel a
     solve runs: the extraction's (:func:`extract.warm_up`), the camera's projections, the attitude
-    solve, the one-frame optics fit, the verification's and the refinement's, so that the first frame's solve (and its optics search's
-    time budget) does not pay for them. Returns the seconds it took; meant for start-up."""
+    solve, the one-frame optics fit, the verification's, the noise probe's and the pattern stage's,
+    so that the first frame's solve (and its optics search's time budget) does not pay for them.
+    Returns the seconds it took; meant for start-up."""
     t0 = time.perf_counter()
     extract_warm_up()
     cam = CameraModel(64, 48, 100.0, 31.5, 23.5, k1=0.01)
