@@ -54,13 +54,13 @@ def davenport_q(b: np.ndarray, r: np.ndarray, w: np.ndarray | None = None) -> np
 def svd_attitude(b: np.ndarray, r: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
     """Attitude matrix by Markley's SVD method: ``A = U diag(1, 1, det U det V) V^T``, ``B = U S V^T``."""
     b = _rows(b)
-    return _svd_attitude(b, _rows(r), np.ones(len(b)) if w is None else np.asarray(w, float).ravel())
+    return svd_attitude_kernel(b, _rows(r), np.ones(len(b)) if w is None else np.asarray(w, float).ravel())
 
 
 def attitude_covariance(b: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     """Covariance (rad^2, 3x3, sensor axes) of the attitude error angles; inf if unobservable."""
     b = _rows(b)
-    return _covariance(b, np.broadcast_to(np.asarray(sigma, float), (len(b),)).copy())
+    return covariance_kernel(b, np.broadcast_to(np.asarray(sigma, float), (len(b),)).copy())
 
 
 def variance_factor(residuals: np.ndarray, sigma: np.ndarray | float) -> float:
@@ -81,7 +81,8 @@ def _rows(v) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(v, float).reshape(-1, 3))
 
 
-# --- compiled kernels (numba, cached on disk): solve_attitude runs several times per hypothesis ---
+# --- compiled kernels (numba, cached on disk): solve_attitude runs several times per hypothesis;
+# the ``*_kernel`` ones are also building blocks of other modules' kernels ---
 
 
 @njit(cache=True, nogil=True)
@@ -112,14 +113,16 @@ def _davenport(b, r, w):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _svd_attitude(b, r, w):  # pragma: no cover - compiled
+def svd_attitude_kernel(b, r, w):  # pragma: no cover - compiled
+    """:func:`svd_attitude`'s matrix (contiguous (N, 3) ``b``, ``r`` and weights ``w``)."""
     u, _, vt = np.linalg.svd(_profile(b, r, w))
     u[:, 2] *= np.linalg.det(u) * np.linalg.det(vt)
     return u @ vt
 
 
 @njit(cache=True, nogil=True)
-def _covariance(b, sigma):  # pragma: no cover - compiled
+def covariance_kernel(b, sigma):  # pragma: no cover - compiled
+    """:func:`attitude_covariance`'s matrix (contiguous (N, 3) ``b``, per-star ``sigma``, rad)."""
     info = np.zeros((3, 3))
     for i in range(b.shape[0]):
         iv = 1.0 / sigma[i] ** 2
@@ -165,12 +168,12 @@ def _quat_matrix(q):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _solve(b, r, sig):  # pragma: no cover - compiled
+def solve_attitude_kernel(b, r, sig):  # pragma: no cover - compiled
     """solve_attitude's numbers: q, A, P, residuals, RMS, variance factor, P0."""
     q = _davenport(b, r, 1.0 / sig**2)
     a = _quat_matrix(q)
     res = _residual_angles(b, r, a)
-    p0 = _covariance(b, sig)
+    p0 = covariance_kernel(b, sig)
     s0 = _variance_factor(res, sig)
     p = p0 * s0 if s0 > 1.0 else p0
     return q, a, p, res, np.sqrt(np.mean(res**2)), s0, p0
@@ -208,7 +211,7 @@ def solve_attitude(b: np.ndarray, r: np.ndarray, sigma) -> AttitudeSolution:
     if b.ndim != 2 or b.shape[1] != 3 or r.shape != b.shape or len(b) < 2:
         raise ValueError(f"need matching (N,3) arrays with N >= 2, got {b.shape} and {r.shape}")
     sig = np.broadcast_to(np.asarray(sigma, float), (len(b),)).copy()
-    q, a, p, res, rms, s0, p0 = _solve(np.ascontiguousarray(b), np.ascontiguousarray(r), sig)
+    q, a, p, res, rms, s0, p0 = solve_attitude_kernel(np.ascontiguousarray(b), np.ascontiguousarray(r), sig)
     return AttitudeSolution(q, a, p, res, float(rms), float(s0), p0)
 
 

@@ -60,7 +60,7 @@ from numba import njit
 from scipy.special import ndtr, stdtrit
 
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between
-from firmware_model.ident.attitude import _covariance, quat_matrix, solve_attitude
+from firmware_model.ident.attitude import covariance_kernel, quat_matrix, solve_attitude
 from firmware_model.ident.consensus import ConsensusParams, Outcome, confident, match_scene
 from firmware_model.ident.four_star import match_four_star
 from firmware_model.ident.pair_match import PairNoise
@@ -489,7 +489,7 @@ def _free_in_gate(vectors, rows, near_vec, a, sigma, sigmas):  # pragma: no cove
     """Detections not in ``rows`` whose nearest catalog star of ``near_vec`` (through attitude ``a``)
     lies within ``sigmas`` of ``sqrt(sigma^2 + tr P)`` (``sigma`` per detection, rad; ``P`` the
     covariance of the attitude from the ``rows`` stars at their ``sigma``)."""
-    trace = np.trace(_covariance(vectors[rows], sigma[rows]))
+    trace = np.trace(covariance_kernel(vectors[rows], sigma[rows]))
     taken = np.zeros(len(vectors), np.bool_)
     taken[rows] = True
     pred = near_vec @ a.T

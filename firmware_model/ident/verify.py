@@ -56,7 +56,7 @@ from numba import njit
 from scipy.special import betainc
 
 from firmware_model.catalog.onboard import OnboardCatalog, chord_of_angle
-from firmware_model.ident.attitude import AttitudeSolution, _solve, solve_attitude
+from firmware_model.ident.attitude import AttitudeSolution, solve_attitude, solve_attitude_kernel
 from firmware_model.pipeline.camera import CameraModel
 
 
@@ -369,10 +369,10 @@ def _residual_step(det, cat, vectors, sigma, cvec, residual_sigmas):  # pragma: 
     """Step 1 of :func:`verify` on detections ``det`` matched to catalog stars ``cat`` (directions
     ``cvec``): the stars kept (a mask, fewer than two when the test leaves fewer) and the boresight
     in ICRS."""
-    _, a, _, res, _, _, p0 = _solve(vectors[det], cvec, sigma[det])
+    _, a, _, res, _, _, p0 = solve_attitude_kernel(vectors[det], cvec, sigma[det])
     keep = res <= residual_sigmas * np.maximum(_scatter(vectors[det], sigma[det], p0), sigma[det])
     if not np.all(keep) and np.sum(keep) >= 2:
-        _, a, _, _, _, _, _ = _solve(vectors[det[keep]], cvec[keep], sigma[det[keep]])
+        _, a, _, _, _, _, _ = solve_attitude_kernel(vectors[det[keep]], cvec[keep], sigma[det[keep]])
     return keep, a[2].copy()
 
 
@@ -406,7 +406,7 @@ def _refine_steps(
     left fewer)."""
     n = len(vectors)
     colour = noise_rg > 0 and noise_bg > 0
-    solved = _solve(vectors[det], cvec, sigma[det])
+    solved = solve_attitude_kernel(vectors[det], cvec, sigma[det])
     _, a, _, res, _, _, p0 = solved
     for _ in range(refine_passes):  # 2. refinement against the catalog stars near the boresight
         free = _free(n, det)
@@ -447,7 +447,7 @@ def _refine_steps(
         cvec = np.concatenate((cvec, near_vec[k_new]))
         crg = np.concatenate((crg, near_rg[k_new]))
         cbg = np.concatenate((cbg, near_bg[k_new]))
-        solved = _solve(vectors[det], cvec, sigma[det])
+        solved = solve_attitude_kernel(vectors[det], cvec, sigma[det])
         _, a, _, res, _, _, p0 = solved
     # 2a. one detection per catalog star, the closest
     free = _free(n, det)
@@ -477,7 +477,7 @@ def _refine_steps(
                 keep[k] = not taken[det[k]]
                 taken[det[k]] = True
             det, cat, cvec, crg, cbg = det[keep], cat[keep], cvec[keep], crg[keep], cbg[keep]
-            solved = _solve(vectors[det], cvec, sigma[det])
+            solved = solve_attitude_kernel(vectors[det], cvec, sigma[det])
             _, a, _, res, _, _, p0 = solved
     seen = cat
     # 2b. identities that cannot be told apart: another catalog star inside the gate
@@ -495,7 +495,7 @@ def _refine_steps(
             clear[i] = closest >= gate[i]
         if not np.all(clear) and np.sum(clear) >= 2:
             det, cat, cvec = det[clear], cat[clear], cvec[clear]
-            solved = _solve(vectors[det], cvec, sigma[det])
+            solved = solve_attitude_kernel(vectors[det], cvec, sigma[det])
             _, a, _, res, _, _, p0 = solved
     # 2c. final residual test on the measurement noise alone
     for _ in range(refine_passes + 1):
@@ -505,6 +505,6 @@ def _refine_steps(
         det, cat, cvec = det[keep], cat[keep], cvec[keep]
         if len(det) < 2:
             return det, cat, seen, solved
-        solved = _solve(vectors[det], cvec, sigma[det])
+        solved = solve_attitude_kernel(vectors[det], cvec, sigma[det])
         _, a, _, res, _, _, p0 = solved
     return det, cat, seen, solved

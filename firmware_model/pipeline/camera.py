@@ -224,7 +224,7 @@ class CameraModel:
         v = np.atleast_2d(np.asarray(v, dtype=float))
         if v.shape[-1] != 3:
             raise ValueError(f"vectors must have shape (N, 3), got {v.shape}")
-        return _to_pixels(v, self.f, self.cx, self.cy, self.k1, self.k2, self.k3, self.p1, self.p2)
+        return vector_to_pixel_kernel(v, self.f, self.cx, self.cy, self.k1, self.k2, self.k3, self.p1, self.p2)
 
 
 @njit(cache=True, nogil=True)
@@ -280,7 +280,7 @@ def _undistort(ud, wd, k1, k2, k3, p1, p2):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _to_pixels(v, f, cx, cy, k1, k2, k3, p1, p2):  # pragma: no cover - compiled
+def vector_to_pixel_kernel(v, f, cx, cy, k1, k2, k3, p1, p2):  # pragma: no cover - compiled
     """:meth:`CameraModel.vector_to_pixel`'s numbers."""
     n = v.shape[0]
     x, y = np.empty(n), np.empty(n)

@@ -17,7 +17,7 @@ from dataclasses import replace
 import numpy as np
 from numba import njit
 
-from firmware_model.ident.attitude import _svd_attitude
+from firmware_model.ident.attitude import svd_attitude_kernel
 from firmware_model.pipeline.camera import CameraModel, distort_point
 from firmware_model.pipeline.camera_fit import CalibrationResult, StarObservations
 
@@ -38,14 +38,16 @@ def fit_frame(obs: StarObservations, camera: CameraModel, k1_min_stars: int) -> 
     dist = np.array([c.k1, c.k2, c.k3, c.p1, c.p2])
     v_icrs = np.ascontiguousarray(obs.v_icrs, float)
     try:
-        fitted = _fit(np.asarray(obs.x, float), np.asarray(obs.y, float), v_icrs, c.f, c.cx, c.cy, dist, fit_k1)
+        fitted = fit_frame_kernel(
+            np.asarray(obs.x, float), np.asarray(obs.y, float), v_icrs, c.f, c.cx, c.cy, dist, fit_k1
+        )
     except np.linalg.LinAlgError:  # a parameter no star constrains
         return None
     return fit_result(camera, fitted, fit_k1)
 
 
 def fit_result(camera: CameraModel, fitted: tuple, fit_k1: bool) -> CalibrationResult | None:
-    """The :class:`CalibrationResult` of a compiled fit's numbers (:func:`_fit`) from ``camera``;
+    """The :class:`CalibrationResult` of a compiled fit's numbers (:func:`fit_frame_kernel`) from ``camera``;
     None when it did not fit."""
     done, f, k1, att, r, sig, added, rms, nit = fitted
     if not done:
@@ -65,7 +67,7 @@ def fit_result(camera: CameraModel, fitted: tuple, fit_k1: bool) -> CalibrationR
 
 
 @njit(cache=True, nogil=True)
-def _fit(x, y, v_icrs, f0, cx, cy, dist, fit_k1):  # pragma: no cover - compiled
+def fit_frame_kernel(x, y, v_icrs, f0, cx, cy, dist, fit_k1):  # pragma: no cover - compiled
     """:func:`fit_frame`'s numbers: (fitted, f, k1, attitude, residuals predicted - measured,
     1-sigma of f [and k1], the attitude covariance the camera's uncertainty adds, RMS residual
     (px), iterations). The start: Wahba's attitude of the pinhole directions (the fit takes the
@@ -77,7 +79,7 @@ def _fit(x, y, v_icrs, f0, cx, cy, dist, fit_k1):  # pragma: no cover - compiled
         u, w = (x[i] - cx) / f0, (y[i] - cy) / f0
         norm = np.sqrt(u * u + w * w + 1.0)
         pinhole[i, 0], pinhole[i, 1], pinhole[i, 2] = u / norm, w / norm, 1.0 / norm
-    a0 = _svd_attitude(pinhole, v_icrs, np.ones(n))
+    a0 = svd_attitude_kernel(pinhole, v_icrs, np.ones(n))
     none = (False, 0.0, 0.0, a0, np.empty(0), np.empty(0), np.empty((3, 3)), 0.0, 0)
     if not np.all(np.isfinite(a0)):
         return none

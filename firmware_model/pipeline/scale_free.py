@@ -30,9 +30,9 @@ from numba import njit
 from scipy.spatial import cKDTree
 
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between, chord_of_angle
-from firmware_model.ident.attitude import _svd_attitude
-from firmware_model.pipeline.camera import CameraModel, _to_pixels
-from firmware_model.pipeline.frame_fit import _fit, fit_result
+from firmware_model.ident.attitude import svd_attitude_kernel
+from firmware_model.pipeline.camera import CameraModel, vector_to_pixel_kernel
+from firmware_model.pipeline.frame_fit import fit_frame_kernel, fit_result
 
 #: Catalog patterns of two kinds, both scale free: (1) for each region of the sky the size of the
 #: field (circles of the minor half-field on a Fibonacci lattice spaced REGION_SPACING of that
@@ -318,7 +318,7 @@ def _assign_kernel(b, r, pairs, perm_edges, perms):  # pragma: no cover - compil
             best, best_mismatch = p, mismatch
     if not best_mismatch <= 0.02 * eb.max():
         return False, np.eye(3)
-    return True, _svd_attitude(b, r[perms[best]], np.ones(4))
+    return True, svd_attitude_kernel(b, r[perms[best]], np.ones(4))
 
 
 def refine(
@@ -367,7 +367,7 @@ def _refine(
     x, y, near, near_vec, f, cx, cy, dist, width, height, a, radii, min_stars, k1_min_stars
 ):  # pragma: no cover - compiled
     """:func:`refine`'s numbers: (found, detection rows, catalog indices, whether k1 was fitted,
-    the last fit's ``frame_fit._fit`` numbers)."""
+    the last fit's ``frame_fit.fit_frame_kernel`` numbers)."""
     dist = dist.copy()
     det, cat = np.empty(0, np.int64), np.empty(0, np.int64)
     fitted = (False, f, dist[0], a, np.empty(0), np.empty(0), np.empty((3, 3)), 0.0, 0)
@@ -375,7 +375,7 @@ def _refine(
     moved = True  # the camera or attitude changed since the last prediction
     for radius in radii:
         if moved:  # predict, and each detection's nearest predicted star and its distance
-            px, py = _to_pixels(near_vec @ a.T, f, cx, cy, dist[0], dist[1], dist[2], dist[3], dist[4])
+            px, py = vector_to_pixel_kernel(near_vec @ a.T, f, cx, cy, dist[0], dist[1], dist[2], dist[3], dist[4])
             inside = np.isfinite(px) & (px >= -0.5) & (px < width - 0.5) & (py >= -0.5) & (py < height - 0.5)
             if inside.sum() < min_stars:
                 return False, det, cat, fit_k1, fitted
@@ -396,7 +396,7 @@ def _refine(
         fit_k1 = len(det) >= k1_min_stars
         if len(det) < 3 or 2 * len(det) <= (2 if fit_k1 else 1) + 3:
             return False, det, cat, fit_k1, fitted
-        fitted = _fit(x[det], y[det], vi[j[rows]], f, cx, cy, dist, fit_k1)
+        fitted = fit_frame_kernel(x[det], y[det], vi[j[rows]], f, cx, cy, dist, fit_k1)
         if not fitted[0]:
             return False, det, cat, fit_k1, fitted
         f, dist[0], a, moved = fitted[1], fitted[2], fitted[3], True
