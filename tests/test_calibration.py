@@ -199,9 +199,9 @@ def test_pipeline_warm_up_compiles_every_solve_kernel():
         "from firmware_model.pipeline import run, camera, frame_fit, scale_free\n"
         "from firmware_model.ident import attitude, strategy, verify\n"
         "run.warm_up()\n"
-        "kernels = (camera._to_vectors, camera.vector_to_pixel_kernel, attitude.solve_attitude_kernel, frame_fit.fit_frame_kernel,\n"
-        "    verify._residual_step, verify._refine_steps, strategy._free_in_gate, scale_free._assign_kernel,\n"
-        "    scale_free._refine)\n"
+        "kernels = (camera.pixel_to_vector_kernel, camera.vector_to_pixel_kernel,\n"
+        "    attitude.solve_attitude_kernel, frame_fit.fit_frame_kernel, verify._residual_step,\n"
+        "    verify._refine_steps, strategy._free_in_gate, scale_free._assign_kernel, scale_free._refine)\n"
         "print(all(k.signatures for k in kernels))\n"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)

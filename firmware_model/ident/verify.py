@@ -347,16 +347,6 @@ def _colour_ok(rg_d, bg_d, rg_c, bg_c, noise_rg, noise_bg, gate):  # pragma: no 
 
 
 @njit(cache=True, nogil=True)
-def _rotated(v, a):  # pragma: no cover - compiled
-    """``v @ a.T``: unit vectors (N, 3) through the attitude matrix ``a``."""
-    out = np.empty((len(v), 3))
-    for i in range(len(v)):
-        for j in range(3):
-            out[i, j] = a[j, 0] * v[i, 0] + a[j, 1] * v[i, 1] + a[j, 2] * v[i, 2]
-    return out
-
-
-@njit(cache=True, nogil=True)
 def _free(n, det):  # pragma: no cover - compiled
     """Rows of ``n`` detections not in ``det``, ascending."""
     taken = np.zeros(n, np.bool_)
@@ -412,7 +402,7 @@ def _refine_steps(
         free = _free(n, det)
         if len(free) == 0:
             break
-        pred = _rotated(near_vec, a)
+        pred = near_vec @ a.T
         tol = refine_sigmas * _scatter(vectors[free], sigma[free], p0)
         add_det = np.empty(len(free), np.int64)
         add_k = np.empty(len(free), np.int64)
@@ -452,7 +442,7 @@ def _refine_steps(
     # 2a. one detection per catalog star, the closest
     free = _free(n, det)
     if len(free):
-        pred = _rotated(cvec, a)
+        pred = cvec @ a.T
         tol = refine_sigmas * _scatter(vectors[free], sigma[free], p0)
         best = np.full(len(cat), -1)
         best_sep = np.full(len(cat), np.inf)
@@ -482,7 +472,7 @@ def _refine_steps(
     seen = cat
     # 2b. identities that cannot be told apart: another catalog star inside the gate
     if drop_ambiguous and len(det) > 2:
-        pred = _rotated(near_vec, a)
+        pred = near_vec @ a.T
         gate = 2.0 * np.sin(refine_sigmas * _scatter(vectors[det], sigma[det], p0) / 2.0)
         clear = np.ones(len(det), np.bool_)
         for i in range(len(det)):

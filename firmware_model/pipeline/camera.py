@@ -215,7 +215,7 @@ class CameraModel:
         y = np.atleast_1d(np.asarray(y, dtype=float)).ravel()
         if x.shape != y.shape:
             raise ValueError(f"x and y must have the same length, got {x.shape} and {y.shape}")
-        return _to_vectors(x, y, self.f, self.cx, self.cy, self.k1, self.k2, self.k3, self.p1, self.p2)
+        return pixel_to_vector_kernel(x, y, self.f, self.cx, self.cy, self.k1, self.k2, self.k3, self.p1, self.p2)
 
     def vector_to_pixel(self, v):
         """Pixel coordinates ``(x, y)`` (arrays of length N) of sensor-frame directions
@@ -295,7 +295,7 @@ def vector_to_pixel_kernel(v, f, cx, cy, k1, k2, k3, p1, p2):  # pragma: no cove
 
 
 @njit(cache=True, nogil=True)
-def _to_vectors(x, y, f, cx, cy, k1, k2, k3, p1, p2):  # pragma: no cover - compiled
+def pixel_to_vector_kernel(x, y, f, cx, cy, k1, k2, k3, p1, p2):  # pragma: no cover - compiled
     """:meth:`CameraModel.pixel_to_vector`'s numbers."""
     u, w = (x - cx) / f, (y - cy) / f
     if k1 != 0.0 or k2 != 0.0 or k3 != 0.0 or p1 != 0.0 or p2 != 0.0:

@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from firmware_model.ident.attitude import svd_attitude_kernel
-from firmware_model.pipeline.camera import CameraModel, distort_point
+from firmware_model.pipeline.camera import CameraModel, distort_point, pixel_to_vector_kernel
 from firmware_model.pipeline.camera_fit import CalibrationResult, StarObservations
 
 #: Iteration cap, and the relative step and cost-reduction tolerances of the compiled fit.
@@ -30,35 +30,28 @@ FTOL = 1e-14
 def fit_frame(obs: StarObservations, camera: CameraModel, k1_min_stars: int) -> CalibrationResult | None:
     """One frame's focal length, and k1 when at least ``k1_min_stars`` stars are given, fitted with
     its attitude (principal point held); None when the stars cannot constrain it."""
-    fit_k1 = len(obs.x) >= k1_min_stars
-    n_par = (2 if fit_k1 else 1) + 3
-    if len(obs.x) < 3 or 2 * len(obs.x) <= n_par:
-        return None
     c = camera
     dist = np.array([c.k1, c.k2, c.k3, c.p1, c.p2])
-    v_icrs = np.ascontiguousarray(obs.v_icrs, float)
+    x, y, v_icrs = np.asarray(obs.x, float), np.asarray(obs.y, float), np.ascontiguousarray(obs.v_icrs, float)
     try:
-        fitted = fit_frame_kernel(
-            np.asarray(obs.x, float), np.asarray(obs.y, float), v_icrs, c.f, c.cx, c.cy, dist, fit_k1
-        )
+        fitted = fit_frame_kernel(x, y, v_icrs, c.f, c.cx, c.cy, dist, k1_min_stars)
     except np.linalg.LinAlgError:  # a parameter no star constrains
         return None
-    return fit_result(camera, fitted, fit_k1)
+    return fit_result(camera, fitted)
 
 
-def fit_result(camera: CameraModel, fitted: tuple, fit_k1: bool) -> CalibrationResult | None:
-    """The :class:`CalibrationResult` of a compiled fit's numbers (:func:`fit_frame_kernel`) from ``camera``;
-    None when it did not fit."""
+def fit_result(camera: CameraModel, fitted: tuple) -> CalibrationResult | None:
+    """The :class:`CalibrationResult` of a compiled fit's numbers (:func:`fit_frame_kernel`) from
+    ``camera``; None when it did not fit."""
     done, f, k1, att, r, sig, added, rms, nit = fitted
     if not done:
         return None
-    names = ("f", "k1") if fit_k1 else ("f",)
     return CalibrationResult(
         camera=replace(camera, f=float(f), k1=float(k1)),
         attitudes=[att],
         residual_rms_px=float(rms),
         residuals=[-r.reshape(-1, 2)],
-        sigmas=dict(zip(names, (float(x) for x in sig))),
+        sigmas=dict(zip(("f", "k1"), (float(x) for x in sig))),  # k1's only when it was fitted
         n_observations=len(r) // 2,
         success=nit < MAX_ITER,
         message=f"converged in {nit} iterations" if nit < MAX_ITER else "iteration limit",
@@ -67,20 +60,20 @@ def fit_result(camera: CameraModel, fitted: tuple, fit_k1: bool) -> CalibrationR
 
 
 @njit(cache=True, nogil=True)
-def fit_frame_kernel(x, y, v_icrs, f0, cx, cy, dist, fit_k1):  # pragma: no cover - compiled
+def fit_frame_kernel(x, y, v_icrs, f0, cx, cy, dist, k1_min_stars):  # pragma: no cover - compiled
     """:func:`fit_frame`'s numbers: (fitted, f, k1, attitude, residuals predicted - measured,
-    1-sigma of f [and k1], the attitude covariance the camera's uncertainty adds, RMS residual
-    (px), iterations). The start: Wahba's attitude of the pinhole directions (the fit takes the
-    distortion from there)."""
+    1-sigma of f [and k1, when at least ``k1_min_stars`` stars are given], the attitude covariance
+    the camera's uncertainty adds, RMS residual (px), iterations); not fitted with fewer than
+    three stars or no more residuals than parameters. The start: Wahba's attitude of the pinhole
+    directions (the fit takes the distortion from there)."""
     n = len(x)
+    fit_k1 = n >= k1_min_stars
     nk = 2 if fit_k1 else 1
-    pinhole = np.empty((n, 3))
-    for i in range(n):
-        u, w = (x[i] - cx) / f0, (y[i] - cy) / f0
-        norm = np.sqrt(u * u + w * w + 1.0)
-        pinhole[i, 0], pinhole[i, 1], pinhole[i, 2] = u / norm, w / norm, 1.0 / norm
+    none = (False, 0.0, 0.0, np.eye(3), np.empty(0), np.empty(0), np.empty((3, 3)), 0.0, 0)
+    if n < 3 or 2 * n <= nk + 3:
+        return none
+    pinhole = pixel_to_vector_kernel(x, y, f0, cx, cy, 0.0, 0.0, 0.0, 0.0, 0.0)
     a0 = svd_attitude_kernel(pinhole, v_icrs, np.ones(n))
-    none = (False, 0.0, 0.0, a0, np.empty(0), np.empty(0), np.empty((3, 3)), 0.0, 0)
     if not np.all(np.isfinite(a0)):
         return none
     f, k1, att, r, jac, nit = _levenberg_marquardt(v_icrs @ a0.T, x, y, f0, cx, cy, dist, fit_k1)

@@ -340,7 +340,7 @@ def refine(
     near = catalog.stars_within(hyp.a[2], camera.fov_half_angle_diagonal * 1.2)
     c = camera
     try:
-        found, det, cat, fit_k1, fitted = _refine(
+        found, det, cat, fitted = _refine(
             np.asarray(x, float),
             np.asarray(y, float),
             near,
@@ -358,7 +358,7 @@ def refine(
         )
     except np.linalg.LinAlgError:  # a parameter no star constrains
         return None
-    res = fit_result(camera, fitted, fit_k1) if found else None
+    res = fit_result(camera, fitted) if found else None
     return None if res is None else (res.camera, det, cat, res)
 
 
@@ -366,19 +366,18 @@ def refine(
 def _refine(
     x, y, near, near_vec, f, cx, cy, dist, width, height, a, radii, min_stars, k1_min_stars
 ):  # pragma: no cover - compiled
-    """:func:`refine`'s numbers: (found, detection rows, catalog indices, whether k1 was fitted,
-    the last fit's ``frame_fit.fit_frame_kernel`` numbers)."""
+    """:func:`refine`'s numbers: (found, detection rows, catalog indices, the last fit's
+    ``frame_fit.fit_frame_kernel`` numbers)."""
     dist = dist.copy()
     det, cat = np.empty(0, np.int64), np.empty(0, np.int64)
     fitted = (False, f, dist[0], a, np.empty(0), np.empty(0), np.empty((3, 3)), 0.0, 0)
-    fit_k1 = False
     moved = True  # the camera or attitude changed since the last prediction
     for radius in radii:
         if moved:  # predict, and each detection's nearest predicted star and its distance
             px, py = vector_to_pixel_kernel(near_vec @ a.T, f, cx, cy, dist[0], dist[1], dist[2], dist[3], dist[4])
             inside = np.isfinite(px) & (px >= -0.5) & (px < width - 0.5) & (py >= -0.5) & (py < height - 0.5)
             if inside.sum() < min_stars:
-                return False, det, cat, fit_k1, fitted
+                return False, det, cat, fitted
             ci, vi = near[inside], near_vec[inside]
             j, nearest = _nearest(x, y, px[inside], py[inside])
             moved = False
@@ -389,18 +388,15 @@ def _refine(
             first[k] = j[rows[order[k]]] != j[rows[order[k - 1]]]
         rows = rows[order[first]]
         if len(rows) < min_stars:
-            return False, det, cat, fit_k1, fitted
+            return False, det, cat, fitted
         if fitted[0] and len(rows) == len(det) and np.all(rows == det) and np.all(ci[j[rows]] == cat):
             continue  # the same stars as the last fit: fitting them again gives the same camera
         det, cat = rows, ci[j[rows]]
-        fit_k1 = len(det) >= k1_min_stars
-        if len(det) < 3 or 2 * len(det) <= (2 if fit_k1 else 1) + 3:
-            return False, det, cat, fit_k1, fitted
-        fitted = fit_frame_kernel(x[det], y[det], vi[j[rows]], f, cx, cy, dist, fit_k1)
+        fitted = fit_frame_kernel(x[det], y[det], vi[j[rows]], f, cx, cy, dist, k1_min_stars)
         if not fitted[0]:
-            return False, det, cat, fit_k1, fitted
+            return False, det, cat, fitted
         f, dist[0], a, moved = fitted[1], fitted[2], fitted[3], True
-    return fitted[0], det, cat, fit_k1, fitted
+    return fitted[0], det, cat, fitted
 
 
 @njit(cache=True, nogil=True)
