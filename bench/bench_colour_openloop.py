@@ -195,7 +195,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="out/bench_colour_openloop")
     args = ap.parse_args(argv)
 
-    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.camera import CameraModel
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
     from ground.sim import whole_sky as skysim

@@ -30,7 +30,7 @@ from tqdm import tqdm  # noqa: E402
 
 def _one(args):
     k, pattern, seed = args
-    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.camera import CameraModel
     from firmware_model.pipeline.run import run_pipeline
     from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat
     from ground.analysis.replay import Truth, score
@@ -116,8 +116,8 @@ def part_a(n: int, workers: int, seed: int, out: Path) -> None:
 
 
 def part_b(n: int, out: Path) -> None:
+    from firmware_model.camera import CameraModel
     from firmware_model.catalog.image_io import catalog_to_image
-    from firmware_model.pipeline.camera import CameraModel
     from ground.cli.end_to_end import pick_attitudes, start_device, stop_device
     from ground.link.client import Client
     from ground.link.solve_report import solve_record

@@ -34,7 +34,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from firmware_model.pipeline.camera import CameraModel  # noqa: E402
+from firmware_model.camera import CameraModel  # noqa: E402
 from firmware_model.pipeline.centroid import FitParams, fit_stars  # noqa: E402
 from firmware_model.pipeline.detect import detect_stars  # noqa: E402
 from firmware_model.pipeline.extract import extract_stars  # noqa: E402

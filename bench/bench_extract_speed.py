@@ -60,7 +60,7 @@ class _StageClock:
 
 
 def rggb_frames(n: int):
-    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.camera import CameraModel
     from firmware_model.reference_frames import attitude_from_radec_roll
     from ground.sim.sensor_sim import DetectorModel, render_frame
     from ground.sim.sky_model import sky_stars

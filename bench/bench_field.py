@@ -86,7 +86,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="out/bench_field")
     args = ap.parse_args(argv)
 
-    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.camera import CameraModel
     from firmware_model.pipeline.frame_readers import frame_files
     from firmware_model.pipeline.run import PipelineParams
     from ground.analysis.replay import TABLE5_MODES, OfflineSolver, replay, table5

@@ -202,8 +202,8 @@ def main(argv=None) -> int:
     ap.add_argument("--figures", default="docs/figures", help="where the learned-colour plots go")
     args = ap.parse_args(argv)
 
+    from firmware_model.camera import CameraModel
     from firmware_model.catalog.image_io import catalog_to_image
-    from firmware_model.pipeline.camera import CameraModel
     from firmware_model.pipeline.frame_readers import frame_files
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign

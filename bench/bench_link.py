@@ -117,7 +117,7 @@ def bench_upload(kib: int, baud: int = 115200) -> None:
     about ``kib`` KiB with a small camera model."""
     import tempfile
 
-    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.camera import CameraModel
     from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes
 
     width = 256

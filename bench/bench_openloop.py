@@ -314,7 +314,7 @@ _BB = None
 def _context():
     global _CTX
     if _CTX is None:
-        from firmware_model.pipeline.camera import CameraModel
+        from firmware_model.camera import CameraModel
         from ground.catalog.build import build_catalog
         from ground.catalog.design import CatalogDesign
         from ground.sim.sky_model import sky_stars

@@ -557,10 +557,10 @@ def synthetic(args) -> int:
     """The synthetic-centroid grid (module docstring, part 3)."""
     from dataclasses import replace
 
+    from firmware_model.camera import CameraModel
     from firmware_model.ident.solver import SolveParams
     from firmware_model.ident.strategy import solve
     from firmware_model.ident.verify import FieldOfView, VerifyParams
-    from firmware_model.pipeline.camera import CameraModel
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
 

@@ -103,7 +103,7 @@ def separation_px(ra, dec, job) -> float:
 
 
 def ours(job, catalogs) -> dict:
-    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.camera import CameraModel
     from firmware_model.pipeline.frame_readers import read_frame
     from firmware_model.pipeline.run import run_pipeline
     from firmware_model.reference_frames import quat_to_matrix, vec_to_radec

@@ -18,11 +18,11 @@ from dataclasses import replace
 
 import numpy as np
 
+from firmware_model.camera import CameraModel
 from firmware_model.ident.consensus import ConsensusParams
 from firmware_model.ident.solver import SolveParams
 from firmware_model.ident.strategy import solve
 from firmware_model.ident.verify import FieldOfView, VerifyParams
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign

@@ -33,7 +33,7 @@ POLL_S = 0.002
 
 
 def _catalog_and_attitudes(n: int):
-    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.camera import CameraModel
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
     from ground.cli.end_to_end import pick_attitudes
@@ -43,7 +43,7 @@ def _catalog_and_attitudes(n: int):
 
 
 def _frames_args(atts, work: Path) -> list[str]:
-    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.camera import CameraModel
     from ground.sim.frame_writer import write_frame
     from ground.sim.sensor_sim import DetectorModel, render_frame
     from ground.sim.sky_model import sky_stars

@@ -31,9 +31,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
+from firmware_model.camera import CameraModel  # noqa: E402
 from firmware_model.ident.attitude import quat_matrix  # noqa: E402
 from firmware_model.ident.tracking import TrackParams, TrackState, track  # noqa: E402
-from firmware_model.pipeline.camera import CameraModel  # noqa: E402
 from firmware_model.pipeline.extract import extract_stars  # noqa: E402
 from firmware_model.pipeline.run import PipelineParams, identify_stars  # noqa: E402
 from firmware_model.reference_frames import attitude_from_radec_roll, rotation_angle  # noqa: E402

@@ -26,8 +26,8 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np  # noqa: E402
 
+from firmware_model.camera import CameraModel  # noqa: E402
 from firmware_model.pipeline import centroid as new  # noqa: E402
-from firmware_model.pipeline.camera import CameraModel  # noqa: E402
 from firmware_model.pipeline.detect import DetectParams, detect_stars  # noqa: E402
 from firmware_model.pipeline.frame_readers import read_frame  # noqa: E402
 from firmware_model.reference_frames import attitude_from_radec_roll  # noqa: E402

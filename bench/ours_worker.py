@@ -30,7 +30,7 @@ import dataclasses
 import numpy as np
 from jsonl_worker import Clock, serve
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.pipeline.frame_readers import read_frame
 from firmware_model.pipeline.run import PipelineOutput, PipelineParams, identify_stars, run_pipeline
 from firmware_model.reference_frames import quat_to_matrix, vec_to_radec

@@ -27,8 +27,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
+    from firmware_model.camera import CameraModel
     from firmware_model.catalog.onboard import OnboardCatalog
-    from firmware_model.pipeline.camera import CameraModel
     from firmware_model.pipeline.raw_frame import Frame
     from firmware_model.pipeline.run import PipelineOutput, PipelineParams
 
@@ -141,7 +141,7 @@ def _frame(image) -> Frame:
 
 
 def _camera(frame: Frame, camera: CameraModel | None, fov_deg: float | None) -> CameraModel:
-    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.camera import CameraModel
 
     if camera is not None:
         if (camera.width, camera.height) != (frame.width, frame.height):

@@ -2,8 +2,8 @@
 
 import numpy as np
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll
 
 

@@ -3,7 +3,7 @@ real sky to V 7, frames rendered with optics the solver may not be told about.""
 
 import numpy as np
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from firmware_model.camera import CameraModel
 from firmware_model.device.device import Device, FrameUnavailable
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, quat_to_matrix, rotation_angle
 from ground.sim.attitude_feed import AttitudeFeed, AttitudeFeedSource, slerp
 from ground.sim.exposure import ExposureRenderer

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.pipeline.camera_fit import StarObservations, calibrate
 from firmware_model.reference_frames import attitude_from_radec_roll
 
@@ -196,7 +196,7 @@ def test_pipeline_warm_up_compiles_every_solve_kernel():
     import sys
 
     code = (
-        "from firmware_model.pipeline import run, camera, frame_fit, scale_free\n"
+        "from firmware_model import camera\nfrom firmware_model.pipeline import run, frame_fit, scale_free\n"
         "from firmware_model.ident import attitude, strategy, verify\n"
         "run.warm_up()\n"
         "kernels = (camera.pixel_to_vector_kernel, camera.vector_to_pixel_kernel,\n"

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 
 
 def test_reference_design_focal_and_fov():

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.optimize import approx_fprime
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.pipeline.centroid import FitParams, _WindowModel, fit_stars
 from firmware_model.pipeline.detect import detect_stars
 from firmware_model.pipeline.extract import extract_stars

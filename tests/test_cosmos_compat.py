@@ -10,6 +10,7 @@ import threading
 import numpy as np
 import pytest
 
+from firmware_model.camera import CameraModel
 from firmware_model.device.cli import build_device, build_parser
 from firmware_model.device.cli import main as device_main
 from firmware_model.device.cosmos_compat import finish
@@ -18,7 +19,6 @@ from firmware_model.device.link import PtyLink, serve
 from firmware_model.device.sensor_input import REJECT_PARAMS_VALUE, DeviceParams
 from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.solver import SolveResult
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.pipeline.run import PipelineOutput, PipelineParams, result_fields, return_bits, run_pipeline
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, quat_to_matrix

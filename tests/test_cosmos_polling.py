@@ -9,8 +9,8 @@ import time
 
 import numpy as np
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.image_io import catalog_to_image
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import matrix_to_quat
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.pipeline.detect import _K121, DetectParams, detect_stars, matched_kernel
 from firmware_model.pipeline.extract import extract_stars
 from firmware_model.pipeline.raw_frame import Frame

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.image_io import catalog_to_image
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.frame_readers import frame_files, read_frame
 from firmware_model.pipeline.raw_frame import frame_to_bytes
 from firmware_model.reference_frames import matrix_to_quat, quat_to_matrix, rotation_angle

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.image_io import catalog_to_image
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes
 from ground.analysis.replay import LinkSolver, Truth, replay, score
 from ground.catalog.build import build_catalog

@@ -5,7 +5,7 @@ statistics of fresh noise. No timings here (bench/bench_timing.py has them)."""
 import numpy as np
 import pytest
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat
 from ground.sim import exposure
 from ground.sim.exposure import ExposureRenderer, stars_in_view

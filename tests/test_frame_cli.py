@@ -78,9 +78,9 @@ def test_inspect_text_and_bad_file(tmp_path, capsys):
 
 
 def test_render_from_catalog_image(tmp_path):
+    from firmware_model.camera import CameraModel
     from firmware_model.catalog.image_io import catalog_to_image
     from firmware_model.catalog.onboard import OnboardCatalog
-    from firmware_model.pipeline.camera import CameraModel
     from firmware_model.reference_frames import attitude_from_radec_roll, quat_to_matrix
 
     rng = np.random.default_rng(2)

@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 from ident_sky import random_attitude, random_catalog, scene
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between
 from firmware_model.ident.consensus import ConsensusParams, Outcome, detection_angles, grow, match_scene
 from firmware_model.ident.pair_match import PairNoise, consistency_tolerance, critical_distance
 from firmware_model.ident.solver import SolveParams
 from firmware_model.ident.strategy import solve
 from firmware_model.ident.verify import FieldOfView, VerifyParams, verify
-from firmware_model.pipeline.camera import CameraModel
 
 CAM = CameraModel.reference_design()
 SIG = 0.2 / CAM.f

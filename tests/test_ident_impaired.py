@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from ident_sky import random_attitude, random_catalog, scene
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import angle_between
 from firmware_model.ident.consensus import ConsensusParams, Outcome, SeedOrder, confident, match_scene, seed_pairs
 from firmware_model.ident.pair_match import PairNoise
@@ -15,7 +16,6 @@ from firmware_model.ident.solver import SolveParams
 from firmware_model.ident.strategy import check_hypothesis, solve
 from firmware_model.ident.triangle import TriadOrder, triangles
 from firmware_model.ident.verify import FieldOfView, VerifyParams, chance_alignment, coverage_ok, miss_tail, verify
-from firmware_model.pipeline.camera import CameraModel
 
 CAM = CameraModel.reference_design()
 SIG = 0.2 / CAM.f

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from firmware_model.camera import CameraModel
 from firmware_model.device.sensor_input import DeviceParams
 from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.solver import Method, Mode, SolveParams, SolveTimings, method_code
@@ -23,7 +24,6 @@ from firmware_model.ident.strategy import (
     solve,
 )
 from firmware_model.ident.verify import FieldOfView
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.run import STAGES, PipelineOutput, PipelineParams, StageTimings
 from firmware_model.reference_frames import attitude_from_radec_roll
 from ground.link.solve_report import METHODS, record_from_output

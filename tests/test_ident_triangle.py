@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 from ident_sky import random_attitude, random_catalog, scene
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import angle_between
 from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.solver import SolveParams
 from firmware_model.ident.strategy import solve
 from firmware_model.ident.triangle import triangles
 from firmware_model.ident.verify import FieldOfView
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import quat_to_matrix, rotation_angle
 
 

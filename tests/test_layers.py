@@ -18,8 +18,8 @@ FORBIDDEN = {"protocol": ("firmware_model", "ground"), "firmware_model": ("groun
 STACKS = {
     "firmware_model": [
         ("firmware_model.reference_frames", "firmware_model.catalog"),
-        # identification needs the camera model (pixels <-> directions) and nothing else of the pipeline
-        ("firmware_model.pipeline.camera",),
+        # the camera model (pixels <-> directions): identification needs it, and nothing of the pipeline
+        ("firmware_model.camera",),
         ("firmware_model.ident",),
         ("firmware_model.pipeline",),
         ("firmware_model.device",),
@@ -125,6 +125,6 @@ def test_the_check_sees_an_import_inside_a_function(tmp_path):
     src.write_text("def f():\n    from ground.link.client import Client\n    import firmware_model.device.device\n")
     assert _imported(src) == {"ground", "firmware_model"}
     assert _level(STACKS["ground"], "ground.link.client") < _level(STACKS["ground"], "ground.cli.main")
-    assert _level(STACKS["firmware_model"], "firmware_model.pipeline.camera") < _level(
+    assert _level(STACKS["firmware_model"], "firmware_model.camera") < _level(
         STACKS["firmware_model"], "firmware_model.ident.verify"
     )

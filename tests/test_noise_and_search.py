@@ -11,6 +11,7 @@ from ident_sky import random_attitude
 from open_loop_sky import NOMINAL, PIXEL_RAD, POINTINGS, open_loop_catalog, render
 from scipy.spatial.transform import Rotation
 
+from firmware_model.camera import CameraModel
 from firmware_model.ident.consensus import ConsensusParams, Outcome
 from firmware_model.ident.solver import Method, Mode, SolveParams
 from firmware_model.ident.strategy import (
@@ -23,7 +24,6 @@ from firmware_model.ident.strategy import (
 )
 from firmware_model.ident.verify import FieldOfView, VerifyParams, verify
 from firmware_model.pipeline import scale_free
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.camera_fit import rotvec_matrix
 from firmware_model.pipeline.extract import extract_stars
 from firmware_model.pipeline.run import OpticsSearch, StageTimings, run_pipeline

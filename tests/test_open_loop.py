@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from open_loop_sky import NOMINAL, PIXEL_RAD, POINTINGS, open_loop_catalog, render
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.pipeline.extract import (
     PSF_FAIL_FRACTION,
     ExtractParams,

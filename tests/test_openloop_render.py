@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.pipeline.raw_frame import pattern_codes
 from firmware_model.reference_frames import attitude_from_radec_roll
 from ground.sim import openloop as ol

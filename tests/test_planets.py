@@ -23,8 +23,8 @@ from astropy import units as u
 from astropy.time import Time
 from scipy.spatial.transform import Rotation
 
+from firmware_model.camera import CameraModel
 from firmware_model.pipeline import planets
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, vec_to_radec
 
 ARCSEC = np.radians(1.0 / 3600.0)

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.image_io import catalog_to_image
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.frame_readers import read_frame
 from firmware_model.pipeline.run import run_pipeline
 from firmware_model.reference_frames import radec_to_vec

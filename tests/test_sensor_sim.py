@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll
 from ground.sim.sensor_sim import PHI_V0, DetectorModel, FalseObject, Stars, random_star_field, render_frame
 

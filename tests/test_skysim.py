@@ -6,9 +6,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from firmware_model.camera import CameraModel
 from firmware_model.ident.solver import SolveParams
 from firmware_model.ident.verify import FieldOfView
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat
 from ground.sim import whole_sky as skysim
 

@@ -5,9 +5,9 @@ import pytest
 from ident_sky import random_catalog
 from scipy.spatial.transform import Rotation
 
+from firmware_model.camera import CameraModel
 from firmware_model.ident.attitude import quat_matrix
 from firmware_model.ident.tracking import TrackParams, TrackState, TrackStatus, predict, track
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.extract import extract_stars
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, rotation_angle
 from ground.sim.sensor_sim import DetectorModel, Stars, render_frame

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from firmware_model.camera import CameraModel
 from firmware_model.device.cli import build_device, build_parser
 from firmware_model.device.device import Device
 from firmware_model.device.sensor_input import REJECT_PARAMS_VALUE, DeviceParams, PipelineSolver
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.pipeline.run import PipelineParams, omega_fields
 from firmware_model.pipeline.tracking_run import frame_time

@@ -6,7 +6,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll
 from ground.sim import whole_sky as skysim
 from ground.sim.true_colours import TrueColours, impair, true_colour_table

@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, quat_to_matrix, radec_to_vec
 from ground.analysis.wcs import WcsError, frame_wcs, record_camera, write_wcs
 

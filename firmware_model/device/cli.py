@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import protocol
+from firmware_model.camera import CameraModel
 from firmware_model.device.catalog_slot import catalog_slot_handler
 from firmware_model.device.device import Device, SlotHandler, SolveContext
 from firmware_model.device.link import DEFAULT_IDLE_TIMEOUT, Link, open_link, serve
@@ -38,7 +39,6 @@ from firmware_model.device.sensor_input import (
     params_slot_handler,
 )
 from firmware_model.device.slots import SlotStore
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.run import PipelineParams
 from protocol import nsp
 from protocol.commands import Slot

@@ -24,10 +24,10 @@ from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
+from firmware_model.camera import CameraModel
 from firmware_model.device.device import FrameUnavailable, SlotHandler, SolveContext
 from firmware_model.ident.solver import Mode
 from firmware_model.pipeline import scale_free
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.extract import PSF_SIGMA_RANGE_PX
 from firmware_model.pipeline.frame_readers import FrameReadError, frame_files, read_frame
 from firmware_model.pipeline.raw_frame import Frame, frame_from_bytes

@@ -59,6 +59,7 @@ import numpy as np
 from numba import njit
 from scipy.special import ndtr, stdtrit
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between
 from firmware_model.ident.attitude import covariance_kernel, quat_matrix, solve_attitude
 from firmware_model.ident.consensus import ConsensusParams, Outcome, confident, match_scene
@@ -75,7 +76,6 @@ from firmware_model.ident.solver import (
 )
 from firmware_model.ident.triangle import match_triangles
 from firmware_model.ident.verify import FieldOfView, VerifiedMatch, miss_tail, verify
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import rotation_angle
 
 #: Fewest detections given to the geometric matcher by :func:`geometric_detection_cap`.

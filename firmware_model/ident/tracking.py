@@ -46,9 +46,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.ident.attitude import quat_matrix, solve_attitude
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import matrix_to_quat
 
 

@@ -55,9 +55,9 @@ import numpy as np
 from numba import njit
 from scipy.special import betainc
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog, chord_of_angle
 from firmware_model.ident.attitude import AttitudeSolution, solve_attitude, solve_attitude_kernel
-from firmware_model.pipeline.camera import CameraModel
 
 
 @dataclass(frozen=True)

@@ -22,8 +22,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
+from firmware_model.camera import CameraModel
 from firmware_model.ident.attitude import svd_attitude
-from firmware_model.pipeline.camera import CameraModel
 
 DEFAULT_FIT = ("f", "cx", "cy", "k1", "k2", "p1", "p2")
 

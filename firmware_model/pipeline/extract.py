@@ -27,7 +27,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.pipeline.centroid import FitParams, FitResults, fit_stars
 from firmware_model.pipeline.detect import Detections, DetectParams, bound_notes, detect_stars, prepare_detection
 from firmware_model.pipeline.raw_frame import Frame

@@ -17,8 +17,8 @@ from dataclasses import replace
 import numpy as np
 from numba import njit
 
+from firmware_model.camera import CameraModel, distort_point, pixel_to_vector_kernel
 from firmware_model.ident.attitude import svd_attitude_kernel
-from firmware_model.pipeline.camera import CameraModel, distort_point, pixel_to_vector_kernel
 from firmware_model.pipeline.camera_fit import CalibrationResult, StarObservations
 
 #: Iteration cap, and the relative step and cost-reduction tolerances of the compiled fit.

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.ident.attitude import solve_attitude
 from firmware_model.ident.consensus import Outcome
@@ -42,7 +43,6 @@ from firmware_model.ident.strategy import warm_up as strategy_warm_up
 from firmware_model.ident.verify import FieldOfView
 from firmware_model.ident.verify import warm_up as verify_warm_up
 from firmware_model.pipeline import scale_free
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.camera_fit import StarObservations
 from firmware_model.pipeline.extract import ExtractParams, StarList, extract_stars
 from firmware_model.pipeline.extract import warm_up as extract_warm_up

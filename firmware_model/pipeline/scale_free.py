@@ -29,9 +29,9 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
+from firmware_model.camera import CameraModel, vector_to_pixel_kernel
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between, chord_of_angle
 from firmware_model.ident.attitude import svd_attitude_kernel
-from firmware_model.pipeline.camera import CameraModel, vector_to_pixel_kernel
 from firmware_model.pipeline.frame_fit import fit_frame_kernel, fit_result
 
 #: Catalog patterns of two kinds, both scale free: (1) for each region of the sky the size of the

@@ -18,11 +18,11 @@ from datetime import UTC, datetime
 
 import numpy as np
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.solver import Method, SolveResult
 from firmware_model.ident.tracking import TrackParams, TrackResult, TrackState, track
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.extract import StarList
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.pipeline.run import PipelineOutput, PipelineParams, frame_stars, identify_stars, run_pipeline

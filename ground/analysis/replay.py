@@ -29,8 +29,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tqdm import tqdm
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.extract import StarList, extract_stars
 from firmware_model.pipeline.frame_readers import frame_files, read_frame
 from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes

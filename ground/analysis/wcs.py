@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.reference_frames import quat_to_matrix, radec_to_vec, vec_to_radec
 from ground.atomic_write import atomic_path
 

@@ -20,9 +20,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from tqdm import tqdm
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.ident.consensus import Outcome
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.pipeline.camera_fit import CalibrationResult, StarObservations, calibrate
 from firmware_model.pipeline.extract import StarList, extract_stars
 from firmware_model.pipeline.raw_frame import Frame

@@ -78,7 +78,7 @@ class CatalogDesign:
         for V 4-7; clamped to V 4-7.5 and 4-8). ``overrides`` are further CatalogDesign fields."""
         if not 0.0 < fov_deg < 180.0:
             raise DesignError(f"field of view must be in (0, 180) deg, got {fov_deg}")
-        from firmware_model.pipeline.camera import CameraModel
+        from firmware_model.camera import CameraModel
 
         camera = CameraModel.from_horizontal_fov(width_px, height_px, fov_deg)
         theta = math.degrees(camera.fov_half_angle_minor)

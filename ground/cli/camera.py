@@ -18,9 +18,9 @@ from ground.atomic_write import write_text
 def _calibrate(args) -> int:
     import numpy as np
 
+    from firmware_model.camera import CameraModel
     from firmware_model.catalog.image_io import catalog_from_image
     from firmware_model.device.cli import load_camera
-    from firmware_model.pipeline.camera import CameraModel
     from firmware_model.pipeline.frame_readers import read_frame
     from firmware_model.pipeline.run import PipelineParams, with_psf_sigma
     from ground.calibration.optics import calibrate_from_frames

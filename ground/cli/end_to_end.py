@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.image_io import catalog_to_image
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll
 from ground.analysis.replay import LinkSolver, replay
 from ground.atomic_write import write_bytes

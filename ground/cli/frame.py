@@ -98,7 +98,7 @@ def register(sub) -> None:
 
 
 def _camera_from_args(args):
-    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.camera import CameraModel
 
     if args.camera:
         return CameraModel.from_dict(json.loads(Path(args.camera).read_text()))
@@ -221,7 +221,7 @@ def cmd_inspect(args) -> int:
 
     import numpy as np
 
-    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.camera import CameraModel
     from firmware_model.pipeline.extract import PSF_SIGMA_RANGE_PX, extract_stars
     from firmware_model.pipeline.frame_readers import FrameReadError, read_frame
     from ground.cli.offline_options import load_params

@@ -49,8 +49,8 @@ def run_hil(out, duration_s: float, dynamics_kind: str = "auto", seed: int = 15,
     import numpy as np
     from scipy.spatial.transform import Rotation
 
+    from firmware_model.camera import CameraModel
     from firmware_model.catalog.image_io import catalog_to_image
-    from firmware_model.pipeline.camera import CameraModel
     from firmware_model.reference_frames import matrix_to_quat
     from ground.atomic_write import write_text
     from ground.catalog.build import build_catalog

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 from ground.arg_types import InputError
 
 if TYPE_CHECKING:  # the pipeline imports scipy: only when a command runs
-    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.camera import CameraModel
     from firmware_model.pipeline.raw_frame import Frame
     from firmware_model.pipeline.run import PipelineParams
 
@@ -53,8 +53,8 @@ def load_params(path: str | None) -> PipelineParams:
 
 def camera_for_frames(args) -> Callable[[Frame], CameraModel]:
     """Frame -> camera model from ``--camera`` / ``--fov-deg`` (checked here, before any work)."""
+    from firmware_model.camera import CameraModel
     from firmware_model.device.cli import load_camera
-    from firmware_model.pipeline.camera import CameraModel
 
     fov = getattr(args, "fov_deg", None)
     if fov is not None:

@@ -114,7 +114,7 @@ def _emit(args, payload: dict, text: str) -> None:
 def run_colour(args) -> int:
     import numpy as np
 
-    from firmware_model.pipeline.camera import CameraModel
+    from firmware_model.camera import CameraModel
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign, DesignError
     from ground.sim import whole_sky as skysim

@@ -16,7 +16,7 @@ import threading
 
 import numpy as np
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.pipeline.raw_frame import Frame
 from ground.sim.noise_bank import NoiseBank
 from ground.sim.openloop import stars_in_cone as stars_in_view

@@ -35,7 +35,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy.special import erf
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.pipeline.raw_frame import Frame, normalise_pattern, pattern_codes
 from firmware_model.reference_frames import matrix_to_quat
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_model.pipeline.camera import CameraModel
+from firmware_model.camera import CameraModel
 from firmware_model.reference_frames import quat_to_matrix
 from ground.sim.exposure import ExposureRenderer
 from ground.sim.sensor_sim import DetectorModel

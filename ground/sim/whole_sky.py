@@ -32,13 +32,13 @@ from functools import partial
 
 import numpy as np
 
+from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.four_star import FourStarParams, match_four_star
 from firmware_model.ident.solver import Mode, SolveParams
 from firmware_model.ident.strategy import Detections, StrategyParams, check_hypothesis, identify
 from firmware_model.ident.verify import FieldOfView
-from firmware_model.pipeline.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, vec_to_radec
 from ground.atomic_write import save_figure
 from ground.sim.true_colours import TrueColours, impair, true_colour_table
