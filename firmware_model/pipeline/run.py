@@ -67,24 +67,35 @@ UNTRUSTED_CENTROID_FLOOR_PX = 0.5
 #: Detections whose fitted centroid is less certain than this (px, 1-sigma) are not used.
 MAX_CENTROID_SIGMA_PX = 3.0
 
-#: Stage names reported in the result extension, in order (the fields of :class:`StageTimings`).
+#: Stage names reported in the result extension, in order (fields of :class:`StageTimings`).
 STAGES = ("detect", "fit", "vectors", "identify", "attitude", "total")
+#: Set-up stages a solve may pay for before its frame's own work, reported beside :data:`STAGES`
+#: off the device (``timings_s``): ``index`` the catalog's pattern index for the field, ``catalog``
+#: building or loading the catalog, ``compile`` loading or compiling the kernels. The device does
+#: all three before it says ``listening`` or at a catalog COMMIT, so a GO reports none of them.
+SETUP_STAGES = ("index", "catalog", "compile")
 
 
 @dataclass
 class StageTimings(IdentifyTimings):
     """Seconds per pipeline stage (:data:`STAGES`): detection, centroid fit, camera vectors (from
     the extraction), identification and attitude (every solve of the frame, the optics search's
-    included), and the whole frame."""
+    included), and the whole frame; then the set-up stages (:data:`SETUP_STAGES`), which ``total``
+    includes: the whole time the caller waited."""
 
     detect: float = 0.0
     fit: float = 0.0
     vectors: float = 0.0
     total: float = 0.0
+    index: float = 0.0
+    catalog: float = 0.0
+    compile: float = 0.0
 
     def to_dict(self) -> dict[str, float]:
-        """``{stage: seconds}`` in :data:`STAGES` order."""
-        return {name: getattr(self, name) for name in STAGES}
+        """``{stage: seconds}``: :data:`STAGES`, then the set-up stages that took any time."""
+        out = {name: getattr(self, name) for name in STAGES}
+        out.update({name: getattr(self, name) for name in SETUP_STAGES if getattr(self, name) > 0})
+        return out
 
 
 @dataclass(frozen=True)
@@ -320,8 +331,9 @@ def identify_stars(
     tier = params.optics or (OpticsSearch() if geometric else None)
     if tier is not None:
         t1 = time.perf_counter()
-        scale_free.catalog_patterns(catalog, camera)  # once per catalog and field: not this frame's budget
-        frame_t0 += time.perf_counter() - t1
+        scale_free.catalog_patterns(catalog, camera)  # once per catalog and field: a set-up stage
+        timings.index = time.perf_counter() - t1
+        frame_t0 += timings.index
     peek = _first_tier(stars, camera, catalog, tier, timings) if len(used) >= 4 else None
     seed = _first_seed(stars, camera, catalog, tier, timings, peek)
     searched = params.optics is not None and _nominal_off(peek, seed, stars, camera, catalog, params.optics)
@@ -1073,7 +1085,7 @@ def result_fields(out: PipelineOutput) -> dict:
     fields["ext.n_matched"] = n_matched
     fields.update(_optics_fields(out))
     fields["ext.stars"] = ext_stars
-    fields["ext.stage_times"] = np.array(list(out.timings.to_dict().values()), dtype=np.float32)
+    fields["ext.stage_times"] = np.array([getattr(out.timings, name) for name in STAGES], dtype=np.float32)
     fields["ext.method"] = method_code(sol.method if sol else None)
     if stars is not None and out.camera is not None:
         fields["statistics.good_rows"] = [out.camera.height, 0]  # every row of image 1 read; no image 2
