@@ -1,12 +1,18 @@
 """The attitude feed (docs/hil.md): wire formats, transports on loopback, the checks that flag a
-frame instead of rendering it, smear at a known rate, and the device serving a feed end to end."""
+frame instead of rendering it, smear at a known rate, and the device serving a feed end to end.
 
+The feed and the device run on a manual clock: when a feed is stale or a fault has aged is
+decided by the test, not by how fast the machine is. Waits for bytes to arrive are hang guards."""
+
+import math
 import socket
 import struct
+import threading
 import time
 
 import numpy as np
 import pytest
+from manual_clock import ManualClock
 from scipy.spatial.transform import Rotation
 
 from firmware_model.camera import CameraModel
@@ -34,6 +40,7 @@ from protocol.commands import Code, NackInfo, NackReason
 Q0 = matrix_to_quat(attitude_from_radec_roll(1.0, 0.3, 0.2))
 W0 = np.radians([0.0, 0.5, 0.0])
 SMALL_CAM = CameraModel.from_fov(320, 240, 2.0)
+HANG_GUARD_S = 60.0  #: real seconds after which a wait for bytes or a thread is a failure
 
 
 def _sample(t, q=Q0, w=W0):
@@ -124,7 +131,7 @@ def test_listener_receives_over_loopback(transport, fmt):
             else:
                 snd.send(*sent[20:])
             snd.send_raw(b"\x01\x02\x03" if fmt == "binary" else b"garbage\n")  # TCP: a cut record at close
-        deadline = time.monotonic() + 5
+        deadline = time.monotonic() + HANG_GUARD_S
         while (len(got) < 50 or not errors) and time.monotonic() < deadline:
             time.sleep(0.01)
     finally:
@@ -143,8 +150,13 @@ def test_slerp_interpolates_the_short_way():
     )
 
 
+def _feed() -> tuple[AttitudeFeed, ManualClock, float]:
+    clock = ManualClock()
+    return AttitudeFeed(clock), clock, clock.now
+
+
 def test_good_feed_interpolates_at_mid_time():
-    feed, now = AttitudeFeed(), time.time()
+    feed, _, now = _feed()
     omega = np.radians([0.0, 0.0, 2.0])
     a0 = quat_to_matrix(Q0)
     for t in np.arange(now - 1, now + 1, 0.1):
@@ -166,9 +178,9 @@ BAD_SAMPLES = {
 
 @pytest.mark.parametrize("case", sorted(BAD_SAMPLES))
 def test_bad_sample_flags_the_frame_then_the_feed_recovers(case):
-    feed, now = AttitudeFeed(), time.time()
+    feed, _, now = _feed()
     _path(feed, now - 1, now)  # arrived before the exposure
-    feed.offer(BAD_SAMPLES[case](now))
+    feed.offer(BAD_SAMPLES[case](now))  # arrives at `now` by the feed's clock
     _path(feed, now, now + 0.5)
     with pytest.raises(FrameUnavailable, match="fault during the exposure"):
         feed.at(now + 0.25, timeout=0.0, max_gap=0.5)
@@ -178,10 +190,11 @@ def test_bad_sample_flags_the_frame_then_the_feed_recovers(case):
 
 
 def test_stale_gap_and_no_history_are_flagged():
-    feed, now = AttitudeFeed(), time.time()
+    feed, clock, now = _feed()
     with pytest.raises(FrameUnavailable, match="no sample received"):
         feed.at(now, timeout=0.0, max_gap=0.5)
     _path(feed, now - 2, now - 1)
+    clock.advance(0.06)  # past the wait's end (now + 0.05): nothing newer arrived
     with pytest.raises(FrameUnavailable, match="stale"):
         feed.at(now, timeout=0.05, max_gap=0.5)
     feed.offer(_sample(now + 1, Q0, np.zeros(3)))  # the feed resumes after a 2 s silence
@@ -193,8 +206,38 @@ def test_stale_gap_and_no_history_are_flagged():
         late.at(now, timeout=0.0, max_gap=0.5)
 
 
+def _waiting_at(feed, t, timeout) -> tuple[threading.Thread, list]:
+    """``feed.at(t, timeout, 0.5)`` in a thread; the list gets its (q, w) or its exception."""
+    out: list = []
+
+    def run():
+        try:
+            out.append(feed.at(t, timeout=timeout, max_gap=0.5))
+        except FrameUnavailable as exc:
+            out.append(exc)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread, out
+
+
+def test_a_capture_waits_by_the_clock_and_takes_a_sample_that_arrives_in_time():
+    feed, clock, now = _feed()
+    _path(feed, now - 1, now)
+    thread, out = _waiting_at(feed, now + 0.05, timeout=0.25)
+    thread.join(0.3)
+    assert thread.is_alive() and not out  # the clock has not moved: still waiting, however long that is
+    feed.offer(_sample(now + 0.1, Q0, np.zeros(3)))  # the sample the exposure needs
+    thread.join(HANG_GUARD_S)
+    assert len(out) == 1 and not isinstance(out[0], Exception) and np.allclose(out[0][0], Q0)
+    thread, out = _waiting_at(feed, now + 0.2, timeout=0.25)  # nothing after now + 0.1 will come
+    clock.advance(0.46)  # the clock passes now + 0.2 + 0.25: the wait ends
+    thread.join(HANG_GUARD_S)
+    assert len(out) == 1 and isinstance(out[0], FrameUnavailable) and "stale" in str(out[0])
+
+
 def test_undecodable_bytes_flag_the_frame():
-    feed, now = AttitudeFeed(), time.time()
+    feed, _, now = _feed()
     _path(feed, now - 1, now + 1)
     feed.fault("not a JSON sample")
     with pytest.raises(FrameUnavailable, match="not a JSON sample"):
@@ -246,23 +289,34 @@ class _OkSolver:
 
 @pytest.fixture
 def feed_device():
+    """(device, sender, solver, clock): an in-process device capturing from a UDP feed, the device
+    and its feed on one manual clock."""
     url = f"udp://127.0.0.1:{_free_port(socket.SOCK_DGRAM)}?timeout=0.2"
+    clock = ManualClock()
     renderer = ExposureRenderer(SMALL_CAM)
-    source = AttitudeFeedSource(url, SMALL_CAM, renderer=renderer)
+    source = AttitudeFeedSource(url, SMALL_CAM, renderer=renderer, clock=clock)
     solver = _OkSolver()
-    dev = Device(solver=solver, frame_source=source, sensor_shape=(SMALL_CAM.height, SMALL_CAM.width))
+    dev = Device(solver=solver, frame_source=source, sensor_shape=(SMALL_CAM.height, SMALL_CAM.width), clock=clock)
     dev.runner.transfers.objects[0] = "catalog"  # any catalog object: the stub solver ignores it
     (rep,) = _send(dev, Code.INIT, struct.pack("<I", 0x2000))
     assert rep.ack
-    with Sender(url) as snd:
-        yield dev, snd, solver
-    source.close()
+    try:
+        with Sender(url) as snd:
+            yield dev, snd, solver, clock
+    finally:
+        clock.advance(3600.0)  # a capture still waiting gives up at once
+        dev.wait_idle(HANG_GUARD_S)
+        source.close()
 
 
-def _go(dev):
+def _go(dev, clock=None, waited=0.0):
+    """GO; with ``clock``, the clock moves on ``waited`` s once the GO is stamped (a capture
+    waiting for the feed sees that much time pass)."""
     (rep,) = _send(dev, Code.GO, b"\x0b")
     assert rep.ack
-    assert dev.wait_idle(10)
+    if clock is not None:
+        clock.advance(waited)
+    assert dev.wait_idle(HANG_GUARD_S)
     rec = result.parse(dev.runner.result)
     return result.status_of(int(rec["return_code"])), bytes(rec["ext"]["reason"]).rstrip(b"\0").decode()
 
@@ -274,55 +328,92 @@ def _stream(snd, t0, t1, step=0.02) -> float:
     return float(ts[-1])
 
 
-def _wait_for(dev, t):
-    deadline = time.monotonic() + 5
-    while time.monotonic() < deadline:
-        ring = dev.frame_source.feed._ring
-        if ring and ring[-1].t >= t:
-            return
+def _wait_for(dev, arrived, what: str) -> None:
+    """Until ``arrived(feed)`` holds (the listener thread has taken what was sent): a hang guard."""
+    deadline = time.monotonic() + HANG_GUARD_S
+    while not arrived(dev.frame_source.feed):
+        if time.monotonic() > deadline:
+            raise AssertionError(f"the feed did not receive {what}")
         time.sleep(0.005)
-    raise AssertionError("feed samples did not arrive")
+
+
+def _wait_for_samples(dev, t) -> None:
+    _wait_for(dev, lambda feed: (feed.newest_t() or -math.inf) >= t, f"samples up to {t}")
 
 
 @pytest.mark.parametrize("case", sorted(BAD_SAMPLES) + ["stale", "malformed"])
 def test_device_flags_a_bad_feed_and_keeps_serving(feed_device, case):
-    dev, snd, solver = feed_device
-    now = time.time()
+    dev, snd, solver, clock = feed_device
+    now = clock.now
     last = _stream(snd, now - 1, now + 1)
-    _wait_for(dev, last)
+    _wait_for_samples(dev, last)
     assert _go(dev)[0] == result.Status.OK and len(solver.frames) == 1  # a good feed renders and solves
     if case == "stale":
-        time.sleep(1.1)  # the feed stops: nothing newer than the next exposure arrives
-    elif case == "malformed":
-        snd.send_raw(b'{"t": 1, "q": "oops"}\n')
+        # the feed stops: GO at now + 1.1 (exposure mid-time now + 1.15, after the newest sample);
+        # the capture waits until the clock passes now + 1.35, then gives up
+        clock.advance(1.1)
+        status, reason = _go(dev, clock, waited=0.3)
+        assert "stale" in reason, reason
     else:
-        snd.send(BAD_SAMPLES[case](now + 1.0))
-    time.sleep(0.05)
-    if case != "stale":
+        if case == "malformed":
+            snd.send_raw(b'{"t": 1, "q": "oops"}\n')
+        else:
+            snd.send(BAD_SAMPLES[case](now + 1.0))
+        _wait_for(dev, lambda feed: bool(feed.faults()), "the bad sample")  # a fault at `now`
         last = _stream(snd, last + 0.02, now + 3)  # the feed goes on
-    status, reason = _go(dev)
+        _wait_for_samples(dev, last)
+        status, reason = _go(dev)  # GO at `now`: the fault is within max_gap of the exposure
     assert status == result.Status.BAD_FRAME and "attitude feed" in reason, reason
     assert len(solver.frames) == 1  # nothing rendered went to the solver
     (rep,) = _send(dev, Code.PING)
     assert rep.ack and b"IDLE" in rep.data
     # a fault makes the feed suspect for max_gap (0.5 s); a jump restarts the path at now + 1
-    time.sleep(max(0.6, now + 1.1 - time.time()))
-    if last < time.time() + 1.0:  # the stale feed resumes
-        last = _stream(snd, last + 0.02, time.time() + 1.5)
-    _wait_for(dev, last)
+    clock.set(max(clock.now, now + 1.1))
+    if case == "stale":  # the stale feed resumes
+        last = _stream(snd, last + 0.02, now + 3)
+        _wait_for_samples(dev, last)
     assert _go(dev)[0] == result.Status.OK and len(solver.frames) == 2  # and recovers
 
 
 def test_busy_nack_while_a_feed_exposure_waits(feed_device):
-    dev, snd, _ = feed_device
+    dev, snd, _, clock = feed_device
     (rep,) = _send(dev, Code.GO, b"\x0b")  # no samples: the exposure waits for the feed
-    (busy,) = _send(dev, Code.GO, b"\x0b")
+    assert rep.ack
+    (busy,) = _send(dev, Code.GO, b"\x0b")  # the clock has not moved: the capture still waits
     info = NackInfo.unpack(busy.data)
     assert not busy.ack and info.reason == NackReason.BUSY and "sequence 1" in info.text
-    assert dev.wait_idle(5)
+    clock.advance(1.0)  # past the exposure's wait: the capture gives up
+    assert dev.wait_idle(HANG_GUARD_S)
+    rec = result.parse(dev.runner.result)
+    assert result.status_of(int(rec["return_code"])) == result.Status.BAD_FRAME
+    assert b"no sample received" in bytes(rec["ext"]["reason"])
 
 
 # ---------------------------------------------------------------- end to end: st16-device --attitude-feed
+
+
+class _RealTimeStream(threading.Thread):
+    """A dynamics simulator: samples of ``truth(t)`` stamped with the time they are sent
+    (``time.time``, the device's clock), every ``step`` s until stopped; :meth:`inject` sends one
+    extra sample between two of them. A sample at or after an exposure's mid-time is sent after
+    that time, so everything sent before it has reached the device's feed first (one TCP stream)."""
+
+    def __init__(self, sender, truth, omega, step=0.02):
+        super().__init__(daemon=True)
+        self.sender, self.truth, self.omega, self.step = sender, truth, omega, step
+        self.stop = threading.Event()
+        self._lock = threading.Lock()
+
+    def run(self):
+        while not self.stop.is_set():
+            t = time.time()
+            with self._lock:
+                self.sender.send(Sample(t, matrix_to_quat(self.truth(t)), self.omega))
+            self.stop.wait(self.step)
+
+    def inject(self, sample):
+        with self._lock:
+            self.sender.send(sample)
 
 
 def test_device_cli_solves_along_a_fed_path(tmp_path):
@@ -337,7 +428,9 @@ def test_device_cli_solves_along_a_fed_path(tmp_path):
     catalog = build_catalog(CatalogDesign())
     (a0,) = pick_attitudes(catalog, cam, 1, np.random.default_rng(4))
     omega = np.radians([0.3, -0.2, 0.5])  # deg/s: a few px of smear in 0.1 s
-    url = f"tcp://127.0.0.1:{_free_port(socket.SOCK_STREAM)}?format=binary"
+    # the capture waits up to 60 s for its sample and takes gaps and faults from 60 s before it as
+    # its own: hang guards, so a starved stream thread is neither a gap nor a missed fault
+    url = f"tcp://127.0.0.1:{_free_port(socket.SOCK_STREAM)}?format=binary&timeout=60&max_gap=60"
     proc, pty = start_device(tmp_path / "state", "--attitude-feed", url)
     t0 = time.time()
 
@@ -348,12 +441,16 @@ def test_device_cli_solves_along_a_fed_path(tmp_path):
         with Client(pty) as c, Sender(url) as snd:
             c.init()
             c.upload(0, catalog_to_image(catalog), progress=False)
-            snd.send(*(Sample(t, matrix_to_quat(truth(t)), omega) for t in np.arange(t0, time.time() + 3, 0.02)))
-            time.sleep(0.1)
-            raw = c.go_and_wait(timeout=30)
-            rec, epoch = solve_record(raw), float(raw["epoch"])  # epoch: the device's GO time
-            snd.send(Sample(time.time(), Q0 * 2, omega))  # unnormalised
-            flagged = solve_record(c.go_and_wait(timeout=30))
+            stream = _RealTimeStream(snd, truth, omega)
+            stream.start()
+            try:
+                raw = c.go_and_wait(timeout=120)
+                rec, epoch = solve_record(raw), float(raw["epoch"])  # epoch: the device's GO time
+                stream.inject(Sample(time.time(), Q0 * 2, omega))  # unnormalised
+                flagged = solve_record(c.go_and_wait(timeout=120))
+            finally:
+                stream.stop.set()
+                stream.join(HANG_GUARD_S)
             assert "APPLICATION" in c.ping()
     finally:
         assert stop_device(proc) == 0

@@ -18,6 +18,10 @@ before the exposure, a gap over ``max_gap`` s around it, or a fault recorded fro
 before the mid-time on (the feed is suspect that long after a fault). Registered as the ``attitude_feed`` entry point of
 ``st16.frame_sources``. URL query options: ``format``, ``exposure`` (s, default the detector's
 0.1), ``timeout`` (s, 0.25), ``max_gap`` (s, 0.5), ``pattern`` (RGGB).
+
+Every time here (arrival of a fault, the capture's wait) is read from one ``clock`` (POSIX s,
+``time.time`` unless given), the clock the device stamps its GO with: a test passes a manual clock
+to both and decides when a feed is stale or a fault has aged, whatever the machine's load.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 
 import numpy as np
 
@@ -41,6 +46,7 @@ NORM_TOL = 1e-6  #: | |q| - 1 | above this is an unnormalised quaternion
 JUMP_TOL = 1e-3  #: rad of turn between two samples allowed beyond what their rates explain
 RING = 512  #: samples kept (about 5 s at 100 Hz)
 MIN_SMEAR_PX = 0.05  #: below this track length the exposure renders without smear
+WAIT_SLICE_S = 0.02  #: real seconds a waiting capture sleeps between looks at the clock
 
 
 def allowed_turn(a: Sample, b: Sample) -> float:
@@ -79,9 +85,10 @@ def check(sample: Sample, prev: Sample | None) -> str | None:
 
 
 class AttitudeFeed:
-    """The checked samples and faults of one feed (module docstring); thread-safe."""
+    """The checked samples and faults of one feed (module docstring); thread-safe. ``clock``
+    (POSIX s) stamps each fault's arrival and bounds :meth:`at`'s wait."""
 
-    def __init__(self, clock=time.time):
+    def __init__(self, clock: Callable[[], float] = time.time):
         self.clock = clock
         self._ring: deque[Sample] = deque(maxlen=RING)
         self._faults: deque[tuple[float, str]] = deque(maxlen=64)
@@ -106,11 +113,27 @@ class AttitudeFeed:
         with self._cond:
             self._faults.append((self.clock(), reason))
 
-    def at(self, t: float, timeout: float, max_gap: float) -> tuple[np.ndarray, np.ndarray]:
-        """(q, w) at ``t`` (POSIX s), waiting until ``t + timeout`` (clock) for a sample at or after
-        it; raises FrameUnavailable with the reason when the feed cannot give a sound attitude."""
+    def newest_t(self) -> float | None:
+        """Time of the newest kept sample, None before the first."""
         with self._cond:
-            self._cond.wait_for(lambda: bool(self._ring) and self._ring[-1].t >= t, t + timeout - self.clock())
+            return self._ring[-1].t if self._ring else None
+
+    def faults(self) -> list[tuple[float, str]]:
+        """The recorded faults (arrival time by the clock, reason), oldest first."""
+        with self._cond:
+            return list(self._faults)
+
+    def at(self, t: float, timeout: float, max_gap: float) -> tuple[np.ndarray, np.ndarray]:
+        """(q, w) at ``t`` (POSIX s), waiting until the clock reads ``t + timeout`` for a sample at
+        or after it; raises FrameUnavailable with the reason when the feed cannot give a sound attitude.
+        The wait looks at the clock every :data:`WAIT_SLICE_S` of real time, so with a manual clock
+        it lasts until that clock is moved past the deadline (or the sample arrives)."""
+        with self._cond:
+            while not (self._ring and self._ring[-1].t >= t):
+                left = t + timeout - self.clock()
+                if left <= 0:
+                    break
+                self._cond.wait(min(left, WAIT_SLICE_S))
             if not self._ring:
                 raise FrameUnavailable("attitude feed: no sample received")
             newest = self._ring[-1]
@@ -130,9 +153,12 @@ class AttitudeFeed:
 
 
 class AttitudeFeedSource:
-    """Capture source: the exposure at each GO rendered along the fed attitude path."""
+    """Capture source: the exposure at each GO rendered along the fed attitude path. ``clock``
+    (POSIX s) must be the device's, whose GO time the exposure starts at (module docstring)."""
 
-    def __init__(self, spec: str, camera, renderer: ExposureRenderer | None = None):
+    def __init__(
+        self, spec: str, camera, renderer: ExposureRenderer | None = None, clock: Callable[[], float] = time.time
+    ):
         url = FeedUrl.parse(spec)
         opts = dict(url.options)
         try:
@@ -150,7 +176,7 @@ class AttitudeFeedSource:
         self.camera = camera
         self.renderer = renderer or ExposureRenderer(camera)
         self.renderer.bank(self.det)  # drawn at start-up, not inside the first GO
-        self.feed = AttitudeFeed()
+        self.feed = AttitudeFeed(clock)
         self.listener = Listener(url, self.feed.offer, self.feed.fault)
 
     def close(self) -> None:
