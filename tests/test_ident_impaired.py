@@ -156,7 +156,7 @@ def test_two_true_stars_among_false_ones_give_a_low_confidence_answer():
         v2 = np.vstack([fv, v])
         rg2 = np.concatenate([rng.uniform(0.3, 1.3, 4), rg])
         bg2 = np.concatenate([rng.uniform(0.3, 1.4, 4), bg])
-        params = SolveParams(sigma_vec=SIG, fov=FOV, time_budget_s=10.0)
+        params = SolveParams(sigma_vec=SIG, fov=FOV)
         res = solve(v2, rg2, bg2, sparse, params)
         none = solve(v2, rg2, bg2, sparse, replace(params, consensus=ConsensusParams(last_resort=0)))
         assert none.status is Outcome.NO_MATCH
@@ -222,7 +222,7 @@ def test_triad_order_covers_small_sets_first_and_adapts():
 
 def test_mono_frames_with_false_bright_stars_are_solved(cat):
     rng = np.random.default_rng(21)
-    params = SolveParams(mode="geometric", sigma_vec=SIG, fov=FOV, time_budget_s=10.0)
+    params = SolveParams(mode="geometric", sigma_vec=SIG, fov=FOV)
     ok = 0
     for _ in range(6):
         v, _, _, truth = _impaired_frame(cat, rng, drop=1, n_false=6, min_true=5)

@@ -134,7 +134,7 @@ def _scene(catalog, colour, seed=3):
 
 
 def _params(mode):
-    return SolveParams(mode=mode, sigma_vec=0.2 / CAM.f, fov=FieldOfView.from_camera(CAM, 0.0), time_budget_s=10.0)
+    return SolveParams(mode=mode, sigma_vec=0.2 / CAM.f, fov=FieldOfView.from_camera(CAM, 0.0))
 
 
 @pytest.mark.parametrize("mode", [Mode.COLOUR, Mode.GEOMETRIC, Mode.AUTO])

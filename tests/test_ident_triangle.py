@@ -52,9 +52,7 @@ def cat():
 def test_noisy_mono_frames_solve_through_the_fallback(cat):
     """1 px noise on a 20 deg field: beyond 4-star voting, the verified triangles still solve."""
     camera = CameraModel.from_fov(1024, 1024, 10.0)
-    params = SolveParams(
-        mode="geometric", sigma_vec=1.0 / camera.f, fov=FieldOfView.from_camera(camera), time_budget_s=1.0
-    )
+    params = SolveParams(mode="geometric", sigma_vec=1.0 / camera.f, fov=FieldOfView.from_camera(camera))
     rng = np.random.default_rng(5)
     high = wrong = 0
     for _ in range(12):

@@ -106,7 +106,7 @@ def test_device_and_offline_replay_give_the_same_answers(tetra3, tmp_path):
     from ground.link.solve_report import solve_record
 
     params = tmp_path / "params.json"
-    params.write_text(json.dumps({"mode": "geometric", "time_budget_s": 0.2}))
+    params.write_text(json.dumps({"mode": "geometric", "max_verifications": 200, "max_seeds": 48}))
     run = subprocess.run(
         [
             *GROUND,

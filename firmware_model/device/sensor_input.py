@@ -38,6 +38,9 @@ from protocol.result import QuaternionOrder
 
 log = logging.getLogger(__name__)
 
+#: The largest counted search budget a parameter file may set.
+MAX_COUNT = 100_000
+
 FRAME_SOURCE_GROUP = "st16.frame_sources"
 
 #: Slot reason codes (ours, docs/ICD.md): catalog images use 0x0201-0x0212
@@ -86,8 +89,11 @@ class DeviceParams:
     """The slot-2 parameter set (JSON object; every key optional, unknown keys refused):
 
     ``mode`` "auto" | "colour" | "geometric"; ``sigma_rg``, ``sigma_bg`` colour noise for
-    matching; ``centroid_sigma_px`` fixed centroid noise (else from the fit); ``time_budget_s``
-    identification budget; ``psf_sigma_px`` the optics' PSF sigma, an override of the per-frame
+    matching; ``centroid_sigma_px`` fixed centroid noise (else from the fit); the counted search
+    budgets (docs/identification.md, "The solve plan"; integers, 1 to 100000): ``max_verifications``
+    hypotheses verified per solve (``SolveParams.max_verifications``), ``max_seeds`` pattern seeds
+    the optics search refines per frame and ``max_frame_verifications`` verifications after which
+    a frame starts no further seed (``OpticsSearch``); ``psf_sigma_px`` the optics' PSF sigma, an override of the per-frame
     measurement (detection's hot-pixel tests, the fit's start); ``colour_correction`` eq. 24 as
     ``{"beta": [6 numbers]}``; ``focal_search`` relative half-range of the focal-length search
     for uncalibrated optics (0 to 0.2; 0 takes the camera as calibrated: no search, no optics
@@ -109,7 +115,9 @@ class DeviceParams:
     sigma_rg: float | None = None
     sigma_bg: float | None = None
     centroid_sigma_px: float | None = None
-    time_budget_s: float | None = None
+    max_verifications: int | None = None
+    max_seeds: int | None = None
+    max_frame_verifications: int | None = None
     psf_sigma_px: float | None = None
     colour_beta: tuple | None = None
     focal_search: float | None = None
@@ -123,7 +131,9 @@ class DeviceParams:
         "sigma_rg",
         "sigma_bg",
         "centroid_sigma_px",
-        "time_budget_s",
+        "max_verifications",
+        "max_seeds",
+        "max_frame_verifications",
         "psf_sigma_px",
         "colour_correction",
         "focal_search",
@@ -152,6 +162,12 @@ class DeviceParams:
             raise SlotRejected(REJECT_PARAMS_JSON, f"parameter set is not UTF-8 JSON: {exc}") from None
         if not isinstance(obj, dict):
             raise SlotRejected(REJECT_PARAMS_JSON, "parameter set must be a JSON object")
+        if "time_budget_s" in obj:
+            raise SlotRejected(
+                REJECT_PARAMS_KEY,
+                "time_budget_s is gone: searches are bounded by counted work "
+                "(max_verifications, max_seeds, max_frame_verifications), the same answer on any machine",
+            )
         unknown = sorted(set(obj) - set(cls.KEYS))
         if unknown:
             raise SlotRejected(REJECT_PARAMS_KEY, f"unknown parameter(s) {unknown}; known: {list(cls.KEYS)}")
@@ -174,6 +190,14 @@ class DeviceParams:
 
         def positive(key):
             return number(key)
+
+        def count(key):
+            v = obj.get(key)
+            if v is None:
+                return None
+            if not isinstance(v, int) or isinstance(v, bool) or not 1 <= v <= MAX_COUNT:
+                raise SlotRejected(REJECT_PARAMS_VALUE, f"{key} must be a whole number in [1, {MAX_COUNT}], got {v!r}")
+            return v
 
         mode = None
         if obj.get("mode") is not None:
@@ -200,7 +224,9 @@ class DeviceParams:
             positive("sigma_rg"),
             positive("sigma_bg"),
             positive("centroid_sigma_px"),
-            positive("time_budget_s"),
+            count("max_verifications"),
+            count("max_seeds"),
+            count("max_frame_verifications"),
             number("psf_sigma_px", *PSF_SIGMA_RANGE_PX, lo_open=False),
             beta,
             number("focal_search", 0.0, 0.2, lo_open=False),
@@ -212,7 +238,7 @@ class DeviceParams:
 
     def apply(self, base: PipelineParams) -> PipelineParams:
         solve = base.solve
-        for key in ("mode", "sigma_rg", "sigma_bg", "time_budget_s"):
+        for key in ("mode", "sigma_rg", "sigma_bg", "max_verifications"):
             value = getattr(self, key)
             if value is not None:
                 solve = replace(solve, **{key: value})
@@ -226,6 +252,10 @@ class DeviceParams:
             base = replace(base, optics=None)
         elif base.optics is not None and self.focal_search is not None:
             base = replace(base, optics=replace(base.optics, focal_range=self.focal_search))
+        if base.optics is not None and self.max_seeds is not None:
+            base = replace(base, optics=replace(base.optics, max_seeds=self.max_seeds))
+        if base.optics is not None and self.max_frame_verifications is not None:
+            base = replace(base, optics=replace(base.optics, max_verifications=self.max_frame_verifications))
         return replace(
             base,
             solve=solve,

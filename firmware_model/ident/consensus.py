@@ -28,12 +28,12 @@ Beyond the paper (every knob in ``ConsensusParams``):
   ``confident_stars`` stars covering ``confident_coverage`` of the predicted stars.
 * Bounded work: the ``max_stars`` brightest detections are used, at most
   ``min(ceil(attempts_per_star N_A), max_attempts)`` seed pairs, ``k_best`` growths per seed,
-  ``max_window`` scored rows per pair look-up, and an optional wall-clock deadline.
+  ``max_window`` scored rows per pair look-up, and the solve's counted verifications
+  (``budget.SearchBudget``: the search stops when they run out, whatever the machine).
 """
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -41,6 +41,7 @@ from enum import StrEnum
 import numpy as np
 
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between
+from firmware_model.ident.budget import SearchBudget
 from firmware_model.ident.pair_match import PairNoise, consistency_tolerance, critical_distance, match_pair
 from firmware_model.ident.verify import VerifiedMatch
 
@@ -293,12 +294,13 @@ def match_scene(
     noise: PairNoise,
     params: ConsensusParams,
     verify: Callable[[np.ndarray, np.ndarray], tuple[VerifiedMatch | None, str]],
-    deadline: float | None = None,
+    budget: SearchBudget | None = None,
 ) -> ConsensusResult:
     """Consensus match of a scene (module docstring); detections ordered brightest first.
 
-    ``verify(det, cat)`` returns ``(match, "")`` with ``match.n``, ``match.attitude.a`` and
-    ``match.attitude.rms``, or ``(None, reason)``. ``deadline`` is a ``time.perf_counter`` value.
+        ``verify(det, cat)`` returns ``(match, "")`` with ``match.n``, ``match.attitude.a`` and
+        ``match.attitude.rms``, or ``(None, reason)``; ``budget`` counts the calls to ``verify`` (the
+    caller spends it there) and stops the search when it is exhausted.
     """
     n_all = len(vectors)
     n = min(n_all, params.max_stars)
@@ -320,8 +322,8 @@ def match_scene(
     for k, l in order:
         if attempts >= max_attempts:
             break
-        if deadline is not None and time.perf_counter() > deadline:
-            last_reason = "time budget exhausted"
+        if budget is not None and budget.exhausted:
+            last_reason = budget.reason
             break
         phi = ang[k, l]
         if not catalog.phi_min - tol < phi <= catalog.phi_max + tol:
@@ -358,6 +360,8 @@ def match_scene(
                 best.confirmed += 1
                 good = True
                 continue
+            if budget is not None and budget.exhausted:
+                break
             match, why = verify(det, cat)
             if match is None:
                 last_reason = f"hypotheses failed verification ({why})"
@@ -393,8 +397,8 @@ def match_scene(
                 ranked.append((density, delta, det, cat, explored))
         ranked.sort(key=lambda t: (t[0], t[1]))
         for _, delta, det, cat, explored in ranked[: params.last_resort]:
-            if deadline is not None and time.perf_counter() > deadline:
-                last_reason = "time budget exhausted"
+            if budget is not None and budget.exhausted:
+                last_reason = budget.reason
                 break
             match, why = verify(det, cat)
             if match is None:

@@ -24,6 +24,7 @@ from enum import StrEnum
 import numpy as np
 
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between
+from firmware_model.ident.budget import Stop
 from firmware_model.ident.consensus import ConsensusParams, Outcome
 from firmware_model.ident.four_star import FourStarParams
 from firmware_model.ident.pair_match import sigma_phi_from_centroid
@@ -35,6 +36,10 @@ from protocol.result import MethodCode
 #: user stops calling high confidence (docs/identification.md, "Confidence and the attitude's own
 #: uncertainty").
 MAX_ROLL_SIGMA = float(np.radians(0.1))
+
+#: Default verifications per solve (``SolveParams.max_verifications``): docs/identification.md,
+#: "The solve plan", says how it was chosen.
+MAX_VERIFICATIONS = 200
 
 #: Per-axis direction noise of the Enright & McVittie reference design: 0.2 px at f = 7383 px (rad).
 REFERENCE_SIGMA_VEC = 0.2 / 7383.1
@@ -87,7 +92,10 @@ class SolveParams:
     sigma_rg, sigma_bg: colour-ratio noise.
     fov: the sensor's field of view for the coverage test; None means a cone through the
         outermost detection.
-    time_budget_s: wall-clock budget checked between consensus attempts (hard stop).
+    max_verifications: hypotheses one solve may verify (``budget.SearchBudget``, counted; a
+        solve that runs out answers with what it verified, NO_MATCH naming the count when none).
+    deadline: flight timing only: a ``time.perf_counter`` value past which the search stops
+        (``budget.SearchBudget``); None, the default: counts alone decide.
     max_detections: detections considered (brightest first); the matchers use fewer.
     max_roll_sigma: the largest 1-sigma roll (rotation about the boresight, rad) a high-confidence
         answer may have (:data:`MAX_ROLL_SIGMA`; ``strategy.bound_roll``); inf: no bound.
@@ -106,7 +114,8 @@ class SolveParams:
     triangle: TriangleParams = TriangleParams()
     verify: VerifyParams = VerifyParams()
     fov: FieldOfView | None = None
-    time_budget_s: float = 0.05
+    max_verifications: int = MAX_VERIFICATIONS
+    deadline: float | None = None
     max_detections: int = 200
     max_roll_sigma: float = MAX_ROLL_SIGMA
     noise_probe_px: float = 1.0
@@ -169,6 +178,8 @@ class SolveResult:
     timings: SolveTimings = field(default_factory=SolveTimings)
     notes: list[str] = field(default_factory=list)
     roll_limited: bool = False
+    verifications: int = 0  #: hypotheses the solve verified (its counted work)
+    stopped: Stop = Stop.NONE  #: what stopped the search early, if anything (``budget.Stop``)
     noise_extra: float = 0.0  #: per-axis noise (rad) the residuals showed beyond the announced (strategy.adapt_noise)
 
     @property

@@ -62,6 +62,7 @@ from scipy.special import ndtr, stdtrit
 from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between
 from firmware_model.ident.attitude import covariance_kernel, quat_matrix, solve_attitude
+from firmware_model.ident.budget import SearchBudget, Stop, stop_reason
 from firmware_model.ident.consensus import ConsensusParams, Outcome, confident, match_scene
 from firmware_model.ident.four_star import match_four_star
 from firmware_model.ident.pair_match import PairNoise
@@ -144,15 +145,29 @@ class StrategyParams:
 
 @dataclass
 class IdentifyTimings:
-    """Seconds spent identifying one frame, summed over every solve: ``identify`` matching and
-    input cleaning, ``attitude`` verification and attitude."""
+    """What identifying one frame cost, summed over every solve: seconds (``identify`` matching and
+    input cleaning, ``attitude`` verification and attitude; measured, never enforced) and the
+    counted work that bounds it (the frame's ledger): ``verifications`` made, pattern ``seeds``
+    refined, and the first thing that stopped a search early (``budget.Stop``)."""
 
     identify: float = 0.0
     attitude: float = 0.0
+    verifications: int = 0
+    seeds: int = 0
+    stopped: Stop = Stop.NONE
+    stop_reason: str = ""
 
     def add_solve(self, sol: SolveResult) -> None:
         self.identify = self.identify + sol.timings.match + sol.timings.validate
         self.attitude += sol.timings.verify
+        self.verifications += sol.verifications
+        if sol.stopped is not Stop.NONE:
+            self.stop(sol.stopped, stop_reason(sol.stopped, sol.verifications, "verifications"))
+
+    def stop(self, why: Stop, reason: str) -> None:
+        """Record what stopped a search and why (the first one counts)."""
+        if self.stopped is Stop.NONE:
+            self.stopped, self.stop_reason = why, reason
 
 
 @dataclass
@@ -618,6 +633,7 @@ def verify_over(
         base.verify,
     )
     timings.attitude += time.perf_counter() - t0
+    timings.verifications += 1
     return match
 
 
@@ -784,8 +800,10 @@ def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveP
     noise = PairNoise(params.pair_sigma_phi, params.sigma_rg, params.sigma_bg)
     colour = method is Method.COLOUR
     verify_time = [0.0]
+    budget = SearchBudget(params.max_verifications, params.deadline)
 
     def check(det: np.ndarray, cat: np.ndarray) -> tuple[VerifiedMatch | None, str]:
+        budget.spend()
         tv = time.perf_counter()
         out = verify(
             det,
@@ -803,37 +821,42 @@ def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveP
         verify_time[0] += time.perf_counter() - tv
         return out
 
-    deadline = t0 + params.time_budget_s
     t1 = time.perf_counter()
     if colour:
-        res = match_scene(v, scene.rg, scene.bg, catalog, noise, params.consensus, check, deadline=deadline)
+        res = match_scene(v, scene.rg, scene.bg, catalog, noise, params.consensus, check, budget)
         timings.match = time.perf_counter() - t1 - verify_time[0]
         timings.verify = verify_time[0]
         timings.total = time.perf_counter() - t0
         if res.best is None:
-            return no_match(res.reason, method)
+            return _spent(no_match(budget.reason or res.reason, method), budget)
         out = solution_from_match(res.best, res.outcome, res.reason, scene.index_map, catalog, method, n)
         out.attempts = res.attempts
     else:
         if n < 3:
             return no_match(f"geometric mode needs at least three detections, got {n}", method)
-        found, groups = match_geometric(v, catalog, noise, params, check, deadline)
+        found, groups = match_geometric(v, catalog, noise, params, check, budget)
         timings.match = time.perf_counter() - t1 - verify_time[0]
         timings.verify = verify_time[0]
         timings.total = time.perf_counter() - t0
         if not found:
-            why = "time budget exhausted" if time.perf_counter() > deadline else "no verified identification"
-            return no_match(f"{why} ({groups} 4-star group(s), triangle fallback)", method)
+            why = budget.reason or "no verified identification"
+            return _spent(no_match(f"{why} ({groups} 4-star group(s), triangle fallback)", method), budget)
         best, status, reason = decide_geometric(found, n, params.consensus)
         out = solution_from_match(best, status, reason, scene.index_map, catalog, method, n)
         out.attempts = groups
     out.timings = timings
     out.notes = scene.notes
-    return bound_roll(out, params.max_roll_sigma)
+    return bound_roll(_spent(out, budget), params.max_roll_sigma)
+
+
+def _spent(sol: SolveResult, budget: SearchBudget) -> SolveResult:
+    """``sol`` with the work its search counted and what stopped it."""
+    sol.verifications, sol.stopped = budget.used, budget.stopped
+    return sol
 
 
 def match_geometric(
-    v: np.ndarray, catalog: OnboardCatalog, noise: PairNoise, params: SolveParams, check: Check, deadline: float
+    v: np.ndarray, catalog: OnboardCatalog, noise: PairNoise, params: SolveParams, check: Check, budget: SearchBudget
 ) -> tuple[list[VerifiedMatch], int]:
     """Verified geometric hypotheses: 4-star matching (Dong et al.), then the triangle fallback
     when it is not conclusive. Returns the verified matches and the 4-star groups tried."""
@@ -849,7 +872,7 @@ def match_geometric(
             if match is not None:
                 found.append(match)
     if not (found and geometric_high(found[0], [], n, params.consensus)):
-        found += match_triangles(v, catalog, eps, check, params.triangle, deadline=deadline)
+        found += match_triangles(v, catalog, eps, check, params.triangle, budget)
     return found, groups
 
 

@@ -19,6 +19,7 @@ from itertools import combinations
 import numpy as np
 
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between, chord_of_angle
+from firmware_model.ident.budget import SearchBudget
 from firmware_model.ident.verify import VerifiedMatch
 
 
@@ -167,17 +168,15 @@ def match_triangles(
     eps: float,
     verify: Callable[[np.ndarray, np.ndarray], tuple[VerifiedMatch | None, str]],
     params: TriangleParams = TriangleParams(),
-    deadline: float | None = None,
+    budget: SearchBudget | None = None,
 ):
-    """Verified hypotheses from triangle candidates, best (most stars) first; ``deadline`` is a
-    ``time.perf_counter`` value."""
-    import time
-
+    """Verified hypotheses from triangle candidates, best (most stars) first; ``budget`` counts the
+    calls to ``verify`` (the caller spends it there) and stops the search when it is exhausted."""
     found: list[VerifiedMatch] = []
     n = min(len(vectors), params.max_stars)
     order = TriadOrder(n, params.adaptive)
     for t, (i, j, k) in enumerate(order):
-        if t >= params.max_triads or (deadline is not None and time.perf_counter() > deadline):
+        if t >= params.max_triads or (budget is not None and budget.exhausted):
             break
         det = np.array([i, j, k])
         n_found = len(found)
@@ -190,6 +189,8 @@ def match_triangles(
                 _probe(vectors[det], tris, vectors[others], catalog, chord_of_angle(params.probe_gate_eps * eps))
             ]
         for tri in tris:
+            if budget is not None and budget.exhausted:
+                break
             if any(set(tri.tolist()) <= set(f.cat.tolist()) for f in found):
                 continue  # already part of a verified set
             match, _ = verify(det, tri)

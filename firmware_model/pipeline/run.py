@@ -22,6 +22,7 @@ import numpy as np
 from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.ident.attitude import solve_attitude
+from firmware_model.ident.budget import Stop, stop_reason
 from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.solver import SolveParams, SolveResult, method_code
 from firmware_model.ident.strategy import (
@@ -98,6 +99,12 @@ class StageTimings(IdentifyTimings):
         return out
 
 
+#: Pattern seeds one frame's optics search may refine (``OpticsSearch.max_seeds``).
+MAX_SEEDS = 48
+#: Verifications after which a frame starts no further seed (``OpticsSearch.max_verifications``).
+MAX_FRAME_VERIFICATIONS = 2000
+
+
 @dataclass(frozen=True)
 class OpticsSearch:
     """Lost in space with a datasheet camera (focal length off by a few per cent, radial
@@ -124,9 +131,11 @@ class OpticsSearch:
     and their 1-sigma (``PipelineOutput.optics``, from at least ``min_stars`` matched stars); when
     the fit moves a corner by more than ``refit_px`` (and 3 sigma of the fit) or fits the stars
     :data:`REFIT_RMS_RATIO` times better, the frame is identified again with it so stars the first
-    camera missed are matched. The search stops once ``budget_s`` seconds have passed since the
-    frame's extraction began (the frame's whole budget: GO to result stays under 2 s whatever the
-    frame). ``focal_search 0`` on the device (``optics=None`` here) takes the camera as calibrated:
+    camera missed are matched. The search is bounded by counted work, never by the clock: at most
+    ``max_seeds`` pattern seeds refined, and no seed started once the frame has made
+    ``max_verifications`` verifications (every solve's and pattern check's, ``IdentifyTimings``);
+    docs/identification.md ("The solve plan") gives the worst case on this machine class, which
+    keeps GO to result within the device's 2 s. ``focal_search 0`` on the device (``optics=None`` here) takes the camera as calibrated:
     no search and no refit; on the geometric route its first pattern match (``OpticsSearch()``'s
     first tier, refined to find its stars) is still verified with it before the matchers run."""
 
@@ -136,7 +145,8 @@ class OpticsSearch:
     k1_min_stars: int = 6
     min_stars: int = 4
     refit_px: float = 1.0
-    budget_s: float = 1.5
+    max_seeds: int = MAX_SEEDS
+    max_verifications: int = MAX_FRAME_VERIFICATIONS
     first_tier: int = 8
     first_tier_hypotheses: int = 4
 
@@ -186,7 +196,12 @@ class PipelineParams:
     none or when it is high-confidence.
 
     ``optics``: the uncalibrated-optics search and the per-solve focal-length/distortion fit
-    (:class:`OpticsSearch`; None takes the camera as calibrated: neither runs)."""
+    (:class:`OpticsSearch`; None takes the camera as calibrated: neither runs).
+
+    ``flight_deadline_s``: flight timing only (``st16-device --timing realistic``): seconds after
+    the frame's extraction began past which every search stops (``budget.SearchBudget``) and the
+    answer says the deadline was missed; None, the default: counted budgets alone, the same
+    answer on any machine."""
 
     extract: ExtractParams = ExtractParams()
     solve: SolveParams = SolveParams()
@@ -198,6 +213,7 @@ class PipelineParams:
     colour_fallback: bool = True
     optics: OpticsSearch | None = OpticsSearch()
     centroid_floor_px: float = CENTROID_SIGMA_FLOOR_PX
+    flight_deadline_s: float | None = None
 
 
 @dataclass
@@ -213,6 +229,7 @@ class PipelineOutput:
     optics: OpticsFit | None = None  #: focal length and distortion fitted to the matched stars
     planets: list = field(default_factory=list)  #: ``planets.PlanetLabel`` of detections on a planet / the moon
     fallback_due: bool = False  #: the mono consensus fallback was deferred (``_identify``'s ``defer_fallback``)
+    stopped: Stop = Stop.NONE  #: what stopped a search of this frame early (``budget.Stop``), if anything
     omega: np.ndarray | None = None  #: body rate (rad/s, sensor axes) of a tracked answer (``tracking_run``)
     omega_covariance: np.ndarray | None = None  #: its 3x3 covariance ((rad/s)^2)
 
@@ -324,7 +341,6 @@ def identify_stars(
         fit=stars.timings.get("fit_s", 0.0),
         vectors=stars.timings.get("vectors_s", 0.0),
     )
-    frame_t0 = t0 - stars.timings.get("total_s", 0.0)  # the search's budget counts from extraction
     # a calibrated camera (no search) still starts from its first pattern match on the geometric route
     used = _usable(stars)
     geometric = len(used) >= 4 and routes_geometric(params.solve.mode, catalog, _has_colour(stars, used))
@@ -333,18 +349,18 @@ def identify_stars(
         t1 = time.perf_counter()
         scale_free.catalog_patterns(catalog, camera)  # once per catalog and field: a set-up stage
         timings.index = time.perf_counter() - t1
-        frame_t0 += timings.index
+    if params.flight_deadline_s is not None:  # flight timing: counted from the frame's extraction
+        deadline = t0 - stars.timings.get("total_s", 0.0) + timings.index + params.flight_deadline_s
+        params = replace(params, solve=replace(params.solve, deadline=deadline))
     peek = _first_tier(stars, camera, catalog, tier, timings) if len(used) >= 4 else None
     seed = _first_seed(stars, camera, catalog, tier, timings, peek)
     searched = params.optics is not None and _nominal_off(peek, seed, stars, camera, catalog, params.optics)
-    first = _search_optics(stars, camera, catalog, params, timings, frame_t0, peek, seed) if searched else None
+    first = _search_optics(stars, camera, catalog, params, timings, peek, seed) if searched else None
     if first is not None and first.status is Status.OK:  # else the usual way: the nominal camera first
-        first.timings = timings
-        timings.total = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
-        return first
+        return _accounted(first, timings, t0, stars)
 
     def search() -> PipelineOutput | None:  # the search once per frame: its answer kept when it went first
-        return first if searched else _search_optics(stars, camera, catalog, params, timings, frame_t0, peek, seed)
+        return first if searched else _search_optics(stars, camera, catalog, params, timings, peek, seed)
 
     # the nominal camera stays (the first pattern match's refined optics would not refit it): on
     # the geometric route, that match is verified with it before the matchers run (issue 12: one
@@ -375,7 +391,15 @@ def identify_stars(
             found = search()
             if found is not None and found.status is Status.OK and _rank(found) > _rank(out):
                 out = found  # a high-confidence answer only: the search may now return a low one
-    out.timings = timings
+    return _accounted(out, timings, t0, stars)
+
+
+def _accounted(out: PipelineOutput, timings: StageTimings, t0: float, stars: StarList) -> PipelineOutput:
+    """``out`` with the frame's timings and counted work; a NO_MATCH that a budget (or the
+    flight-timing deadline) cut short says so first in its reason."""
+    out.timings, out.stopped = timings, timings.stopped
+    if out.status is Status.NO_MATCH and timings.stop_reason and not out.reason.startswith(timings.stop_reason):
+        out.reason = f"{timings.stop_reason}; {out.reason}" if out.reason else timings.stop_reason
     timings.total = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
     return out
 
@@ -418,6 +442,7 @@ def _first_seed(
     t1 = time.perf_counter()
     refined = scale_free.refine(stars.x, stars.y, camera, hyp, catalog, k1_min_stars=search.k1_min_stars)
     timings.attitude += time.perf_counter() - t1
+    timings.seeds += 1
     return hyp, refined
 
 
@@ -689,7 +714,6 @@ def _search_optics(
     catalog: OnboardCatalog,
     params: PipelineParams,
     timings: StageTimings,
-    t0: float,
     peek: scale_free.BrightFirstMatches | None = None,
     seed: tuple[scale_free.Hypothesis, tuple | None] | None = None,
 ) -> PipelineOutput | None:
@@ -703,7 +727,7 @@ def _search_optics(
     tried: list[np.ndarray] = []
     best: tuple[PipelineOutput, float, PipelineParams] | None = None  # (answer, its pattern's focal scale, noise)
     for hyp in _pattern_seeds(stars, camera, catalog, search, timings, peek):
-        if time.perf_counter() - t0 > search.budget_s:
+        if _search_spent(search, params.solve.deadline, timings):
             break
         if any(rotation_angle(hyp.a, a) < _SAME_SEED_RAD for a in tried):
             continue
@@ -713,6 +737,7 @@ def _search_optics(
             t1 = time.perf_counter()
             refined = scale_free.refine(stars.x, stars.y, camera, hyp, catalog, k1_min_stars=search.k1_min_stars)
             timings.attitude += time.perf_counter() - t1
+            timings.seeds += 1
         if refined is None:
             continue
         tried.append(hyp.a)  # a seed near one that refined to a failed identification leads there too
@@ -739,6 +764,20 @@ def _search_optics(
         return None
     answer, scale, noise = best
     return _with_optics(answer, scale, catalog, params, noise)  # the optics of the answer only
+
+
+def _search_spent(search: OpticsSearch, deadline: float | None, timings: StageTimings) -> bool:
+    """Whether the optics search may start no further seed: its seeds or the frame's verifications
+    counted up to their budgets, or (flight timing) the deadline passed; the stop is recorded."""
+    if timings.seeds >= search.max_seeds:
+        timings.stop(Stop.COUNT, stop_reason(Stop.COUNT, search.max_seeds, "pattern seeds"))
+    elif timings.verifications >= search.max_verifications:
+        timings.stop(Stop.COUNT, stop_reason(Stop.COUNT, search.max_verifications, "verifications per frame"))
+    elif deadline is not None and time.perf_counter() > deadline:
+        timings.stop(Stop.DEADLINE, stop_reason(Stop.DEADLINE, 0, ""))
+    else:
+        return False
+    return True
 
 
 def _with_optics(

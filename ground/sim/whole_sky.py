@@ -34,10 +34,11 @@ import numpy as np
 
 from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog
+from firmware_model.ident.budget import Stop
 from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.four_star import FourStarParams, match_four_star
 from firmware_model.ident.solver import Mode, SolveParams
-from firmware_model.ident.strategy import Detections, StrategyParams, check_hypothesis, identify
+from firmware_model.ident.strategy import Detections, IdentifyTimings, StrategyParams, check_hypothesis, identify
 from firmware_model.ident.verify import FieldOfView
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, vec_to_radec
 from ground.atomic_write import save_figure
@@ -71,9 +72,10 @@ POSE_DTYPE = np.dtype(
 #: ``verification_rejects_truth``: the true identification of the detected stars, handed to the
 #: solver's verification (``check_hypothesis``), is refused (e.g. too many predicted stars
 #: missed): the verification's fault, whatever the matcher did;
-#: ``time_budget``: the solver stopped on ``time_budget_s`` (load-dependent);
+#: ``search_budget``: a search stopped on its counted budget (``ident.budget``: the same on every
+#: machine) before it found the truth;
 #: ``matcher_missed``: the truth would verify but the matcher did not find it.
-CAUSES = ("", "too_few_true_stars", "verification_rejects_truth", "time_budget", "matcher_missed")
+CAUSES = ("", "too_few_true_stars", "verification_rejects_truth", "search_budget", "matcher_missed")
 
 
 def spiral_boresights(n: int) -> np.ndarray:
@@ -273,7 +275,8 @@ def run_poses(catalog: OnboardCatalog, camera: CameraModel, cfg: ColourSimConfig
         b_idx = int(pid) // cfg.n_roll
         a, roll, scene = pose_scene(catalog, camera, cfg, int(pid), boresights, table)
         t = time.perf_counter()
-        found = identify(Detections(scene.vectors, scene.rg, scene.bg), catalog, strategy)
+        ledger = IdentifyTimings()
+        found = identify(Detections(scene.vectors, scene.rg, scene.bg), catalog, strategy, ledger)
         res = found.solution
         dt = time.perf_counter() - t
         rec = out[row]
@@ -282,7 +285,7 @@ def run_poses(catalog: OnboardCatalog, camera: CameraModel, cfg: ColourSimConfig
         rec["n_true"] = int(np.sum(scene.truth >= 0))
         rec["err_deg"] = np.nan
         if res.q_icrs_to_sensor is None:
-            rec["cause"] = no_solution_cause(scene, res.reason, catalog, params, cfg.colour)
+            rec["cause"] = no_solution_cause(scene, ledger.stopped, catalog, params, cfg.colour)
         if res.q_icrs_to_sensor is not None:
             truth = scene.truth[found.rows[res.matched_det]]
             rec["n_matched"] = len(truth)
@@ -293,9 +296,10 @@ def run_poses(catalog: OnboardCatalog, camera: CameraModel, cfg: ColourSimConfig
 
 
 def no_solution_cause(
-    scene: Scene, reason: str, catalog: OnboardCatalog, params: SolveParams, colour: bool, poor_fraction: float = 0.4
+    scene: Scene, stopped: Stop, catalog: OnboardCatalog, params: SolveParams, colour: bool, poor_fraction: float = 0.4
 ) -> int:
-    """Index into ``CAUSES`` of an unsolved pose (see ``CAUSES`` for the order of the tests)."""
+    """Index into ``CAUSES`` of an unsolved pose (see ``CAUSES`` for the order of the tests);
+    ``stopped`` what stopped its searches early (``IdentifyTimings.stopped``)."""
     true_det = np.nonzero(scene.truth >= 0)[0]
     need = 2 if colour else 3
     if len(true_det) < need or len(true_det) < poor_fraction * scene.n_visible:
@@ -303,8 +307,8 @@ def no_solution_cause(
     match, _ = check_hypothesis(scene.vectors, scene.rg, scene.bg, true_det, scene.truth[true_det], catalog, params)
     if match is None:
         return CAUSES.index("verification_rejects_truth")
-    if "time budget" in reason:
-        return CAUSES.index("time_budget")
+    if stopped is not Stop.NONE:
+        return CAUSES.index("search_budget")
     return CAUSES.index("matcher_missed")
 
 
