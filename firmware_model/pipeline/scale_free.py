@@ -110,32 +110,50 @@ def _region_groups(tree: cKDTree, mag: np.ndarray, field_radius: float) -> np.nd
 PATTERN_FIELD_REUSE = 0.02
 
 
+def pattern_field(catalog: OnboardCatalog, camera: CameraModel) -> int:
+    """The key (minor half-field, mrad) of the catalog patterns that serve ``camera``: the cached
+    field within :data:`PATTERN_FIELD_REUSE` of the camera's nearest to it, else the camera's own."""
+    mrad = int(round(camera.fov_half_angle_minor * 1000.0))
+    near = [m for m in catalog.__dict__.get("_pattern_cache", {}) if abs(m - mrad) <= PATTERN_FIELD_REUSE * m]
+    return min(near, key=lambda m: abs(m - mrad)) if near else mrad
+
+
 def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
     """(groups, keys, largest edge, KD-tree of keys) of the catalog's patterns for a camera's field
     (module constants), cached on the catalog object per minor half-field (to 1 mrad) and used for
     every camera within :data:`PATTERN_FIELD_REUSE` of a cached field (a focal length fitted to
-    one frame moves the field by ~0.1 %; building another field's patterns takes ~2 s: issue 12)."""
+    one frame moves the field by ~0.1 %; building another field's patterns takes ~2 s: issue 12).
+    :func:`pattern_index` builds them; a caller that built them elsewhere (another process: the
+    device after a catalog commit) installs them with :func:`set_catalog_patterns`."""
+    mrad = pattern_field(catalog, camera)
     cache = catalog.__dict__.setdefault("_pattern_cache", {})
-    mrad = int(round(camera.fov_half_angle_minor * 1000.0))
-    near = [m for m in cache if abs(m - mrad) <= PATTERN_FIELD_REUSE * m]
-    if near:
-        mrad = min(near, key=lambda m: abs(m - mrad))
     if mrad not in cache:
-        field = mrad / 1000.0
-        rank = np.argsort(np.argsort(catalog.mag, kind="stable"), kind="stable")
-        parts = [_region_groups(catalog._tree, catalog.mag, field)]
-        for factor in PATTERN_RADIUS_FACTORS:
-            near = catalog._tree.query_ball_point(
-                catalog.vec[: catalog.n_pattern_stars], chord_of_angle(factor * field)
-            )
-            brighter = np.array([np.count_nonzero(rank[n] < rank[i]) for i, n in enumerate(near)])
-            parts.append(_groups(near, rank, np.flatnonzero(brighter < PATTERN_STARS_PER_CAP), CATALOG_NEIGHBOURS))
-        groups = np.concatenate(parts)
-        groups = np.unique(np.sort(groups, axis=1), axis=0)  # a 4-set found several ways once
-        keys, top = _keys(catalog.vec, groups)
-        ok = np.isfinite(keys).all(axis=1) & (top > 0)
-        cache[mrad] = (groups[ok], keys[ok], top[ok], cKDTree(keys[ok]))
+        cache[mrad] = pattern_index(catalog.vec, catalog.mag, catalog.n_pattern_stars, mrad)
     return cache[mrad]
+
+
+def set_catalog_patterns(catalog: OnboardCatalog, mrad: int, index) -> None:
+    """Install a :func:`pattern_index` of ``catalog`` for the field ``mrad`` (:func:`pattern_field`)."""
+    catalog.__dict__.setdefault("_pattern_cache", {})[mrad] = index
+
+
+def pattern_index(vec: np.ndarray, mag: np.ndarray, n_pattern_stars: int, mrad: int):
+    """The catalog patterns of the stars ``vec``, ``mag`` (the first ``n_pattern_stars`` are the
+    pattern stars) for the minor half-field ``mrad`` (mrad): (groups, keys, largest edge, KD-tree
+    of keys). A function of arrays alone, so that another process can build it (the tree pickles)."""
+    field = mrad / 1000.0
+    tree = cKDTree(vec[:n_pattern_stars])  # the catalog's own pattern-star tree (OnboardCatalog._tree)
+    rank = np.argsort(np.argsort(mag, kind="stable"), kind="stable")
+    parts = [_region_groups(tree, mag, field)]
+    for factor in PATTERN_RADIUS_FACTORS:
+        near = tree.query_ball_point(vec[:n_pattern_stars], chord_of_angle(factor * field))
+        brighter = np.array([np.count_nonzero(rank[n] < rank[i]) for i, n in enumerate(near)])
+        parts.append(_groups(near, rank, np.flatnonzero(brighter < PATTERN_STARS_PER_CAP), CATALOG_NEIGHBOURS))
+    groups = np.concatenate(parts)
+    groups = np.unique(np.sort(groups, axis=1), axis=0)  # a 4-set found several ways once
+    keys, top = _keys(vec, groups)
+    ok = np.isfinite(keys).all(axis=1) & (top > 0)
+    return groups[ok], keys[ok], top[ok], cKDTree(keys[ok])
 
 
 @dataclass
