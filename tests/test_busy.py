@@ -3,9 +3,10 @@ and the NACK text names the running sequence; the device keeps answering everyth
 
 import struct
 import threading
-import time
+import types
 
 import pytest
+from manual_clock import ManualClock
 
 from firmware_model.device.device import Device
 from protocol import nsp, result, slip
@@ -54,18 +55,35 @@ def test_go_and_combination_nacked_busy_naming_the_running_sequence():
         assert int(result.parse(dev.runner.result)["sequence"]) == seq
 
 
-def test_realistic_timing_holds_the_result_busy():
-    dev = Device(solver=lambda ctx: {"return_code": 0}, frame_source=lambda ctx: "frame")
+def test_realistic_timing_holds_the_result_busy(monkeypatch):
+    """The device's clock is a manual one and its hold's sleep a gate the test opens: the solve
+    takes 0.05 s by that clock, so the result is held 0.25 s more, busy until then."""
+    import firmware_model.device.sequence as sequence
+
+    clock, held, holding, release = ManualClock(), [], threading.Event(), threading.Event()
+
+    def hold(seconds):
+        held.append(seconds)
+        holding.set()
+        assert release.wait(60)  # a hang guard
+
+    monkeypatch.setattr(sequence, "time", types.SimpleNamespace(sleep=hold, perf_counter=sequence.time.perf_counter))
+
+    def solver(ctx):
+        clock.advance(0.05)
+        return {"return_code": 0}
+
+    dev = Device(solver=solver, frame_source=lambda ctx: "frame", clock=clock)
     dev.runner.transfers.objects[0] = "catalog"
     dev.runner.hold_s = 0.3
     assert _send(dev, Code.INIT, struct.pack("<I", 0x2000))[0].ack
-    t0 = time.monotonic()
     assert _send(dev, Code.GO, b"\x0b")[0].ack
-    time.sleep(0.05)  # the solve is done; the result is held
+    assert holding.wait(60)  # the solve is done; the result is held
     assert _busy_text(dev, Code.GO, b"\x0b") == "sequence 1 still running"
     assert _send(dev, Code.READ_EDAC, ReadRange(0x4C, 4).pack())[0].data[2:] == bytes(4)
-    assert dev.wait_idle(5)
-    assert time.monotonic() - t0 >= 0.29
+    release.set()
+    assert dev.wait_idle(60)
+    assert held == [pytest.approx(0.25)] and dev.runner.result_ready
 
 
 def test_timing_options():
