@@ -5,6 +5,12 @@ A fake device (:class:`FakePort`) answers each command through a *behaviour*; th
 a command carries a per-command nonce, so a client that returns anything but its own command's
 nonce has taken a reply that was not for it. Behaviours that end in a good reply must be
 answered; the others must raise a :class:`~ground.link.client.LinkError` within the client's bound.
+
+Nothing here depends on how fast the machine is: a call that must be answered gets a generous
+timeout (:data:`ANSWER_TIMEOUT`, a hang guard), a reply that must come too late is sent only once
+the client's call has ended (:data:`AFTER_CALL`), and the bound a call must end within allows
+:data:`SLACK` beyond the client's own (a client that ignores its bound hangs for good, which that
+still catches; a loaded machine only delays it).
 """
 
 from __future__ import annotations
@@ -19,7 +25,9 @@ from ground.fuzz.tally import Tally
 from ground.link.client import Client, LinkError
 from protocol import nsp, slip
 
-SLACK = 1.0  #: seconds allowed beyond the client's own bound (scheduling on a busy machine)
+SLACK = 30.0  #: seconds allowed beyond the client's own bound: a hang guard
+ANSWER_TIMEOUT = 30.0  #: the client's timeout (s) for a call the fake answers: a hang guard
+AFTER_CALL = -1.0  #: a behaviour's delay meaning "once the client's call has ended"
 
 
 def good(msg: nsp.Message, nonce: int) -> bytes:
@@ -44,7 +52,7 @@ def _garbage(rng: random.Random) -> bytes:
     return rng.randbytes(rng.randrange(1, 300))
 
 
-#: name -> (answered?, fn(rng, msg, nonce, timeout) -> list of (delay s, bytes)).
+#: name -> (answered?, fn(rng, msg, nonce, timeout) -> list of (delay s or AFTER_CALL, bytes)).
 BEHAVIOURS = {
     "good": (True, lambda rng, m, n, t: [(0, good(m, n))]),
     "noise_then_good": (True, lambda rng, m, n, t: [(0, _garbage(rng) + b"\xc0" + _bad_crc(m, n)), (0, good(m, n))]),
@@ -53,14 +61,15 @@ BEHAVIOURS = {
     "garbage": (False, lambda rng, m, n, t: [(0, _garbage(rng))]),
     "damaged": (False, lambda rng, m, n, t: [(0, _bad_crc(m, n))]),
     "others_only": (False, lambda rng, m, n, t: [(0, _other_code(m, n) + _stale_b(m, n))]),
-    "too_slow": (False, lambda rng, m, n, t: [(t * 1.5, good(m, n))]),
+    "too_slow": (False, lambda rng, m, n, t: [(AFTER_CALL, good(m, n))]),
     "silent": (False, lambda rng, m, n, t: []),
 }
 
 
 class FakePort:
     """A fake device on a pty (``tcp=False``) or a TCP socket; :attr:`url` is what a client opens.
-    ``behaviour`` names an entry of :data:`BEHAVIOURS`; ``flood`` makes it send garbage nonstop."""
+    ``behaviour`` names an entry of :data:`BEHAVIOURS`; ``flood`` makes it send garbage nonstop;
+    :attr:`call_over` is set by the harness when the client's call has ended (:data:`AFTER_CALL`)."""
 
     def __init__(self, seed: int, timeout: float, tcp: bool = False, flood: bool = False):
         self.rng = random.Random(seed)
@@ -68,6 +77,7 @@ class FakePort:
         self.behaviour = "good"
         self.flood = flood
         self.nonces: list[int] = []  #: nonce of every command received, in order
+        self.call_over = threading.Event()
         self._stop = threading.Event()
         self._conn: socket.socket | None = None
         if tcp:
@@ -128,7 +138,11 @@ class FakePort:
                 nonce = self.rng.randrange(1 << 30)
                 self.nonces.append(nonce)
                 for delay, data in BEHAVIOURS[self.behaviour][1](self.rng, msg, nonce, self.timeout):
-                    if self._stop.wait(delay):
+                    if delay == AFTER_CALL:
+                        while not self.call_over.wait(0.05):
+                            if self._stop.is_set():
+                                return
+                    elif self._stop.wait(delay):
                         return
                     self._write(data)
 
@@ -161,15 +175,18 @@ def run(seed: int, trials: int, timeout: float = 0.2, tcp: bool = False) -> Tall
                 answered, _fn = BEHAVIOURS[port.behaviour]
                 tally.messages += 1
                 tally.faults += port.behaviour != "good"
-                check_call(client, port, answered, tally)
+                check_call(client, port, answered, tally, timeout)
     finally:
         port.close()
     return tally
 
 
-def check_call(client: Client, port: FakePort, answered: bool, tally: Tally) -> None:
-    """One PING: answered with this command's nonce, or a LinkError, within the bound."""
+def check_call(client: Client, port: FakePort, answered: bool, tally: Tally, timeout: float) -> None:
+    """One PING: answered with this command's nonce, or a LinkError, within the bound. ``timeout``:
+    the client's for a call that must fail (one that must be answered gets :data:`ANSWER_TIMEOUT`)."""
+    client.timeout = ANSWER_TIMEOUT if answered else timeout
     bound = client.timeout * (1 + client.retries) + SLACK
+    port.call_over.clear()
     t0 = time.monotonic()
     try:
         banner = client.ping()
@@ -180,6 +197,8 @@ def check_call(client: Client, port: FakePort, answered: bool, tally: Tally) -> 
             tally.fail("unanswered_pings", f"{port.behaviour}: {exc}")
     except Exception as exc:  # anything else would reach the user as a traceback
         tally.fail("tracebacks", f"{port.behaviour}: {type(exc).__name__}: {exc}")
+    finally:
+        port.call_over.set()
     if time.monotonic() - t0 > bound:
         tally.fail("hangs", f"{port.behaviour}: {time.monotonic() - t0:.2f} s > {bound:.2f} s")
 
@@ -194,7 +213,7 @@ def run_flood(seed: int, calls: int, timeout: float = 0.2, tcp: bool = True) -> 
             for _ in range(calls):
                 tally.messages += 1
                 tally.faults += 1
-                check_call(client, port, False, tally)
+                check_call(client, port, False, tally, timeout)
     finally:
         port.close()
     return tally
