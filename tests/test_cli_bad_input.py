@@ -2,12 +2,11 @@
 stderr, a documented exit code, no traceback (docs/bad_input.md)."""
 
 import json
-import signal
 import subprocess
 import sys
-import time
 
 import pytest
+from interrupt import COUNTING, interruptible, without_bar
 
 from ground.cli.main import main
 
@@ -68,31 +67,12 @@ def test_a_camera_file_that_is_not_a_camera_model_is_one_line(files, capsys):
 
 
 def test_ctrl_c_in_a_long_command_is_one_line_and_exit_130(tmp_path):
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "ground.cli",
-            "sim",
-            "colour",
-            "--boresights",
-            "100000",
-            "--rolls",
-            "10",
-            "--workers",
-            "1",
-            "--out",
-            str(tmp_path),
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    time.sleep(3.0)  # past start-up and the catalog build, inside the run
-    proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=30)
-    assert proc.returncode == 130
-    assert err.strip().splitlines()[-1] == "st16-ground: interrupted" and "Traceback" not in err
+    args = ["sim", "colour", "--boresights", "100000", "--rolls", "10", "--workers", "1", "--out", str(tmp_path)]
+    with interruptible(args) as child:
+        child.wait_for(COUNTING, "progress bar counting poses")  # past start-up and the catalog, inside the run
+        code, err = child.interrupt()
+    assert code == 130, err
+    assert without_bar(err) == ["st16-ground: interrupted"], err  # the bar's drawings aside: one line
 
 
 def test_a_reader_that_goes_away_leaves_no_traceback():
