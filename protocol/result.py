@@ -152,13 +152,17 @@ EXT_STAR = _struct(
 )
 
 EXT_MAGIC = 0x31545343  # b"CST1"
-EXT_VERSION = 2  #: 2: optics block added, EXT_MAX_STARS 32 -> 31 (same total length)
+EXT_VERSION = 3  #: 2: optics block added, EXT_MAX_STARS 32 -> 31 (same total length); 3: search block
 EXT_REASON_BYTES = 96  #: UTF-8 reason text (NUL padded) when the status is not OK
 
 #: Optics flags (``ext.optics_flags``).
 OPTICS_FITTED = 0x01  #: focal length (and k1 when ``k1_sigma`` is finite) fitted to this solve's stars
 OPTICS_SEARCHED = 0x02  #: found by the focal-length search (``focal_scale`` is the step that found it)
 PSF_MEASURED = 0x04  #: ``psf_sigma`` was measured on this frame (else: the setting or the start value)
+
+#: Search flags (``ext.search_flags``): what stopped a search of this frame early.
+SEARCH_BUDGET_REACHED = 0x01  #: a counted search budget ran out (the same on every machine)
+DEADLINE_MISSED = 0x02  #: flight timing only: the deadline stopped a search (the answer is what it had by then)
 
 #: Extension header (ours), 168 bytes, then EXT_MAX_STARS stars. ``quaternion`` is the solved
 #: attitude (scalar first, ICRS -> sensor); ``sigma`` its 1-sigma errors about sensor x, y, z (rad);
@@ -172,7 +176,9 @@ PSF_MEASURED = 0x04  #: ``psf_sigma`` was measured on this frame (else: the sett
 #: PSF Gaussian sigma used (px); ``focal_px`` / ``focal_sigma`` fitted focal length and 1-sigma (px),
 #: ``k1`` / ``k1_sigma`` radial distortion (NaN sigma: held), ``optics_rms`` residual of that fit
 #: (px) over ``optics_stars`` stars, ``optics_flags`` (OPTICS_*, PSF_MEASURED), ``n_planets``
-#: detections labelled as planets or the moon, ``focal_scale`` the search step that solved.
+#: detections labelled as planets or the moon, ``focal_scale`` the search step that solved. Search
+#: block: ``search_flags`` (SEARCH_BUDGET_REACHED, DEADLINE_MISSED), the counted work of the frame:
+#: ``seeds`` pattern seeds refined and ``verifications`` hypotheses verified.
 EXTENSION = _struct(
     [
         ("magic", "<u4", 0),
@@ -189,7 +195,10 @@ EXTENSION = _struct(
         ("residual_rms", "<f4", 84),
         ("stage_times", "<6f4", 88),
         ("method", "u1", 112),
-        ("spare", "15u1", 113),
+        ("search_flags", "u1", 113),
+        ("seeds", "<u2", 114),
+        ("verifications", "<u4", 116),
+        ("spare", "8u1", 120),
         ("psf_sigma", "<f4", 128),
         ("focal_px", "<f4", 132),
         ("focal_sigma", "<f4", 136),

@@ -100,6 +100,10 @@ RESULT_BITS: Mapping[str, tuple[BitField, ...]] = {
         BitField("optics_searched", result.OPTICS_SEARCHED.bit_length() - 1),
         BitField("psf_measured", result.PSF_MEASURED.bit_length() - 1),
     ),
+    "ext.search_flags": (
+        BitField("search_budget_reached", result.SEARCH_BUDGET_REACHED.bit_length() - 1),
+        BitField("deadline_missed", result.DEADLINE_MISSED.bit_length() - 1),
+    ),
     "ext.stars.flags": (
         BitField("matched", 0),
         BitField("saturated", 1),

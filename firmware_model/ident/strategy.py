@@ -164,9 +164,10 @@ class IdentifyTimings:
         if sol.stopped is not Stop.NONE:
             self.stop(sol.stopped, stop_reason(sol.stopped, sol.verifications, "verifications"))
 
-    def stop(self, why: Stop, reason: str) -> None:
-        """Record what stopped a search and why (the first one counts)."""
-        if self.stopped is Stop.NONE:
+    def stop(self, why: Stop, reason: str, frame: bool = False) -> None:
+        """Record what stopped a search and why: the first solve's stop, unless a ``frame`` budget
+        (one that ends the frame's whole search) stopped it, which the answer names instead."""
+        if self.stopped is Stop.NONE or frame:
             self.stopped, self.stop_reason = why, reason
 
 

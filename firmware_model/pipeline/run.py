@@ -395,10 +395,12 @@ def identify_stars(
 
 
 def _accounted(out: PipelineOutput, timings: StageTimings, t0: float, stars: StarList) -> PipelineOutput:
-    """``out`` with the frame's timings and counted work; a NO_MATCH that a budget (or the
-    flight-timing deadline) cut short says so first in its reason."""
+    """``out`` with the frame's timings and counted work. An answer short of high confidence whose
+    search a budget cut short says so first in its reason, as does any answer the flight-timing
+    deadline cut short: a missed deadline is never hidden."""
     out.timings, out.stopped = timings, timings.stopped
-    if out.status is Status.NO_MATCH and timings.stop_reason and not out.reason.startswith(timings.stop_reason):
+    told = timings.stopped is Stop.DEADLINE or out.status in (Status.NO_MATCH, Status.LOW_CONFIDENCE)
+    if told and timings.stop_reason and not out.reason.startswith(timings.stop_reason):
         out.reason = f"{timings.stop_reason}; {out.reason}" if out.reason else timings.stop_reason
     timings.total = time.perf_counter() - t0 + stars.timings.get("total_s", 0.0)
     return out
@@ -770,11 +772,12 @@ def _search_spent(search: OpticsSearch, deadline: float | None, timings: StageTi
     """Whether the optics search may start no further seed: its seeds or the frame's verifications
     counted up to their budgets, or (flight timing) the deadline passed; the stop is recorded."""
     if timings.seeds >= search.max_seeds:
-        timings.stop(Stop.COUNT, stop_reason(Stop.COUNT, search.max_seeds, "pattern seeds"))
+        timings.stop(Stop.COUNT, stop_reason(Stop.COUNT, search.max_seeds, "pattern seeds"), frame=True)
     elif timings.verifications >= search.max_verifications:
-        timings.stop(Stop.COUNT, stop_reason(Stop.COUNT, search.max_verifications, "verifications per frame"))
+        reason = stop_reason(Stop.COUNT, search.max_verifications, "verifications per frame")
+        timings.stop(Stop.COUNT, reason, frame=True)
     elif deadline is not None and time.perf_counter() > deadline:
-        timings.stop(Stop.DEADLINE, stop_reason(Stop.DEADLINE, 0, ""))
+        timings.stop(Stop.DEADLINE, stop_reason(Stop.DEADLINE, 0, ""), frame=True)
     else:
         return False
     return True
@@ -1015,6 +1018,16 @@ def _optics_fields(out: PipelineOutput) -> dict:
     return fields
 
 
+def _search_fields(out: PipelineOutput) -> dict:
+    """The extension's search block: what stopped a search early, and the frame's counted work."""
+    flags = {Stop.COUNT: result.SEARCH_BUDGET_REACHED, Stop.DEADLINE: result.DEADLINE_MISSED}.get(out.stopped, 0)
+    return {
+        "ext.search_flags": flags,
+        "ext.seeds": min(out.timings.seeds, 0xFFFF),
+        "ext.verifications": out.timings.verifications,
+    }
+
+
 #: Statuses of a frame that went through every stage: extraction, identification (and attitude
 #: when it matched); BAD_FRAME stops before extraction, TOO_FEW_STARS before identification.
 FULLY_PROCESSED = (Status.OK, Status.LOW_CONFIDENCE, Status.NO_MATCH)
@@ -1123,6 +1136,7 @@ def result_fields(out: PipelineOutput) -> dict:
     fields["ext.n_planets"] = min(len(out.planets), 255)
     fields["ext.n_matched"] = n_matched
     fields.update(_optics_fields(out))
+    fields.update(_search_fields(out))
     fields["ext.stars"] = ext_stars
     fields["ext.stage_times"] = np.array([getattr(out.timings, name) for name in STAGES], dtype=np.float32)
     fields["ext.method"] = method_code(sol.method if sol else None)

@@ -68,6 +68,17 @@ def _optics(ext) -> dict:
     }
 
 
+def _search(ext) -> dict:
+    """The extension's search block: the frame's counted work and what stopped a search early."""
+    flags = int(ext["search_flags"])
+    return {
+        "verifications": int(ext["verifications"]),
+        "seeds": int(ext["seeds"]),
+        "budget_reached": bool(flags & result.SEARCH_BUDGET_REACHED),
+        "deadline_missed": bool(flags & result.DEADLINE_MISSED),
+    }
+
+
 def solve_record(rec: np.ndarray) -> dict:
     """JSON-ready dict of a parsed result record (protocol.result.RESULT)."""
     rc = int(rec["return_code"])
@@ -90,6 +101,7 @@ def solve_record(rec: np.ndarray) -> dict:
         "residual_rms_arcsec": None,
         "timings_s": {name: float(t) for name, t in zip(STAGES, ext["stage_times"])},
         "optics": _optics(ext),
+        "search": _search(ext),
         "n_planets": int(ext["n_planets"]),
         "stars": stars,
     }
