@@ -102,9 +102,7 @@ def _noisy_geometric_frame(catalog, seed=1, noise_px=1.0):
 
 def _identify_announcing(catalog, vectors, sigma_px):
     nan = np.full(len(vectors), np.nan)
-    params = SolveParams(
-        mode=Mode.GEOMETRIC, sigma_vec=sigma_px / CAM.f, fov=FieldOfView.from_camera(CAM, 0.0)
-    )
+    params = SolveParams(mode=Mode.GEOMETRIC, sigma_vec=sigma_px / CAM.f, fov=FieldOfView.from_camera(CAM, 0.0))
     det = Detections(vectors, nan, nan, sigma_px=np.full(len(vectors), sigma_px), focal_px=CAM.f)
     return identify(det, catalog, StrategyParams(solve=params))
 
