@@ -37,7 +37,8 @@ def without_bar(err: str) -> list[str]:
     return [line.strip() for line in BAR.sub("", err).splitlines() if line.strip()]
 
 
-def _default_sigint() -> None:
+def default_sigint() -> None:
+    """``preexec_fn`` of a child a test sends SIGINT: the signal at its default disposition."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
@@ -53,7 +54,7 @@ class Child:
                 stdout=subprocess.DEVNULL,
                 stderr=slave,
                 start_new_session=True,
-                preexec_fn=_default_sigint,
+                preexec_fn=default_sigint,
             )
         except BaseException:
             os.close(master)

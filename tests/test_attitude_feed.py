@@ -10,6 +10,7 @@ import struct
 import threading
 import time
 
+import guards
 import numpy as np
 import pytest
 from manual_clock import ManualClock
@@ -438,7 +439,7 @@ def test_device_cli_solves_along_a_fed_path(tmp_path):
         return Rotation.from_rotvec(-omega * (t - t0)).as_matrix() @ a0
 
     try:
-        with Client(pty) as c, Sender(url) as snd:
+        with Client(pty, timeout=guards.REPLY_S) as c, Sender(url) as snd:
             c.init()
             c.upload(0, catalog_to_image(catalog), progress=False)
             stream = _RealTimeStream(snd, truth, omega)

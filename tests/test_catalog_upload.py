@@ -4,6 +4,7 @@ import json
 import threading
 from contextlib import contextmanager
 
+import guards
 import pytest
 
 from firmware_model.device.catalog_slot import catalog_slot_handler
@@ -44,7 +45,9 @@ def test_upload_survives_interruption_restart_and_corrupt_images(tmp_path, capsy
         assert cli_main(["--port", port, "--json", "catalog", "upload", str(path1)]) == 0
         up = json.loads(capsys.readouterr().out)
         assert up["verified"] and up["crc32"] == f"0x{crc32(first):08X}"
-        with Client(port) as c:  # start the second image, then the device goes away mid-transfer
+        with Client(
+            port, timeout=guards.REPLY_S
+        ) as c:  # start the second image, then the device goes away mid-transfer
             c.xfer_begin(0, len(second), crc32(second))
             for off in range(0, 8192, 2048):
                 c.xfer_data(0, off, second[off : off + 2048])
@@ -66,7 +69,7 @@ def test_upload_survives_interruption_restart_and_corrupt_images(tmp_path, capsy
             (first[:-16], Reason.TRUNCATED),
             (v2, Reason.BAD_VERSION),
         ):
-            with Client(port) as c:
+            with Client(port, timeout=guards.REPLY_S) as c:
                 with pytest.raises(Nack) as exc:
                     c.upload(0, corrupt, progress=False)
                 assert exc.value.reason == reason
@@ -78,7 +81,7 @@ def test_upload_survives_interruption_restart_and_corrupt_images(tmp_path, capsy
         assert "SECTION_CRC" in capsys.readouterr().err
 
     with running_device(state) as (device, port):  # restart again: the second image persisted
-        with Client(port) as c:
+        with Client(port, timeout=guards.REPLY_S) as c:
             held = c.slot_info(0)
         assert held.active and held.crc32 == crc32(second)
         assert device._objects[0].meta["created_unix"] == 1_700_000_002

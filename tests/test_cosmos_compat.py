@@ -7,6 +7,7 @@ import json
 import struct
 import threading
 
+import guards
 import numpy as np
 import pytest
 
@@ -222,7 +223,7 @@ def test_a_device_run_in_both_orders(field):
     thread = threading.Thread(target=serve, args=(dev, link, stop), daemon=True)
     thread.start()
     try:
-        with Client(link.path) as c:
+        with Client(link.path, timeout=guards.REPLY_S) as c:
             c.init()
             c.upload(0, field["image"], progress=False)
             recs = {QuaternionOrder.SCALAR_LAST: c.go_and_wait(timeout=60)}

@@ -7,6 +7,7 @@ warm-up here, as an operator's first solve after a catalog upload."""
 
 import time
 
+import guards
 import numpy as np
 
 from firmware_model.camera import CameraModel
@@ -41,7 +42,7 @@ def test_cosmos_polling_never_times_out_against_the_sky_source(tmp_path):
     proc, pty = start_device(tmp_path / "state", "--sky", str(schedule))
     polls_used, statuses = [], []
     try:
-        with Client(pty) as c:
+        with Client(pty, timeout=guards.REPLY_S) as c:
             c.init()
             c.upload(0, catalog_to_image(catalog), progress=False)
             c.go_and_wait(timeout=30)  # the warm-up (module docstring)

@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import guards
 import numpy as np
 import pytest
 
@@ -49,7 +50,7 @@ def test_device_renders_the_sky_from_a_schedule(catalog, tmp_path):
     )
     proc, pty = start_device(tmp_path / "state", "--sky", str(schedule))
     try:
-        with Client(pty) as c:
+        with Client(pty, timeout=guards.REPLY_S) as c:
             c.init()
             c.upload(0, catalog_to_image(catalog), progress=False)
             recs = [solve_record(c.go_and_wait(timeout=60)) for _ in atts]
@@ -112,7 +113,7 @@ def test_colour_calibration_from_a_run_and_on_the_device(catalog, biased_frames,
     frame = frame_to_bytes(read_frame(frame_files(biased_frames)[0]))
     proc, pty = start_device(tmp_path / "state")
     try:
-        with Client(pty) as c:
+        with Client(pty, timeout=guards.REPLY_S) as c:
             c.init()
             c.upload(0, image.read_bytes(), progress=False)
             c.upload(1, frame, progress=False)

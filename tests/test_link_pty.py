@@ -6,7 +6,9 @@ import struct
 import subprocess
 import sys
 
+import guards
 import pytest
+from interrupt import default_sigint
 
 from ground.fuzz.device_proc import device_command as _device_command
 from ground.link.client import Client, Nack, ReplyTimeout
@@ -16,21 +18,34 @@ from protocol.crc import crc32
 
 
 class DeviceProcess:
+    """``st16-device ARGS`` in its own session with SIGINT at its default (a test stops it with
+    SIGINT or SIGTERM; a runner started in the background would hand it SIGINT ignored)."""
+
     def __init__(self, *args: str):
         self.proc = subprocess.Popen(
-            _device_command() + list(args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+            _device_command() + list(args),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+            preexec_fn=default_sigint,
         )
         line = self.proc.stdout.readline().strip()
         assert line.startswith("listening on "), (line, self.proc.stderr.read() if self.proc.poll() else "")
         self.path = line[len("listening on ") :]
 
     def stop(self, sig=signal.SIGTERM) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-        rc = self.proc.wait(timeout=10)
-        self.proc.stdout.close()
-        self.proc.stderr.close()
-        return rc
+        """Its exit code after ``sig``; killed if it has not ended within a minute (a hang guard)."""
+        try:
+            if self.proc.poll() is None:
+                self.proc.send_signal(sig)
+            return self.proc.wait(timeout=60)
+        finally:
+            if self.proc.poll() is None:
+                self.proc.kill()
+                self.proc.wait()
+            self.proc.stdout.close()
+            self.proc.stderr.close()
 
 
 @pytest.fixture
@@ -41,7 +56,7 @@ def device(tmp_path):
 
 
 def test_ping_modes_init_edac_and_files(device):
-    with Client(device.path) as c:
+    with Client(device.path, timeout=guards.REPLY_S) as c:
         boot = c.ping()
         c.init(0x2000)
         app = c.ping()
@@ -57,7 +72,7 @@ def test_ping_modes_init_edac_and_files(device):
 
 
 def test_fault_counters_poll0_silence_and_nacks(device):
-    with Client(device.path, timeout=0.5) as c:
+    with Client(device.path, timeout=guards.REPLY_S) as c:
         ping = nsp.command(0x0E, 0x11, Code.PING).encode()
         c.write_raw(slip.encode(ping[:-1] + bytes([ping[-1] ^ 0xFF])))  # bad CRC
         c.write_raw(b"\xc0\x0e\x11\xc0")  # runt
@@ -81,7 +96,7 @@ def test_fault_counters_poll0_silence_and_nacks(device):
 
 
 def test_combination_and_go_over_the_link(device):
-    with Client(device.path) as c:
+    with Client(device.path, timeout=guards.REPLY_S) as c:
         c.init()
         parts = c.combination(0x0B, 0x0007)
         assert sorted(parts) == [0x000, 0x004, 0x008]
@@ -120,13 +135,13 @@ def test_upload_interrupted_resumed_and_persisted(tmp_path):
     image = _small_catalog_image()
     assert len(image) > 20_000
     dev = DeviceProcess("--pty", "--state", str(state))
-    with Client(dev.path) as c:
+    with Client(dev.path, timeout=guards.REPLY_S) as c:
         c.xfer_begin(0, len(image), crc32(image))
         for off in range(0, 12_288, 4096):
             c.xfer_data(0, off, image[off : off + 4096])
     assert dev.stop(signal.SIGINT) == 0  # interrupted mid-transfer
     dev = DeviceProcess("--pty", "--state", str(state))
-    with Client(dev.path) as c:
+    with Client(dev.path, timeout=guards.REPLY_S) as c:
         st = c.xfer_status(0)
         assert (st.state, st.contiguous, st.length) == (XferState.RECEIVING, 12_288, len(image))
         report = c.upload(0, image, progress=False)
@@ -135,7 +150,7 @@ def test_upload_interrupted_resumed_and_persisted(tmp_path):
         assert info.active and info.crc32 == crc32(image)
     assert dev.stop() == 0
     dev = DeviceProcess("--pty", "--state", str(state))  # restart keeps the committed image
-    with Client(dev.path) as c:
+    with Client(dev.path, timeout=guards.REPLY_S) as c:
         info = c.slot_info(0)
         assert info.active and (info.length, info.crc32) == (len(image), crc32(image))
         c.init()
@@ -145,12 +160,12 @@ def test_upload_interrupted_resumed_and_persisted(tmp_path):
 
 
 def test_late_reply_is_never_taken_for_the_current_one():
-    dev = DeviceProcess("--pty", "--pace", "--baud", "115200", "--turnaround-ms", "150")
+    dev = DeviceProcess("--pty", "--pace", "--baud", "115200", "--turnaround-ms", "1000")  # 20 x the first timeout
     try:
         with Client(dev.path, timeout=0.05, retries=0) as c:
             with pytest.raises(ReplyTimeout):
                 c.ping()  # its reply arrives late, during the next transaction
-            c.timeout = 2.0
+            c.timeout = guards.REPLY_S
             assert c.read_edac(0x0100, 4) == bytes(4)
             assert c.stale_replies == 1
     finally:
@@ -161,7 +176,7 @@ def test_tcp_transport():
     dev = DeviceProcess("--tcp", "127.0.0.1:0")
     try:
         assert dev.path.startswith("socket://127.0.0.1:")
-        with Client(dev.path) as c:
+        with Client(dev.path, timeout=guards.REPLY_S) as c:
             assert "BOOTLOADER" in c.ping()
     finally:
         assert dev.stop() == 0
@@ -173,7 +188,7 @@ def test_short_soak_no_lost_or_misattributed_reply(device):
 
     rng = random.Random(7)
     scratch = bytearray(256)
-    with Client(device.path, retries=0) as c:
+    with Client(device.path, timeout=guards.REPLY_S, retries=0) as c:
         c.init()
         for _ in range(1500):
             a = rng.randrange(0x100, 0x1F0)
@@ -241,7 +256,7 @@ def test_link_is_served_while_a_combination_waits_for_its_sequence():
     server = threading.Thread(target=serve, args=(dev, link, stop), daemon=True)
     server.start()
     try:
-        with Client(link.path, timeout=2.0, retries=0) as c:
+        with Client(link.path, timeout=guards.REPLY_S, retries=0) as c:
             c.upload(0, _small_catalog_image(), progress=False)
             c.init()
             c.write_raw(
@@ -282,20 +297,32 @@ def test_ctrl_c_during_an_upload_keeps_what_was_sent_and_the_next_upload_resumes
             "--port",
             dev.path,
             "--timeout",
-            "2",
+            "30",  # a hang guard: the paced device answers each chunk however loaded the machine
             "upload",
             "0",
             str(tmp_path / "cat.img"),
         ]
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        deadline = time.monotonic() + 30
-        while not (partial.exists() and json.loads(partial.read_text() or "{}").get("ranges")):
-            assert time.monotonic() < deadline and proc.poll() is None
-            time.sleep(0.05)
-        proc.send_signal(signal.SIGINT)  # the first chunk is in, most of the image is not
-        _, err = proc.communicate(timeout=30)
+        proc = subprocess.Popen(
+            cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+            preexec_fn=default_sigint,
+        )
+        try:
+            deadline = time.monotonic() + 120  # a hang guard
+            while not (partial.exists() and json.loads(partial.read_text() or "{}").get("ranges")):
+                assert time.monotonic() < deadline and proc.poll() is None
+                time.sleep(0.05)
+            proc.send_signal(signal.SIGINT)  # the first chunk is in, most of the image is not
+            _, err = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
         assert proc.returncode == 130 and err.strip().splitlines()[-1] == "st16-ground: interrupted", err
-        with Client(dev.path, timeout=2.0) as c:
+        with Client(dev.path, timeout=guards.REPLY_S) as c:
             st = c.xfer_status(0)
             assert st.state == XferState.RECEIVING and 0 < st.contiguous < len(image)
             report = c.upload(0, image, progress=False)
