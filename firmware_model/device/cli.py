@@ -1,9 +1,11 @@
 """``st16-device``: serve the emulated tracker on a pty, a serial port or TCP.
 
-The first stdout line is ``listening on <path>`` (flushed); the device then serves until SIGINT
-or SIGTERM and exits 0. Options are parsed in :func:`build_parser`, the device is assembled in
-:func:`build_device` and the transport in :func:`build_link`, so frame sources and solvers can be
-added as further options without touching the serving code.
+The first stdout line is ``listening on <path>`` (flushed), printed once the device is ready: its
+compiled kernels loaded and the stored catalog's pattern index built, so the first GO takes as
+long as any other. The device then serves until SIGINT or SIGTERM and exits 0. Options are parsed
+in :func:`build_parser`, the device is assembled in :func:`build_device` and the transport in
+:func:`build_link`, so frame sources and solvers can be added as further options without touching
+the serving code.
 """
 
 from __future__ import annotations
@@ -135,7 +137,8 @@ def load_camera(path: str | None) -> CameraModel:
 def build_device(args: argparse.Namespace) -> Device:
     """The device the options describe: slots for catalog (0), frame (1) and parameters (2), the
     pipeline solver on the camera model, the capture source if one is given, and the ``--params``
-    set's settings as the defaults (pipeline, ``quaternion_order``) until a set is uploaded."""
+    set's settings as the defaults (pipeline, ``quaternion_order``) until a set is uploaded. It is
+    ready when this returns: kernels loaded, the stored catalog's pattern index built."""
     if not 0 <= args.address <= 0xFF:
         raise ValueError(f"address 0x{args.address:X} outside 0x00-0xFF")
     camera = load_camera(args.camera)
@@ -148,7 +151,9 @@ def build_device(args: argparse.Namespace) -> Device:
         source = load_frame_source("attitude_feed", args.attitude_feed, camera)
     store = SlotStore(args.state, volatile={Slot.FRAME}) if args.state else None
     device_params = DeviceParams.load(args.params) if args.params else DeviceParams()
-    solver = PipelineSolver(camera, device_params.apply(PipelineParams()), tracking=bool(device_params.tracking))
+    solver = PipelineSolver(
+        camera, device_params.apply(PipelineParams()), tracking=bool(device_params.tracking), index_process=True
+    )
     slots: dict[int, SlotHandler] = {
         Slot.CATALOG: catalog_slot_handler(prepare=solver.prepare),
         Slot.FRAME: frame_slot_handler(camera),
@@ -167,6 +172,7 @@ def build_device(args: argparse.Namespace) -> Device:
         exposure = DEFAULT_EXPOSURE_MS if args.exposure_ms is None else args.exposure_ms
         processing = DEFAULT_PROCESSING_MS if args.processing_ms is None else args.processing_ms
         device.runner.hold_s = (exposure + processing) / 1000.0
+    solver.serving()  # the stored catalog's index is built; a COMMIT's is built in another process
     return device
 
 
@@ -207,6 +213,9 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         device.wait_idle(timeout=5.0)
         link.close()
+        close = getattr(device.solver, "close", None)
+        if close is not None:  # the pipeline solver's index-building process
+            close()
     return 0
 
 

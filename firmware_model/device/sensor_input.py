@@ -17,14 +17,21 @@ import importlib
 import json
 import logging
 import math
+import multiprocessing
 import threading
+import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, replace
 from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from firmware_model.camera import CameraModel
+from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.device.device import FrameUnavailable, SlotHandler, SolveContext
 from firmware_model.ident.solver import Mode
 from firmware_model.pipeline import scale_free
@@ -331,31 +338,114 @@ def load_frame_source(name: str, spec: str, camera: CameraModel) -> Callable[[So
     return found[name].load()(spec, camera)
 
 
+def _builder_ready() -> bool:
+    """The index-building process' first task: it has imported the pipeline once this returns."""
+    return True
+
+
 class PipelineSolver:
     """GO solver: runs :func:`~firmware_model.pipeline.run.run_pipeline` on the sequence's frame,
     or, with the parameter ``tracking`` (the slot-2 set's, else ``tracking`` here: ``--params``),
     the :class:`~firmware_model.pipeline.tracking_run.Tracker` that persists across sequences (a GO
-    without bit 0x01 ON drops its track)."""
+    without bit 0x01 ON drops its track).
 
-    def __init__(self, camera: CameraModel, params: PipelineParams = PipelineParams(), tracking: bool = False):
+    The catalog's pattern index (``scale_free.catalog_patterns``, 0.2-20 s once per catalog) is
+    built by :meth:`prepare` when a catalog is activated: in this process while the device starts
+    (``st16-device`` says ``listening`` after it), in another process once :meth:`serving` is
+    called (a catalog COMMIT: a thread here would hold the GIL for much of the build and starve
+    the link thread); a GO that comes while it is built waits for it. ``build_index`` builds it
+    (``scale_free.pattern_index``'s arguments and answer; picklable: it runs in a spawned process).
+    ``index_process``: spawn that process now, so that its imports (~0.6 s) overlap the kernels'
+    loading rather than the first COMMIT's build (else it is spawned at the first COMMIT)."""
+
+    def __init__(
+        self,
+        camera: CameraModel,
+        params: PipelineParams = PipelineParams(),
+        tracking: bool = False,
+        build_index: Callable[..., Any] = scale_free.pattern_index,
+        index_process: bool = False,
+    ):
         self.camera = camera
         self.params = params
         self.tracking = tracking
         self.tracker = Tracker()
+        self.build_index = build_index
+        self._pool: ProcessPoolExecutor | None = None  # the index-building process
+        self._serving = False
+        self._lock = threading.Lock()
+        if index_process:
+            self._builder()
         # the planet check imports astropy (~0.3 s) and the pipeline's kernels load (numba, cached
         # on disk; compiled once per install): at start-up, not inside the first GO
         importlib.import_module("firmware_model.pipeline.planets")
         log.info("pipeline kernels ready in %.2f s", warm_up())
 
-    def prepare(self, catalog) -> None:
-        """Build the catalog's pattern index for the optics search in the background (0.4-1.6 s,
-        once per catalog), so the first GO after a catalog commit or a restart stays in budget."""
-        if self.params.optics is not None:
-            threading.Thread(
-                target=scale_free.catalog_patterns, args=(catalog, self.camera), daemon=True, name="catalog-patterns"
-            ).start()
+    def _builder(self) -> ProcessPoolExecutor:
+        """The index-building process (one, kept: it waits for catalogs), spawned if need be."""
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+            self._pool.submit(_builder_ready)
+        return self._pool
+
+    def serving(self) -> None:
+        """From now on (the device serves its link) a catalog's index is built in another process."""
+        self._serving = True
+
+    def close(self) -> None:
+        """End the index-building process (a build under way is abandoned)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+
+    def prepare(self, catalog: OnboardCatalog) -> None:
+        """Build ``catalog``'s pattern index for the device's camera: here before :meth:`serving`,
+        else in the index-building process (the GO that needs it waits for it: :meth:`index_ready`).
+        Mono frames and the optics search both use it, whatever the parameters."""
+        mrad = scale_free.pattern_field(catalog, self.camera)
+        args = (np.ascontiguousarray(catalog.vec), np.ascontiguousarray(catalog.mag), catalog.n_pattern_stars, mrad)
+        if not self._serving:
+            t0 = time.perf_counter()
+            scale_free.set_catalog_patterns(catalog, mrad, self.build_index(*args))
+            log.info("catalog pattern index built in %.2f s", time.perf_counter() - t0)
+            return
+        try:
+            future = self._builder().submit(self.build_index, *args)
+        except (RuntimeError, OSError):  # the process died (BrokenProcessPool): a new one
+            self._pool = None
+            try:
+                future = self._builder().submit(self.build_index, *args)
+            except (RuntimeError, OSError) as exc:
+                log.warning("catalog pattern index not built in another process (%s); the next GO builds it", exc)
+                return
+        with self._lock:
+            catalog.__dict__["_pattern_build"] = (mrad, future)
+
+    def index_ready(self, catalog: OnboardCatalog | None, timeout: float | None = None) -> bool:
+        """Wait for ``catalog``'s index being built elsewhere (at most ``timeout`` s) and install it;
+        True when no build is pending. A build that failed is logged and left to the solve
+        (``catalog_patterns`` builds it in this process: the same index)."""
+        if not isinstance(catalog, OnboardCatalog):  # none yet (the solve says so)
+            return True
+        with self._lock:
+            pending = catalog.__dict__.get("_pattern_build")
+        if pending is None:
+            return True
+        mrad, future = pending
+        try:
+            index = future.result(timeout)
+        except FutureTimeout:
+            return False
+        except Exception as exc:  # noqa: BLE001 - a crashed build process: this process builds it
+            log.warning("catalog pattern index build failed (%s: %s); building it here", type(exc).__name__, exc)
+            index = None
+        with self._lock:
+            if catalog.__dict__.pop("_pattern_build", None) is not None and index is not None:
+                scale_free.set_catalog_patterns(catalog, mrad, index)
+        return True
 
     def __call__(self, ctx: SolveContext) -> dict:
+        self.index_ready(ctx.catalog)  # a GO right after a catalog COMMIT waits for its index
         device = ctx.params if isinstance(ctx.params, DeviceParams) else DeviceParams()
         params = device.apply(self.params)
         tracking = self.tracking if device.tracking is None else device.tracking

@@ -132,6 +132,16 @@ def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
     return cache[mrad]
 
 
+def _unique_rows(groups: np.ndarray) -> np.ndarray:
+    """``np.unique(groups, axis=0)`` of 4-star groups: each row packed into one 64-bit number (16
+    bits a star, most significant first: the same order) when the star numbers allow, ~5x faster."""
+    if len(groups) == 0 or groups.max() >= 1 << 16:
+        return np.unique(groups, axis=0)
+    g = groups.astype(np.uint64)
+    code = np.unique(g[:, 0] << 48 | g[:, 1] << 32 | g[:, 2] << 16 | g[:, 3])
+    return np.column_stack([code >> 48, code >> 32 & 0xFFFF, code >> 16 & 0xFFFF, code & 0xFFFF]).astype(np.int64)
+
+
 def set_catalog_patterns(catalog: OnboardCatalog, mrad: int, index) -> None:
     """Install a :func:`pattern_index` of ``catalog`` for the field ``mrad`` (:func:`pattern_field`)."""
     catalog.__dict__.setdefault("_pattern_cache", {})[mrad] = index
@@ -149,8 +159,7 @@ def pattern_index(vec: np.ndarray, mag: np.ndarray, n_pattern_stars: int, mrad: 
         near = tree.query_ball_point(vec[:n_pattern_stars], chord_of_angle(factor * field))
         brighter = np.array([np.count_nonzero(rank[n] < rank[i]) for i, n in enumerate(near)])
         parts.append(_groups(near, rank, np.flatnonzero(brighter < PATTERN_STARS_PER_CAP), CATALOG_NEIGHBOURS))
-    groups = np.concatenate(parts)
-    groups = np.unique(np.sort(groups, axis=1), axis=0)  # a 4-set found several ways once
+    groups = _unique_rows(np.sort(np.concatenate(parts), axis=1))  # a 4-set found several ways once
     keys, top = _keys(vec, groups)
     ok = np.isfinite(keys).all(axis=1) & (top > 0)
     return groups[ok], keys[ok], top[ok], cKDTree(keys[ok])
