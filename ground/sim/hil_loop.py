@@ -9,6 +9,12 @@ link and feeds it back as the controller's measurement.
   epoch) back to back; an OK attitude, valid at the exposure mid-time ``epoch + exposure / 2``,
   becomes the estimate, carried forward with the gyro (the truth rate) to the present; statuses
   other than OK keep the previous estimate.
+
+The loop runs ``duration_s`` and on until the flight loop has ``min_ok_updates`` OK answers (0:
+no such wait), at most ``overrun_s`` past ``duration_s``; a test sets a count, so what it checks
+does not depend on how many solves a loaded machine manages in the time. ``clock`` and ``sleep``
+(``time.time``, ``time.sleep``) are the loop's: the device stamps GO with its own POSIX clock, so
+only a device on the same clock can share a different one.
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ import math
 import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -54,6 +61,10 @@ class HilLog:
     truth_q: list[list[float]] = field(default_factory=list)
     updates: list[Update] = field(default_factory=list)
 
+    def ok_updates(self) -> int:
+        """Updates that brought an OK attitude."""
+        return sum(u.status == "OK" for u in list(self.updates))
+
     def truth_at(self, t: float) -> np.ndarray:
         """Truth quaternion at POSIX ``t`` (slerp between the logged steps)."""
         k = int(np.clip(np.searchsorted(self.truth_t, t), 1, len(self.truth_t) - 1))
@@ -84,11 +95,11 @@ class HilLog:
 class Estimator:
     """The flight software's attitude: the last tracker attitude carried forward with the gyro."""
 
-    def __init__(self, q0, w0):
+    def __init__(self, q0, w0, now: float):
         self._lock = threading.Lock()
         self.a = quat_to_matrix(q0)
         self.w = np.asarray(w0, dtype=float)
-        self.t = time.time()
+        self.t = now
 
     def propagate(self, w, now: float) -> tuple[np.ndarray, np.ndarray]:
         """Carry the estimate to ``now`` with gyro rate ``w``; returns (q, w)."""
@@ -113,21 +124,31 @@ def _parse(parts: dict[int, bytes]) -> tuple[str, list[float] | None, float | No
 
 
 class FlightLoop(threading.Thread):
-    """COMBINATIONs back to back on ``client`` until stopped; OK attitudes go to ``estimator``."""
+    """COMBINATIONs back to back on ``client`` until stopped, each answered within ``timeout`` s;
+    OK attitudes go to ``estimator``; ``clock`` stamps each update's send and receipt."""
 
-    def __init__(self, client, estimator: Estimator, log: HilLog, exposure_s: float, mask: int = MINIMAL_MASK):
+    def __init__(
+        self,
+        client,
+        estimator: Estimator,
+        log: HilLog,
+        exposure_s: float,
+        mask: int = MINIMAL_MASK,
+        timeout: float = 5.0,
+        clock: Callable[[], float] = time.time,
+    ):
         super().__init__(name="flight-loop", daemon=True)
         self.client, self.estimator, self.log = client, estimator, log
-        self.exposure_s, self.mask = exposure_s, mask
+        self.exposure_s, self.mask, self.timeout, self.clock = exposure_s, mask, timeout, clock
         self.stop = threading.Event()
         self.error: Exception | None = None
 
     def run(self) -> None:
         try:
             while not self.stop.is_set():
-                sent = time.time()
-                parts = self.client.combination(GO_CODE, self.mask, timeout=5.0)
-                received = time.time()
+                sent = self.clock()
+                parts = self.client.combination(GO_CODE, self.mask, timeout=self.timeout)
+                received = self.clock()
                 status, q, epoch = _parse(parts)
                 t_mid = None if epoch is None else epoch + self.exposure_s / 2.0
                 if q is not None and t_mid is not None:
@@ -149,29 +170,36 @@ def run_closed_loop(
     exposure_s: float = 0.1,
     mask: int = MINIMAL_MASK,
     progress: bool = True,
+    min_ok_updates: int = 0,
+    overrun_s: float = 10.0,
+    combination_timeout: float = 5.0,
+    clock: Callable[[], float] = time.time,
+    sleep: Callable[[float], None] = time.sleep,
 ) -> HilLog:
-    """Run the loop for ``duration_s`` of wall time (module docstring); ``client`` is a connected
-    ``ground.link.client.Client`` of a device serving ``--attitude-feed feed_url``."""
+    """Run the loop for ``duration_s`` of wall time and on until ``min_ok_updates`` OK answers,
+    at most ``overrun_s`` more (module docstring); ``client`` is a connected
+    ``ground.link.client.Client`` of a device serving ``--attitude-feed feed_url``; each
+    COMBINATION is answered within ``combination_timeout`` s."""
     log = HilLog(dynamics.label, [float(v) for v in q_target])
-    estimator = Estimator(q0, w0)
     q, w = np.asarray(q0, dtype=float), np.asarray(w0, dtype=float)
     n = int(round(duration_s / dt))
     with Sender(feed_url) as sender:
-        start = time.time()
+        start = clock()
+        estimator = Estimator(q0, w0, start)
         sender.send(Sample(start, q, w))
         log.truth_t.append(start)
         log.truth_q.append([float(v) for v in q])
-        loop = FlightLoop(client, estimator, log, exposure_s, mask)
+        loop = FlightLoop(client, estimator, log, exposure_s, mask, combination_timeout, clock)
         loop.start()
         bar = tqdm(total=n, desc="closed loop", unit="step", disable=not progress)
         k = 0
         try:
-            while loop.is_alive() and (k < n or time.time() < start + duration_s + 10.0):
-                if k == n:
+            while loop.is_alive() and (k < n or clock() < start + duration_s + overrun_s):
+                if k >= n and not loop.stop.is_set() and log.ok_updates() >= min_ok_updates:
                     loop.stop.set()  # the feed goes on until the last COMBINATION is answered
                 k += 1
                 t = start + k * dt
-                time.sleep(max(0.0, t - time.time()))
+                sleep(max(0.0, t - clock()))
                 dynamics.set_measurement(*estimator.propagate(w, t))  # gyro: the truth rate
                 q, w = dynamics.step(dt)
                 sender.send(Sample(t, q, w))
@@ -182,7 +210,7 @@ def run_closed_loop(
         finally:
             bar.close()
             loop.stop.set()
-            loop.join(timeout=10.0)
+            loop.join(timeout=combination_timeout + 10.0)
     if loop.error is not None:
         raise loop.error
     return log
