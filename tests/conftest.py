@@ -1,6 +1,8 @@
-"""Shared fixtures: the read-only data in ../shared (skipped cleanly when absent)."""
+"""Shared fixtures: the read-only data in ../shared (skipped cleanly when absent); the long
+tests' markers (:data:`LONG_TESTS`)."""
 
 import threading
+import warnings
 from pathlib import Path
 
 import pytest
@@ -11,6 +13,29 @@ settings.register_profile("project", deadline=None)
 settings.load_profile("project")
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+
+#: Tests the default run leaves out (pyproject's ``addopts`` deselects these markers; CI runs them
+#: in a second invocation, ``-m "slow or hil or realdata"``): test name -> marker. Kept here, in
+#: one table, so a long test is marked without touching its module. Seconds: one run on the quiet
+#: 2-core machine.
+LONG_TESTS = {
+    # real frames in ../shared/data through the command line or the device
+    "tests/test_real_colour_frames.py::test_colour_frames_solve_through_the_cli_with_fov_only": "realdata",  # 52 s
+    "tests/test_real_frames.py::test_real_frames_solve_through_the_cli": "realdata",  # 19 + 4 s
+    "tests/test_real_frames.py::test_device_and_offline_replay_give_the_same_answers": "realdata",
+    "tests/test_real_frames.py::test_camera_calibrates_from_the_datasheet_alone": "realdata",  # 4 s
+    "tests/test_wcs_api.py::test_solve_file_cli": "realdata",  # 13 s
+    "tests/test_wcs_api.py::test_solve_image_on_the_real_frames_and_their_wcs": "realdata",  # 4 s
+    # the closed loop through a paced device in real time
+    "tests/test_hil.py::test_short_closed_loop_through_the_paced_device": "hil",  # 11 + 3 s
+    # long end-to-end runs of device processes
+    "tests/test_attitude_feed.py::test_device_cli_solves_along_a_fed_path": "slow",  # 31 s
+    "tests/test_link_pty.py::test_ctrl_c_during_an_upload_keeps_what_was_sent_and_the_next_upload_resumes": "slow",
+    "tests/test_e2e_field.py::test_colour_calibration_from_a_run_and_on_the_device": "slow",  # 9 + 2 s
+    "tests/test_e2e_link.py::test_replay_survives_device_restart": "slow",  # 7 s
+    # asserts COSMOS's 1 s polling window: a timing, meaningful on a quiet machine only
+    "tests/test_cosmos_polling.py::test_cosmos_polling_never_times_out_against_the_sky_source": "slow",  # 6 s
+}
 
 
 @pytest.fixture
@@ -61,3 +86,20 @@ def shared_data() -> Path:
     if not path.is_dir():
         pytest.skip("../shared/data is absent")
     return path
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """Marks the tests of :data:`LONG_TESTS` (before ``-m`` selects); warns of a name in the table
+    that names no test of a module this run collected (a renamed test would run by default)."""
+    seen, files = set(), set()
+    for item in items:
+        name = item.nodeid.split("[", 1)[0]
+        files.add(name.split("::", 1)[0])
+        marker = LONG_TESTS.get(name)
+        if marker is not None:
+            item.add_marker(getattr(pytest.mark, marker))
+            seen.add(name)
+    for name in LONG_TESTS.keys() - seen:
+        if name.split("::", 1)[0] in files:
+            warnings.warn(pytest.PytestWarning(f"conftest LONG_TESTS names no collected test: {name}"), stacklevel=1)

@@ -59,7 +59,6 @@ def test_conventions_and_dynamics_match_basilisk():
 MIN_OK = 5  #: OK answers the loop runs on for
 
 
-@pytest.mark.hil
 @pytest.mark.parametrize("kind", ["basilisk", "standin"])
 def test_short_closed_loop_through_the_paced_device(tmp_path, kind, monkeypatch):
     if kind == "basilisk":
