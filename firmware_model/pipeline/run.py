@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 import statistics
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -333,65 +334,255 @@ def _label_planets(out: PipelineOutput, frame: Frame, catalog: OnboardCatalog, p
 def identify_stars(
     stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams = PipelineParams()
 ) -> PipelineOutput:
-    """Identification and attitude from extracted stars (``stars.vectors`` from ``camera``),
-    with the optics search and fit of :class:`OpticsSearch`."""
+    """Identification and attitude from extracted stars (``stars.vectors`` from ``camera``): the
+    stages of :data:`SOLVE_PLAN`, in its order, each handing on by its rule."""
     t0 = time.perf_counter()
-    timings = StageTimings(
-        detect=stars.timings.get("detect_s", 0.0),
-        fit=stars.timings.get("fit_s", 0.0),
-        vectors=stars.timings.get("vectors_s", 0.0),
+    frame = FrameSolve(
+        stars,
+        camera,
+        catalog,
+        params,
+        StageTimings(
+            detect=stars.timings.get("detect_s", 0.0),
+            fit=stars.timings.get("fit_s", 0.0),
+            vectors=stars.timings.get("vectors_s", 0.0),
+        ),
     )
-    # a calibrated camera (no search) still starts from its first pattern match on the geometric route
-    used = _usable(stars)
-    geometric = len(used) >= 4 and routes_geometric(params.solve.mode, catalog, _has_colour(stars, used))
-    tier = params.optics or (OpticsSearch() if geometric else None)
-    if tier is not None:
+    plan = {stage.name: stage for stage in SOLVE_PLAN}
+    name = SOLVE_PLAN[0].name
+    while name != DONE:
+        stage = plan[name]
+        name = stage.run(frame)
+        assert name in stage.hands_to, f"{stage.name} handed to {name}, not in the plan"
+    assert frame.out is not None  # every path to DONE leaves an answer
+    return _accounted(frame.out, frame.timings, t0, stars)
+
+
+@dataclass
+class FrameSolve:
+    """What the stages of one frame's solve share: the inputs, the frame's ledger (``timings``:
+    seconds and counted work), the route, the first tier's pattern matches (``peek``) and their
+    first refined seed, the answer so far (``out``) and the optics search's (``found``, once it
+    ran: it runs at most once a frame)."""
+
+    stars: StarList
+    camera: CameraModel
+    catalog: OnboardCatalog
+    params: PipelineParams
+    timings: StageTimings
+    used: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    geometric: bool = False
+    peek: scale_free.BrightFirstMatches | None = None
+    seed: tuple[scale_free.Hypothesis, tuple | None] | None = None
+    search_first: bool = False
+    searched: bool = False
+    found: PipelineOutput | None = None
+    out: PipelineOutput | None = None
+
+
+#: The name that ends a solve.
+DONE = "done"
+
+
+@dataclass(frozen=True)
+class PlanStage:
+    """One row of :data:`SOLVE_PLAN`: the stage's name, what runs, its budget (counted; the
+    parameters that set it), the rule that names the next stage, the stages it may hand to, and the
+    function that runs it and returns the next stage's name."""
+
+    name: str
+    runs: str
+    budget: str
+    rule: str
+    hands_to: tuple[str, ...]
+    run: Callable[[FrameSolve], str]
+
+
+def _prepare(frame: FrameSolve) -> str:
+    frame.used = _usable(frame.stars)
+    frame.geometric = len(frame.used) >= 4 and routes_geometric(
+        frame.params.solve.mode, frame.catalog, _has_colour(frame.stars, frame.used)
+    )
+    if _first_tier_search(frame) is not None:
         t1 = time.perf_counter()
-        scale_free.catalog_patterns(catalog, camera)  # once per catalog and field: a set-up stage
-        timings.index = time.perf_counter() - t1
-    if params.flight_deadline_s is not None:  # flight timing: counted from the frame's extraction
-        deadline = t0 - stars.timings.get("total_s", 0.0) + timings.index + params.flight_deadline_s
-        params = replace(params, solve=replace(params.solve, deadline=deadline))
-    peek = _first_tier(stars, camera, catalog, tier, timings) if len(used) >= 4 else None
-    seed = _first_seed(stars, camera, catalog, tier, timings, peek)
-    searched = params.optics is not None and _nominal_off(peek, seed, stars, camera, catalog, params.optics)
-    first = _search_optics(stars, camera, catalog, params, timings, peek, seed) if searched else None
-    if first is not None and first.status is Status.OK:  # else the usual way: the nominal camera first
-        return _accounted(first, timings, t0, stars)
+        scale_free.catalog_patterns(frame.catalog, frame.camera)  # once per catalog and field: a set-up stage
+        frame.timings.index = time.perf_counter() - t1
+    if frame.params.flight_deadline_s is not None:  # from the frame's extraction, set-up stages excluded
+        deadline = time.perf_counter() - frame.stars.timings.get("total_s", 0.0) + frame.params.flight_deadline_s
+        frame.params = replace(frame.params, solve=replace(frame.params.solve, deadline=deadline))
+    return "pattern seed" if len(frame.used) >= 4 else "matchers"
 
-    def search() -> PipelineOutput | None:  # the search once per frame: its answer kept when it went first
-        return first if searched else _search_optics(stars, camera, catalog, params, timings, peek, seed)
 
-    # the nominal camera stays (the first pattern match's refined optics would not refit it): on
-    # the geometric route, that match is verified with it before the matchers run (issue 12: one
-    # verification, where they took 10 ms on noisy centroids; a colour frame is matched by its
-    # colours, as the mode says); the mono consensus fallback with the nominal camera
-    # waits for the optics search's cheaper pattern hypotheses: with uncalibrated optics the search
-    # is what finds the answer
-    out = None
-    if seed is not None and seed[1] is not None and not searched and geometric:
-        out = _verify_seed(seed[1], stars, camera, catalog, params, timings)
+def _first_tier_search(frame: FrameSolve) -> OpticsSearch | None:
+    """The first tier's settings: the optics search's, or on the geometric route a calibrated
+    camera's (no search) default ones."""
+    return frame.params.optics or (OpticsSearch() if frame.geometric else None)
+
+
+def _pattern_seed(frame: FrameSolve) -> str:
+    tier = _first_tier_search(frame)
+    frame.peek = _first_tier(frame.stars, frame.camera, frame.catalog, tier, frame.timings)
+    frame.seed = _first_seed(frame.stars, frame.camera, frame.catalog, tier, frame.timings, frame.peek)
+    search = frame.params.optics
+    frame.search_first = search is not None and _nominal_off(
+        frame.peek, frame.seed, frame.stars, frame.camera, frame.catalog, search
+    )
+    if frame.search_first:
+        return "optics search"
+    if frame.seed is not None and frame.seed[1] is not None and frame.geometric:
+        return "nominal verify"
+    return "matchers"
+
+
+def _nominal_verify(frame: FrameSolve) -> str:
+    assert frame.seed is not None and frame.seed[1] is not None  # the rule that leads here
+    out = _verify_seed(frame.seed[1], frame.stars, frame.camera, frame.catalog, frame.params, frame.timings)
     if out is None or out.status is not Status.OK:
-        out = _identify(stars, camera, catalog, params, timings, defer_fallback=params.optics is not None)
-    if params.optics is not None and out.status is not Status.TOO_FEW_STARS:
-        if out.status is not Status.OK:
-            found = search()
-            if out.fallback_due and (found is None or found.status is not Status.OK):
-                again = _identify(stars, camera, catalog, params, timings, fallback_only=True)
-                out = again if again.status is not Status.NO_MATCH else out
-                if out.status is Status.OK:
-                    found = None  # the nominal camera's consensus answer: its optics are checked below
-            if found is not None and (found.status is Status.OK or _rank(found) > _rank(out)):
-                out = found
-            elif out.status is Status.OK and (refined := _refine_optics(out, stars, camera, catalog, params, timings)):
-                out = refined
-        elif (refined := _refine_optics(out, stars, camera, catalog, params, timings)) is not None:
-            out = refined
-        elif out.optics is None:  # too few stars matched to check the optics: a search may match more
-            found = search()
-            if found is not None and found.status is Status.OK and _rank(found) > _rank(out):
-                out = found  # a high-confidence answer only: the search may now return a low one
-    return _accounted(out, timings, t0, stars)
+        return "matchers"
+    frame.out = out
+    return "refine optics" if frame.params.optics is not None else DONE
+
+
+def _matchers(frame: FrameSolve) -> str:
+    with_search = frame.params.optics is not None
+    out = _identify(frame.stars, frame.camera, frame.catalog, frame.params, frame.timings, defer_fallback=with_search)
+    frame.out = out
+    if not with_search or out.status is Status.TOO_FEW_STARS:
+        return DONE
+    return "refine optics" if out.status is Status.OK else "optics search"
+
+
+def _optics_search(frame: FrameSolve) -> str:
+    if not frame.searched:
+        frame.searched = True
+        f = frame
+        f.found = _search_optics(f.stars, f.camera, f.catalog, f.params, f.timings, f.peek, f.seed)
+    found, out = frame.found, frame.out
+    if out is None:  # it went first
+        if found is not None and found.status is Status.OK:
+            frame.out = found
+            return DONE
+        return "matchers"
+    if out.status is not Status.OK:
+        return "fallback" if out.fallback_due and (found is None or found.status is not Status.OK) else "choose"
+    if found is not None and found.status is Status.OK and _rank(found) > _rank(out):
+        frame.out = found  # a high-confidence answer only: the search may return a low one
+    return DONE
+
+
+def _fallback(frame: FrameSolve) -> str:
+    assert frame.out is not None
+    again = _identify(frame.stars, frame.camera, frame.catalog, frame.params, frame.timings, fallback_only=True)
+    if again.status is not Status.NO_MATCH:
+        frame.out = again
+        if again.status is Status.OK:
+            frame.found = None  # the nominal camera's consensus answer: its optics are checked next
+    return "choose"
+
+
+def _choose(frame: FrameSolve) -> str:
+    found, out = frame.found, frame.out
+    assert out is not None
+    if found is not None and (found.status is Status.OK or _rank(found) > _rank(out)):
+        frame.out = found
+        return DONE
+    return "refine optics" if out.status is Status.OK else DONE
+
+
+def _refine(frame: FrameSolve) -> str:
+    out = frame.out
+    assert out is not None
+    refined = _refine_optics(out, frame.stars, frame.camera, frame.catalog, frame.params, frame.timings)
+    if refined is not None:
+        frame.out = refined
+        return DONE
+    # too few stars matched to check the optics: a search may match more
+    return "optics search" if out.optics is None and not frame.searched else DONE
+
+
+#: The solve plan of one frame: the stages in the order the first runs, each one's counted budget,
+#: and the rule that hands on to the next (docs/identification.md, "The solve plan", is this
+#: table). Every search inside is bounded by counts; only flight timing adds a clock.
+SOLVE_PLAN: tuple[PlanStage, ...] = (
+    PlanStage(
+        "prepare",
+        "usable detections, the route (colour or geometric), the catalog's pattern index for the field",
+        "one pass; the index once per catalog and field (a set-up stage, `index` in timings_s)",
+        "at least 4 usable detections: pattern seed; else matchers",
+        ("pattern seed", "matchers"),
+        _prepare,
+    ),
+    PlanStage(
+        "pattern seed",
+        "the first tier's scale-free 4-star matches, rank by rank; the first one refined",
+        "`first_tier` brightest detections, `first_tier_hypotheses` matches, 1 seed refined",
+        "its refined optics would refit the nominal camera: optics search; on the geometric route: "
+        "nominal verify; else matchers",
+        ("optics search", "nominal verify", "matchers"),
+        _pattern_seed,
+    ),
+    PlanStage(
+        "nominal verify",
+        "the refined seed's stars verified over the frame with the nominal camera",
+        "1 verification (2 when the deep one is not high-confidence)",
+        "high confidence: refine optics (done without the optics search); else matchers",
+        ("refine optics", "matchers", DONE),
+        _nominal_verify,
+    ),
+    PlanStage(
+        "matchers",
+        "strategy.identify with the nominal camera: colour consensus or 4-star voting then triangles, "
+        "the photometric re-solve, deep verification (match_deep, adapt_noise); the mono fallback deferred",
+        "`max_verifications` per solve",
+        "high confidence: refine optics; else optics search; without the optics search or with too few stars: done",
+        ("refine optics", "optics search", DONE),
+        _matchers,
+    ),
+    PlanStage(
+        "optics search",
+        "pattern seeds best first, each refined (focal length, k1), verified, else identified with the "
+        "fitted camera (runs once a frame)",
+        "`max_seeds` seeds refined; no seed started past `max_frame_verifications` verifications",
+        "run first: high confidence done, else matchers; after a failed answer: fallback when it is due "
+        "and the search found none, else choose; after a high-confidence answer without optics: its "
+        "answer taken when high-confidence with more stars, done",
+        ("matchers", "fallback", "choose", DONE),
+        _optics_search,
+    ),
+    PlanStage(
+        "fallback",
+        "the mono consensus on every detection's geometry with the nominal camera",
+        "`max_verifications`",
+        "choose",
+        ("choose",),
+        _fallback,
+    ),
+    PlanStage(
+        "choose",
+        "the search's answer against the nominal camera's",
+        "none",
+        "the search's when high-confidence or ranked higher: done; else refine optics when high "
+        "confidence, done otherwise",
+        ("refine optics", DONE),
+        _choose,
+    ),
+    PlanStage(
+        "refine optics",
+        "focal length and k1 fitted to the answer's stars; the frame identified again with them when "
+        "they replace the camera",
+        "one fit; at most one re-identification (`max_verifications` per solve)",
+        "refitted: done; no optics fit and the search not yet run: optics search; else done",
+        ("optics search", DONE),
+        _refine,
+    ),
+)
+
+
+def plan_table() -> str:
+    """:data:`SOLVE_PLAN` as a Markdown table (docs/identification.md quotes it)."""
+    rows = ["| stage | runs | budget (counted) | hands on |", "|---|---|---|---|"]
+    rows += [f"| {s.name} | {s.runs} | {s.budget} | {s.rule} |" for s in SOLVE_PLAN]
+    return "\n".join(rows)
 
 
 def _accounted(out: PipelineOutput, timings: StageTimings, t0: float, stars: StarList) -> PipelineOutput:
