@@ -1,4 +1,4 @@
-"""Open-loop colour in the whole-sky run (issue 13): colour matching against geometric (mono)
+"""Open-loop colour in the whole-sky run: colour matching against geometric (mono)
 matching when the observed colours come from the catalog's own model (closed loop) and from a
 model the catalog did not use, with channel gain errors and scintillation (open loop).
 

@@ -1,4 +1,4 @@
-"""End-to-end figures of issue 6 (printed; nothing here is a unit test).
+"""End-to-end figures (printed; nothing here is a unit test).
 
 A. Solve rate and attitude error over N rendered frames at uniformly random attitudes with the
    Enright & McVittie reference design (2592 x 1944, 7.5 deg half-angle minor axis, 100 ms), by method:

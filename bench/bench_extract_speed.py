@@ -1,4 +1,4 @@
-"""Extraction speed (issue 12 item 2): detect, fit and detect + fit medians per frame, as
+"""Extraction speed: detect, fit and detect + fit medians per frame, as
 ``extract_stars`` runs them (every PSF pass counted), on full 2592 x 1944 RGGB frames rendered from
 the real sky (reference design, random attitudes) and on the eight tetra3 mono frames
 (../shared/data/frames/tetra3-mono, 1024 x 768), single-threaded.

@@ -1,4 +1,4 @@
-"""Learned star colours (issue 13) against the eq. 24 correction: Enright & McVittie table 5 again.
+"""Learned star colours against the eq. 24 correction: Enright & McVittie table 5 again.
 
 Frames are rendered with known truth and split in two halves. The training half is solved by the
 device pipeline (auto: colour, then geometry) against the catalog; from its high-confidence

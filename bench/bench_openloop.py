@@ -1,4 +1,4 @@
-"""Open-loop validation bench (issue 9 item 3): frames rendered with optics, detector, sky and
+"""Open-loop validation bench: frames rendered with optics, detector, sky and
 star colours the solver does NOT assume, solved with only what a user has.
 
 Rendering: the real sky (Hipparcos to V 6.5) through ``ground.sim.sensor_sim.render_frame`` with the

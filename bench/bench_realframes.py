@@ -13,7 +13,7 @@ reference (astrometry.net for colour-real; for tetra3 fixtures/tetra3_cedar_refe
 cedar-solve run written by ``--write-tetra3-reference``: agreement, not truth), in pixels; and ours
 against this run's cedar-solve answer on the same file (``ours-cedar px``).
 
-Identification time (issue 12): ``id ms`` is the pipeline's own stage timings (``identify`` +
+Identification time: ``id ms`` is the pipeline's own stage timings (``identify`` +
 ``attitude``, wall) of the timed run, the optics search included when the datasheet camera was
 not good enough; ``cal id ms`` / ``cpu`` is the identification alone (``identify_stars`` without
 the optics search) of the same extracted stars with the camera the answer was found with (the
@@ -26,7 +26,7 @@ on the array within 2 px of a detection. The summary gives the median and p99 ov
     .venv/bin/python bench/bench_realframes.py --write-tetra3-reference
     .venv/bin/python bench/bench_realframes.py --perturbed 25
 
-``--perturbed N`` (ours only, issue 12): every frame our clean run solves with high confidence
+``--perturbed N`` (ours only): every frame our clean run solves with high confidence
 within 1 px, its extracted stars perturbed N times per kind (3 false stars at random places
 with fluxes drawn from the frame's, 20 % of the detections dropped, 1 px centroid noise with
 its variance added to the reported covariance, all three), identified with the calibrated camera

@@ -1,4 +1,4 @@
-"""Timing like a device (issue 15; printed figures, nothing here is a unit test).
+"""Timing like a device (printed figures, nothing here is a unit test).
 
 A. GO -> result ready for each capture source, each its own ``st16-device --pty`` process:
    ``--frames`` (full-size DNG files read per GO), ``--sky`` (a schedule rendered per GO) and

@@ -276,7 +276,7 @@ def _undistort(ud, wd, k1, k2, k3, p1, p2):  # pragma: no cover - compiled
 
 
 # --- the projections, compiled: the identification projects a frame's stars and its catalog
-# stars a dozen times a solve (issue 12); the same arithmetic as distort / undistort
+# stars a dozen times a solve; the same arithmetic as distort / undistort
 
 
 @njit(cache=True, nogil=True)

@@ -1,4 +1,4 @@
-"""Identification with false and missing stars (issue 9): miss-tolerant coverage test, adaptive
+"""Identification with false and missing stars: miss-tolerant coverage test, adaptive
 seed and triad orders, the two-star last resort, the triangle side beyond the pair range."""
 
 from dataclasses import replace

@@ -105,7 +105,7 @@ def test_outcome_prints_its_value():
 
 
 def test_geometric_route_is_one_solve_up_to_the_cap():
-    # issue 12: no 4/6/8 ladder by default; explicit steps still widen to the cap
+    # no 4/6/8 ladder by default; explicit steps still widen to the cap
     assert geometric_sizes(30, 12) == [12]
     assert geometric_sizes(5, 12) == [5]
     assert geometric_sizes(30, 12, (4, 6, 8)) == [4, 6, 8, 12]

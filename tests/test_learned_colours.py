@@ -1,4 +1,4 @@
-"""Learned star colours (issue 13): the Bayesian update, gathering from solve records, the
+"""Learned star colours: the Bayesian update, gathering from solve records, the
 re-signed catalog image and the ``catalog learn-colours`` command."""
 
 import json

@@ -1,4 +1,4 @@
-"""One-to-one Hipparcos x BSC5 cross-match lending MK types (issue 13): synthetic cases and real data."""
+"""One-to-one Hipparcos x BSC5 cross-match lending MK types: synthetic cases and real data."""
 
 import json
 

@@ -1,4 +1,4 @@
-"""Issue 12 (f9bc762): the frame's own centroid noise (strategy.adapt_noise, extra_noise,
+"""The frame's own centroid noise (strategy.adapt_noise, extra_noise,
 noise_rejected), high confidence of search-chosen patterns (searched_confident), the fit's
 Rodrigues rotation (camera_fit.rotvec_matrix) and the optics search going first when the best
 pattern's refined optics say the nominal focal length is off (run._nominal_off)."""

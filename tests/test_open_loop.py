@@ -165,7 +165,7 @@ def test_bad_frames_get_a_status_never_a_confident_answer(catalog, name, frame):
 
 
 def test_search_goes_before_the_mono_consensus_with_the_nominal_camera(catalog, monkeypatch):
-    """Issue 12: when the nominal camera finds nothing, the optics search's pattern hypotheses run
+    """When the nominal camera finds nothing, the optics search's pattern hypotheses run
     before the mono consensus fallback with that camera, which is not run when the search answers."""
     from firmware_model.pipeline import run
 

@@ -77,7 +77,7 @@ def test_colour_frames_solve_through_the_cli_with_fov_only(colour_real, tmp_path
         a = radec_to_vec(np.radians(rec["ra_deg"]), np.radians(rec["dec_deg"]))
         b = radec_to_vec(np.radians(ref["centre_ra_deg"]), np.radians(ref["centre_dec_deg"]))
         sep_px = np.degrees(np.arccos(np.clip(a @ b, -1, 1))) * 3600 / ref["plate_scale_arcsec_per_px"]
-        if name == "tree.jpg":  # the search's 4-star pattern answer, not the nominal camera's 3-star one (issue 12)
+        if name == "tree.jpg":  # the search's 4-star pattern answer, not the nominal camera's 3-star one
             assert sep_px < 3, sep_px
         if rec["status"] != "OK":
             continue

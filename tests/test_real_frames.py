@@ -59,7 +59,7 @@ def separation_arcsec(rec, name):
 def check_solutions(records, names):
     assert [r["status"] for r in records] == ["OK"] * len(names), [(r["status"], r["reason"]) for r in records]
     seps = [separation_arcsec(r, n) for r, n in zip(records, names)]
-    # cedar-solve's own fit RMSE is 5-7 arcsec: each frame within 1 px of it (issue 9's target)
+    # cedar-solve's own fit RMSE is 5-7 arcsec: each frame within 1 px of it
     assert np.median(seps) < 0.5 * ARCSEC_PER_PX and max(seps) < 1.0 * ARCSEC_PER_PX, seps
     for r in records:
         assert r["residual_rms_arcsec"] < 15  # ~0.35 px

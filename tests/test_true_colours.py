@@ -1,4 +1,4 @@
-"""Open-loop colours in the whole-sky run (issue 13): blackbody true colours, channel gain errors,
+"""Open-loop colours in the whole-sky run: blackbody true colours, channel gain errors,
 scintillation, the closed loop unchanged without them, and the command line's refusals."""
 
 from dataclasses import replace

@@ -21,7 +21,7 @@ whole-sky simulation), steps 1-5:
    alone (``geometric_fallback``; method ``geometric-consensus``). With ``defer_fallback`` the
    answer instead comes back with ``fallback_due`` set and the caller runs the fallback itself
    (:func:`geometric_fallback`) when its cheaper methods fail: the pipeline's optics search tries
-   its pattern hypotheses first when the nominal camera fails (issue 12).
+   its pattern hypotheses first when the nominal camera fails.
 5. every star in view and the frame's own noise (:func:`finish`): a high-confidence answer is
    verified again against every catalog star, the verification-only stars fainter than the
    pattern stars included (:func:`match_deep`); one whose stars, looked for with wider gates,
@@ -82,7 +82,7 @@ from firmware_model.reference_frames import rotation_angle
 #: Fewest detections given to the geometric matcher by :func:`geometric_detection_cap`.
 MIN_GEOMETRIC_DETECTIONS = 8
 #: Brightest-detection counts the geometric route may try before the density cap (none by default:
-#: issue 12 measured the old 4, 6, 8 ladder spending 84-98 % of identification time on steps that
+#: the old 4, 6, 8 ladder was measured spending 84-98 % of identification time on steps that
 #: failed; the matchers rank their own hypotheses brightest first and stop at the first decisive
 #: verified one, with every detection of the cap available to verification).
 GEOMETRIC_STEPS: tuple[int, ...] = ()
@@ -425,7 +425,7 @@ def adapt_noise(
     exceeds twice the probe (residuals the probe did not look for: a wrong match's). When the
     verification with the estimated noise fails or does not keep all the answer's stars
     (:func:`keeps_stars`), the answer keeps its stars, re-solved and its covariance widened with the
-    estimated noise: the rejected one would leave it too tight (issue 12: 5.9 sigma off)."""
+    estimated noise: the rejected one would leave it too tight (measured: 5.9 sigma off)."""
     sol = found.solution
     probe = base.noise_probe_px
     high = sol.status is Outcome.HIGH_CONFIDENCE or sol.roll_limited
@@ -643,7 +643,7 @@ def searched_confident(n: int, coverage: float, chance: float, cp: ConsensusPara
     attempt ``attempts`` of the search: :func:`consensus.confident`'s rule (a large set, or at
     least ``chance_stars`` whose stars beyond two line up by chance with probability below
     ``chance_alpha``) with the chance multiplied by the attempts (each pattern the search refines
-    and verifies is one more chance for a coincidence; issue 12: with 1 px noise, 3 false stars
+    and verifies is one more chance for a coincidence; measured: with 1 px noise, 3 false stars
     and 20 % dropped, a wrong pattern with its fitted focal length verified 4 of 54 detections at
     chance 1e-4 to 3e-6, 24 deg off)."""
     cov = coverage if np.isfinite(coverage) else 0.0

@@ -40,7 +40,7 @@ explains the whole frame:
    three stars keep the fixed ``min_coverage`` floor: with so few stars the coverage is most of
    the evidence against a coincidental match. A match whose stars line up by chance with
    probability at most ``coverage_chance`` (:func:`chance_alignment`) stands whatever its coverage,
-   flagged ``low_coverage``: a frame that lost stars (a cloud, a baffle edge, the issue 12 set with
+   flagged ``low_coverage``: a frame that lost stars (a cloud, a baffle edge, the perturbed real-frame set with
    20 % of the stars dropped: 10 of 17 predicted stars matched) keeps an identification the
    geometry has already decided.
 """
@@ -316,7 +316,7 @@ def warm_up() -> None:
 
 
 # --- compiled steps 1-2c (numba, cached on disk): two calls instead of ~60 small array operations
-# and up to ten attitude solves a hypothesis (issue 12); the arithmetic the module docstring states.
+# and up to ten attitude solves a hypothesis; the arithmetic the module docstring states.
 
 
 @njit(cache=True, nogil=True)

@@ -67,7 +67,7 @@ def _wahba(camera: CameraModel, obs: StarObservations) -> np.ndarray:
 def rotvec_matrix(r: np.ndarray) -> np.ndarray:
     """Rotation matrix of rotation vector ``r`` (rad; Rodrigues' formula, the small-angle series
     below 1e-8 rad): scipy's ``Rotation.from_rotvec`` without its per-call overhead, which
-    dominated the fit's residual evaluations (issue 12)."""
+    dominated the fit's residual evaluations."""
     theta = float(np.sqrt(r @ r))
     k = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
     if theta < 1e-8:
@@ -164,7 +164,7 @@ def calibrate(frames: list[StarObservations], initial: CameraModel, fit=DEFAULT_
 
     # one frame: every unknown touches every star, and the analytic dense Jacobian (exact
     # trust-region steps, no finite differences) is several times cheaper than the sparse
-    # machinery for a handful of parameters (issue 12)
+    # machinery for a handful of parameters
     sparsity = lil_matrix((2 * n_obs, n_par), dtype=int) if len(frames) > 1 else None
     if sparsity is not None:
         sparsity[:, : len(fit)] = 1

@@ -187,7 +187,7 @@ class PipelineParams:
 
     ``geometric_density_factor``: the geometric (4-star) method sees only the brightest
     detections, this factor times the catalog stars expected in the field
-    (``strategy.geometric_detection_cap``), in one solve (no 4/6/8 ladder since issue 12). ``geometric_fallback``: when that 4-star match finds
+    (``strategy.geometric_detection_cap``), in one solve (no 4/6/8 ladder). ``geometric_fallback``: when that 4-star match finds
     nothing, the consensus matcher of Enright & McVittie runs on geometry alone (colours unknown), which
     tolerates missing and extra stars far better; its answers are labelled
     ``geometric-consensus``. ``colour_fallback``: in ``auto`` mode a colour frame that the colour
@@ -649,7 +649,7 @@ def _nominal_off(
 ) -> bool:
     """Whether the nominal camera would be refitted (:func:`_refit_due`, :func:`_refine_optics`'s
     rule) on the first pattern match's refined stars (:func:`_first_seed`). A nominal camera that cannot
-    match would spend its matchers' whole search failing (issue 12: 10-50 ms per tetra3 frame), and
+    match would spend its matchers' whole search failing (10-50 ms per tetra3 frame, measured), and
     one whose answer is refitted identifies the frame twice, so the search goes first. The refined
     camera, not the pattern's own scale: one pattern's scale is known to ~0.1 %. Without a
     refinement, the first tier's best key's focal length decides."""
@@ -792,7 +792,7 @@ def _with_fitted_camera_uncertainty(
     (``OpticsFit.attitude_covariance``), held to the roll bound again. The answer was identified
     with the camera the search fitted to a few stars; a focal length off by a few pixels tilts the
     attitude of an off-centre star field, and the solution's covariance treats its camera as exact
-    (issue 12: 1 px noise, 21 stars, a focal length 9 px off, 4.1 sigma off)."""
+    (measured: 1 px noise, 21 stars, a focal length 9 px off, 4.1 sigma off)."""
     sol, fit, stars = out.solution, out.optics, out.stars
     if sol is None or sol.covariance is None or fit is None or fit.attitude_covariance is None or stars is None:
         return out
@@ -864,7 +864,7 @@ def _refit_due(
 ) -> bool:
     """Whether fitted optics replace ``camera``: they move the array's corners (:func:`_moves_corners`)
     or fit their stars (``fit.rows`` of ``stars`` on ``fit.cat``) :data:`REFIT_RMS_RATIO` times
-    better than ``camera`` with its best attitude does: the same stars both ways (issue 12: an
+    better than ``camera`` with its best attitude does: the same stars both ways (measured: an
     answer's own RMS counts the stars the optics fit leaves out, and flagged a camera the fit did
     not move on 2 of 8 tetra3 frames, each then identified again from scratch)."""
     if _moves_corners(camera, fit, search):

@@ -17,7 +17,7 @@ from typing import Any
 SOURCES = ("hipparcos", "bsc5")
 #: Stars in view, pattern and verification-only together, of a :meth:`CatalogDesign.for_field`
 #: design: six times the pattern stars, so a decided answer's attitude rests on every star the
-#: frame shows down to about 1.5 mag below the pattern stars (issue 12: with 1 px centroid noise,
+#: frame shows down to about 1.5 mag below the pattern stars (measured: with 1 px centroid noise,
 #: the roll from the ~15 pattern stars alone missed 0.1 deg on 8 % of the tetra3 inputs; with ~45
 #: in view the sparse tetra3 fields matched 21-27 stars and missed it on 1 of 200, with ~90 they
 #: match 42-63, as many as cedar-solve's database gives it).

@@ -3,7 +3,7 @@
 ``sim colour``: spiral boresights x rolls on the reference array, Enright & McVittie eqs 19-21 noise; prints
 the table 3 breakdown next to the paper's figures and writes rows (.npy), summary (.json), the
 error CDF (fig. 9) and the Mollweide map (fig. 10); ``--true-colours``, ``--gain-error`` and
-``--scintillation`` observe colours the catalog did not predict (open loop, issue 13). ``sim fourstar``: Dong et al.'s 5 deg grid at one or
+``--scintillation`` observe colours the catalog did not predict (open loop). ``sim fourstar``: Dong et al.'s 5 deg grid at one or
 more tolerances. Both run on local cores (``--workers``) or a Dask cluster (``--scheduler``).
 """
 

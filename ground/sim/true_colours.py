@@ -1,4 +1,4 @@
-"""Open-loop star colours for the whole-sky run (issue 13): where the observed colours come from.
+"""Open-loop star colours for the whole-sky run: where the observed colours come from.
 
 The closed loop observes each star with the catalog's own colour ratios plus Gaussian noise. The
 open loop observes colours the catalog did not predict:
