@@ -12,13 +12,22 @@ integer type's maximum). ``camera`` is a
 :class:`CameraModel`; without one, ``fov_deg`` (horizontal field of view, deg) gives a pinhole
 camera at the array centre and the pipeline's optics search and fit absorb its error. ``catalog``
 is an :class:`OnboardCatalog` or a catalog image path (``st16-ground catalog build``); without
-one, a catalog for the field is built from the bundled Hipparcos (``CatalogDesign.for_field``,
-kept for the next call with the same field). ``params`` are the pipeline's parameters (the
+one, a catalog for the field is built from the bundled Hipparcos (``CatalogDesign.for_field``)
+with its pattern index, once per field: kept for the next call in the process and on disk in the
+user's cache directory (:func:`catalog_for_field`). ``params`` are the pipeline's parameters (the
 device's slot-2 settings).
+
+The first solve in a process loads the compiled kernels (``replay.warm_up_kernels``); its record's
+``timings_s`` count that as ``compile`` and the catalog's building or loading as ``catalog``, and
+their ``total`` is the whole time the call took past reading the image.
 """
 
 from __future__ import annotations
 
+import hashlib
+import logging
+import pickle
+import time
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -31,6 +40,8 @@ if TYPE_CHECKING:
     from firmware_model.catalog.onboard import OnboardCatalog
     from firmware_model.pipeline.raw_frame import Frame
     from firmware_model.pipeline.run import PipelineOutput, PipelineParams
+
+_log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -87,19 +98,25 @@ def solve_image(
 ) -> SolvedImage:
     """Detect, identify and solve one image (module docstring); bad input raises ValueError."""
     from firmware_model.pipeline.run import PipelineParams, run_pipeline
+    from ground.analysis.replay import warm_up_kernels
 
     frame = _frame(image)
     camera = _camera(frame, camera, fov_deg)
+    compile_s = warm_up_kernels()
+    t0, hits = time.perf_counter(), catalog_for_field.cache_info().hits
     cat = _catalog(catalog, camera)
+    given = not isinstance(catalog, (str, Path)) and catalog_for_field.cache_info().hits > hits  # nothing built
+    catalog_s = 0.0 if given else time.perf_counter() - t0
     out = run_pipeline(frame, camera, cat, params or PipelineParams())
-    return solved_image(out, camera)
+    return solved_image(out, camera, {"catalog": catalog_s, "compile": compile_s})
 
 
-def solved_image(out: PipelineOutput, camera: CameraModel) -> SolvedImage:
-    """The :class:`SolvedImage` of a pipeline run made with ``camera``."""
-    from ground.link.solve_report import record_from_output
+def solved_image(out: PipelineOutput, camera: CameraModel, setup_s: dict[str, float] | None = None) -> SolvedImage:
+    """The :class:`SolvedImage` of a pipeline run made with ``camera``; ``setup_s``: set-up seconds
+    (``catalog``, ``compile``) the call paid before the frame, added to the record's timings."""
+    from ground.link.solve_report import add_setup_stages, record_from_output
 
-    rec = record_from_output(out)
+    rec = add_setup_stages(record_from_output(out), **(setup_s or {}))
     used = out.optics.camera if out.optics is not None else (out.camera or camera)
     stars = tuple(
         IdentifiedStar(s["x"], s["y"], s["flux"], s["rg"], s["bg"], s["catalog_id"], s["residual_arcsec"])
@@ -177,8 +194,67 @@ def catalog_for_camera(camera: CameraModel) -> OnboardCatalog:
 
 @lru_cache(maxsize=4)
 def catalog_for_field(width: int, height: int, fov_deg: float) -> OnboardCatalog:
-    """The catalog ``st16-ground catalog build --fov-deg`` makes for this field (bundled Hipparcos)."""
+    """The catalog ``st16-ground catalog build --fov-deg`` makes for this field (bundled Hipparcos),
+    with its pattern index for the field: built once (1-20 s; one warning line says so), then
+    loaded from the user's cache directory (``field-catalogs/``: the catalog image and the index,
+    named by a hash of the design and of the code that builds them)."""
+    from firmware_model import user_cache_dir
+    from firmware_model.camera import CameraModel
+    from firmware_model.catalog.image_io import catalog_from_image, catalog_to_image
+    from firmware_model.pipeline import scale_free
+    from ground.atomic_write import write_bytes
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
 
-    return build_catalog(CatalogDesign.for_field(width, height, fov_deg))
+    design = CatalogDesign.for_field(width, height, fov_deg)
+    camera = CameraModel.from_horizontal_fov(width, height, fov_deg)
+    folder = user_cache_dir() / "field-catalogs"
+    stem = folder / _field_key(design)
+    image_path, index_path = stem.with_suffix(".st16cat"), stem.with_suffix(".patterns.pickle")
+    try:
+        cat = catalog_from_image(image_path.read_bytes())
+        mrad, index = pickle.loads(index_path.read_bytes())  # our own cache folder's files
+        scale_free.set_catalog_patterns(cat, mrad, index)
+        return cat
+    except FileNotFoundError:
+        pass
+    except Exception as exc:  # noqa: BLE001 - a damaged or foreign cache file: built again
+        _log.debug("field catalog cache %s not used: %s", stem, exc)
+    _log.warning(
+        "building a star catalog and its pattern index for a %.2f deg field of %d x %d px: once per "
+        "field (1-20 s), then kept in %s",
+        fov_deg,
+        width,
+        height,
+        folder,
+    )
+    image = catalog_to_image(build_catalog(design))
+    cat = catalog_from_image(image)  # as it will load from the cache: the same answers every time
+    index = scale_free.catalog_patterns(cat, camera)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        write_bytes(image_path, image)
+        write_bytes(index_path, pickle.dumps((scale_free.pattern_field(cat, camera), index), protocol=5))
+    except OSError as exc:
+        _log.warning("field catalog not kept in %s: %s", folder, exc)
+    return cat
+
+
+def _field_key(design) -> str:
+    """A name for a field's cached catalog: a hash of its design, the package version and the
+    code that builds the catalog, its image and its pattern index."""
+    import protocol
+
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256(f"{protocol.__version__} {design!r}".encode())
+    sources = [
+        *sorted((root / "ground" / "catalog").glob("*.py")),
+        *sorted((root / "firmware_model" / "catalog").glob("*.py")),
+    ]
+    for source in [
+        *sources,
+        root / "protocol" / "catalog_image.py",
+        root / "firmware_model" / "pipeline" / "scale_free.py",
+    ]:
+        digest.update(source.read_bytes())
+    return digest.hexdigest()[:20]

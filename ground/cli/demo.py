@@ -1,15 +1,39 @@
 """``st16-ground demo``: the end-to-end demonstration (the README's first command; what it runs is
-``ground.cli.end_to_end``)."""
+``ground.cli.end_to_end``). It first loads the pipeline's compiled kernels, which the first run
+after install compiles (about a minute on 2 cores, said on stderr with a bar), so that the device
+it starts loads them from numba's cache in a fraction of a second.
+
+``st16-ground warm-up``: that step alone (after install, say, or in an image build).
+"""
 
 from __future__ import annotations
 
 from ground.arg_types import progress_on
 
 
+def _kernels(progress: bool) -> str:
+    """Load (or compile) the kernels; a line saying how long it took and where they are cached."""
+    from firmware_model import kernel_cache_dir
+    from ground.analysis.replay import warm_up_kernels
+
+    seconds = warm_up_kernels(progress=progress)
+    where, _ = kernel_cache_dir()
+    return f"kernels: ready in {seconds:.1f} s (numba's cache: {where or 'beside the modules, in __pycache__'})"
+
+
 def _demo(args) -> int:
+    from pathlib import Path
+
     from ground.cli.end_to_end import run_demo
 
+    Path(args.out).mkdir(parents=True, exist_ok=True)  # an unusable --out is said before any wait
+    print(_kernels(progress_on(args)), flush=True)
     return run_demo(args.out, n_frames=args.frames, seed=args.seed, progress=progress_on(args))
+
+
+def _warm_up(args) -> int:
+    print(_kernels(progress_on(args)), flush=True)
+    return 0
 
 
 def register(sub) -> None:
@@ -18,3 +42,9 @@ def register(sub) -> None:
     p.add_argument("--frames", type=int, default=6, help="frames to render and solve")
     p.add_argument("--seed", type=int, default=2026, help="render seed")
     p.set_defaults(func=_demo)
+
+    p = sub.add_parser(
+        "warm-up",
+        help="load the pipeline's compiled kernels, compiling them on the first run after install (about a minute)",
+    )
+    p.set_defaults(func=_warm_up)

@@ -4,8 +4,10 @@ solves in-process with the same pipeline and parameter file. ``--wcs FILE`` writ
 frame's FITS WCS (TAN-SIP, docs/wcs.md).
 
 ``st16-ground solve-file FRAME``: one image offline, no device and no log: a catalog for the field
-is built when ``--catalog`` is not given; ``--wcs`` and ``--overlay`` (a PNG naming each identified
-star) as wanted.
+is built when ``--catalog`` is not given (once per field: kept in the user's cache directory);
+``--wcs`` and ``--overlay`` (a PNG naming each identified star) as wanted. Its ``timings_s`` count
+the kernels' loading (``compile``) and the catalog's building or loading (``catalog``) in their
+``total``: the first run after install compiles the kernels (about a minute, said on stderr).
 """
 
 from __future__ import annotations
@@ -92,7 +94,7 @@ def _write_wcs(path, rec: dict, frame, camera) -> None:
 
 def _solve_file(args) -> int:
     from firmware_model.pipeline.frame_readers import FrameReadError, read_frame
-    from ground.analysis.replay import OfflineSolver
+    from ground.analysis.replay import OfflineSolver, warm_up_kernels
     from ground.cli.offline_options import camera_for_frames, load_catalog, load_params
 
     if args.catalog is None and args.fov_deg is None and args.camera is None:
@@ -104,6 +106,8 @@ def _solve_file(args) -> int:
     except FrameReadError as exc:
         raise InputError(str(exc)) from None
     camera = camera_of(frame)
+    compile_s = warm_up_kernels(progress=progress_on(args))  # a line and a bar when they compile
+    t0 = time.perf_counter()
     if args.catalog:
         try:
             catalog = load_catalog(args.catalog)
@@ -112,8 +116,9 @@ def _solve_file(args) -> int:
     else:
         from ground.api import catalog_for_camera
 
-        catalog = catalog_for_camera(camera)
-    rec = OfflineSolver(camera, catalog, params).solve(frame)
+        catalog = catalog_for_camera(camera)  # built once per field (a line says so), then cached
+    setup = {"catalog": time.perf_counter() - t0, "compile": compile_s}
+    rec = OfflineSolver(camera, catalog, params, setup_s=setup).solve(frame)
     rec["frame"] = Path(args.frame).name
     _print_record(rec, args.json)
     if args.wcs:

@@ -132,10 +132,26 @@ def solve_record(rec: np.ndarray) -> dict:
 
 
 def record_from_output(out: PipelineOutput, sequence: int = 0) -> dict:
-    """The same dict for an in-process pipeline run (offline replay)."""
+    """The same dict for an in-process pipeline run (offline replay); its ``timings_s`` are the
+    run's own (``StageTimings.to_dict``: full precision, with the set-up stages such as the
+    pattern index that the wire's six leave out)."""
     fields = result_fields(out)
     fields["ext.reason"] = out.reason.encode()[: result.EXT_REASON_BYTES]
-    return solve_record(result.parse(result.build(fields, sequence)))
+    rec = solve_record(result.parse(result.build(fields, sequence)))
+    rec["timings_s"] = out.timings.to_dict()
+    return rec
+
+
+def add_setup_stages(rec: dict, **seconds: float) -> dict:
+    """``rec`` with the set-up seconds a solve waited for before its frame (``catalog``: building
+    or loading the catalog, ``compile``: loading or compiling the kernels; ``run.SETUP_STAGES``)
+    added to its ``timings_s`` and to their ``total``, which is then the whole time waited."""
+    timings = rec["timings_s"]
+    for name, value in seconds.items():
+        if value > 0:
+            timings[name] = timings.get(name, 0.0) + value
+            timings["total"] = timings.get("total", 0.0) + value
+    return rec
 
 
 def standard_quaternion(rec: np.ndarray) -> np.ndarray:
