@@ -24,6 +24,7 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +50,7 @@ from protocol.result import QuaternionOrder
 DEFAULT_PACED_TURNAROUND_MS = 1.0  #: ours; the research documents no turnaround
 DEFAULT_EXPOSURE_MS = 100.0  #: the simulated detector's exposure (ground.sim.sensor_sim.DetectorModel)
 DEFAULT_PROCESSING_MS = 100.0  #: ours; the research documents no processing time
+DEFAULT_DEADLINE_MS = 1500.0  #: ours: flight timing's search deadline, inside the 2 s GO-to-result budget
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -115,6 +117,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--processing-ms", type=float, help=f"with --timing realistic (default {DEFAULT_PROCESSING_MS:g})"
     )
+    parser.add_argument(
+        "--deadline-ms",
+        type=float,
+        help="with --timing realistic: flight timing's deadline from the frame's extraction; a search "
+        "still running then stops, and the result says so (ext.search_flags, reason) "
+        f"(default {DEFAULT_DEADLINE_MS:g}; without --timing realistic only counted budgets bound a "
+        "search, the same answer on any machine)",
+    )
     parser.add_argument("--params", help="default parameter set JSON (the slot-2 schema); an uploaded set wins")
     parser.add_argument(
         "--log-level",
@@ -172,6 +182,8 @@ def build_device(args: argparse.Namespace) -> Device:
         exposure = DEFAULT_EXPOSURE_MS if args.exposure_ms is None else args.exposure_ms
         processing = DEFAULT_PROCESSING_MS if args.processing_ms is None else args.processing_ms
         device.runner.hold_s = (exposure + processing) / 1000.0
+        deadline = DEFAULT_DEADLINE_MS if args.deadline_ms is None else args.deadline_ms
+        solver.params = replace(solver.params, flight_deadline_s=deadline / 1000.0)
     solver.serving()  # the stored catalog's index is built; a COMMIT's is built in another process
     return device
 
@@ -193,10 +205,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--turnaround-ms must be >= 0")
     if not args.tcp_idle > 0:
         parser.error("--tcp-idle must be > 0")
-    if args.timing != "realistic" and (args.exposure_ms is not None or args.processing_ms is not None):
-        parser.error("--exposure-ms and --processing-ms need --timing realistic")
-    if any(v is not None and not 0 <= v <= 60_000 for v in (args.exposure_ms, args.processing_ms)):
-        parser.error("--exposure-ms and --processing-ms must be 0..60000")
+    timed = (args.exposure_ms, args.processing_ms, args.deadline_ms)
+    if args.timing != "realistic" and any(v is not None for v in timed):
+        parser.error("--exposure-ms, --processing-ms and --deadline-ms need --timing realistic")
+    if any(v is not None and not 0 <= v <= 60_000 for v in timed):
+        parser.error("--exposure-ms, --processing-ms and --deadline-ms must be 0..60000")
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr, format="%(message)s")
     try:
         device = build_device(args)

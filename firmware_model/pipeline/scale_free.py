@@ -22,7 +22,9 @@ Units: radians for angles, pixels for image positions (docs/CONVENTIONS.md).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from functools import lru_cache
 from itertools import combinations, permutations
 
 import numpy as np
@@ -79,14 +81,21 @@ def _keys(vectors: np.ndarray, groups: np.ndarray):
 def _groups(near: list, brightness_rank: np.ndarray, centres: np.ndarray, neighbours: int) -> np.ndarray:
     """4-star groups: each centre with three of its ``neighbours`` brightest neighbours (``near[c]``:
     the stars within the pattern radius of star ``c``)."""
-    out: list[tuple[int, ...]] = []
+    out = [np.zeros((0, 4), np.int64)]
     for c in centres:
         near_c = np.array([j for j in near[c] if j != c], dtype=np.int64)
         if len(near_c) < 3:
             continue
         near_c = near_c[np.argsort(brightness_rank[near_c])][:neighbours]
-        out.extend((c, *trio) for trio in combinations(near_c.tolist(), 3))
-    return np.array(out, dtype=np.int64).reshape(-1, 4)
+        trios = near_c[_trios(len(near_c))]  # every 3 of them, in itertools.combinations' order
+        out.append(np.column_stack([np.full(len(trios), c, np.int64), trios]))
+    return np.concatenate(out)
+
+
+@lru_cache(maxsize=None)
+def _trios(n: int) -> np.ndarray:
+    """Every 3-combination of ``range(n)`` (rows, in ``itertools.combinations`` order)."""
+    return np.array(list(combinations(range(n), 3)), np.int64).reshape(-1, 3)
 
 
 def _region_groups(tree: cKDTree, mag: np.ndarray, field_radius: float) -> np.ndarray:
@@ -111,18 +120,21 @@ PATTERN_FIELD_REUSE = 0.02
 
 
 def pattern_field(catalog: OnboardCatalog, camera: CameraModel) -> int:
-    """The key (minor half-field, mrad) of the catalog patterns that serve ``camera``: the cached
-    field within :data:`PATTERN_FIELD_REUSE` of the camera's nearest to it, else the camera's own."""
-    mrad = int(round(camera.fov_half_angle_minor * 1000.0))
-    near = [m for m in catalog.__dict__.get("_pattern_cache", {}) if abs(m - mrad) <= PATTERN_FIELD_REUSE * m]
-    return min(near, key=lambda m: abs(m - mrad)) if near else mrad
+    """The key (minor half-field, mrad) of the catalog patterns that serve ``camera``: the centre of
+    its bin on a fixed logarithmic grid whose bins span :data:`PATTERN_FIELD_REUSE` either side of
+    their centres. A function of the camera alone, never of the fields cached before: the same
+    camera gets the same patterns, and so the same answer, whatever was solved before it in the
+    process (a focal length fitted to one frame moves the field by ~0.1 %: the same bin)."""
+    step = math.log((1.0 + PATTERN_FIELD_REUSE) / (1.0 - PATTERN_FIELD_REUSE))
+    k = round(math.log(camera.fov_half_angle_minor * 1000.0) / step)
+    return max(1, int(round(math.exp(k * step))))
 
 
 def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
     """(groups, keys, largest edge, KD-tree of keys) of the catalog's patterns for a camera's field
-    (module constants), cached on the catalog object per minor half-field (to 1 mrad) and used for
-    every camera within :data:`PATTERN_FIELD_REUSE` of a cached field (a focal length fitted to
-    one frame moves the field by ~0.1 %; building another field's patterns takes ~2 s: issue 12).
+    (module constants), cached on the catalog object per field bin (:func:`pattern_field`: every
+    camera within :data:`PATTERN_FIELD_REUSE` of a bin's centre; building another field's patterns
+    takes ~2 s).
     :func:`pattern_index` builds them; a caller that built them elsewhere (another process: the
     device after a catalog commit) installs them with :func:`set_catalog_patterns`."""
     mrad = pattern_field(catalog, camera)
