@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cache
 from itertools import combinations, permutations
 
 import numpy as np
@@ -92,7 +92,7 @@ def _groups(near: list, brightness_rank: np.ndarray, centres: np.ndarray, neighb
     return np.concatenate(out)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _trios(n: int) -> np.ndarray:
     """Every 3-combination of ``range(n)`` (rows, in ``itertools.combinations`` order)."""
     return np.array(list(combinations(range(n), 3)), np.int64).reshape(-1, 3)
