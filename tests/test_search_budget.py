@@ -12,7 +12,7 @@ import pytest
 from ident_sky import random_attitude, random_catalog, scene
 
 from firmware_model.camera import CameraModel
-from firmware_model.device.cli import build_parser, main
+from firmware_model.device.cli import build_device, build_parser, main
 from firmware_model.device.sensor_input import DeviceParams
 from firmware_model.ident.budget import SearchBudget, Stop
 from firmware_model.ident.consensus import Outcome
@@ -135,7 +135,9 @@ def test_the_deadline_is_flight_timing_only(capsys):
     assert exc.value.code == 2
     assert "--deadline-ms need --timing realistic" in capsys.readouterr().err
     args = build_parser().parse_args(["--pty", "--timing", "realistic", "--deadline-ms", "500"])
-    assert args.deadline_ms == 500.0
+    solver = build_device(args).solver
+    assert solver.params.flight_deadline_s == 0.5
+    assert build_device(build_parser().parse_args(["--pty"])).solver.params.flight_deadline_s is None
 
 
 TREE = Path(__file__).resolve().parents[2] / "shared" / "data" / "frames" / "colour-real" / "tree.jpg"
