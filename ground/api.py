@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import pickle
 import time
 from dataclasses import dataclass
 from functools import lru_cache
@@ -198,8 +197,9 @@ def catalog_for_camera(camera: CameraModel) -> OnboardCatalog:
 def catalog_for_field(width: int, height: int, fov_deg: float) -> OnboardCatalog:
     """The catalog ``st16-ground catalog build --fov-deg`` makes for this field (bundled Hipparcos),
     with its pattern index for the field: built once (1-20 s; one warning line says so), then
-    loaded from the user's cache directory (``field-catalogs/``: the catalog image and the index,
-    named by a hash of the design and of the code that builds them)."""
+    loaded from the user's cache directory (the catalog image in ``field-catalogs/``, named by a
+    hash of the design and of the code that builds it; the index in ``pattern-index/``,
+    ``scale_free.cached_pattern_index``)."""
     from firmware_model import user_cache_dir
     from firmware_model.camera import CameraModel
     from firmware_model.catalog.image_io import catalog_from_image, catalog_to_image
@@ -211,40 +211,38 @@ def catalog_for_field(width: int, height: int, fov_deg: float) -> OnboardCatalog
     design = CatalogDesign.for_field(width, height, fov_deg)
     camera = CameraModel.from_horizontal_fov(width, height, fov_deg)
     folder = user_cache_dir() / "field-catalogs"
-    stem = folder / _field_key(design)
-    image_path, index_path = stem.with_suffix(".st16cat"), stem.with_suffix(".patterns.pickle")
+    path = folder / f"{_field_key(design)}.st16cat"
     try:
-        cat = catalog_from_image(image_path.read_bytes())
-        mrad, index = pickle.loads(index_path.read_bytes())  # our own cache folder's files
-        scale_free.set_catalog_patterns(cat, mrad, index)
-        return cat
-    except FileNotFoundError:
-        pass
-    except Exception as exc:  # noqa: BLE001 - a damaged or foreign cache file: built again
-        _log.debug("field catalog cache %s not used: %s", stem, exc)
-    _log.warning(
-        "building a star catalog and its pattern index for a %.2f deg field of %d x %d px: once per "
-        "field (1-20 s), then kept in %s",
-        fov_deg,
-        width,
-        height,
-        folder,
+        cat = catalog_from_image(path.read_bytes())
+    except (OSError, ValueError) as exc:  # not kept yet (or damaged): built now
+        if not isinstance(exc, FileNotFoundError):
+            _log.debug("field catalog %s not used: %s", path, exc)
+        _log.warning(
+            "building a star catalog and its pattern index for a %.2f deg field of %d x %d px: once per "
+            "field (1-20 s), then kept in %s",
+            fov_deg,
+            width,
+            height,
+            user_cache_dir(),
+        )
+        image = catalog_to_image(build_catalog(design))
+        cat = catalog_from_image(image)  # as it will load from the cache: the same answers every time
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            write_bytes(path, image)
+        except OSError as exc:
+            _log.warning("field catalog not kept in %s: %s", folder, exc)
+    mrad = scale_free.pattern_field(cat, camera)
+    index = scale_free.cached_pattern_index(
+        user_cache_dir() / "pattern-index", cat.vec, cat.mag, cat.n_pattern_stars, mrad
     )
-    image = catalog_to_image(build_catalog(design))
-    cat = catalog_from_image(image)  # as it will load from the cache: the same answers every time
-    index = scale_free.catalog_patterns(cat, camera)
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        write_bytes(image_path, image)
-        write_bytes(index_path, pickle.dumps((scale_free.pattern_field(cat, camera), index), protocol=5))
-    except OSError as exc:
-        _log.warning("field catalog not kept in %s: %s", folder, exc)
+    scale_free.set_catalog_patterns(cat, mrad, index)
     return cat
 
 
 def _field_key(design) -> str:
     """A name for a field's cached catalog: a hash of its design, the package version and the
-    code that builds the catalog, its image and its pattern index."""
+    code that builds the catalog and its image."""
     import protocol
 
     root = Path(__file__).resolve().parents[1]

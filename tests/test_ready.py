@@ -241,3 +241,21 @@ def test_the_offline_replays_first_solve_loads_the_kernels(scene):
     assert run.returncode == 0, run.stderr
     first, second = json.loads(run.stdout.strip().splitlines()[-1])
     assert first["compile"] > 0 and "compile" not in second
+
+
+def test_a_kept_pattern_index_is_the_built_one_and_a_damaged_one_is_built_again(tmp_path, synthetic_catalog):
+    from firmware_model.pipeline.scale_free import cached_pattern_index, pattern_index
+
+    cat = synthetic_catalog(300)
+    args = (cat.vec, cat.mag, cat.n_pattern_stars, 90)
+    built = pattern_index(*args)
+    first = cached_pattern_index(tmp_path, *args)
+    (kept,) = tmp_path.glob("*.pickle")
+    again = cached_pattern_index(tmp_path, *args)
+    kept.write_bytes(b"not a pickle")
+    rebuilt = cached_pattern_index(tmp_path, *args)
+    for index in (first, again, rebuilt):
+        for mine, theirs in zip(index[:3], built[:3]):
+            np.testing.assert_array_equal(mine, theirs)
+        assert index[3].n == built[3].n
+    assert kept.read_bytes() != b"not a pickle"  # written again

@@ -18,6 +18,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse
+import functools
 import json
 import logging
 import signal
@@ -29,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import protocol
+from firmware_model import user_cache_dir
 from firmware_model.camera import CameraModel
 from firmware_model.device.catalog_slot import catalog_slot_handler
 from firmware_model.device.device import Device, SlotHandler, SolveContext
@@ -42,6 +44,7 @@ from firmware_model.device.sensor_input import (
     params_slot_handler,
 )
 from firmware_model.device.slots import SlotStore
+from firmware_model.pipeline import scale_free
 from firmware_model.pipeline.run import PipelineParams
 from protocol import nsp
 from protocol.commands import Slot
@@ -162,7 +165,12 @@ def build_device(args: argparse.Namespace) -> Device:
     store = SlotStore(args.state, volatile={Slot.FRAME}) if args.state else None
     device_params = DeviceParams.load(args.params) if args.params else DeviceParams()
     solver = PipelineSolver(
-        camera, device_params.apply(PipelineParams()), tracking=bool(device_params.tracking), index_process=True
+        camera,
+        device_params.apply(PipelineParams()),
+        tracking=bool(device_params.tracking),
+        # a catalog seen before (by this install) loads its index in a few hundredths of a second
+        build_index=functools.partial(scale_free.cached_pattern_index, user_cache_dir() / "pattern-index"),
+        index_process=True,
     )
     slots: dict[int, SlotHandler] = {
         Slot.CATALOG: catalog_slot_handler(prepare=solver.prepare),
