@@ -22,11 +22,14 @@ def _kernels(progress: bool) -> str:
 
 
 def _demo(args) -> int:
+    import errno
+    import os
     from pathlib import Path
 
     from ground.cli.end_to_end import run_demo
 
-    Path(args.out).mkdir(parents=True, exist_ok=True)  # an unusable --out is said before any wait
+    if Path(args.out).exists() and not Path(args.out).is_dir():  # said before any wait
+        raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), args.out)
     print(_kernels(progress_on(args)), flush=True)
     return run_demo(args.out, n_frames=args.frames, seed=args.seed, progress=progress_on(args))
 
