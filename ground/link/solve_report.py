@@ -334,6 +334,14 @@ def format_record(rec: dict) -> str:
         )
     if rec.get("optics") and rec["optics"]["psf_sigma_px"] != 0:  # 0: a zeroed record, nothing measured
         lines.append(_optics_line(rec["optics"]))
+    search = rec.get("search")
+    if search and (search["budget_reached"] or search["deadline_missed"]):
+        stopped = "the flight-timing deadline" if search["deadline_missed"] else "its counted budget"
+        lines.append(
+            f"search: stopped by {stopped} after {search['seeds']} seeds and {search['verifications']} "
+            "verifications (the parameter file's max_seeds, max_frame_verifications and max_verifications "
+            "raise the budgets)"
+        )
     for s in rec.get("stars", []):
         if s.get("body"):
             lines.append(
