@@ -18,6 +18,8 @@ import json
 import logging
 import math
 import multiprocessing
+import multiprocessing.connection
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -343,6 +345,21 @@ def _builder_ready() -> bool:
     return True
 
 
+def _builder_init() -> None:
+    """The index-building process ends with the device, however the device ends (a device killed
+    outright would otherwise leave it waiting for work for ever): a thread waits for the parent's
+    end and exits."""
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+
+    def watch() -> None:
+        multiprocessing.connection.wait([parent.sentinel])
+        os._exit(0)
+
+    threading.Thread(target=watch, daemon=True, name="parent-watch").start()
+
+
 class PipelineSolver:
     """GO solver: runs :func:`~firmware_model.pipeline.run.run_pipeline` on the sequence's frame,
     or, with the parameter ``tracking`` (the slot-2 set's, else ``tracking`` here: ``--params``),
@@ -384,7 +401,9 @@ class PipelineSolver:
     def _builder(self) -> ProcessPoolExecutor:
         """The index-building process (one, kept: it waits for catalogs), spawned if need be."""
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+            self._pool = ProcessPoolExecutor(
+                max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_builder_init
+            )
             self._pool.submit(_builder_ready)
         return self._pool
 
