@@ -170,7 +170,6 @@ def build_device(args: argparse.Namespace) -> Device:
         tracking=bool(device_params.tracking),
         # a catalog seen before (by this install) loads its index in a few hundredths of a second
         build_index=functools.partial(scale_free.cached_pattern_index, user_cache_dir() / "pattern-index"),
-        index_process=True,
     )
     slots: dict[int, SlotHandler] = {
         Slot.CATALOG: catalog_slot_handler(prepare=solver.prepare),

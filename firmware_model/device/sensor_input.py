@@ -372,8 +372,8 @@ class PipelineSolver:
     called (a catalog COMMIT: a thread here would hold the GIL for much of the build and starve
     the link thread); a GO that comes while it is built waits for it. ``build_index`` builds it
     (``scale_free.pattern_index``'s arguments and answer; picklable: it runs in a spawned process).
-    ``index_process``: spawn that process now, so that its imports (~0.6 s) overlap the kernels'
-    loading rather than the first COMMIT's build (else it is spawned at the first COMMIT)."""
+    :meth:`serving` spawns that process, whose imports (~0.6 s) then run beside the link's first
+    minutes rather than in the start-up or in the first COMMIT's build."""
 
     def __init__(
         self,
@@ -381,7 +381,6 @@ class PipelineSolver:
         params: PipelineParams = PipelineParams(),
         tracking: bool = False,
         build_index: Callable[..., Any] = scale_free.pattern_index,
-        index_process: bool = False,
     ):
         self.camera = camera
         self.params = params
@@ -391,8 +390,6 @@ class PipelineSolver:
         self._pool: ProcessPoolExecutor | None = None  # the index-building process
         self._serving = False
         self._lock = threading.Lock()
-        if index_process:
-            self._builder()
         # the planet check imports astropy (~0.3 s) and the pipeline's kernels load (numba, cached
         # on disk; compiled once per install): at start-up, not inside the first GO
         importlib.import_module("firmware_model.pipeline.planets")
@@ -408,8 +405,10 @@ class PipelineSolver:
         return self._pool
 
     def serving(self) -> None:
-        """From now on (the device serves its link) a catalog's index is built in another process."""
+        """From now on (the device serves its link) a catalog's index is built in another process,
+        spawned now: it imports the pipeline while the device starts serving."""
         self._serving = True
+        self._builder()
 
     def close(self) -> None:
         """End the index-building process (a build under way is abandoned)."""
