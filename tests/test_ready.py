@@ -119,7 +119,7 @@ def test_the_device_builds_its_stored_catalogs_index_before_it_says_listening(tm
         if proc.stdout is not None:
             proc.stdout.close()
     said = "".join(before)
-    assert "pipeline kernels ready" in said and "catalog pattern index built" in said, said
+    assert "pipeline kernels ready" in said and "catalog pattern index ready" in said, said
 
 
 def gated_index(gate: str, *args):
@@ -218,7 +218,7 @@ def test_a_first_solves_stages_add_up_to_its_total(tmp_path, scene):
     assert first["compile"] > 0 and first["catalog"] > 0 and first["index"] > 0
     parts = sum(v for k, v in first.items() if k != "total")
     assert parts == pytest.approx(first["total"], rel=0.05, abs=0.02)
-    assert first["total"] == pytest.approx(got["waited"], rel=0.1, abs=0.05)  # the whole wait
+    assert first["total"] == pytest.approx(got["waited"], rel=0.1, abs=0.1)  # the whole wait
     assert "compile" not in got["again"]  # loaded once per process
 
 

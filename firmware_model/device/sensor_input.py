@@ -425,7 +425,9 @@ class PipelineSolver:
         if not self._serving:
             t0 = time.perf_counter()
             scale_free.set_catalog_patterns(catalog, mrad, self.build_index(*args))
-            log.info("catalog pattern index built in %.2f s", time.perf_counter() - t0)
+            log.info(
+                "catalog pattern index ready in %.2f s (built, or loaded from the cache)", time.perf_counter() - t0
+            )
             return
         try:
             future = self._builder().submit(self.build_index, *args)
