@@ -192,6 +192,9 @@ def build_device(args: argparse.Namespace) -> Device:
         deadline = DEFAULT_DEADLINE_MS if args.deadline_ms is None else args.deadline_ms
         solver.params = replace(solver.params, flight_deadline_s=deadline / 1000.0)
     solver.serving()  # the stored catalog's index is built; a COMMIT's is built in another process
+    ready = getattr(source, "ready", None)
+    if ready is not None:  # a capture source's own start-up (a rendering source's noise), drawn meanwhile
+        ready()
     return device
 
 

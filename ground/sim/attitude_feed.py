@@ -175,9 +175,13 @@ class AttitudeFeedSource:
         self.det = DetectorModel(pattern=self.det.pattern, exposure_s=self.exposure_s)
         self.camera = camera
         self.renderer = renderer or ExposureRenderer(camera)
-        self.renderer.bank(self.det)  # drawn at start-up, not inside the first GO
+        self._drawing = self.renderer.draw_bank(self.det)  # at start-up, not inside the first GO
         self.feed = AttitudeFeed(clock)
         self.listener = Listener(url, self.feed.offer, self.feed.fault)
+
+    def ready(self) -> None:
+        """Return once the source can render at once (its noise bank drawn)."""
+        self._drawing.join()
 
     def close(self) -> None:
         self.listener.close()

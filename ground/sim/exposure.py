@@ -33,6 +33,15 @@ class ExposureRenderer:
         self._banks: dict[DetectorModel, NoiseBank] = {}
         self._lock = threading.Lock()
 
+    def draw_bank(self, det: DetectorModel) -> threading.Thread:
+        """Start drawing the noise bank of ``det`` in a thread (numpy draws large arrays without the
+        GIL, so a device's kernel loading goes on beside it) and return the thread; a render that
+        comes first waits for it (:meth:`bank`'s lock). Capture sources call it at start-up and
+        join it in ``ready`` before the device says it is listening."""
+        thread = threading.Thread(target=self.bank, args=(det,), name="noise-bank", daemon=True)
+        thread.start()
+        return thread
+
     def bank(self, det: DetectorModel) -> NoiseBank:
         """The noise bank of ``det`` (drawn on first use: ~1 s for the reference design)."""
         key = dataclasses.replace(det, pattern="MONO")  # the noise does not depend on the CFA

@@ -61,9 +61,13 @@ class SkySource:
     def __init__(self, spec: str, camera: CameraModel):
         self.schedule = read_schedule(spec)
         self.renderer = ExposureRenderer(camera)
-        self.renderer.bank(DetectorModel())  # drawn at start-up, not inside the first GO
+        self._drawing = self.renderer.draw_bank(DetectorModel())  # at start-up, not inside the first GO
         self._next = 0
         self._lock = threading.Lock()
+
+    def ready(self) -> None:
+        """Return once the source can render at once (its noise bank drawn)."""
+        self._drawing.join()
 
     def __call__(self, ctx):
         with self._lock:
