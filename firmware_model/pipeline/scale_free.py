@@ -303,7 +303,7 @@ class BrightFirstMatches:
     the 6th, ... (each rank a :func:`pattern_matches` with ``first``, best key first within it), the
     plate solvers' brightness order. A frame whose brightest stars match is not charged the key
     queries of its fainter combinations (70 for the 8 brightest; each query misses the processor's
-    cache on the catalog's ~8e5 keys: issue 12). ``best_f``: the best key match's focal length in
+    cache on the catalog's ~8e5 keys). ``best_f``: the best key match's focal length in
     the first rank with a match (NaN for none), worked out on construction."""
 
     def __init__(self, x, y, camera: CameraModel, catalog: OnboardCatalog, n_bright: int, tolerance, focal_range):
@@ -343,7 +343,7 @@ NEAREST_KEYS = 16
 def _within(tree: cKDTree, keys: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
     """(frame key index, catalog pattern index) of every catalog key within ``tolerance``
     (L-infinity) of a frame key. A bounded k-nearest query is ~15x faster than a ball query on the
-    catalog's ~6e5 keys when, as here, a key has a few matches at most (issue 12); keys whose
+    catalog's ~6e5 keys when, as here, a key has a few matches at most (measured); keys whose
     :data:`NEAREST_KEYS` nearest are all inside fall back to the ball query."""
     k = min(NEAREST_KEYS, tree.n)
     dist, idx = tree.query(keys, k=k, distance_upper_bound=tolerance, p=np.inf)

@@ -1,4 +1,4 @@
-"""Fuzz and fault campaigns against the emulated device and the ground client (issue 10 item 5).
+"""Fuzz and fault campaigns against the emulated device and the ground client.
 
 Each module has one job: :mod:`.traffic` makes valid and mutated NSP bytes, :mod:`.tally` counts
 what a campaign did, :mod:`.device_proc` runs ``st16-device`` as a process, and the campaign
