@@ -194,3 +194,15 @@ def test_a_camera_gets_the_same_pattern_index_whatever_was_solved_before(catalog
     assert scale_free.pattern_field(cat, fitted) == scale_free.pattern_field(cat, a)
     assert scale_free.catalog_patterns(cat, fitted) == "a's index"
     cat.__dict__.pop("_pattern_cache")
+
+
+def test_a_budget_reason_counts_in_plain_words():
+    from firmware_model.ident.budget import stop_reason
+
+    assert stop_reason(Stop.COUNT, 1, "pattern seed") == "search budget of 1 pattern seed reached"
+    assert (
+        stop_reason(Stop.COUNT, 2000, "verification", " per frame")
+        == "search budget of 2000 verifications per frame reached"
+    )
+    assert stop_reason(Stop.DEADLINE, 5, "verification") == "flight-timing deadline missed"
+    assert stop_reason(Stop.NONE, 5, "verification") == ""

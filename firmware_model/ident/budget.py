@@ -57,13 +57,14 @@ class SearchBudget:
     @property
     def reason(self) -> str:
         """Why the search stopped (:func:`stop_reason`; empty while it has not)."""
-        return stop_reason(self.stopped, self.limit, "verifications")
+        return stop_reason(self.stopped, self.limit, "verification")
 
 
-def stop_reason(stop: Stop, limit: int, unit: str) -> str:
-    """Why a search stopped: its count, named (the same words on every machine), or the deadline."""
+def stop_reason(stop: Stop, limit: int, unit: str, per: str = "") -> str:
+    """Why a search stopped: its count of ``unit`` (singular; ``per`` what it counts over), named
+    in the same words on every machine, or the deadline."""
     if stop is Stop.COUNT:
-        return f"search budget of {limit} {unit} reached"
+        return f"search budget of {limit} {unit}{'' if limit == 1 else 's'}{per} reached"
     if stop is Stop.DEADLINE:
         return "flight-timing deadline missed"
     return ""

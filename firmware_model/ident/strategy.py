@@ -162,7 +162,7 @@ class IdentifyTimings:
         self.attitude += sol.timings.verify
         self.verifications += sol.verifications
         if sol.stopped is not Stop.NONE:
-            self.stop(sol.stopped, stop_reason(sol.stopped, sol.verifications, "verifications"))
+            self.stop(sol.stopped, stop_reason(sol.stopped, sol.verifications, "verification"))
 
     def stop(self, why: Stop, reason: str, frame: bool = False) -> None:
         """Record what stopped a search and why: the first solve's stop, unless a ``frame`` budget

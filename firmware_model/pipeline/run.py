@@ -963,9 +963,9 @@ def _search_spent(search: OpticsSearch, deadline: float | None, timings: StageTi
     """Whether the optics search may start no further seed: its seeds or the frame's verifications
     counted up to their budgets, or (flight timing) the deadline passed; the stop is recorded."""
     if timings.seeds >= search.max_seeds:
-        timings.stop(Stop.COUNT, stop_reason(Stop.COUNT, search.max_seeds, "pattern seeds"), frame=True)
+        timings.stop(Stop.COUNT, stop_reason(Stop.COUNT, search.max_seeds, "pattern seed"), frame=True)
     elif timings.verifications >= search.max_verifications:
-        reason = stop_reason(Stop.COUNT, search.max_verifications, "verifications per frame")
+        reason = stop_reason(Stop.COUNT, search.max_verifications, "verification", " per frame")
         timings.stop(Stop.COUNT, reason, frame=True)
     elif deadline is not None and time.perf_counter() > deadline:
         timings.stop(Stop.DEADLINE, stop_reason(Stop.DEADLINE, 0, ""), frame=True)
