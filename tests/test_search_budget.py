@@ -19,7 +19,8 @@ from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.solver import SolveParams
 from firmware_model.ident.strategy import Detections, IdentifyTimings, StrategyParams, identify, solve
 from firmware_model.ident.verify import FieldOfView
-from firmware_model.pipeline.run import PipelineOutput, PipelineParams, result_fields
+from firmware_model.pipeline.result_fields import result_fields
+from firmware_model.pipeline.run import PipelineOutput, PipelineParams
 from ground.link.solve_report import solve_record
 from protocol import result
 from protocol.commands import SlotRejected

@@ -18,7 +18,8 @@ from datetime import UTC, datetime
 import numpy as np
 
 from firmware_model.ident.solver import Method
-from firmware_model.pipeline.run import STAGES, PipelineOutput, result_fields
+from firmware_model.pipeline.result_fields import result_fields
+from firmware_model.pipeline.run import STAGES, PipelineOutput
 from firmware_model.reference_frames import quat_to_matrix, radec_roll_from_attitude
 from protocol import result
 
