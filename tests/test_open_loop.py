@@ -185,3 +185,23 @@ def test_search_goes_before_the_mono_consensus_with_the_nominal_camera(catalog, 
     monkeypatch.setattr(run, "_search_optics", lambda *args: None)  # a search that finds nothing
     run_pipeline(r.frame, NOMINAL, catalog)
     assert len(calls) == 1  # then the deferred fallback runs
+
+
+def test_flight_timing_stops_the_search_and_the_result_says_so(catalog):
+    """Datasheet optics (focal length +2.5 %): the optics search runs. With counted budgets alone the
+    frame solves; with a flight-timing deadline already past when the search starts, the search
+    stops before its first seed and the answer says the deadline was missed (reason, search flag)."""
+    from firmware_model.ident.budget import Stop
+    from firmware_model.pipeline.result_fields import result_fields
+    from protocol import result
+
+    true = replace(NOMINAL, f=NOMINAL.f * 1.025)
+    _, r = render(true, POINTINGS[0], seed=10)
+    counted = run_pipeline(r.frame, NOMINAL, catalog)
+    assert counted.status is Status.OK and counted.stopped is Stop.NONE
+    assert result_fields(counted)["ext.search_flags"] == 0 and counted.timings.seeds >= 1
+    late = run_pipeline(r.frame, NOMINAL, catalog, replace(PipelineParams(), flight_deadline_s=0.0))
+    assert late.stopped is Stop.DEADLINE
+    assert late.reason.startswith("flight-timing deadline missed")
+    assert result_fields(late)["ext.search_flags"] == result.DEADLINE_MISSED
+    assert record_from_output(late)["search"]["deadline_missed"]
