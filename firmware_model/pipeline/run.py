@@ -451,10 +451,11 @@ def _matchers(frame: FrameSolve) -> str:
 
 
 def _optics_search(frame: FrameSolve) -> str:
-    if not frame.searched:
+    if not frame.searched:  # once a frame: a later visit reads its answer
         frame.searched = True
-        f = frame
-        f.found = _search_optics(f.stars, f.camera, f.catalog, f.params, f.timings, f.peek, f.seed)
+        frame.found = _search_optics(
+            frame.stars, frame.camera, frame.catalog, frame.params, frame.timings, frame.peek, frame.seed
+        )
     found, out = frame.found, frame.out
     if out is None:  # it went first
         if found is not None and found.status is Status.OK:
