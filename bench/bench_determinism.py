@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import os
 import subprocess
 import sys
@@ -31,6 +30,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_busy_tests import start_busy, stop_busy  # bench/ is the script's folder
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "frames"
@@ -58,20 +58,6 @@ def solve_frames() -> None:
         rec = {"frame": path.name, "status": s.status, "reason": s.reason, "method": s.record.get("method")}
         rec.update(q=q, ids=ids, search=s.record.get("search"))
         print(json.dumps(rec), flush=True)
-
-
-def _spin(stop_at: float) -> None:
-    x = 0
-    while time.monotonic() < stop_at:
-        x += 1
-
-
-def busy(n: int, seconds: float) -> list[multiprocessing.Process]:
-    """``n`` busy-loop processes that stop by themselves after ``seconds``."""
-    procs = [multiprocessing.Process(target=_spin, args=(time.monotonic() + seconds,), daemon=True) for _ in range(n)]
-    for p in procs:
-        p.start()
-    return procs
 
 
 def same_table(a: np.ndarray, b: np.ndarray) -> bool:
@@ -166,14 +152,11 @@ def main(argv: list[str] | None = None) -> int:
         print("../shared/data/frames absent: part 1 runs on the whole sky only")
     with tempfile.TemporaryDirectory() as tmp:
         quiet = one_run(args.boresights, Path(tmp) / "quiet")
-        procs = busy(args.busy, 3600.0)
+        procs = start_busy(args.busy, 3600.0)
         try:
             loaded = one_run(args.boresights, Path(tmp) / "loaded")
         finally:
-            for p in procs:
-                p.terminate()
-            for p in procs:
-                p.join()
+            stop_busy(procs)
     same_frames = quiet["frames"] == loaded["frames"]
     same_rows = same_table(quiet["rows"], loaded["rows"])
     print(f"part 1: quiet, then {args.busy} busy processes beside the run")

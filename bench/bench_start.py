@@ -231,7 +231,7 @@ def main(argv=None) -> int:
     new_images = [catalog_to_image(build_catalog(CatalogDesign(m_thresh=m))) for m in (5.5, 5.2)]
     big = build_catalog(CatalogDesign(m_thresh=6.0))
     t0 = time.perf_counter()
-    mrad = scale_free.pattern_field(big, CameraModel.reference_design())
+    mrad = scale_free.pattern_field(CameraModel.reference_design())
     scale_free.pattern_index(big.vec, big.mag, big.n_pattern_stars, mrad)
     build_s = time.perf_counter() - t0  # the window of PINGs "during the build"
     with tempfile.TemporaryDirectory() as tmp:

@@ -232,7 +232,7 @@ def catalog_for_field(width: int, height: int, fov_deg: float) -> OnboardCatalog
             write_bytes(path, image)
         except OSError as exc:
             _log.warning("field catalog not kept in %s: %s", folder, exc)
-    mrad = scale_free.pattern_field(cat, camera)
+    mrad = scale_free.pattern_field(camera)
     index = scale_free.cached_pattern_index(
         user_cache_dir() / "pattern-index", cat.vec, cat.mag, cat.n_pattern_stars, mrad
     )
@@ -250,11 +250,8 @@ def _field_key(design) -> str:
     sources = [
         *sorted((root / "ground" / "catalog").glob("*.py")),
         *sorted((root / "firmware_model" / "catalog").glob("*.py")),
-    ]
-    for source in [
-        *sources,
         root / "protocol" / "catalog_image.py",
-        root / "firmware_model" / "pipeline" / "scale_free.py",
-    ]:
+    ]  # the pattern index is kept apart, under its own hash (scale_free.cached_pattern_index)
+    for source in sources:
         digest.update(source.read_bytes())
     return digest.hexdigest()[:20]

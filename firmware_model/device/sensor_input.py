@@ -260,12 +260,13 @@ class DeviceParams:
             base = with_psf_sigma(base, self.psf_sigma_px)
         if self.focal_search == 0.0:
             base = replace(base, optics=None)
-        elif base.optics is not None and self.focal_search is not None:
-            base = replace(base, optics=replace(base.optics, focal_range=self.focal_search))
-        if base.optics is not None and self.max_seeds is not None:
-            base = replace(base, optics=replace(base.optics, max_seeds=self.max_seeds))
-        if base.optics is not None and self.max_frame_verifications is not None:
-            base = replace(base, optics=replace(base.optics, max_verifications=self.max_frame_verifications))
+        elif base.optics is not None:
+            optics: dict[str, Any] = {
+                "focal_range": self.focal_search,
+                "max_seeds": self.max_seeds,
+                "max_verifications": self.max_frame_verifications,
+            }
+            base = replace(base, optics=replace(base.optics, **{k: v for k, v in optics.items() if v is not None}))
         return replace(
             base,
             solve=solve,
@@ -421,7 +422,7 @@ class PipelineSolver:
         """Build ``catalog``'s pattern index for the device's camera: here before :meth:`serving`,
         else in the index-building process (the GO that needs it waits for it: :meth:`index_ready`).
         Mono frames and the optics search both use it, whatever the parameters."""
-        mrad = scale_free.pattern_field(catalog, self.camera)
+        mrad = scale_free.pattern_field(self.camera)
         args = (np.ascontiguousarray(catalog.vec), np.ascontiguousarray(catalog.mag), catalog.n_pattern_stars, mrad)
         if not self._serving:
             t0 = time.perf_counter()

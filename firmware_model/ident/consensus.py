@@ -298,8 +298,8 @@ def match_scene(
 ) -> ConsensusResult:
     """Consensus match of a scene (module docstring); detections ordered brightest first.
 
-        ``verify(det, cat)`` returns ``(match, "")`` with ``match.n``, ``match.attitude.a`` and
-        ``match.attitude.rms``, or ``(None, reason)``; ``budget`` counts the calls to ``verify`` (the
+    ``verify(det, cat)`` returns ``(match, "")`` with ``match.n``, ``match.attitude.a`` and
+    ``match.attitude.rms``, or ``(None, reason)``; ``budget`` counts the calls to ``verify`` (the
     caller spends it there) and stops the search when it is exhausted.
     """
     n_all = len(vectors)

@@ -228,13 +228,17 @@ class PipelineOutput:
     optics: OpticsFit | None = None  #: focal length and distortion fitted to the matched stars
     planets: list = field(default_factory=list)  #: ``planets.PlanetLabel`` of detections on a planet / the moon
     fallback_due: bool = False  #: the mono consensus fallback was deferred (``_identify``'s ``defer_fallback``)
-    stopped: Stop = Stop.NONE  #: what stopped a search of this frame early (``budget.Stop``), if anything
     omega: np.ndarray | None = None  #: body rate (rad/s, sensor axes) of a tracked answer (``tracking_run``)
     omega_covariance: np.ndarray | None = None  #: its 3x3 covariance ((rad/s)^2)
 
     @property
     def ok(self) -> bool:
         return self.status is Status.OK
+
+    @property
+    def stopped(self) -> Stop:
+        """What stopped a search of this frame early (``budget.Stop``), if anything."""
+        return self.timings.stopped
 
 
 def with_psf_sigma(params: PipelineParams, sigma_px: float | None) -> PipelineParams:
@@ -346,10 +350,9 @@ def identify_stars(
             vectors=stars.timings.get("vectors_s", 0.0),
         ),
     )
-    plan = {stage.name: stage for stage in SOLVE_PLAN}
     name = SOLVE_PLAN[0].name
     while name != DONE:
-        stage = plan[name]
+        stage = _PLAN_STAGES[name]
         name = stage.run(frame)
         assert name in stage.hands_to, f"{stage.name} handed to {name}, not in the plan"
     assert frame.out is not None  # every path to DONE leaves an answer
@@ -372,7 +375,6 @@ class FrameSolve:
     geometric: bool = False
     peek: scale_free.BrightFirstMatches | None = None
     seed: tuple[scale_free.Hypothesis, tuple | None] | None = None
-    search_first: bool = False
     searched: bool = False
     found: PipelineOutput | None = None
     out: PipelineOutput | None = None
@@ -422,10 +424,7 @@ def _pattern_seed(frame: FrameSolve) -> str:
     frame.peek = _first_tier(frame.stars, frame.camera, frame.catalog, tier, frame.timings)
     frame.seed = _first_seed(frame.stars, frame.camera, frame.catalog, tier, frame.timings, frame.peek)
     search = frame.params.optics
-    frame.search_first = search is not None and _nominal_off(
-        frame.peek, frame.seed, frame.stars, frame.camera, frame.catalog, search
-    )
-    if frame.search_first:
+    if search is not None and _nominal_off(frame.peek, frame.seed, frame.stars, frame.camera, frame.catalog, search):
         return "optics search"
     if frame.seed is not None and frame.seed[1] is not None and frame.geometric:
         return "nominal verify"
@@ -577,6 +576,9 @@ SOLVE_PLAN: tuple[PlanStage, ...] = (
 )
 
 
+_PLAN_STAGES = {stage.name: stage for stage in SOLVE_PLAN}
+
+
 def plan_table() -> str:
     """:data:`SOLVE_PLAN` as a Markdown table (docs/identification.md quotes it)."""
     rows = ["| stage | runs | budget (counted) | hands on |", "|---|---|---|---|"]
@@ -588,7 +590,7 @@ def _accounted(out: PipelineOutput, timings: StageTimings, t0: float, stars: Sta
     """``out`` with the frame's timings and counted work. An answer short of high confidence whose
     search a budget cut short says so first in its reason, as does any answer the flight-timing
     deadline cut short: a missed deadline is never hidden."""
-    out.timings, out.stopped = timings, timings.stopped
+    out.timings = timings
     told = timings.stopped is Stop.DEADLINE or out.status in (Status.NO_MATCH, Status.LOW_CONFIDENCE)
     if told and timings.stop_reason and not out.reason.startswith(timings.stop_reason):
         out.reason = f"{timings.stop_reason}; {out.reason}" if out.reason else timings.stop_reason

@@ -123,7 +123,7 @@ def _region_groups(tree: cKDTree, mag: np.ndarray, field_radius: float) -> np.nd
 PATTERN_FIELD_REUSE = 0.02
 
 
-def pattern_field(catalog: OnboardCatalog, camera: CameraModel) -> int:
+def pattern_field(camera: CameraModel) -> int:
     """The key (minor half-field, mrad) of the catalog patterns that serve ``camera``: the centre of
     its bin on a fixed logarithmic grid whose bins span :data:`PATTERN_FIELD_REUSE` either side of
     their centres. A function of the camera alone, never of the fields cached before: the same
@@ -141,7 +141,7 @@ def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
     takes ~2 s).
     :func:`pattern_index` builds them; a caller that built them elsewhere (another process: the
     device after a catalog commit) installs them with :func:`set_catalog_patterns`."""
-    mrad = pattern_field(catalog, camera)
+    mrad = pattern_field(camera)
     cache = catalog.__dict__.setdefault("_pattern_cache", {})
     if mrad not in cache:
         cache[mrad] = pattern_index(catalog.vec, catalog.mag, catalog.n_pattern_stars, mrad)
