@@ -8,27 +8,30 @@
 
 ``image`` is a path (every format the pipeline reads: DNG/raw, FITS, TIFF, PNG/JPEG, .npy, frame
 blobs) or an array: (H, W) a mono frame, (H, W, 3) a demosaiced RGB image (saturation at the
-integer type's maximum). ``camera`` is a
-:class:`CameraModel`; without one, ``fov_deg`` (horizontal field of view, deg) gives a pinhole
-camera at the array centre and the pipeline's optics search and fit absorb its error. ``catalog``
-is an :class:`OnboardCatalog` or a catalog image path (``st16-ground catalog build``); without
-one, a catalog for the field is built from the bundled Hipparcos (``CatalogDesign.for_field``)
-with its pattern index, once per field: kept for the next call in the process and on disk in the
-user's cache directory (:func:`catalog_for_field`). ``params`` are the pipeline's parameters (the
-device's slot-2 settings).
+integer type's maximum).
+
+Without a ``camera``, the field of view is searched with the attitude against the whole-sky
+pattern database (``ground.catalog.sky_database``, ``database`` a file or the user cache's, built
+once): ``fov_deg`` (horizontal, deg) is a hint (the field within ``fov_deg / 1.4`` to
+``1.4 fov_deg``), ``fov_range=(lo, hi)`` bounds it, neither solves blind over 5-60 deg; the
+record's ``sky`` block gives the search's field of view, hypotheses checked and false-alarm
+probability (docs/identification.md, "Blind and wide"). A ``camera`` (:class:`CameraModel`) is
+taken as calibrated but for the optics fit. ``catalog`` is an :class:`OnboardCatalog` or a
+catalog image path (``st16-ground catalog build``); without one, each field's catalog is built
+from the bundled Hipparcos once and kept (``ground.catalog.field_catalogs``). ``params`` are the
+pipeline's parameters (the device's slot-2 settings).
 
 The first solve in a process loads the compiled kernels (``replay.warm_up_kernels``); its record's
-``timings_s`` count that as ``compile`` and the catalog's building or loading as ``catalog``, and
-their ``total`` is the whole time the call took past reading the image.
+``timings_s`` count that as ``compile``, the database's loading as ``database`` and the catalog's
+building or loading as ``catalog``, and their ``total`` is the whole time the call took past
+reading the image.
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import time
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -94,22 +97,64 @@ def solve_image(
     catalog: OnboardCatalog | str | Path | None = None,
     fov_deg: float | None = None,
     params: PipelineParams | None = None,
+    fov_range: tuple[float, float] | None = None,
+    database: str | Path | None = None,
 ) -> SolvedImage:
     """Detect, identify and solve one image (module docstring); bad input raises ValueError."""
-    frame = _frame(image)
-    camera = _camera(frame, camera, fov_deg)
+    start = time.perf_counter()
+    from firmware_model.pipeline.sky_search import FieldRange
+
+    fov = FieldRange.of(fov_deg, fov_range) if camera is None else None  # checked before any work
+    if camera is not None and (fov_deg is not None or fov_range is not None):
+        raise ValueError("give camera= or a field of view (fov_deg= / fov_range=), not both")
     t0 = time.perf_counter()
+    frame = _frame(image)
+    read_s = time.perf_counter() - t0  # the image's reading: no stage of the solve
+    if camera is not None:
+        _check_size(frame, camera)
     from firmware_model.pipeline.run import PipelineParams, run_pipeline
     from ground.analysis.replay import warm_up_kernels
 
     loaded = warm_up_kernels() > 0  # the first call: the pipeline's modules and kernels loaded now
-    compile_s = time.perf_counter() - t0 if loaded else 0.0
-    t0, hits = time.perf_counter(), catalog_for_field.cache_info().hits
-    cat = _catalog(catalog, camera)
-    built = isinstance(catalog, (str, Path)) or (catalog is None and catalog_for_field.cache_info().hits == hits)
-    catalog_s = time.perf_counter() - t0 if built else 0.0  # built or loaded now (not given, not kept)
-    out = run_pipeline(frame, camera, cat, params or PipelineParams())
-    return solved_image(out, camera, {"catalog": catalog_s, "compile": compile_s})
+    compile_s = time.perf_counter() - start - read_s if loaded else 0.0
+    t0 = time.perf_counter()
+    db = _database(database)
+    database_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    given = _catalog(catalog, db)
+    catalog_s = time.perf_counter() - t0  # a catalog image read now
+    params = params or PipelineParams()
+    if camera is None:
+        assert isinstance(fov, FieldRange)
+        from ground.analysis.replay import solve_sky
+
+        out, report = solve_sky(frame, fov, db, params, given)
+        setup = {"compile": compile_s, "database": database_s, "catalog": catalog_s}
+        solved = solved_image(out, out.camera or _pinhole(frame), setup)
+        solved.record["sky"] = report.to_dict()
+        return solved
+    from ground.catalog.field_catalogs import sky_catalog
+
+    t0 = time.perf_counter()
+    cat = given or sky_catalog(camera, db)
+    catalog_s += time.perf_counter() - t0
+    out = run_pipeline(frame, camera, cat, params)
+    return solved_image(out, camera, {"catalog": catalog_s, "compile": compile_s, "database": database_s})
+
+
+def _pinhole(frame: Frame) -> CameraModel:
+    from firmware_model.camera import CameraModel
+
+    return CameraModel.from_horizontal_fov(frame.width, frame.height, 10.0)
+
+
+def _database(database):
+    from ground.catalog.sky_database import DatabaseError, sky_database
+
+    try:
+        return sky_database(database)
+    except DatabaseError as exc:
+        raise ValueError(str(exc)) from None
 
 
 def solved_image(out: PipelineOutput, camera: CameraModel, setup_s: dict[str, float] | None = None) -> SolvedImage:
@@ -158,100 +203,26 @@ def _frame(image) -> Frame:
     raise ValueError(f"an image array must be (H, W) or (H, W, 3), got shape {arr.shape}")
 
 
-def _camera(frame: Frame, camera: CameraModel | None, fov_deg: float | None) -> CameraModel:
-    from firmware_model.camera import CameraModel
-
-    if camera is not None:
-        if (camera.width, camera.height) != (frame.width, frame.height):
-            raise ValueError(
-                f"the camera is {camera.width} x {camera.height} px but the image is {frame.width} x {frame.height}"
-            )
-        return camera
-    if fov_deg is None:
-        raise ValueError("give camera=CameraModel(...) or fov_deg=<horizontal field of view, deg>")
-    if not 0.0 < fov_deg < 180.0:
-        raise ValueError(f"fov_deg must be in (0, 180) deg, got {fov_deg}")
-    return CameraModel.from_horizontal_fov(frame.width, frame.height, float(fov_deg))
+def _check_size(frame: Frame, camera: CameraModel) -> None:
+    if (camera.width, camera.height) != (frame.width, frame.height):
+        raise ValueError(
+            f"the camera is {camera.width} x {camera.height} px but the image is {frame.width} x {frame.height}"
+        )
 
 
-def _catalog(catalog, camera: CameraModel) -> OnboardCatalog:
+def _catalog(catalog, db) -> OnboardCatalog | None:
+    """The given catalog (an object or an image path), matched against the sky database's
+    patterns; None when none was given (each camera gets its field's: :func:`sky_catalog`)."""
+    from firmware_model.pipeline import scale_free
+
     if catalog is None:
-        return catalog_for_camera(camera)
+        return None
     if isinstance(catalog, (str, Path)):
         from firmware_model.catalog.image_io import catalog_from_image
 
         try:
-            return catalog_from_image(Path(catalog).read_bytes())
+            catalog = catalog_from_image(Path(catalog).read_bytes())
         except (OSError, ValueError) as exc:
             raise ValueError(f"catalog {catalog}: {exc}") from None
+    scale_free.set_sky_patterns(catalog, db.index)
     return catalog
-
-
-def catalog_for_camera(camera: CameraModel) -> OnboardCatalog:
-    """:func:`catalog_for_field` of the camera's array and horizontal field of view (to 0.01 deg)."""
-    hfov = float(np.degrees(2.0 * np.arctan(camera.width / 2.0 / camera.f)))
-    return catalog_for_field(camera.width, camera.height, round(hfov, 2))
-
-
-@lru_cache(maxsize=4)
-def catalog_for_field(width: int, height: int, fov_deg: float) -> OnboardCatalog:
-    """The catalog ``st16-ground catalog build --fov-deg`` makes for this field (bundled Hipparcos),
-    with its pattern index for the field: built once (1-20 s; one warning line says so), then
-    loaded from the user's cache directory (the catalog image in ``field-catalogs/``, named by a
-    hash of the design and of the code that builds it; the index in ``pattern-index/``,
-    ``scale_free.cached_pattern_index``)."""
-    from firmware_model import user_cache_dir
-    from firmware_model.camera import CameraModel
-    from firmware_model.catalog.image_io import catalog_from_image, catalog_to_image
-    from firmware_model.pipeline import scale_free
-    from ground.atomic_write import write_bytes
-    from ground.catalog.build import build_catalog
-    from ground.catalog.design import CatalogDesign
-
-    design = CatalogDesign.for_field(width, height, fov_deg)
-    camera = CameraModel.from_horizontal_fov(width, height, fov_deg)
-    folder = user_cache_dir() / "field-catalogs"
-    path = folder / f"{_field_key(design)}.st16cat"
-    try:
-        cat = catalog_from_image(path.read_bytes())
-    except (OSError, ValueError) as exc:  # not kept yet (or damaged): built now
-        if not isinstance(exc, FileNotFoundError):
-            _log.debug("field catalog %s not used: %s", path, exc)
-        _log.warning(
-            "building a star catalog and its pattern index for a %.2f deg field of %d x %d px: once per "
-            "field (1-20 s), then kept in %s",
-            fov_deg,
-            width,
-            height,
-            user_cache_dir(),
-        )
-        image = catalog_to_image(build_catalog(design))
-        cat = catalog_from_image(image)  # as it will load from the cache: the same answers every time
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-            write_bytes(path, image)
-        except OSError as exc:
-            _log.warning("field catalog not kept in %s: %s", folder, exc)
-    mrad = scale_free.pattern_field(camera)
-    index = scale_free.cached_pattern_index(
-        user_cache_dir() / "pattern-index", cat.vec, cat.mag, cat.n_pattern_stars, mrad
-    )
-    scale_free.set_catalog_patterns(cat, mrad, index)
-    return cat
-
-
-def _field_key(design) -> str:
-    """A name for a field's cached catalog: a hash of its design, the package version and the
-    code that builds the catalog and its image."""
-    import protocol
-
-    root = Path(__file__).resolve().parents[1]
-    digest = hashlib.sha256(f"{protocol.__version__} {design!r}".encode())
-    sources = [
-        *sorted((root / "ground" / "catalog").glob("*.py")),
-        *sorted((root / "firmware_model" / "catalog").glob("*.py")),
-        root / "protocol" / "catalog_image.py",
-    ]  # the pattern index is kept apart, under its own hash (scale_free.cached_pattern_index)
-    for source in sources:
-        digest.update(source.read_bytes())
-    return digest.hexdigest()[:20]

@@ -65,8 +65,10 @@ def test_record_camera_takes_the_reported_optics():
 def test_solve_image_bad_input():
     from ground.api import solve_image
 
-    with pytest.raises(ValueError, match="fov_deg"):
-        solve_image(np.zeros((48, 64)))
+    with pytest.raises(ValueError, match="outside 1-90 deg"):
+        solve_image(np.zeros((48, 64)), fov_deg=120.0)
+    with pytest.raises(ValueError, match="not both"):
+        solve_image(np.zeros((48, 64)), fov_deg=10.0, fov_range=(8.0, 12.0))
     with pytest.raises(ValueError, match="camera is 1024 x 768 px but the image is 64 x 48"):
         solve_image(np.zeros((48, 64)), camera=CAMERAS[0])
     with pytest.raises(ValueError, match=r"\(H, W\) or \(H, W, 3\)"):
@@ -108,7 +110,8 @@ def test_solve_image_on_the_real_frames_and_their_wcs(tetra3_frames):
     import tifffile
 
     from ground.analysis.wcs import frame_wcs
-    from ground.api import catalog_for_field, solve_image
+    from ground.api import solve_image
+    from ground.catalog.field_catalogs import catalog_for_field
 
     cat = catalog_for_field(1024, 768, 11.4)
     ids, vec = np.asarray(cat.star_id), np.asarray(cat.vec)

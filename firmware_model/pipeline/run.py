@@ -263,7 +263,7 @@ def run_pipeline(
         return stars
     out = identify_stars(stars, camera, catalog, params)
     if frame.timestamp and out.solution is not None and out.solution.q_icrs_to_sensor is not None:
-        out = _label_planets(out, frame, catalog, params)
+        out = label_planets_of(out, frame, catalog, params)
     out.timings.total = time.perf_counter() - t0
     return out
 
@@ -302,7 +302,7 @@ def frame_stars(frame: Frame, camera: CameraModel, params: PipelineParams) -> St
         return PipelineOutput(Status.BAD_FRAME, f"frame rejected: {exc}")
 
 
-def _label_planets(out: PipelineOutput, frame: Frame, catalog: OnboardCatalog, params: PipelineParams):
+def label_planets_of(out: PipelineOutput, frame: Frame, catalog: OnboardCatalog, params: PipelineParams):
     """Label detections on a predicted planet or the moon at the frame's epoch (``planets``); if
     one of them was matched to a catalog star, identify again without them."""
     from firmware_model.pipeline.planets import label_planets

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from functools import cache
 from itertools import combinations, permutations
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 from numba import njit
@@ -39,6 +40,7 @@ from firmware_model.camera import CameraModel, vector_to_pixel_kernel
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between, chord_of_angle
 from firmware_model.ident.attitude import svd_attitude_kernel
 from firmware_model.pipeline.frame_fit import fit_frame_kernel, fit_result
+from firmware_model.pipeline.pattern_index import PatternIndex
 
 #: Catalog patterns of two kinds, both scale free: (1) for each region of the sky the size of the
 #: field (circles of the minor half-field on a Fibonacci lattice spaced REGION_SPACING of that
@@ -60,6 +62,14 @@ _PERMS = np.array(list(permutations(range(4))))
 #: For each assignment ``p`` of frame star ``k`` to catalog star ``p[k]``, the catalog edge (index
 #: into ``_PAIRS``) under each frame edge: an assignment's edges are a permutation of the six.
 _PERM_EDGES = np.array([[_PAIRS.index(tuple(sorted((p[i], p[j])))) for i, j in _PAIRS] for p in _PERMS])
+
+
+class StarTable(Protocol):
+    """What :func:`refine` asks of a catalog: its star directions and a cone search."""
+
+    vec: np.ndarray
+
+    def stars_within(self, direction: np.ndarray, radius: float, deep: bool = False) -> np.ndarray: ...
 
 
 @dataclass(frozen=True)
@@ -134,13 +144,17 @@ def pattern_field(camera: CameraModel) -> int:
     return max(1, int(round(math.exp(k * step))))
 
 
-def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel):
-    """(groups, keys, largest edge, KD-tree of keys) of the catalog's patterns for a camera's field
-    (module constants), cached on the catalog object per field bin (:func:`pattern_field`: every
-    camera within :data:`PATTERN_FIELD_REUSE` of a bin's centre; building another field's patterns
-    takes ~2 s).
+def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel) -> PatternIndex:
+    """The :class:`PatternIndex` a camera's frames are matched against: the whole-sky one when the
+    catalog carries it (:func:`set_sky_patterns`: every field, no per-field index), else the
+    catalog's patterns for the camera's field (module constants), cached on the catalog object per
+    field bin (:func:`pattern_field`: every camera within :data:`PATTERN_FIELD_REUSE` of a bin's
+    centre; building another field's patterns takes ~2 s).
     :func:`pattern_index` builds them; a caller that built them elsewhere (another process: the
     device after a catalog commit) installs them with :func:`set_catalog_patterns`."""
+    sky = catalog.__dict__.get("_sky_patterns")
+    if sky is not None:
+        return sky
     mrad = pattern_field(camera)
     cache = catalog.__dict__.setdefault("_pattern_cache", {})
     if mrad not in cache:
@@ -161,6 +175,12 @@ def _unique_rows(groups: np.ndarray) -> np.ndarray:
 def set_catalog_patterns(catalog: OnboardCatalog, mrad: int, index) -> None:
     """Install a :func:`pattern_index` of ``catalog`` for the field ``mrad`` (:func:`pattern_field`)."""
     catalog.__dict__.setdefault("_pattern_cache", {})[mrad] = index
+
+
+def set_sky_patterns(catalog: OnboardCatalog, index: PatternIndex) -> None:
+    """Match every frame solved with ``catalog`` against ``index`` (the whole-sky, every-field
+    patterns of ``sky_patterns``; its stars are its own, not rows of the catalog)."""
+    catalog.__dict__["_sky_patterns"] = index
 
 
 #: Pattern indexes :func:`cached_pattern_index` keeps in its folder (the most recently used).
@@ -199,22 +219,30 @@ def cached_pattern_index(folder, vec: np.ndarray, mag: np.ndarray, n_pattern_sta
     return index
 
 
-def pattern_index(vec: np.ndarray, mag: np.ndarray, n_pattern_stars: int, mrad: int):
+def pattern_index(vec: np.ndarray, mag: np.ndarray, n_pattern_stars: int, mrad: int) -> PatternIndex:
     """The catalog patterns of the stars ``vec``, ``mag`` (the first ``n_pattern_stars`` are the
-    pattern stars) for the minor half-field ``mrad`` (mrad): (groups, keys, largest edge, KD-tree
-    of keys). A function of arrays alone, so that another process can build it (the tree pickles)."""
-    field = mrad / 1000.0
+    pattern stars) for the minor half-field ``mrad`` (mrad). A function of arrays alone, so that
+    another process can build it."""
+    return PatternIndex.from_patterns(vec[:n_pattern_stars], *field_patterns(vec, mag, n_pattern_stars, mrad / 1000.0))
+
+
+def field_patterns(
+    vec: np.ndarray, mag: np.ndarray, n_pattern_stars: int, field: float, neighbours: int = CATALOG_NEIGHBOURS
+):
+    """(groups, keys, largest edge) of the patterns (module constants; ``neighbours`` for
+    :data:`CATALOG_NEIGHBOURS`) of the first ``n_pattern_stars`` stars for the minor half-field
+    ``field`` (rad), each 4-set once."""
     tree = cKDTree(vec[:n_pattern_stars])  # the catalog's own pattern-star tree (OnboardCatalog._tree)
-    rank = np.argsort(np.argsort(mag, kind="stable"), kind="stable")
-    parts = [_region_groups(tree, mag, field)]
+    rank = np.argsort(np.argsort(mag[:n_pattern_stars], kind="stable"), kind="stable")
+    parts = [_region_groups(tree, mag[:n_pattern_stars], field)]
     for factor in PATTERN_RADIUS_FACTORS:
         near = tree.query_ball_point(vec[:n_pattern_stars], chord_of_angle(factor * field))
         brighter = np.array([np.count_nonzero(rank[n] < rank[i]) for i, n in enumerate(near)])
-        parts.append(_groups(near, rank, np.flatnonzero(brighter < PATTERN_STARS_PER_CAP), CATALOG_NEIGHBOURS))
+        parts.append(_groups(near, rank, np.flatnonzero(brighter < PATTERN_STARS_PER_CAP), neighbours))
     groups = _unique_rows(np.sort(np.concatenate(parts), axis=1))  # a 4-set found several ways once
     keys, top = _keys(vec, groups)
     ok = np.isfinite(keys).all(axis=1) & (top > 0)
-    return groups[ok], keys[ok], top[ok], cKDTree(keys[ok])
+    return groups[ok], keys[ok], top[ok]
 
 
 @dataclass
@@ -237,64 +265,87 @@ class PatternMatches:
         """Focal length (px) of the best key match; NaN when there is none."""
         return float(self.f_nominal * self.scale[0]) if len(self.scale) else float("nan")
 
+    def hypothesis(self, m: int) -> Hypothesis | None:
+        """Match ``m``'s hypothesis (None when no assignment of its stars fits), worked out once."""
+        # directions through the hypothesised focal length (the ideal plane scaled by 1 / scale;
+        # the distortion's own change with f is far below a pattern's tolerance): with the
+        # nominal one, a pattern off the boresight would tilt the attitude by the scale error
+        # times its field angle
+        if m not in self._worked:  # worked out once: the search asks again for those it has seen
+            b = np.column_stack([self.plane[self.groups[m]] / self.scale[m], np.ones(4)])
+            a = _assign(b / np.linalg.norm(b, axis=1, keepdims=True), self.catalog_vec[m])
+            f = self.f_nominal * float(self.scale[m])
+            self._worked[m] = None if a is None else Hypothesis(f, a, float(self.distance[m]))
+        return self._worked[m]
+
     def hypotheses(self, most: int = 64):
         """Up to ``most`` hypotheses, best key first (a generator: attitudes as they are asked for)."""
         given = 0
         for m in range(len(self.scale)):
             if given == most:
                 return
-            # directions through the hypothesised focal length (the ideal plane scaled by 1 / scale;
-            # the distortion's own change with f is far below a pattern's tolerance): with the
-            # nominal one, a pattern off the boresight would tilt the attitude by the scale error
-            # times its field angle
-            if m not in self._worked:  # worked out once: the search asks again for those it has seen
-                b = np.column_stack([self.plane[self.groups[m]] / self.scale[m], np.ones(4)])
-                a = _assign(b / np.linalg.norm(b, axis=1, keepdims=True), self.catalog_vec[m])
-                f = self.f_nominal * float(self.scale[m])
-                self._worked[m] = None if a is None else Hypothesis(f, a, float(self.distance[m]))
-            if self._worked[m] is not None:
+            hyp = self.hypothesis(m)
+            if hyp is not None:
                 given += 1
-                yield self._worked[m]
+                yield hyp
 
 
 def pattern_matches(
     x: np.ndarray,
     y: np.ndarray,
     camera: CameraModel,
-    catalog: OnboardCatalog,
+    catalog: OnboardCatalog | PatternIndex,
     n_bright: int,
     tolerance: float,
     focal_range: float,
     first: int = 0,
 ) -> PatternMatches:
     """Pattern matches of the ``n_bright`` brightest detections (rows of ``x, y``, brightest first)
+    against the catalog's patterns (:func:`catalog_patterns`) or a given :class:`PatternIndex`
     with key distance below ``tolerance`` and focal length within ``focal_range`` (relative) of
     the nominal camera's, best key distance first. ``first``: only patterns holding a detection
     at or beyond that rank (the caller has tried those of the ``first`` brightest already)."""
+    index = catalog if isinstance(catalog, PatternIndex) else catalog_patterns(catalog, camera)
+    return pattern_matches_many(x, y, [(camera, focal_range)], index, n_bright, tolerance, first)[0]
+
+
+def pattern_matches_many(
+    x: np.ndarray,
+    y: np.ndarray,
+    cameras: list[tuple[CameraModel, float]],
+    index: PatternIndex,
+    n_bright: int,
+    tolerance: float,
+    first: int = 0,
+) -> list[PatternMatches]:
+    """:func:`pattern_matches` for each (camera, focal range) of ``cameras`` against one index,
+    its key lookups made together (the cameras' keys of one frame share most cells)."""
     n = min(len(x), n_bright)
-    none = np.zeros(0)
-    empty = PatternMatches(camera.f, np.zeros((0, 2)), np.zeros((0, 4), np.int64), none, none, np.zeros((0, 4, 3)))
-    if n < 4 or n <= first:
-        return empty
-    groups_c, keys_c, top_c, tree = catalog_patterns(catalog, camera)
-    v = camera.pixel_to_vector(x[:n], y[:n])
-    groups = np.array(list(combinations(range(n), 4)), np.int64)
+    groups = np.array(list(combinations(range(n), 4)), np.int64).reshape(-1, 4)
     groups = groups[groups[:, 3] >= first]  # combinations are sorted: the last member is the faintest
-    keys, top = _keys(v, groups)
-    wide = top <= 2.0 * max(PATTERN_RADIUS_FACTORS) * camera.fov_half_angle_minor * (1 + focal_range)
-    groups, keys, top = groups[wide], keys[wide], top[wide]
-    if len(groups) == 0:
-        return empty
-    gi, ci = _within(tree, keys, tolerance)
-    scale = top[gi] / top_c[ci]
-    ok = np.abs(scale - 1.0) <= focal_range
-    gi, ci, scale = gi[ok], ci[ok], scale[ok]
-    dist = np.max(np.abs(keys[gi] - keys_c[ci]), axis=1)
-    order = np.argsort(dist, kind="stable")
-    gi, ci = gi[order], ci[order]
-    return PatternMatches(
-        camera.f, v[:, :2] / v[:, 2:], groups[gi], scale[order], dist[order], catalog.vec[groups_c[ci]]
-    )
+    per = []
+    for camera, focal_range in cameras:
+        v = camera.pixel_to_vector(x[:n], y[:n])
+        keys, top = _keys(v, groups)
+        wide = top <= 2.0 * max(PATTERN_RADIUS_FACTORS) * camera.fov_half_angle_minor * (1 + focal_range)
+        per.append((v, np.flatnonzero(wide), keys[wide], top[wide]))
+    start = np.cumsum([0] + [len(k) for _, _, k, _ in per])
+    qi, ci = index.within(np.concatenate([k for _, _, k, _ in per]) if n >= 4 else np.zeros((0, 5)), tolerance)
+    out = []
+    for b, ((camera, focal_range), (v, rows, keys, top)) in enumerate(zip(cameras, per)):
+        mine = (qi >= start[b]) & (qi < start[b + 1])
+        gi, cb = qi[mine] - start[b], ci[mine]
+        scale = top[gi] / index.top[cb]
+        ok = np.abs(scale - 1.0) <= focal_range
+        gi, cb, scale = gi[ok], cb[ok], scale[ok]
+        dist = np.max(np.abs(keys[gi] - index.keys[cb]), axis=1)
+        order = np.argsort(dist, kind="stable")
+        gi, cb = gi[order], cb[order]
+        plane = v[:, :2] / v[:, 2:] if len(v) else np.zeros((0, 2))
+        out.append(
+            PatternMatches(camera.f, plane, groups[rows[gi]], scale[order], dist[order], index.vec[index.groups[cb]])
+        )
+    return out
 
 
 class BrightFirstMatches:
@@ -306,7 +357,9 @@ class BrightFirstMatches:
     cache on the catalog's ~8e5 keys). ``best_f``: the best key match's focal length in
     the first rank with a match (NaN for none), worked out on construction."""
 
-    def __init__(self, x, y, camera: CameraModel, catalog: OnboardCatalog, n_bright: int, tolerance, focal_range):
+    def __init__(
+        self, x, y, camera: CameraModel, catalog: OnboardCatalog | PatternIndex, n_bright: int, tolerance, focal_range
+    ):
         n = min(len(x), n_bright)
         self._ranks = (
             pattern_matches(x, y, camera, catalog, k, tolerance, focal_range, first=k - 1) for k in range(4, n + 1)
@@ -333,29 +386,6 @@ class BrightFirstMatches:
                 given += 1
                 yield hyp
             k += 1
-
-
-#: Nearest catalog keys asked for per frame key (:func:`_within`); a key with this many inside the
-#: tolerance is asked again for all of them.
-NEAREST_KEYS = 16
-
-
-def _within(tree: cKDTree, keys: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
-    """(frame key index, catalog pattern index) of every catalog key within ``tolerance``
-    (L-infinity) of a frame key. A bounded k-nearest query is ~15x faster than a ball query on the
-    catalog's ~6e5 keys when, as here, a key has a few matches at most (measured); keys whose
-    :data:`NEAREST_KEYS` nearest are all inside fall back to the ball query."""
-    k = min(NEAREST_KEYS, tree.n)
-    dist, idx = tree.query(keys, k=k, distance_upper_bound=tolerance, p=np.inf)
-    dist, idx = dist.reshape(len(keys), k), idx.reshape(len(keys), k)
-    inside = np.isfinite(dist)
-    full = np.flatnonzero(inside[:, -1])
-    inside[full] = False
-    gi, ci = [np.nonzero(inside)[0]], [idx[inside]]
-    for row, found in zip(full, tree.query_ball_point(keys[full], tolerance, p=np.inf)):
-        gi.append(np.full(len(found), row, np.int64))
-        ci.append(np.asarray(found, np.int64))
-    return np.concatenate(gi).astype(np.int64), np.concatenate(ci).astype(np.int64)
 
 
 def _assign(b: np.ndarray, r: np.ndarray):
@@ -405,7 +435,7 @@ def refine(
     y: np.ndarray,
     camera: CameraModel,
     hyp: Hypothesis,
-    catalog: OnboardCatalog,
+    catalog: StarTable,
     radii_px: tuple[float, ...] = (30.0, 10.0, 4.0, 2.5),
     min_stars: int = 4,
     k1_min_stars: int = 6,

@@ -185,7 +185,8 @@ class OfflineSolver:
     are nearly degenerate.
 
     ``camera`` is one model for every frame, or a function of the frame (``--fov-deg``: a pinhole
-    camera per frame size).
+    camera per frame size); ``catalog`` one catalog, or a function of the camera (each camera's
+    field catalog, ``ground.api.sky_catalog``).
 
     The first solve loads the kernels (:func:`warm_up_kernels`, as the device does before it
     serves) and reports those seconds as its ``compile`` stage, with ``setup_s`` (set-up stages the
@@ -195,13 +196,18 @@ class OfflineSolver:
     def __init__(
         self,
         camera: CameraModel | Callable[[Frame], CameraModel],
-        catalog: OnboardCatalog,
+        catalog: OnboardCatalog | Callable[[CameraModel], OnboardCatalog],
         params: PipelineParams = PipelineParams(),
         site=None,
         setup_s: dict[str, float] | None = None,
     ):
         self.camera, self.catalog, self.params, self.site = camera, catalog, params, site
         self._setup = dict(setup_s or {})  # charged to the first solve
+
+    def charge_setup(self, **seconds: float) -> None:
+        """Set-up seconds (``compile``, ``database``, ...) the next solve's record reports."""
+        for name, value in seconds.items():
+            self._setup[name] = self._setup.get(name, 0.0) + value
 
     def camera_for(self, frame: Frame) -> CameraModel:
         return self.camera if isinstance(self.camera, CameraModel) else self.camera(frame)
@@ -213,12 +219,13 @@ class OfflineSolver:
 
     def _solve(self, frame: Frame) -> dict:
         camera = self.camera_for(frame)
+        catalog = self.catalog(camera) if callable(self.catalog) else self.catalog
         if self.site is None:
-            return record_from_output(run_pipeline(frame, camera, self.catalog, self.params))
+            return record_from_output(run_pipeline(frame, camera, catalog, self.params))
         # refraction squeezes a low field like a focal-length error: with a site, the camera is
         # taken as calibrated (no optics search), so the two are not confused
         params = replace(self.params, optics=None)
-        out = run_pipeline(frame, camera, self.catalog, params)
+        out = run_pipeline(frame, camera, catalog, params)
         if out.stars is None or len(out.stars) < 2:
             return record_from_output(out)
         if not frame.timestamp:
@@ -233,7 +240,7 @@ class OfflineSolver:
             # differential refraction can exceed the centroid noise: look for the approximate
             # attitude with a loose noise model (the final match below is made at full rigour); a
             # low-confidence first answer (e.g. a two-star last resort) is no approximation to trust
-            approx = identify_stars(stars, camera, self.catalog, replace(params, fixed_sigma_px=LOOSE_SIGMA_PX))
+            approx = identify_stars(stars, camera, catalog, replace(params, fixed_sigma_px=LOOSE_SIGMA_PX))
         q_approx = approx.solution.q_icrs_to_sensor if approx.solution is not None else None
         if q_approx is None:  # (an OK answer always has its attitude)
             rec = record_from_output(out)
@@ -245,9 +252,44 @@ class OfflineSolver:
             self.site,
             Time(frame.timestamp, scale="utc"),
         )
-        corrected = identify_stars(replace(stars, vectors=vec), camera, self.catalog, params)
+        corrected = identify_stars(replace(stars, vectors=vec), camera, catalog, params)
         rec = record_from_output(corrected)
         rec["refraction"] = "corrected"
+        return rec
+
+
+def solve_sky(frame: Frame, fov, db, params: PipelineParams, catalog: OnboardCatalog | None = None):
+    """``sky_run.run_pipeline_sky`` with the database's search and each found camera's field
+    catalog (``catalog``, when given, for every camera): (PipelineOutput, SkyReport)."""
+    from firmware_model.pipeline.sky_run import run_pipeline_sky
+    from ground.catalog.field_catalogs import sky_catalog
+
+    def catalog_for(camera: CameraModel) -> OnboardCatalog:
+        return catalog if catalog is not None else sky_catalog(camera, db)
+
+    return run_pipeline_sky(frame, fov, db.search, catalog_for, params)
+
+
+class SkySolver:
+    """The pipeline in-process with the field of view searched (``replay --offline`` and
+    ``solve-file`` without ``--camera``): ``fov`` a ``sky_search.FieldRange`` (a hint's, a
+    range or blind), ``database`` the loaded ``ground.catalog.sky_database.SkyDatabase``, ``catalog`` one
+    catalog for every frame (None: each found camera's field catalog, ``ground.api.sky_catalog``).
+    Each record carries the search's ``sky`` block; the first one the set-up seconds, as
+    :class:`OfflineSolver`'s."""
+
+    def __init__(self, fov, database, params: PipelineParams = PipelineParams(), catalog=None, setup_s=None):
+        self.fov, self.database, self.params, self.catalog = fov, database, params, catalog
+        self._setup = dict(setup_s or {})
+
+    charge_setup = OfflineSolver.charge_setup
+
+    def solve(self, frame: Frame) -> dict:
+        setup, self._setup = self._setup, {}
+        setup["compile"] = setup.get("compile", 0.0) + warm_up_kernels()
+        out, report = solve_sky(frame, self.fov, self.database, self.params, self.catalog)
+        rec = add_setup_stages(record_from_output(out), **setup)
+        rec["sky"] = report.to_dict()
         return rec
 
 

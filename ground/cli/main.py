@@ -31,6 +31,7 @@ COMMAND_MODULES = (
     "ground.cli.frame",
     "ground.cli.sim",
     "ground.cli.solve",
+    "ground.cli.database",
     "ground.cli.replay",
     "ground.cli.colour",
     "ground.cli.params",

@@ -4,6 +4,10 @@
 * Camera: ``--camera FILE`` (``CameraModel`` JSON), or ``--fov-deg F``, a pinhole camera built per
   frame from its size and horizontal field of view (the pipeline's focal-length search and
   optics fit absorb a few per cent of error and the lens distortion); default the reference design.
+  Where the field of view is searched (``solve-file``, ``replay --offline``: :func:`add_sky_options`),
+  ``--fov-deg F`` is a hint (the field within F / 1.4 to 1.4 F), ``--fov-range LO HI`` bounds the
+  search, and neither solves blind over 5-60 deg, all against the whole-sky pattern database
+  (``--database FILE``, default the user cache's; ``ground.catalog.sky_database``).
 * ``--params FILE``: the device's slot-2 parameter set (``firmware_model.device.sensor_input.DeviceParams``,
   the file ``params upload`` sends), so an offline run and the device solve with the same settings.
 
@@ -16,7 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ground.arg_types import InputError
+from ground.arg_types import InputError, progress_on
 
 if TYPE_CHECKING:  # the pipeline imports scipy: only when a command runs
     from firmware_model.camera import CameraModel
@@ -24,14 +28,57 @@ if TYPE_CHECKING:  # the pipeline imports scipy: only when a command runs
     from firmware_model.pipeline.run import PipelineParams
 
 
-def add_camera_options(parser) -> None:
+def add_camera_options(parser, sky: bool = False) -> None:
+    """``--camera`` / ``--fov-deg``; with ``sky``, the field-of-view search's options too
+    (:func:`add_sky_options`)."""
     group = parser.add_mutually_exclusive_group()
-    group.add_argument("--camera", help="camera model JSON (default: the reference design)")
+    if not sky:
+        group.add_argument("--camera", help="camera model JSON (default: the reference design)")
+        group.add_argument(
+            "--fov-deg",
+            type=float,
+            help="horizontal field of view across the frame width, deg: a distortion-free pinhole camera per frame",
+        )
+        return
+    group.add_argument("--camera", help="calibrated camera model JSON: no field-of-view search")
     group.add_argument(
         "--fov-deg",
         type=float,
-        help="horizontal field of view across the frame width, deg: a distortion-free pinhole camera per frame",
+        help="horizontal field of view hint across the frame width, deg (1-90): the field is searched "
+        "from F/1.4 to 1.4 F; without a hint or range the search is blind over 5-60 deg",
     )
+    group.add_argument(
+        "--fov-range",
+        type=float,
+        nargs=2,
+        metavar=("LO", "HI"),
+        help="horizontal fields of view to search, deg (1-90)",
+    )
+    parser.add_argument(
+        "--database", help="whole-sky pattern database file (default: the user cache's, built once if missing)"
+    )
+
+
+def sky_field(args):
+    """The ``sky_search.FieldRange`` of ``--fov-deg`` / ``--fov-range`` (blind without either),
+    checked before any work (:class:`InputError`, exit 2)."""
+    from firmware_model.pipeline.sky_search import FieldRange
+
+    rng = getattr(args, "fov_range", None)
+    try:
+        return FieldRange.of(getattr(args, "fov_deg", None), tuple(rng) if rng else None)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
+def load_database(args):
+    """The sky database ``--database`` names (or the user cache's, built once when missing)."""
+    from ground.catalog.sky_database import DatabaseError, sky_database
+
+    try:
+        return sky_database(getattr(args, "database", None), progress=progress_on(args))
+    except DatabaseError as exc:
+        raise InputError(str(exc)) from None
 
 
 def add_params_option(parser) -> None:
@@ -76,24 +123,58 @@ def load_catalog(path):
 
 
 def offline_solver(args):
-    """The in-process solver the offline options describe (camera, catalog, parameters, site)."""
-    from ground.analysis.replay import OfflineSolver
+    """The in-process solver the offline options describe: with ``--camera`` or ``--site`` a
+    calibrated camera (``OfflineSolver``), else the field of view searched (``SkySolver``); the
+    catalog ``--catalog`` names, or each camera's field catalog, matched against the sky database."""
+    from ground.analysis.replay import OfflineSolver, SkySolver
 
-    if not args.catalog:
+    site = _site(args)
+    sky = hasattr(args, "fov_range")
+    fov = sky_field(args) if sky and not (args.camera or site) else None  # checked before any work
+    if not sky and not args.catalog:
         raise InputError("the offline solver needs --catalog IMAGE")
-    camera, params = camera_for_frames(args), load_params(args.params)
-    site = None
-    if getattr(args, "site", None):
-        from ground.calibration.corrections import Site
-
+    if fov is None and sky and site is not None and not (args.camera or args.fov_deg):
+        raise InputError("--site needs a calibrated camera: --camera FILE (or an exact --fov-deg)")
+    camera_of = camera_for_frames(args) if fov is None else None
+    params = load_params(args.params)
+    catalog = None
+    if args.catalog:
         try:
-            parts = [float(v) for v in args.site.split(",")]
-            given = dict(zip(("lat_deg", "lon_deg", "height_m"), parts))  # a fourth value is ignored
-            site = Site(**given, pressure_hpa=args.pressure, temperature_c=args.temperature)
-        except (ValueError, TypeError):
-            raise InputError(f"--site wants LAT,LON[,HEIGHT_M] in degrees/metres, got {args.site!r}") from None
+            catalog = load_catalog(args.catalog)
+        except (OSError, ValueError) as exc:
+            raise InputError(f"--catalog {args.catalog}: {exc}") from None
+    if not sky:
+        assert catalog is not None and camera_of is not None  # --catalog is required above
+        return OfflineSolver(camera_of, catalog, params, site)
+    db = load_database(args)
+    if fov is not None:
+        return SkySolver(fov, db, params, catalog=_with_sky(catalog, db))
+    assert camera_of is not None
+    if catalog is not None:
+        return OfflineSolver(camera_of, _with_sky(catalog, db), params, site)
+    from ground.catalog.field_catalogs import sky_catalog
+
+    return OfflineSolver(camera_of, lambda camera: sky_catalog(camera, db), params, site)
+
+
+def _with_sky(catalog, db):
+    """``catalog`` (None passes) matched against the sky database's patterns."""
+    if catalog is not None:
+        from firmware_model.pipeline import scale_free
+
+        scale_free.set_sky_patterns(catalog, db.index)
+    return catalog
+
+
+def _site(args):
+    """The ``--site`` of the offline refraction correction, or None."""
+    if not getattr(args, "site", None):
+        return None
+    from ground.calibration.corrections import Site
+
     try:
-        catalog = load_catalog(args.catalog)
-    except (OSError, ValueError) as exc:
-        raise InputError(f"--catalog {args.catalog}: {exc}") from None
-    return OfflineSolver(camera, catalog, params, site)
+        parts = [float(v) for v in args.site.split(",")]
+        given = dict(zip(("lat_deg", "lon_deg", "height_m"), parts))  # a fourth value is ignored
+        return Site(**given, pressure_hpa=args.pressure, temperature_c=args.temperature)
+    except (ValueError, TypeError):
+        raise InputError(f"--site wants LAT,LON[,HEIGHT_M] in degrees/metres, got {args.site!r}") from None

@@ -3,10 +3,13 @@ decoded result (``--json`` for the full record) and append it to the results log
 solves in-process with the same pipeline and parameter file. ``--wcs FILE`` writes the solved
 frame's FITS WCS (TAN-SIP, docs/wcs.md).
 
-``st16-ground solve-file FRAME``: one image offline, no device and no log: a catalog for the field
-is built when ``--catalog`` is not given (once per field: kept in the user's cache directory);
-``--wcs`` and ``--overlay`` (a PNG naming each identified star) as wanted. Its ``timings_s`` count
-the kernels' loading (``compile``) and the catalog's building or loading (``catalog``) in their
+``st16-ground solve-file FRAME``: one image offline, no device and no log. Without ``--camera`` the
+field of view is searched against the whole-sky pattern database (``--fov-deg F`` a hint,
+``--fov-range LO HI`` bounds, neither: blind over 5-60 deg; ``ground.catalog.sky_database``, built once
+into the user cache); a catalog for the field found is built when ``--catalog`` is not given (once
+per field: kept in the user's cache directory); ``--wcs`` and ``--overlay`` (a PNG naming each
+identified star) as wanted. Its ``timings_s`` count the kernels' loading (``compile``), the
+database's loading (``database``) and the catalog's building or loading (``catalog``) in their
 ``total``: the first run after install compiles the kernels (about a minute, said on stderr).
 """
 
@@ -71,8 +74,10 @@ def _exit_code(rec: dict) -> int:
 
 
 def user_camera(args, frame):
-    """The camera the options name for this frame (None: the device's, reported by the record)."""
-    if not (getattr(args, "camera", None) or getattr(args, "fov_deg", None)):
+    """The camera the options name for this frame (None: the device's or the one the record's
+    search found, which the record reports)."""
+    searched = hasattr(args, "fov_range")  # --fov-deg is a hint there: the record has the camera
+    if not (getattr(args, "camera", None) or (getattr(args, "fov_deg", None) and not searched)):
         return None
     from ground.cli.offline_options import camera_for_frames
 
@@ -95,43 +100,30 @@ def _write_wcs(path, rec: dict, frame, camera) -> None:
 def _solve_file(args) -> int:
     t0 = time.perf_counter()
     from firmware_model.pipeline.frame_readers import FrameReadError, read_frame
-    from ground.analysis.replay import OfflineSolver, warm_up_kernels
-    from ground.cli.offline_options import camera_for_frames, load_catalog, load_params
+    from ground.analysis.replay import warm_up_kernels
+    from ground.cli.offline_options import offline_solver
 
-    if args.catalog is None and args.fov_deg is None and args.camera is None:
-        raise InputError("solve-file needs --fov-deg (or --camera) to build a catalog for the field, or --catalog")
-    camera_of = camera_for_frames(args)
-    params = load_params(args.params)
-    t1 = time.perf_counter()
+    solver = offline_solver(args)  # options checked, the database loaded (built once if missing)
+    setup_s = time.perf_counter() - t0
     try:
         frame = read_frame(args.frame)
     except FrameReadError as exc:
         raise InputError(str(exc)) from None
-    read_s = time.perf_counter() - t1  # the frame's reading: no stage of the solve
-    camera = camera_of(frame)
     # the pipeline's modules and kernels, loaded now (a line and a bar when the kernels compile)
+    t1 = time.perf_counter()
     loaded = warm_up_kernels(progress=progress_on(args)) > 0
-    compile_s = time.perf_counter() - t0 - read_s if loaded else 0.0
-    t0 = time.perf_counter()
-    if args.catalog:
-        try:
-            catalog = load_catalog(args.catalog)
-        except (OSError, ValueError) as exc:
-            raise InputError(f"--catalog {args.catalog}: {exc}") from None
-    else:
-        from ground.api import catalog_for_camera
-
-        catalog = catalog_for_camera(camera)  # built once per field (a line says so), then cached
-    setup = {"catalog": time.perf_counter() - t0, "compile": compile_s}
-    rec = OfflineSolver(camera, catalog, params, setup_s=setup).solve(frame)
+    solver.charge_setup(database=setup_s, compile=time.perf_counter() - t1 if loaded else 0.0)
+    rec = solver.solve(frame)
     rec["frame"] = Path(args.frame).name
     _print_record(rec, args.json)
+    camera = user_camera(args, frame) if args.camera else None
     if args.wcs:
         _write_wcs(args.wcs, rec, frame, camera)
     if args.overlay:
         from ground.analysis.frame_plot import plot_identified
 
-        label = "HR" if catalog.meta.get("source") == "bsc5" else "HIP"
+        catalog = getattr(solver, "catalog", None)
+        label = "HR" if getattr(catalog, "meta", {}).get("source") == "bsc5" else "HIP"
         print(f"overlay: {plot_identified(frame, rec, args.overlay, label=label)}")
     return _exit_code(rec)
 
@@ -166,8 +158,8 @@ def register(sub) -> None:
 
     p = sub.add_parser("solve-file", help="solve one image offline (no device): attitude, WCS, labelled overlay")
     p.add_argument("frame", help="image file (DNG/raw, FITS, TIFF, PNG/JPEG, .npy)")
-    p.add_argument("--catalog", help="catalog image (default: built for the field from --fov-deg / --camera)")
-    add_camera_options(p)
+    p.add_argument("--catalog", help="catalog image (default: built for the field found, kept in the user cache)")
+    add_camera_options(p, sky=True)
     add_params_option(p)
     p.add_argument("--wcs", type=output_file, help="write the FITS WCS (TAN-SIP) here")
     p.add_argument("--overlay", type=output_file, help="write a PNG with each identified star labelled")

@@ -1,0 +1,189 @@
+"""A frame solved with its field of view searched (``sky_search``), then identified as a frame of
+known field: the whole pipeline, off the device (``solve-file``, ``solve_image``, ``replay
+--offline``, the whole-sky simulation; docs/identification.md, "Blind and wide").
+
+1. The frame's stars are extracted once (their positions do not depend on the camera).
+2. The sky search (counted: ``max_checks`` hypotheses) finds the focal length and attitude; a
+   hypothesis under ``sky_search.FALSE_ALARM`` over the search is taken, else its best
+   candidates of distinct focal lengths are handed on (``sky_search.CANDIDATES``).
+3. Each candidate's pinhole camera identifies the frame (``run.identify_stars``: the field's
+   catalog, the optics search and fit within its focal range, the deep verification and its
+   confidence), until one is high-confidence.
+4. The answer must agree with the hypothesis it came from (boresight within
+   :data:`AGREE_PX` pixels); the record's ``sky`` block gives the search's field of view, checks
+   and false-alarm probability.
+
+Units: px, radians; fields of view in deg (horizontal).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from firmware_model.camera import CameraModel
+from firmware_model.catalog.onboard import OnboardCatalog
+from firmware_model.ident.attitude import quat_matrix
+from firmware_model.ident.solver import Mode
+from firmware_model.pipeline.raw_frame import Frame
+from firmware_model.pipeline.run import (
+    _PATTERN_EXCLUDE,
+    PipelineOutput,
+    PipelineParams,
+    frame_stars,
+    identify_stars,
+    label_planets_of,
+)
+from firmware_model.pipeline.sky_search import FieldRange, SkyFit, SkyResult, SkySearch
+from protocol.result import Status
+
+#: An answer and the hypothesis it came from agree when their boresights are this close (px).
+AGREE_PX = 20.0
+
+
+@dataclass(frozen=True)
+class SkyReport:
+    """The sky search behind an answer: the range searched (deg), the field of view of the
+    hypothesis the answer came from (deg; NaN: none), hypotheses checked, its false-alarm
+    probability over the search (1: none), whether it was taken outright and whether the count
+    stopped the search."""
+
+    fov_range_deg: tuple[float, float]
+    fov_deg: float
+    checks: int
+    false_alarm: float
+    taken: bool
+    stopped: bool
+
+    def to_dict(self) -> dict:
+        return {
+            "fov_range_deg": list(self.fov_range_deg),
+            "fov_deg": None if math.isnan(self.fov_deg) else self.fov_deg,
+            "checks": self.checks,
+            "false_alarm": self.false_alarm,
+            "taken": self.taken,
+            "budget_reached": self.stopped,
+        }
+
+
+def run_pipeline_sky(
+    frame: Frame,
+    fov: FieldRange,
+    sky: SkySearch,
+    catalog_for: Callable[[CameraModel], OnboardCatalog],
+    params: PipelineParams = PipelineParams(),
+    max_checks: int | None = None,
+) -> tuple[PipelineOutput, SkyReport]:
+    """Frame -> stars -> sky search -> identification with the found camera (module docstring).
+    ``catalog_for(camera)``: the field's catalog (matched against the sky table's patterns)."""
+    t0 = time.perf_counter()
+    catalog_s = 0.0
+
+    def catalog(camera: CameraModel) -> OnboardCatalog:  # timed: a set-up stage, not the frame's
+        nonlocal catalog_s
+        t1 = time.perf_counter()
+        cat = catalog_for(camera)
+        catalog_s += time.perf_counter() - t1
+        return cat
+
+    w, h = frame.width, frame.height
+    brackets = fov.focal_brackets(w)
+    mid = CameraModel(w, h, math.sqrt(brackets[0][0] * brackets[-1][0]), (w - 1) / 2.0, (h - 1) / 2.0)
+    stars = frame_stars(frame, mid, params)
+    nothing = SkyReport((fov.lo_deg, fov.hi_deg), math.nan, 0, 1.0, False, False)
+    if isinstance(stars, PipelineOutput):
+        return stars, nothing
+    if len(stars.x) < 4:  # the pipeline's own TOO_FEW_STARS answer
+        seen = replace(stars, vectors=mid.pixel_to_vector(stars.x, stars.y))
+        return identify_stars(seen, mid, catalog(mid), params), nothing
+    t1 = time.perf_counter()
+    clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)
+    limit = {} if max_checks is None else {"max_checks": max_checks}
+    found = sky.search(stars.x[clean], stars.y[clean], w, h, fov, **limit)
+    search_s = time.perf_counter() - t1
+    out: PipelineOutput | None = None
+    used: SkyFit | None = None
+    # a decisive hypothesis' stars are verified first on either route (``auto`` mode: geometry, then
+    # colour only if that fails): the sky search has done the colour matcher's work of finding them
+    solve_params = params
+    if found.taken is not None and params.solve.mode == Mode.AUTO:
+        solve_params = replace(params, solve=replace(params.solve, mode=Mode.GEOMETRIC))
+    for fit in found.candidates:
+        camera = CameraModel(w, h, fit.f, (w - 1) / 2.0, (h - 1) / 2.0)
+        seen = replace(stars, vectors=camera.pixel_to_vector(stars.x, stars.y))
+        tried = identify_stars(seen, camera, catalog(camera), solve_params)
+        if tried.status is not Status.OK and solve_params is not params:  # the colour route after all
+            again = identify_stars(seen, camera, catalog(camera), params)
+            again.timings.identify += tried.timings.identify + tried.timings.attitude
+            tried = again if _better(again, tried) else tried
+        if out is None or _better(tried, out):
+            loser, out, used = out, tried, fit
+        else:
+            loser = tried
+        if loser is not None:  # the other try's work counts as the answer's identification
+            search_s += loser.timings.identify + loser.timings.attitude
+        if tried.status is Status.OK:
+            break
+    if out is None:
+        out = _no_match(stars, found)
+    else:
+        assert used is not None
+        _agree(out, used, w)
+        if frame.timestamp and out.solution is not None and out.solution.q_icrs_to_sensor is not None:
+            assert out.camera is not None
+            out = label_planets_of(out, frame, catalog(out.camera), params)
+    out.timings.identify += search_s  # the sky search (and any earlier candidate) is identification
+    out.timings.catalog = catalog_s
+    out.timings.total = time.perf_counter() - t0  # the whole call, the catalogs' set-up included
+    report = SkyReport(
+        (fov.lo_deg, fov.hi_deg),
+        used.fov_deg(w) if used is not None else math.nan,
+        found.checks,
+        used.false_alarm if used is not None else 1.0,
+        found.taken is not None,
+        found.stopped,
+    )
+    return out, report
+
+
+def _better(a: PipelineOutput, b: PipelineOutput) -> bool:
+    """Whether answer ``a`` ranks above ``b`` (OK, then an attitude, then the rest)."""
+
+    def rank(o: PipelineOutput) -> int:
+        return (
+            2
+            if o.status is Status.OK
+            else 1
+            if o.solution is not None and o.solution.q_icrs_to_sensor is not None
+            else 0
+        )
+
+    return rank(a) > rank(b)
+
+
+def _agree(out: PipelineOutput, fit: SkyFit, width: int) -> None:
+    """Demote a high-confidence answer whose boresight is not the hypothesis' (in place)."""
+    sol = out.solution
+    if out.status is not Status.OK or sol is None or sol.q_icrs_to_sensor is None:
+        return
+    cos = float(np.clip(quat_matrix(sol.q_icrs_to_sensor)[2] @ fit.a[2], -1.0, 1.0))
+    if math.acos(cos) * fit.f > AGREE_PX:
+        out.status = Status.LOW_CONFIDENCE
+        note = "the field's identification disagrees with the sky search's hypothesis"
+        out.reason = f"{note}; {out.reason}" if out.reason else note
+
+
+def _no_match(stars, found: SkyResult) -> PipelineOutput:
+    """The NO_MATCH answer of a search with no candidate."""
+    lo, hi = found.fov.lo_deg, found.fov.hi_deg
+    reason = (
+        f"no pattern of the brightest detections matched the sky for fields of view {lo:.3g}-{hi:.3g} deg"
+        f" ({found.checks} hypotheses checked)"
+    )
+    if found.stopped:
+        reason = f"sky search budget of {found.checks} hypotheses reached; {reason}"
+    return PipelineOutput(Status.NO_MATCH, reason, stars=stars)
