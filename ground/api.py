@@ -16,9 +16,10 @@ once): ``fov_deg`` (horizontal, deg) is a hint (the field within ``fov_deg / 1.4
 ``1.4 fov_deg``), ``fov_range=(lo, hi)`` bounds it, neither solves blind over 5-60 deg; the
 record's ``sky`` block gives the search's field of view, hypotheses checked and false-alarm
 probability (docs/identification.md, "Blind and wide"). A ``camera`` (:class:`CameraModel`) is
-taken as calibrated but for the optics fit. ``catalog`` is an :class:`OnboardCatalog` or a
-catalog image path (``st16-ground catalog build``); without one, each field's catalog is built
-from the bundled Hipparcos once and kept (``ground.catalog.field_catalogs``). ``params`` are the
+taken as calibrated but for the optics fit; with a ``catalog`` too, the solve is the device's
+twin (that catalog's own pattern index, no database). ``catalog`` is an :class:`OnboardCatalog`
+or a catalog image path (``st16-ground catalog build``); without one, each field's catalog is
+built from the bundled Hipparcos once and kept (``ground.catalog.field_catalogs``). ``params`` are the
 pipeline's parameters (the device's slot-2 settings).
 
 The first solve in a process loads the compiled kernels (``replay.warm_up_kernels``); its record's
@@ -112,34 +113,37 @@ def solve_image(
     read_s = time.perf_counter() - t0  # the image's reading: no stage of the solve
     if camera is not None:
         _check_size(frame, camera)
+    from firmware_model.pipeline import scale_free
     from firmware_model.pipeline.run import PipelineParams, run_pipeline
     from ground.analysis.replay import warm_up_kernels
 
     loaded = warm_up_kernels() > 0  # the first call: the pipeline's modules and kernels loaded now
     compile_s = time.perf_counter() - start - read_s if loaded else 0.0
-    t0 = time.perf_counter()
-    db = _database(database)
-    database_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    given = _catalog(catalog, db)
-    catalog_s = time.perf_counter() - t0  # a catalog image read now
     params = params or PipelineParams()
+    t0 = time.perf_counter()
+    given = _catalog(catalog)
+    catalog_s = time.perf_counter() - t0  # a catalog image read now
+    if camera is not None and given is not None:  # the device's twin: its catalog, its own index
+        out = run_pipeline(frame, camera, given, params)
+        return solved_image(out, camera, {"catalog": catalog_s, "compile": compile_s})
+    db = _database(database)
+    setup = {"compile": compile_s, "database": db.load_s, "catalog": catalog_s}
+    if given is not None:
+        scale_free.set_sky_patterns(given, db.index)
     if camera is None:
         assert isinstance(fov, FieldRange)
         from ground.analysis.replay import solve_sky
 
         out, report = solve_sky(frame, fov, db, params, given)
-        setup = {"compile": compile_s, "database": database_s, "catalog": catalog_s}
         solved = solved_image(out, out.camera or _pinhole(frame), setup)
         solved.record["sky"] = report.to_dict()
         return solved
     from ground.catalog.field_catalogs import sky_catalog
 
     t0 = time.perf_counter()
-    cat = given or sky_catalog(camera, db)
-    catalog_s += time.perf_counter() - t0
-    out = run_pipeline(frame, camera, cat, params)
-    return solved_image(out, camera, {"catalog": catalog_s, "compile": compile_s, "database": database_s})
+    cat = sky_catalog(camera, db)
+    setup["catalog"] += time.perf_counter() - t0
+    return solved_image(run_pipeline(frame, camera, cat, params), camera, setup)
 
 
 def _pinhole(frame: Frame) -> CameraModel:
@@ -210,19 +214,13 @@ def _check_size(frame: Frame, camera: CameraModel) -> None:
         )
 
 
-def _catalog(catalog, db) -> OnboardCatalog | None:
-    """The given catalog (an object or an image path), matched against the sky database's
-    patterns; None when none was given (each camera gets its field's: :func:`sky_catalog`)."""
-    from firmware_model.pipeline import scale_free
-
-    if catalog is None:
-        return None
+def _catalog(catalog) -> OnboardCatalog | None:
+    """The given catalog (an object or an image path); None when none was given."""
     if isinstance(catalog, (str, Path)):
         from firmware_model.catalog.image_io import catalog_from_image
 
         try:
-            catalog = catalog_from_image(Path(catalog).read_bytes())
+            return catalog_from_image(Path(catalog).read_bytes())
         except (OSError, ValueError) as exc:
             raise ValueError(f"catalog {catalog}: {exc}") from None
-    scale_free.set_sky_patterns(catalog, db.index)
     return catalog

@@ -1,5 +1,6 @@
 """FITS WCS of a solve (TAN-SIP against our camera model), the Python solve API and solve-file."""
 
+import json
 import subprocess
 import sys
 
@@ -152,7 +153,12 @@ def test_solve_file_cli(tetra3_frame, tmp_path):
     )
     assert run.returncode == 3 and "not written: no attitude" in run.stderr
     assert "Traceback" not in run.stderr and not (tmp_path / "f.wcs2").exists()
-    run = subprocess.run(
-        [sys.executable, "-m", "ground.cli", "solve-file", str(blank)], capture_output=True, text=True, timeout=60
+    run = subprocess.run(  # no field of view: searched blind, and a blank frame has no stars
+        [sys.executable, "-m", "ground.cli", "--json", "solve-file", str(blank)],
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
-    assert run.returncode == 2 and "needs --fov-deg" in run.stderr and "Traceback" not in run.stderr
+    assert run.returncode == 3 and "Traceback" not in run.stderr, run.stderr
+    rec = json.loads(run.stdout)
+    assert rec["status"] == "TOO_FEW_STARS" and rec["sky"]["fov_range_deg"] == [5.0, 60.0]

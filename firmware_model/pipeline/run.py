@@ -504,7 +504,8 @@ def _refine(frame: FrameSolve) -> str:
 SOLVE_PLAN: tuple[PlanStage, ...] = (
     PlanStage(
         "prepare",
-        "usable detections, the route (colour or geometric), the catalog's pattern index for the field",
+        "usable detections, the route (colour or geometric), the catalog's pattern index for the field "
+        "(off the device, the whole-sky database's: no per-field index)",
         "one pass; the index once per catalog and field (a set-up stage, `index` in timings_s)",
         "at least 4 usable detections: pattern seed; else matchers",
         ("pattern seed", "matchers"),

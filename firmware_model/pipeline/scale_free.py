@@ -41,6 +41,7 @@ from firmware_model.catalog.onboard import OnboardCatalog, angle_between, chord_
 from firmware_model.ident.attitude import svd_attitude_kernel
 from firmware_model.pipeline.frame_fit import fit_frame_kernel, fit_result
 from firmware_model.pipeline.pattern_index import PatternIndex
+from firmware_model.pipeline.pattern_index import warm_up as pattern_index_warm_up
 
 #: Catalog patterns of two kinds, both scale free: (1) for each region of the sky the size of the
 #: field (circles of the minor half-field on a Fibonacci lattice spaced REGION_SPACING of that
@@ -318,8 +319,10 @@ def pattern_matches_many(
     tolerance: float,
     first: int = 0,
 ) -> list[PatternMatches]:
-    """:func:`pattern_matches` for each (camera, focal range) of ``cameras`` against one index,
-    its key lookups made together (the cameras' keys of one frame share most cells)."""
+    """:func:`pattern_matches` for each (camera, focal range) of ``cameras`` against one index.
+    Cameras whose keys of the frame differ by at most :data:`SHARED_LOOKUP` share one lookup
+    (with the tolerance widened by that much, each camera's own keys then held to the
+    tolerance): on a narrow field a focal-length change bends the keys by far less."""
     n = min(len(x), n_bright)
     groups = np.array(list(combinations(range(n), 4)), np.int64).reshape(-1, 4)
     groups = groups[groups[:, 3] >= first]  # combinations are sorted: the last member is the faintest
@@ -328,13 +331,27 @@ def pattern_matches_many(
         v = camera.pixel_to_vector(x[:n], y[:n])
         keys, top = _keys(v, groups)
         wide = top <= 2.0 * max(PATTERN_RADIUS_FACTORS) * camera.fov_half_angle_minor * (1 + focal_range)
-        per.append((v, np.flatnonzero(wide), keys[wide], top[wide]))
-    start = np.cumsum([0] + [len(k) for _, _, k, _ in per])
-    qi, ci = index.within(np.concatenate([k for _, _, k, _ in per]) if n >= 4 else np.zeros((0, 5)), tolerance)
+        per.append((v, keys, top, wide))
+    found: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(0, np.int64), np.zeros(0, np.int64))] * len(cameras)
+    b = 0
+    while b < len(cameras) and len(groups):
+        leader = per[b][1]
+        share = [b]
+        while b + len(share) < len(cameras):
+            apart = np.max(np.abs(per[b + len(share)][1] - leader), initial=0.0, where=np.isfinite(leader))
+            if not apart <= SHARED_LOOKUP:
+                break
+            share.append(b + len(share))
+        wanted = np.flatnonzero(np.any([per[c][3] for c in share], axis=0) & np.isfinite(leader).all(axis=1))
+        qi, ci = index.within(leader[wanted], tolerance + SHARED_LOOKUP if len(share) > 1 else tolerance)
+        qi = wanted[qi]
+        for c in share:
+            keys, wide = per[c][1], per[c][3]
+            mine = wide[qi] & (np.max(np.abs(keys[qi] - index.keys[ci]), axis=1) <= tolerance)
+            found[c] = (qi[mine], ci[mine])
+        b += len(share)
     out = []
-    for b, ((camera, focal_range), (v, rows, keys, top)) in enumerate(zip(cameras, per)):
-        mine = (qi >= start[b]) & (qi < start[b + 1])
-        gi, cb = qi[mine] - start[b], ci[mine]
+    for (camera, focal_range), (v, keys, top, _), (gi, cb) in zip(cameras, per, found):
         scale = top[gi] / index.top[cb]
         ok = np.abs(scale - 1.0) <= focal_range
         gi, cb, scale = gi[ok], cb[ok], scale[ok]
@@ -342,10 +359,12 @@ def pattern_matches_many(
         order = np.argsort(dist, kind="stable")
         gi, cb = gi[order], cb[order]
         plane = v[:, :2] / v[:, 2:] if len(v) else np.zeros((0, 2))
-        out.append(
-            PatternMatches(camera.f, plane, groups[rows[gi]], scale[order], dist[order], index.vec[index.groups[cb]])
-        )
+        out.append(PatternMatches(camera.f, plane, groups[gi], scale[order], dist[order], index.vec[index.groups[cb]]))
     return out
+
+
+#: How far apart (largest key difference) two cameras' keys of a frame may be to share a lookup.
+SHARED_LOOKUP = 0.002
 
 
 class BrightFirstMatches:
@@ -524,8 +543,9 @@ def _nearest(x, y, px, py):  # pragma: no cover - compiled
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's disk cache) the kernels of a pattern hypothesis and of
-    :func:`refine`."""
+    """Compile (or load from numba's disk cache) the kernels of a pattern hypothesis, of the key
+    lookup and of :func:`refine`."""
+    pattern_index_warm_up()
     cam = CameraModel(64, 48, 100.0, 31.5, 23.5)
     x, y = np.array([5.0, 60.0, 10.0, 50.0, 30.0, 20.0]), np.array([4.0, 6.0, 40.0, 44.0, 20.0, 30.0])
     v = cam.pixel_to_vector(x, y)

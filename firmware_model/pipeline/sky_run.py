@@ -8,7 +8,8 @@ known field: the whole pipeline, off the device (``solve-file``, ``solve_image``
    candidates of distinct focal lengths are handed on (``sky_search.CANDIDATES``).
 3. Each candidate's pinhole camera identifies the frame (``run.identify_stars``: the field's
    catalog, the optics search and fit within its focal range, the deep verification and its
-   confidence), until one is high-confidence.
+   confidence), until one is high-confidence. With a taken hypothesis an ``auto``-mode frame is
+   identified on geometry first (the search found its stars), by colour only if that fails.
 4. The answer must agree with the hypothesis it came from (boresight within
    :data:`AGREE_PX` pixels); the record's ``sky`` block gives the search's field of view, checks
    and false-alarm probability.

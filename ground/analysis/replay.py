@@ -172,7 +172,23 @@ def _compile_progress(progress: bool):
                 bar[0].close()
 
 
-class OfflineSolver:
+class SetupCharges:
+    """Set-up seconds (``compile``, ``database``, ``catalog``) an in-process solver paid before
+    its first frame, reported by its next record (``add_setup_stages``)."""
+
+    _setup: dict[str, float]
+
+    def charge_setup(self, **seconds: float) -> None:
+        for name, value in seconds.items():
+            self._setup[name] = self._setup.get(name, 0.0) + value
+
+    @property
+    def setup_s(self) -> dict[str, float]:
+        """The seconds charged and not yet reported."""
+        return dict(self._setup)
+
+
+class OfflineSolver(SetupCharges):
     """The device pipeline in-process (``replay --offline``).
 
     With a ``site`` (``ground.calibration.corrections.Site``) and a frame timestamp, star vectors are
@@ -203,11 +219,6 @@ class OfflineSolver:
     ):
         self.camera, self.catalog, self.params, self.site = camera, catalog, params, site
         self._setup = dict(setup_s or {})  # charged to the first solve
-
-    def charge_setup(self, **seconds: float) -> None:
-        """Set-up seconds (``compile``, ``database``, ...) the next solve's record reports."""
-        for name, value in seconds.items():
-            self._setup[name] = self._setup.get(name, 0.0) + value
 
     def camera_for(self, frame: Frame) -> CameraModel:
         return self.camera if isinstance(self.camera, CameraModel) else self.camera(frame)
@@ -270,7 +281,7 @@ def solve_sky(frame: Frame, fov, db, params: PipelineParams, catalog: OnboardCat
     return run_pipeline_sky(frame, fov, db.search, catalog_for, params)
 
 
-class SkySolver:
+class SkySolver(SetupCharges):
     """The pipeline in-process with the field of view searched (``replay --offline`` and
     ``solve-file`` without ``--camera``): ``fov`` a ``sky_search.FieldRange`` (a hint's, a
     range or blind), ``database`` the loaded ``ground.catalog.sky_database.SkyDatabase``, ``catalog`` one
@@ -282,7 +293,6 @@ class SkySolver:
         self.fov, self.database, self.params, self.catalog = fov, database, params, catalog
         self._setup = dict(setup_s or {})
 
-    charge_setup = OfflineSolver.charge_setup
 
     def solve(self, frame: Frame) -> dict:
         setup, self._setup = self._setup, {}

@@ -68,6 +68,7 @@ class SkyDatabase:
     star_id: np.ndarray
     meta: dict
     path: Path | None = None
+    load_s: float = 0.0  #: seconds its loading took (0 once loaded in this process, or built)
 
     @cached_property
     def search(self):
@@ -141,6 +142,7 @@ def load(path: str | Path) -> SkyDatabase:
     from firmware_model.pipeline.pattern_index import PatternIndex
 
     path = Path(path)
+    t0 = time.perf_counter()
     try:
         with np.load(path, allow_pickle=False) as z:
             if "meta" not in z.files:
@@ -171,7 +173,7 @@ def load(path: str | Path) -> SkyDatabase:
         raise DatabaseError(f"sky database {path}: damaged or truncated ({_one_line(exc)})") from None
     if len(mag) != len(index.vec) or len(star_id) != len(index.vec):
         raise DatabaseError(f"sky database {path}: damaged (star arrays of different lengths)")
-    return SkyDatabase(index, mag, star_id, meta, path)
+    return SkyDatabase(index, mag, star_id, meta, path, time.perf_counter() - t0)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -188,6 +190,7 @@ def sky_database(path: str | Path | None = None, progress: bool = False) -> SkyD
     kept when the folder can be written. Loaded once per process."""
     target = Path(path).expanduser().resolve() if path is not None else default_path()
     if target in _LOADED:
+        _LOADED[target].load_s = 0.0  # loaded before: this call cost nothing
         return _LOADED[target]
     if path is not None:
         try:

@@ -16,6 +16,7 @@ Bad values fail before any work with an :class:`~ground.arg_types.InputError` (o
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -123,9 +124,14 @@ def load_catalog(path):
 
 
 def offline_solver(args):
-    """The in-process solver the offline options describe: with ``--camera`` or ``--site`` a
-    calibrated camera (``OfflineSolver``), else the field of view searched (``SkySolver``); the
-    catalog ``--catalog`` names, or each camera's field catalog, matched against the sky database."""
+    """The in-process solver the offline options describe, its set-up seconds charged to its first
+    record (``database``, ``catalog``; ``charge_setup``):
+
+    * no ``--camera`` (nor ``--site``): the field of view searched (``SkySolver``) against the sky
+      database, with ``--catalog`` for every frame or each found field's catalog;
+    * ``--camera`` (or ``--site``) and ``--catalog``: the device's twin (``OfflineSolver``): that
+      catalog and its own pattern index, as the device solves with them;
+    * ``--camera`` alone: the camera's field catalog, matched against the sky database."""
     from ground.analysis.replay import OfflineSolver, SkySolver
 
     site = _site(args)
@@ -137,24 +143,29 @@ def offline_solver(args):
         raise InputError("--site needs a calibrated camera: --camera FILE (or an exact --fov-deg)")
     camera_of = camera_for_frames(args) if fov is None else None
     params = load_params(args.params)
-    catalog = None
+    catalog, setup = None, {}
     if args.catalog:
+        t0 = time.perf_counter()
         try:
             catalog = load_catalog(args.catalog)
         except (OSError, ValueError) as exc:
             raise InputError(f"--catalog {args.catalog}: {exc}") from None
-    if not sky:
+        setup["catalog"] = time.perf_counter() - t0
+    if not sky or (fov is None and catalog is not None):
         assert catalog is not None and camera_of is not None  # --catalog is required above
-        return OfflineSolver(camera_of, catalog, params, site)
-    db = load_database(args)
-    if fov is not None:
-        return SkySolver(fov, db, params, catalog=_with_sky(catalog, db))
-    assert camera_of is not None
-    if catalog is not None:
-        return OfflineSolver(camera_of, _with_sky(catalog, db), params, site)
-    from ground.catalog.field_catalogs import sky_catalog
+        solver: OfflineSolver | SkySolver = OfflineSolver(camera_of, catalog, params, site)
+    else:
+        db = load_database(args)
+        setup["database"] = db.load_s
+        if fov is not None:
+            solver = SkySolver(fov, db, params, catalog=_with_sky(catalog, db))
+        else:
+            from ground.catalog.field_catalogs import sky_catalog
 
-    return OfflineSolver(camera_of, lambda camera: sky_catalog(camera, db), params, site)
+            assert camera_of is not None
+            solver = OfflineSolver(camera_of, lambda camera: sky_catalog(camera, db), params, site)
+    solver.charge_setup(**setup)
+    return solver
 
 
 def _with_sky(catalog, db):
