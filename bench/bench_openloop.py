@@ -11,6 +11,7 @@ frame carries no camera. Frames alternate RGGB (even index) and MONO (odd index)
     .venv/bin/python bench/bench_openloop.py [--frames 20] [--workers 1] [--seed 9300]
         [--cells moffat,coma] [--out out/bench_openloop] [--figure docs/figures/openloop.png]
     .venv/bin/python bench/bench_openloop.py --from-json out/bench_openloop/rows.json   # table + figure only
+    .venv/bin/python bench/bench_openloop.py --blind --figure ''   # no camera: the field of view searched
 """
 
 from __future__ import annotations
@@ -208,7 +209,7 @@ def build_scene(cell: str, pattern: str, rng: np.random.Generator, nominal, det_
 
 
 def _one(job):
-    cell, k, seed = job
+    cell, k, seed, blind = job
     from dataclasses import replace
 
     from firmware_model.pipeline.run import run_pipeline
@@ -239,7 +240,18 @@ def _one(job):
         frame = ol.apply_bad_columns(frame, columns)
     frame = replace(frame, camera=None)  # a user's frame does not carry the true lens
     t1 = time.perf_counter()
-    out = run_pipeline(frame, nominal, cat)
+    if blind:  # no camera: the field of view searched over 5-60 deg, the same catalog
+        from firmware_model.pipeline.run import PipelineParams
+        from firmware_model.pipeline.scale_free import set_sky_patterns
+        from firmware_model.pipeline.sky_run import run_pipeline_sky
+        from firmware_model.pipeline.sky_search import FieldRange
+        from ground.catalog.sky_database import sky_database
+
+        db = sky_database()
+        set_sky_patterns(cat, db.index)
+        out, _ = run_pipeline_sky(frame, FieldRange.blind(), db.search, lambda camera: cat, PipelineParams())
+    else:
+        out = run_pipeline(frame, nominal, cat)
     t2 = time.perf_counter()
     rec = record_from_output(out)
     ts = r.truth["stars"]
@@ -463,6 +475,12 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--seed", type=int, default=9300)
     ap.add_argument(
+        "--blind",
+        action="store_true",
+        help="solve with no camera: the field of view searched over 5-60 deg against the whole-sky "
+        "database (sky_run.run_pipeline_sky), the same catalog",
+    )
+    ap.add_argument(
         "--cells", default=",".join(CELLS), help="comma-separated subset of: " + ", ".join(CELLS).replace("%", "%%")
     )
     ap.add_argument("--out", default="out/bench_openloop")
@@ -481,7 +499,7 @@ def main(argv=None) -> int:
         ap.error(f"unknown cells {sorted(unknown)}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(c, k, args.seed) for c in cells for k in range(args.frames)]
+    jobs = [(c, k, args.seed, args.blind) for c in cells for k in range(args.frames)]
     t0 = time.perf_counter()
     if args.workers <= 1:
         rows = []
@@ -498,7 +516,12 @@ def main(argv=None) -> int:
     )
     print(
         f"Open-loop bench: {args.frames} frames per cell (even RGGB, odd MONO), seed {args.seed}; solver = "
-        f"run_pipeline(frame, reference_design(), catalog V <= {CATALOG_V:g}) with default PipelineParams; "
+        + (
+            f"run_pipeline_sky(frame, FieldRange.blind(), sky database, catalog V <= {CATALOG_V:g}) "
+            if args.blind
+            else f"run_pipeline(frame, reference_design(), catalog V <= {CATALOG_V:g}) "
+        )
+        + "with default PipelineParams; "
         f"code {_code_version()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}"
     )
     print_table(summary)

@@ -227,3 +227,18 @@ def test_real_frames_solve_blind_and_with_the_field_of_view_25_per_cent_off(shar
     for (kind, mode), oks in tally.items():
         want = len(oks) if kind == "tetra3" else REAL_SOLVED_COLOUR
         assert sum(oks) >= want, (kind, mode, oks)
+
+
+def test_a_script_mixing_cameras_builds_each_fields_catalog_once(monkeypatch):
+    """No eviction: the issue's round-robin over 7 cameras rebuilt them again and again (4 kept)."""
+    from ground.catalog import field_catalogs
+
+    built = []
+    monkeypatch.setattr(field_catalogs, "_FIELD_CATALOGS", {})
+    monkeypatch.setattr(field_catalogs, "_field_catalog", lambda w, h, fov: built.append((w, h, fov)) or object())
+    fields = [(512, 512, 10.2), (1280, 960, 11.5), (916, 600, 15.6), (1000, 666, 25.8), (1392, 1040, 6.1)]
+    fields += [(640, 480, 30.0), (2592, 1944, 20.0)]
+    for _ in range(3):
+        for field in fields:
+            field_catalogs.catalog_for_field(*field)
+    assert built == fields

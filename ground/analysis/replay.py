@@ -293,7 +293,6 @@ class SkySolver(SetupCharges):
         self.fov, self.database, self.params, self.catalog = fov, database, params, catalog
         self._setup = dict(setup_s or {})
 
-
     def solve(self, frame: Frame) -> dict:
         setup, self._setup = self._setup, {}
         setup["compile"] = setup.get("compile", 0.0) + warm_up_kernels()
