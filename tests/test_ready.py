@@ -63,10 +63,12 @@ def test_the_kernel_cache_goes_where_it_can_be_written(tmp_path):
     assert where is not None and where.parts[-2:] == ("colour-st16", "numba")
 
 
-def test_warm_up_command_says_the_kernels_are_ready():
+def test_warm_up_command_says_the_kernels_and_the_sky_database_are_ready():
     run = _run("from ground.cli.main import main; raise SystemExit(main(['warm-up']))")
     assert run.returncode == 0, run.stderr
-    assert run.stdout.startswith("kernels: ready in ")
+    kernels, database = run.stdout.strip().splitlines()
+    assert kernels.startswith("kernels: ready in ") and database.startswith("sky database ")
+    assert "patterns of" in database and "fields 5-60 deg" in database
 
 
 # ------------------------------------------------------------------ the device
