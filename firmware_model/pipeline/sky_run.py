@@ -3,9 +3,10 @@ known field: the whole pipeline, off the device (``solve-file``, ``solve_image``
 --offline``, the whole-sky simulation; docs/identification.md, "Blind and wide").
 
 1. The frame's stars are extracted once (their positions do not depend on the camera).
-2. The sky search (counted: ``max_checks`` hypotheses) finds the focal length and attitude; a
-   hypothesis under ``sky_search.FALSE_ALARM`` over the search is taken, else its best
-   candidates of distinct focal lengths are handed on (``sky_search.CANDIDATES``).
+2. The sky search (counted: ``sky_search.FIRST_CHECKS`` hypotheses, then on to ``MAX_CHECKS``
+   while no answer is high-confidence) finds the focal length and attitude; a hypothesis under
+   ``sky_search.FALSE_ALARM`` over the search is taken, else its best candidates of distinct
+   focal lengths are handed on (``sky_search.CANDIDATES``, each focal length once).
 3. Each candidate's pinhole camera identifies the frame (``run.identify_stars``: the field's
    catalog, the optics search and fit within its focal range, the deep verification and its
    confidence), until one is high-confidence. With a taken hypothesis an ``auto``-mode frame is
@@ -39,7 +40,15 @@ from firmware_model.pipeline.run import (
     identify_stars,
     label_planets_of,
 )
-from firmware_model.pipeline.sky_search import FieldRange, SkyFit, SkyResult, SkySearch
+from firmware_model.pipeline.sky_search import (
+    DISTINCT_F,
+    FIRST_CHECKS,
+    MAX_CHECKS,
+    FieldRange,
+    SkyFit,
+    SkyResult,
+    SkySearch,
+)
 from protocol.result import Status
 
 #: An answer and the hypothesis it came from agree when their boresights are this close (px).
@@ -77,10 +86,12 @@ def run_pipeline_sky(
     sky: SkySearch,
     catalog_for: Callable[[CameraModel], OnboardCatalog],
     params: PipelineParams = PipelineParams(),
-    max_checks: int | None = None,
+    checks: tuple[int, ...] = (FIRST_CHECKS, MAX_CHECKS),
 ) -> tuple[PipelineOutput, SkyReport]:
     """Frame -> stars -> sky search -> identification with the found camera (module docstring).
-    ``catalog_for(camera)``: the field's catalog (matched against the sky table's patterns)."""
+    ``catalog_for(camera)``: the field's catalog (matched against the sky table's patterns);
+    ``checks``: the counts of hypotheses checked (in all) after which the candidates found so far
+    are identified, the search going on to the next while none is high-confidence."""
     t0 = time.perf_counter()
     catalog_s = 0.0
 
@@ -101,33 +112,40 @@ def run_pipeline_sky(
     if len(stars.x) < 4:  # the pipeline's own TOO_FEW_STARS answer
         seen = replace(stars, vectors=mid.pixel_to_vector(stars.x, stars.y))
         return identify_stars(seen, mid, catalog(mid), params), nothing
-    t1 = time.perf_counter()
     clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)
-    limit = {} if max_checks is None else {"max_checks": max_checks}
-    found = sky.search(stars.x[clean], stars.y[clean], w, h, fov, **limit)
-    search_s = time.perf_counter() - t1
+    run = sky.start(stars.x[clean], stars.y[clean], w, h, fov)
     out: PipelineOutput | None = None
     used: SkyFit | None = None
-    # a decisive hypothesis' stars are verified first on either route (``auto`` mode: geometry, then
-    # colour only if that fails): the sky search has done the colour matcher's work of finding them
-    solve_params = params
-    if found.taken is not None and params.solve.mode == Mode.AUTO:
-        solve_params = replace(params, solve=replace(params.solve, mode=Mode.GEOMETRIC))
-    for fit in found.candidates:
-        camera = CameraModel(w, h, fit.f, (w - 1) / 2.0, (h - 1) / 2.0)
-        seen = replace(stars, vectors=camera.pixel_to_vector(stars.x, stars.y))
-        tried = identify_stars(seen, camera, catalog(camera), solve_params)
-        if tried.status is not Status.OK and solve_params is not params:  # the colour route after all
-            again = identify_stars(seen, camera, catalog(camera), params)
-            again.timings.identify += tried.timings.identify + tried.timings.attitude
-            tried = again if _better(again, tried) else tried
-        if out is None or _better(tried, out):
-            loser, out, used = out, tried, fit
-        else:
-            loser = tried
-        if loser is not None:  # the other try's work counts as the answer's identification
-            search_s += loser.timings.identify + loser.timings.attitude
-        if tried.status is Status.OK:
+    search_s, tried_f = 0.0, list[float]()
+    for budget in checks:
+        t1 = time.perf_counter()
+        found = run.advance(budget)
+        search_s += time.perf_counter() - t1
+        # a decisive hypothesis' stars are verified first on either route (``auto`` mode: geometry,
+        # then colour only if that fails): the sky search has done the colour matcher's work
+        solve_params = params
+        if found.taken is not None and params.solve.mode == Mode.AUTO:
+            solve_params = replace(params, solve=replace(params.solve, mode=Mode.GEOMETRIC))
+        for fit in found.candidates:
+            if any(abs(fit.f / f - 1.0) <= DISTINCT_F for f in tried_f):
+                continue  # identified with this focal length already
+            tried_f.append(fit.f)
+            camera = CameraModel(w, h, fit.f, (w - 1) / 2.0, (h - 1) / 2.0)
+            seen = replace(stars, vectors=camera.pixel_to_vector(stars.x, stars.y))
+            tried = identify_stars(seen, camera, catalog(camera), solve_params)
+            if tried.status is not Status.OK and solve_params is not params:  # the colour route after all
+                again = identify_stars(seen, camera, catalog(camera), params)
+                again.timings.identify += tried.timings.identify + tried.timings.attitude
+                tried = again if _better(again, tried) else tried
+            if out is None or _better(tried, out):
+                loser, out, used = out, tried, fit
+            else:
+                loser = tried
+            if loser is not None:  # the other try's work counts as the answer's identification
+                search_s += loser.timings.identify + loser.timings.attitude
+            if tried.status is Status.OK:
+                break
+        if (out is not None and out.status is Status.OK) or found.taken is not None or run.exhausted:
             break
     if out is None:
         out = _no_match(stars, found)
@@ -181,10 +199,13 @@ def _agree(out: PipelineOutput, fit: SkyFit, width: int) -> None:
 def _no_match(stars, found: SkyResult) -> PipelineOutput:
     """The NO_MATCH answer of a search with no candidate."""
     lo, hi = found.fov.lo_deg, found.fov.hi_deg
-    reason = (
-        f"no pattern of the brightest detections matched the sky for fields of view {lo:.3g}-{hi:.3g} deg"
-        f" ({found.checks} hypotheses checked)"
-    )
+    if found.checks == 0:
+        reason = f"no pattern of the brightest detections matched the sky for fields of view {lo:.3g}-{hi:.3g} deg"
+    else:
+        reason = (
+            f"none of {found.checks} hypotheses from the brightest detections' patterns matched five stars"
+            f" (fields of view {lo:.3g}-{hi:.3g} deg)"
+        )
     if found.stopped:
         reason = f"sky search budget of {found.checks} hypotheses reached; {reason}"
     return PipelineOutput(Status.NO_MATCH, reason, stars=stars)

@@ -43,14 +43,15 @@ BLIND_FOV_DEG = (5.0, 60.0)
 HINT_TOLERANCE = 0.4
 #: Ratio of a focal-length bracket's ends.
 BRACKET_RATIO = 1.15
-#: Brightest clean detections whose patterns the search matches, in the first pass and the second.
-TIERS = (8, 12)
+#: Brightest clean detections whose patterns the search matches, tier by tier (clutter such as hot
+#: pixels, planets or false stars can hold several of the brightest).
+TIERS = (8, 12, 20)
 #: Brightest clean detections a check compares.
 CHECK_STARS = 40
 #: False-alarm probability over the whole search under which a hypothesis is taken.
 FALSE_ALARM = 1e-6
-#: Hypotheses one frame's search may check.
-MAX_CHECKS = 200
+#: Hypotheses a frame's search checks before its candidates are first identified, and in all.
+FIRST_CHECKS, MAX_CHECKS = 200, 1000
 #: Key tolerance (``OpticsSearch.pattern_tolerance``).
 TOLERANCE = 0.01
 
@@ -157,6 +158,32 @@ def _distinct(fits: list[SkyFit]) -> list[SkyFit]:
     return out
 
 
+class SkyRun:
+    """One frame's search, advanced to a count of hypotheses checked and on again from there."""
+
+    def __init__(self, fov: FieldRange, checked):
+        self.fov, self._checked = fov, checked
+        self.fits: list[SkyFit] = []
+        self.exhausted = False
+
+    @property
+    def checks(self) -> int:
+        return len(self.fits)
+
+    def advance(self, max_checks: int) -> SkyResult:
+        """Check hypotheses until one is taken (false alarm under :data:`FALSE_ALARM`), the
+        search runs out, or ``max_checks`` in all have been checked."""
+        while self.checks < max_checks:
+            fit = next(self._checked, None)
+            if fit is None:
+                self.exhausted = True
+                break
+            self.fits.append(fit)
+            if fit.false_alarm <= FALSE_ALARM:
+                return SkyResult(self.fov, fit, [fit], self.checks)
+        return SkyResult(self.fov, None, _distinct(self.fits), self.checks, stopped=not self.exhausted)
+
+
 class SkySearch:
     """The search over one whole-sky :class:`PatternIndex` (its stars brightest first)."""
 
@@ -170,35 +197,34 @@ class SkySearch:
     def search(
         self, x: np.ndarray, y: np.ndarray, width: int, height: int, fov: FieldRange, max_checks: int = MAX_CHECKS
     ) -> SkyResult:
-        """The search over detections ``x, y`` (px, brightest first, clean ones only)."""
+        """The search over detections ``x, y`` (px, brightest first, clean ones only), at most
+        ``max_checks`` hypotheses."""
+        return self.start(x, y, width, height, fov).advance(max_checks)
+
+    def start(self, x: np.ndarray, y: np.ndarray, width: int, height: int, fov: FieldRange) -> SkyRun:
+        """A search that goes on where it stopped (:meth:`SkyRun.advance`)."""
+        return SkyRun(fov, self._checked(x, y, width, height, fov))
+
+    def _checked(self, x, y, width: int, height: int, fov: FieldRange):
+        """Every hypothesis checked, in the search's order (a generator: the work as asked for)."""
         brackets = fov.focal_brackets(width)
-        cameras = [CameraModel(width, height, f, (width - 1) / 2.0, (height - 1) / 2.0) for f, _ in brackets]
+        cameras = [(CameraModel(width, height, f, (width - 1) / 2.0, (height - 1) / 2.0), h) for f, h in brackets]
         checks, tried, done_rows = 0, set(), 0
-        fits: list[SkyFit] = []
         for n in TIERS:
             n = min(n, len(x))
             if n < 4 or n <= done_rows:
                 break
-            matches = scale_free.pattern_matches_many(
-                x, y, [(cam, half) for cam, (_, half) in zip(cameras, brackets)], self.index, n, TOLERANCE, done_rows
-            )
+            matches = scale_free.pattern_matches_many(x, y, cameras, self.index, n, TOLERANCE, done_rows)
             done_rows = n
             for b, m in _plate_order(matches):
-                if checks >= max_checks:
-                    return SkyResult(fov, None, _distinct(fits), checks, stopped=True)
                 key = (tuple(matches[b].groups[m]), matches[b].catalog_vec[m].tobytes())
                 if key in tried:  # the same match from a neighbouring bracket
                     continue
                 tried.add(key)
                 hyp = matches[b].hypothesis(m)
-                if hyp is None:
-                    continue
-                checks += 1
-                fit = self.check(x[:CHECK_STARS], y[:CHECK_STARS], width, height, hyp, checks)
-                fits.append(fit)
-                if fit.false_alarm <= FALSE_ALARM:
-                    return SkyResult(fov, fit, [fit], checks)
-        return SkyResult(fov, None, _distinct(fits), checks)
+                if hyp is not None:
+                    checks += 1
+                    yield self.check(x[:CHECK_STARS], y[:CHECK_STARS], width, height, hyp, checks)
 
     def check(self, x, y, width: int, height: int, hyp: scale_free.Hypothesis, checks: int) -> SkyFit:
         """The hypothesis refined and checked against the detections (module docstring);
