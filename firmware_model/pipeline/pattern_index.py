@@ -40,7 +40,9 @@ def cell_codes(keys: np.ndarray) -> np.ndarray:
 class PatternIndex:
     """Catalog patterns sorted by key cell: star directions ``vec`` (N, 3), 4-star ``groups``
     (P, 4) rows of ``vec``, ``keys`` (P, 5), ``top`` (P,) the largest angle (rad), ``codes`` (P,)
-    the ascending cell numbers (:func:`cell_codes`)."""
+    the ascending cell numbers (:func:`cell_codes`). Stored compactly (16-bit star rows where
+    they fit, 32-bit floats and cell numbers: 36 bytes a pattern), so that the whole-sky table's
+    file is read quickly even when it is not in the page cache."""
 
     vec: np.ndarray
     groups: np.ndarray
@@ -55,10 +57,10 @@ class PatternIndex:
         order = np.argsort(codes, kind="stable")
         return cls(
             np.ascontiguousarray(vec, float),
-            np.ascontiguousarray(groups[order], np.int32),
+            np.ascontiguousarray(groups[order], np.uint16 if len(vec) <= 1 << 16 else np.int32),
             np.ascontiguousarray(keys[order], np.float32),
-            np.ascontiguousarray(top[order], float),
-            codes[order],
+            np.ascontiguousarray(top[order], np.float32),
+            codes[order].astype(np.int32),  # at most (1 / CELL + 1) ** 5 = 51 ** 5 < 2 ** 31
         )
 
     def __len__(self) -> int:
