@@ -95,7 +95,7 @@ def default_path() -> Path:
 
 
 def build(progress: bool = False) -> SkyDatabase:
-    """Build the database from the bundled Hipparcos (~20 s; a bar on stderr with ``progress``)."""
+    """Build the database from the bundled Hipparcos (~15 s; a bar on stderr with ``progress``)."""
     from tqdm import tqdm
 
     from firmware_model.pipeline.sky_patterns import sky_pattern_index
@@ -203,7 +203,7 @@ def sky_database(path: str | Path | None = None, progress: bool = False) -> SkyD
         except DatabaseError as exc:
             if target.exists():
                 _log.warning("%s: building it again", exc)
-            _log.warning("building the sky pattern database once (about 20 s), kept in %s", target)
+            _log.warning("building the sky pattern database once (about 15 s), kept in %s", target)
             db = build(progress)
             try:
                 save(db, target)

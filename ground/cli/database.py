@@ -1,6 +1,6 @@
 """``st16-ground database build|info``: the whole-sky pattern database (``ground.catalog.sky_database``)
 that ``solve-file``, ``replay --offline`` and ``ground.api.solve_image`` search the field of view
-against: built once (~20 s, a progress bar) into the user cache or ``--database FILE``."""
+against: built once (~15 s, a progress bar) into the user cache or ``--database FILE``."""
 
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ def _info(args) -> int:
 def register(sub) -> None:
     p = sub.add_parser("database", help="the whole-sky pattern database the offline solves search")
     verbs = p.add_subparsers(dest="verb", required=True)
-    b = verbs.add_parser("build", help="build it (once; ~20 s) into the user cache or --database FILE")
+    b = verbs.add_parser("build", help="build it (once; ~15 s) into the user cache or --database FILE")
     b.add_argument("--database", type=output_file, help="file to write (default: the user cache's)")
     b.add_argument("--force", action="store_true", help="build again even when a good file is there")
     b.set_defaults(func=_build)
