@@ -191,8 +191,9 @@ KEPT_INDEXES = 8
 def cached_pattern_index(folder, vec: np.ndarray, mag: np.ndarray, n_pattern_stars: int, mrad: int):
     """:func:`pattern_index`, kept in ``folder``: a file per catalog and field, named by a hash of
     the stars, the field and the code that builds it (this module and ``pattern_index``), loaded
-    in a few hundredths of a second where building takes 0.2-20 s; the :data:`KEPT_INDEXES` most recently used are kept. A damaged file
-    is built again; a folder that cannot be written only costs the keeping."""
+    in a few hundredths of a second where building takes 0.2-20 s; the :data:`KEPT_INDEXES` most
+    recently used are kept. A damaged file is built again; a folder that cannot be written only
+    costs the keeping."""
     digest = hashlib.sha256(np.ascontiguousarray(vec, float).tobytes())
     digest.update(np.ascontiguousarray(mag, float).tobytes())
     digest.update(f"{n_pattern_stars} {mrad}".encode())
