@@ -73,11 +73,47 @@ def test_json_and_binary_round_trip():
 
 
 @pytest.mark.parametrize(
-    "line", [b"not json", b'{"t": 1, "q": [1, 0, 0], "w": [0, 0, 0]}', b'{"t": 1, "q": [1, 0, 0, 0]}', b"[1, 2]"]
+    "line",
+    [
+        b"not json",
+        b'{"t": 1, "q": [1, 0, 0], "w": [0, 0, 0]}',
+        b'{"t": 1, "q": [1, 0, 0, 0]}',
+        b"[1, 2]",
+        b"[" * 3000,  # RecursionError inside json (issue 29)
+        b'{"t": 1' + b"0" * 400 + b', "q": [1, 0, 0, 0], "w": [0, 0, 0]}',  # OverflowError in float()
+    ],
 )
 def test_malformed_json_is_refused(line):
     with pytest.raises(MalformedSample):
         decode_json(line)
+
+
+def test_one_bad_sample_never_ends_the_listener():
+    """Issue 29: a line of 3000 brackets or a 400-digit time used to kill the listener thread."""
+    url = f"tcp://127.0.0.1:{_free_port(socket.SOCK_STREAM)}?format=json"
+    got, errors = [], []
+
+    def offer(sample):
+        if sample.t == 13.0:
+            raise ArithmeticError("a checker that fails")
+        got.append(sample)
+
+    listener = Listener(FeedUrl.parse(url), offer, errors.append)
+    try:
+        with Sender(url) as snd:
+            snd.send_raw(b"[" * 3000 + b"\n" + b'{"t": 1' + b"0" * 400 + b', "q": [1, 0, 0, 0], "w": [0, 0, 0]}\n')
+            snd.send(_sample(13.0), *[_sample(20.0 + k) for k in range(5)])
+        deadline = time.monotonic() + HANG_GUARD_S
+        while len(got) < 5 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        with Sender(url) as snd:  # the next connection is served too
+            snd.send(_sample(30.0))
+        while len(got) < 6 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        listener.close()
+    assert [s.t for s in got] == [20.0, 21.0, 22.0, 23.0, 24.0, 30.0]
+    assert len(errors) == 3 and "ArithmeticError" in errors[2]
 
 
 def test_feed_url_parse_and_errors():
@@ -173,6 +209,7 @@ BAD_SAMPLES = {
     "infinite": lambda t: _sample(t, Q0, [np.inf, 0, 0]),
     "unnormalised": lambda t: _sample(t, Q0 * 1.00001),
     "backwards": lambda t: _sample(t - 5.0),
+    "future": lambda t: _sample(t + 1e6),
     "jump": lambda t: _sample(t, matrix_to_quat(attitude_from_radec_roll(1.1, 0.3, 0.2)), np.zeros(3)),
 }
 
@@ -188,6 +225,28 @@ def test_bad_sample_flags_the_frame_then_the_feed_recovers(case):
     _path(feed, now + 0.5, now + 1.0)  # good samples: the path after max_gap is sound again
     q, _ = feed.at(now + 0.75, timeout=0.0, max_gap=0.5)
     assert np.all(np.isfinite(q))
+
+
+def test_a_future_sample_is_refused_and_the_feed_goes_on():
+    """Issue 29: one sample stamped 1e6 s ahead made every later correct one 'go backwards'."""
+    feed, _, now = _feed()
+    _path(feed, now - 1, now)
+    feed.offer(_sample(now + 1e6))
+    assert "ahead of the device clock" in feed.faults()[-1][1]
+    _path(feed, now, now + 1.0)  # every correct sample kept (it used to refuse them all)
+    q, _ = feed.at(now + 0.75, timeout=0.0, max_gap=0.5)  # past the fault's max_gap: sound again
+    assert np.all(np.isfinite(q)) and now + 0.9 < feed.newest_t() < now + 1
+
+
+def test_a_simulator_that_reconnects_at_an_earlier_time_resets_the_history():
+    feed, _, now = _feed()
+    _path(feed, now - 1, now)
+    feed.offer(_sample(now - 30.0))  # without a reconnect: refused
+    assert "time does not advance" in feed.faults()[-1][1]
+    feed.new_peer()
+    _path(feed, now - 30.0, now - 29.0)
+    assert "reconnected at an earlier time: history reset" in feed.faults()[-1][1]
+    assert now - 29.1 < feed.newest_t() < now - 28.9
 
 
 def test_stale_gap_and_no_history_are_flagged():

@@ -166,6 +166,41 @@ def test_a_header_claiming_a_huge_image_is_refused_before_allocating(tmp_path):
         read_frame(tmp_path / "cut.fits")
 
 
+def test_image_bombs_are_refused_from_their_headers_in_every_reader(tmp_path):
+    """Issue 29: a PNG and a 335-byte JPEG claiming 13 000 x 13 000 px were decoded (790 MB, up to
+    88 s of solve); a .npy header claiming 16 384**2 float64 was read whole. Each is refused from
+    its header, at once, with one line."""
+    import io
+    import struct
+    import zlib
+
+    from PIL import Image
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    ihdr = struct.pack(">IIBBBBB", 13000, 13000, 8, 0, 0, 0, 0)  # 8-bit grey
+    png = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 13001 * 64))
+    (tmp_path / "bomb.png").write_bytes(png + chunk(b"IEND", b""))
+    buf = io.BytesIO()
+    Image.new("L", (8, 8)).save(buf, "JPEG")
+    jpeg = bytearray(buf.getvalue())
+    sof = jpeg.index(b"\xff\xc0")  # baseline frame header: length, precision, height, width
+    struct.pack_into(">HH", jpeg, sof + 5, 13000, 13000)
+    (tmp_path / "bomb.jpg").write_bytes(bytes(jpeg))
+    header = np.lib.format.header_data_from_array_1_0(np.zeros((2, 2)))
+    header["shape"] = (16384, 16384)
+    with open(tmp_path / "bomb.npy", "wb") as f:
+        np.lib.format.write_array_header_1_0(f, header)
+        f.write(b"\0" * 4096)
+    for name in ("bomb.png", "bomb.jpg", "bomb.npy"):
+        with pytest.raises(FrameReadError) as err:
+            read_frame(tmp_path / name)
+        message = str(err.value)
+        assert message.count(str(tmp_path / name)) == 1 and "\n" not in message
+        assert "header claims a 13000 x 13000 image" in message or "header claims a 16384 x 16384" in message
+
+
 def test_a_tiff_sample_format_without_a_numpy_type_is_named(tmp_path):
     """40-bit samples: tifffile reads no dtype for them; the reader says so (it once failed on
     ``None.itemsize``)."""

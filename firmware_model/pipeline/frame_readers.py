@@ -90,9 +90,10 @@ FITS_CAMERA_KEYS = ("f", "cx", "cy", "k1", "k2", "k3", "p1", "p2")
 #: File suffixes taken for frames when a directory is listed (sidecars and truth files are not).
 FRAME_SUFFIXES = RAW_EXTENSIONS | {".fits", ".fit", ".fts", ".tif", ".tiff", ".npy", ".png", ".jpg", ".jpeg"}
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-#: Largest frame read (pixels): 16 x a 16-megapixel sensor; a header claiming more is refused
-#: before anything is allocated (a damaged TIFF asked for 464 GiB).
-MAX_FRAME_PIXELS = 1 << 28
+#: Largest frame read (pixels, 134 Mpx: above a 102-Mpx medium-format sensor); every reader
+#: refuses a header claiming more before it decodes or allocates anything (a damaged TIFF asked for
+#: 464 GiB; a 335-byte JPEG claiming 13 000 x 13 000 px used to be decoded, 790 MB and 88 s).
+MAX_FRAME_PIXELS = 1 << 27
 JPEG_SIGNATURE = b"\xff\xd8\xff"
 
 
@@ -319,7 +320,18 @@ def read_npy(path) -> Frame:
     """``.npy`` array (no pickles) plus optional ``<stem>.json`` sidecar."""
     path = Path(path)
     try:
+        with open(path, "rb") as f:  # the header alone first: nothing allocated for a bomb
+            read_header = {
+                (1, 0): np.lib.format.read_array_header_1_0,
+                (2, 0): np.lib.format.read_array_header_2_0,
+            }.get(np.lib.format.read_magic(f))
+            if read_header is None:
+                raise ValueError("unsupported .npy format version")
+            shape, _, dtype = read_header(f)
+        _check_size(path, shape, dtype.itemsize)
         data = np.load(path, allow_pickle=False)
+    except FrameReadError:
+        raise
     except Exception as exc:
         raise FrameReadError(f"{path}: not a readable .npy array ({exc})") from None
     side = path.with_suffix(".json")
@@ -364,12 +376,13 @@ def read_image(path) -> Frame:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # e.g. DecompressionBombWarning, PNG chunk warnings
             with Image.open(path) as im:
+                _check_size(path, (im.size[1], im.size[0]), 1, compressed=True)  # before decoding
                 im.load()  # decode now: truncated or corrupt data fails here
                 fmt, mode, size = im.format or "image", im.mode, im.size
                 exif = _exif_fields(im)
                 pixels, pattern, white = _image_pixels(im)
     except FrameReadError as exc:
-        raise FrameReadError(f"{path}: {exc}") from None
+        raise (exc if str(exc).startswith(str(path)) else FrameReadError(f"{path}: {exc}")) from None
     except Exception as exc:  # Pillow raises OSError, SyntaxError, EOFError, struct.error, ...
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         if isinstance(exc, Image.UnidentifiedImageError):

@@ -72,10 +72,18 @@ def slerp(q1: np.ndarray, q2: np.ndarray, f: float) -> np.ndarray:
     return q / np.linalg.norm(q)
 
 
-def check(sample: Sample, prev: Sample | None) -> str | None:
-    """Why ``sample`` must be dropped, or None (a jump is not checked here)."""
+#: A sample stamped more than this many seconds ahead of the device clock is refused (it would
+#: otherwise make every later, correct sample look as if its time went backwards).
+MAX_AHEAD_S = 60.0
+
+
+def check(sample: Sample, prev: Sample | None, now: float | None = None) -> str | None:
+    """Why ``sample`` must be dropped, or None (a jump is not checked here); ``now`` the device
+    clock (POSIX s)."""
     if not (math.isfinite(sample.t) and np.all(np.isfinite(sample.q)) and np.all(np.isfinite(sample.w))):
         return "sample holds NaN or infinite values"
+    if now is not None and sample.t > now + MAX_AHEAD_S:
+        return f"sample time is {sample.t - now:.3g} s ahead of the device clock (more than {MAX_AHEAD_S:g} s)"
     norm = float(np.linalg.norm(sample.q))
     if abs(norm - 1.0) > NORM_TOL:
         return f"quaternion norm {norm:.9f} is not 1"
@@ -93,12 +101,26 @@ class AttitudeFeed:
         self._ring: deque[Sample] = deque(maxlen=RING)
         self._faults: deque[tuple[float, str]] = deque(maxlen=64)
         self._cond = threading.Condition()
+        self._fresh_peer = False  #: a peer connected and has sent no sample yet
+
+    def new_peer(self) -> None:
+        """A simulator (re)connected: its first sample may start over at an earlier time."""
+        with self._cond:
+            self._fresh_peer = True
 
     def offer(self, sample: Sample) -> None:
         with self._cond:
             now = self.clock()
             prev = self._ring[-1] if self._ring else None
-            reason = check(sample, prev)
+            reason = check(sample, prev, now)
+            fresh, self._fresh_peer = self._fresh_peer, False
+            if reason is not None and prev is not None and sample.t <= prev.t and (fresh or prev.t > now + 1.0):
+                # a simulator that reconnected at an earlier time, or kept history ahead of the clock
+                # (a clock set back): either would refuse every correct sample from now on
+                why = "the feed reconnected at an earlier time" if fresh else "kept samples are ahead of the clock"
+                self._faults.append((now, f"{why}: history reset at t {sample.t:.3f}"))
+                self._ring.clear()
+                prev, reason = None, check(sample, None, now)
             if reason is not None:
                 self._faults.append((now, reason))
                 return
@@ -177,7 +199,7 @@ class AttitudeFeedSource:
         self.renderer = renderer or ExposureRenderer(camera)
         self._drawing = self.renderer.draw_bank(self.det)  # at start-up, not inside the first GO
         self.feed = AttitudeFeed(clock)
-        self.listener = Listener(url, self.feed.offer, self.feed.fault)
+        self.listener = Listener(url, self.feed.offer, self.feed.fault, self.feed.new_peer)
 
     def ready(self) -> None:
         """Return once the source can render at once (its noise bank drawn)."""
