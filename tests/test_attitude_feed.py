@@ -176,6 +176,35 @@ def test_listener_receives_over_loopback(transport, fmt):
     assert [s.t for s in got] == [s.t for s in sent] and len(errors) == 1
 
 
+def test_a_silent_feed_peer_holds_nobody_out():
+    """Issue 29: the feed served one connection with no idle timeout, so a peer that sent nothing
+    kept the simulator out. Now, as on the NSP TCP link, the newest connection takes over and a
+    silent one is closed after ``idle_s``."""
+    url = f"tcp://127.0.0.1:{_free_port(socket.SOCK_STREAM)}?format=json"
+    got, errors, connects = [], [], []
+    listener = Listener(FeedUrl.parse(url), got.append, errors.append, lambda: connects.append(1), idle_s=1.5)
+    deadline = time.monotonic() + HANG_GUARD_S
+    try:
+        silent = socket.create_connection(listener.address)
+        while not connects and time.monotonic() < deadline:
+            time.sleep(0.01)
+        with Sender(url) as snd:  # the simulator: served at once, the silent peer closed
+            snd.send(*[_sample(50.0 + k) for k in range(3)])
+            while len(got) < 3 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert silent.recv(1) == b""  # the silent peer was closed (EOF)
+        silent.close()
+        quiet = socket.create_connection(listener.address)  # a peer that never speaks: closed after 1.5 s
+        while not any("silent" in e for e in errors) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert quiet.recv(1) == b""
+        quiet.close()
+    finally:
+        listener.close()
+    assert [s.t for s in got] == [50.0, 51.0, 52.0] and len(connects) == 3
+    assert any("took over" in e for e in errors) and any("silent for 1.5 s" in e for e in errors)
+
+
 # ---------------------------------------------------------------- checks that flag a frame
 
 

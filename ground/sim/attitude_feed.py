@@ -17,7 +17,8 @@ reason as the result's BAD_FRAME text, never rendered, when the feed is stale, h
 before the exposure, a gap over ``max_gap`` s around it, or a fault recorded from ``max_gap`` s
 before the mid-time on (the feed is suspect that long after a fault). Registered as the ``attitude_feed`` entry point of
 ``st16.frame_sources``. URL query options: ``format``, ``exposure`` (s, default the detector's
-0.1), ``timeout`` (s, 0.25), ``max_gap`` (s, 0.5), ``pattern`` (RGGB).
+0.1), ``timeout`` (s, 0.25), ``max_gap`` (s, 0.5), ``pattern`` (RGGB), ``idle`` (s, 60: over TCP a
+peer silent that long is closed, and a new connection takes over at once, as on the NSP TCP link).
 
 Every time here (arrival of a fault, the capture's wait) is read from one ``clock`` (POSIX s,
 ``time.time`` unless given), the clock the device stamps its GO with: a test passes a manual clock
@@ -38,7 +39,7 @@ from firmware_model.device.device import FrameUnavailable
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.reference_frames import quat_to_matrix
 from ground.sim.exposure import ExposureRenderer
-from ground.sim.feed_wire import FeedUrl, Listener, Sample
+from ground.sim.feed_wire import IDLE_S, FeedUrl, Listener, Sample
 from ground.sim.sensor_sim import DetectorModel
 from ground.sim.smear import SmearPSF
 
@@ -188,18 +189,19 @@ class AttitudeFeedSource:
             self.exposure_s = float(opts.pop("exposure", self.det.exposure_s))
             self.timeout = float(opts.pop("timeout", 0.25))
             self.max_gap = float(opts.pop("max_gap", 0.5))
+            self.idle = float(opts.pop("idle", IDLE_S))
         except ValueError as exc:
             raise ValueError(f"attitude feed {spec!r}: {exc}") from None
         if opts:
             raise ValueError(f"attitude feed {spec!r}: unknown option(s) {sorted(opts)}")
-        if not (self.exposure_s > 0 and self.timeout >= 0 and self.max_gap > 0):
-            raise ValueError(f"attitude feed {spec!r}: exposure and max_gap must be > 0, timeout >= 0")
+        if not (self.exposure_s > 0 and self.timeout >= 0 and self.max_gap > 0 and self.idle > 0):
+            raise ValueError(f"attitude feed {spec!r}: exposure, max_gap and idle must be > 0, timeout >= 0")
         self.det = DetectorModel(pattern=self.det.pattern, exposure_s=self.exposure_s)
         self.camera = camera
         self.renderer = renderer or ExposureRenderer(camera)
         self._drawing = self.renderer.draw_bank(self.det)  # at start-up, not inside the first GO
         self.feed = AttitudeFeed(clock)
-        self.listener = Listener(url, self.feed.offer, self.feed.fault, self.feed.new_peer)
+        self.listener = Listener(url, self.feed.offer, self.feed.fault, self.feed.new_peer, idle_s=self.idle)
 
     def ready(self) -> None:
         """Return once the source can render at once (its noise bank drawn)."""

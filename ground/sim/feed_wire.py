@@ -18,9 +18,11 @@ from __future__ import annotations
 
 import json
 import logging
+import select
 import socket
 import struct
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from urllib.parse import parse_qsl, urlsplit
@@ -33,6 +35,7 @@ RECORD = struct.Struct("<d4d3d")  #: the binary sample, 64 bytes
 FORMATS = ("json", "binary")
 MAX_LINE = 4096  #: bytes; a longer JSON line is malformed
 POLL_S = 0.2  #: how often the listener thread looks whether it should stop
+IDLE_S = 60.0  #: a TCP feed peer silent this long is closed (the NSP TCP link's default, --tcp-idle)
 
 
 @dataclass(frozen=True)
@@ -112,13 +115,19 @@ OnError = Callable[[str], None]
 class Listener:
     """Receives samples on ``url`` in a daemon thread: ``on_sample(sample)`` for each decoded one,
     ``on_error(reason)`` for bytes that do not decode (or a sample ``on_sample`` fails on: counted
-    and dropped, the listener serves on), ``on_connect()`` when a TCP peer connects. Binds at
-    construction (OSError if it cannot)."""
+    and dropped, the listener serves on), ``on_connect()`` when a TCP peer connects. Over TCP one
+    peer at a time: the newest connection takes over, a peer silent for ``idle_s`` is closed (None:
+    never). Binds at construction (OSError if it cannot)."""
 
     def __init__(
-        self, url: FeedUrl, on_sample: OnSample, on_error: OnError, on_connect: Callable[[], None] | None = None
+        self,
+        url: FeedUrl,
+        on_sample: OnSample,
+        on_error: OnError,
+        on_connect: Callable[[], None] | None = None,
+        idle_s: float | None = IDLE_S,
     ):
-        self.url = url
+        self.url, self.idle_s = url, idle_s
         self._on_sample, self._on_error = on_sample, on_error
         self._on_connect = on_connect or (lambda: None)
         kind = socket.SOCK_STREAM if url.transport == "tcp" else socket.SOCK_DGRAM
@@ -169,45 +178,67 @@ class Listener:
             self._decode(data)
 
     def _serve_tcp(self) -> None:
+        """One peer at a time, as the NSP TCP link serves (``firmware_model.device.link.TcpLink``):
+        a new connection takes over from the one before, and a peer silent for ``idle_s`` is
+        closed, so a connection that sends nothing never holds the port from the simulator."""
+        conn: socket.socket | None = None
+        buf, last = b"", 0.0
         while not self._stop.is_set():
             try:
-                conn, _ = self._sock.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            with conn:
-                conn.settimeout(POLL_S)
+                ready, _, _ = select.select([self._sock] + ([conn] if conn else []), [], [], POLL_S)
+            except (OSError, ValueError):
+                return  # the listening socket was closed
+            if self._sock in ready:
+                try:
+                    new, _ = self._sock.accept()
+                except OSError:
+                    continue
+                if conn is not None:
+                    self._close_peer(conn, buf, "a new connection took over the attitude feed")
+                conn, buf, last = new, b"", time.monotonic()
+                conn.setblocking(False)
                 self._on_connect()
-                self._serve_connection(conn)
+            if conn is not None and conn in ready:
+                try:
+                    data = conn.recv(65536)
+                except (BlockingIOError, InterruptedError):
+                    data = None
+                except OSError:
+                    data = b""
+                if data == b"":
+                    self._close_peer(conn, buf, None)
+                    conn, buf = None, b""
+                elif data:
+                    last = time.monotonic()
+                    buf = self._take(buf + data)
+            if conn is not None and self.idle_s is not None and time.monotonic() - last > self.idle_s:
+                self._close_peer(conn, buf, f"attitude feed peer silent for {self.idle_s:g} s: closed")
+                conn, buf = None, b""
+        if conn is not None:
+            conn.close()
 
-    def _serve_connection(self, conn: socket.socket) -> None:
-        buf = b""
-        binary = self.url.format == "binary"
-        while not self._stop.is_set():
-            try:
-                data = conn.recv(65536)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            if not data:
-                if buf:
-                    self._on_error(f"connection closed inside a sample ({len(buf)} bytes left)")
-                return
-            buf += data
-            if binary:
-                whole = len(buf) - len(buf) % RECORD.size
-                if whole:
-                    self._decode(buf[:whole])
-                buf = buf[whole:]
-            else:
-                head, sep, buf = buf.rpartition(b"\n")
-                if sep:
-                    self._decode(head)
-                if len(buf) > MAX_LINE:
-                    self._on_error(f"JSON line longer than {MAX_LINE} bytes")
-                    buf = b""
+    def _close_peer(self, conn: socket.socket, buf: bytes, why: str | None) -> None:
+        """Close a peer's connection; a sample it left cut, and ``why`` when given, are faults."""
+        if buf:
+            self._on_error(f"connection closed inside a sample ({len(buf)} bytes left)")
+        if why:
+            self._on_error(why)
+        conn.close()
+
+    def _take(self, buf: bytes) -> bytes:
+        """Decode the whole samples at the head of ``buf``; the cut one left."""
+        if self.url.format == "binary":
+            whole = len(buf) - len(buf) % RECORD.size
+            if whole:
+                self._decode(buf[:whole])
+            return buf[whole:]
+        head, sep, rest = buf.rpartition(b"\n")
+        if sep:
+            self._decode(head)
+        if len(rest) > MAX_LINE:
+            self._on_error(f"JSON line longer than {MAX_LINE} bytes")
+            return b""
+        return rest
 
 
 class Sender:
