@@ -359,6 +359,30 @@ def test_smear_streak_length_at_a_known_rate():
     assert xs[0] > xs[-1]  # stars move against the rotation: dv/dt = -omega x v
 
 
+@pytest.mark.parametrize("rate", [[0.0, 1.0, 0.0], [0.0, 0.0, 100.0], [0.0, 2 * np.pi / 0.1, 0.0]])
+def test_a_rate_beyond_the_renderers_reach_is_refused_before_any_work(rate):
+    """Issue 29: 1 rad/s (or 100 rad/s of roll) made the smear render unbounded (no result after
+    60-90 s, 600 MB); a whole revolution in the exposure (whose track ends where it began) too."""
+    from ground.sim.smear import MAX_TRACK_PX, TooFast
+
+    det = DetectorModel(pattern="MONO", psf_sigma_px=1.0)
+    with pytest.raises(TooFast, match=f"beyond the {MAX_TRACK_PX:g} px the renderer draws"):
+        SmearPSF(SMALL_CAM, det, rate, 0.1)
+
+
+def test_device_answers_bad_frame_at_once_for_a_rate_beyond_the_renderers_reach(feed_device):
+    dev, snd, solver, clock = feed_device
+    now = clock.now
+    ts = np.arange(now - 1, now + 1, 0.02)
+    snd.send(*(_sample(t, Q0, [0.0, 1.0, 0.0]) for t in ts))
+    _wait_for_samples(dev, float(ts[-1]))
+    status, reason = _go(dev)
+    assert status == result.Status.BAD_FRAME and "smears stars over" in reason, reason
+    assert not solver.frames
+    (rep,) = _send(dev, Code.PING)
+    assert rep.ack and b"IDLE" in rep.data
+
+
 # ---------------------------------------------------------------- the device keeps serving
 
 

@@ -41,7 +41,7 @@ from firmware_model.reference_frames import quat_to_matrix
 from ground.sim.exposure import ExposureRenderer
 from ground.sim.feed_wire import IDLE_S, FeedUrl, Listener, Sample
 from ground.sim.sensor_sim import DetectorModel
-from ground.sim.smear import SmearPSF
+from ground.sim.smear import SmearPSF, TooFast
 
 NORM_TOL = 1e-6  #: | |q| - 1 | above this is an unnormalised quaternion
 JUMP_TOL = 1e-3  #: rad of turn between two samples allowed beyond what their rates explain
@@ -212,7 +212,10 @@ class AttitudeFeedSource:
 
     def __call__(self, ctx) -> Frame:
         q, w = self.feed.at(ctx.started + self.exposure_s / 2.0, self.timeout, self.max_gap)
-        psf = SmearPSF(self.camera, self.det, w, self.exposure_s)
+        try:
+            psf = SmearPSF(self.camera, self.det, w, self.exposure_s)
+        except TooFast as exc:  # BAD_FRAME at once: the render's work would grow without bound
+            raise FrameUnavailable(f"attitude feed: {exc}") from None
         frame = self.renderer.render(
             quat_to_matrix(q), self.det, seed=ctx.sequence, psf=psf if psf.max_track_px >= MIN_SMEAR_PX else None
         )

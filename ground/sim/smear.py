@@ -18,6 +18,13 @@ from scipy.special import erf
 from ground.sim.sensor_sim import DetectorModel, stamp_half_width
 
 STEP_PX = 0.25  #: largest step between sub-samples along a track
+#: Longest track rendered (px): the work grows with the track's length squared (stamp area times
+#: sub-steps), so a faster turn is refused (:class:`TooFast`) before anything is allocated.
+MAX_TRACK_PX = 100.0
+
+
+class TooFast(ValueError):
+    """A rate that smears stars over more than :data:`MAX_TRACK_PX` in the exposure."""
 
 
 class SmearPSF:
@@ -33,6 +40,16 @@ class SmearPSF:
         corners_x = np.array([-0.5, camera.width - 0.5, -0.5, camera.width - 0.5, camera.cx])
         corners_y = np.array([-0.5, -0.5, camera.height - 0.5, camera.height - 0.5, camera.cy])
         self.max_track_px = float(np.max(self._track_length(corners_x, corners_y)))
+        # the arc, too: a turn of a whole revolution in the exposure ends where it began
+        arc_px = (
+            float(np.linalg.norm(self.omega)) * self.exposure_s * max(camera.f, np.hypot(camera.width, camera.height))
+        )
+        if not (self.max_track_px <= MAX_TRACK_PX and arc_px <= 2.0 * MAX_TRACK_PX):
+            rate = np.degrees(np.linalg.norm(self.omega))
+            raise TooFast(
+                f"a rate of {rate:.3g} deg/s smears stars over {self.max_track_px:.3g} px in the "
+                f"{self.exposure_s:g} s exposure, beyond the {MAX_TRACK_PX:g} px the renderer draws"
+            )
         self.steps = max(2, int(np.ceil(self.max_track_px / STEP_PX)))
         taus = ((np.arange(self.steps) + 0.5) / self.steps - 0.5) * self.exposure_s  # sub-interval mid-times
         self._rotations = Rotation.from_rotvec(-taus[:, None] * self.omega[None, :]).as_matrix()
