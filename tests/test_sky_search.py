@@ -242,3 +242,34 @@ def test_a_script_mixing_cameras_builds_each_fields_catalog_once(monkeypatch):
         for field in fields:
             field_catalogs.catalog_for_field(*field)
     assert built == fields
+
+
+def test_the_reported_false_alarm_counts_every_hypothesis_the_search_checked(synthetic_sky, synthetic_catalog):
+    """A candidate handed on after the search went further is charged for all its checks."""
+    from firmware_model.pipeline.raw_frame import Frame
+    from firmware_model.pipeline.sky_run import run_pipeline_sky
+    from firmware_model.pipeline.sky_search import SkyFit, SkyResult
+
+    search, _ = synthetic_sky
+    fit = SkyFit(1000.0, np.eye(3), 9, 30, 20, 1e-4, 10)  # checked 10th: single chance 1e-5
+
+    class Stub:
+        def start(self, *args):
+            return self
+
+        exhausted = True
+
+        def advance(self, budget):
+            return SkyResult(FieldRange.blind(), None, [fit], 200)
+
+    rng = np.random.default_rng(2)
+    pixels = rng.normal(100, 3, (96, 128)).astype(np.float32)
+    for x, y in rng.uniform(10, 80, (12, 2)):
+        pixels[int(y) - 1 : int(y) + 2, int(x) - 1 : int(x) + 2] += 2000.0
+    from firmware_model.pipeline.scale_free import set_sky_patterns
+
+    cat = synthetic_catalog(300)
+    set_sky_patterns(cat, search.index)
+    frame = Frame(pixels, "MONO", white_level=65535.0)
+    _, report = run_pipeline_sky(frame, FieldRange.blind(), Stub(), lambda camera: cat)  # type: ignore[arg-type]
+    assert report.checks == 200 and report.false_alarm == pytest.approx(1e-5 * 200)

@@ -162,7 +162,9 @@ def run_pipeline_sky(
         (fov.lo_deg, fov.hi_deg),
         used.fov_deg(w) if used is not None else math.nan,
         found.checks,
-        used.false_alarm if used is not None else 1.0,
+        # its chance of coincidence counted over every hypothesis the search checked, not only
+        # those before it (a candidate handed on after the search went further)
+        min(1.0, used.false_alarm * found.checks / used.checks) if used is not None else 1.0,
         found.taken is not None,
         found.stopped,
     )
