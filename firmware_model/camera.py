@@ -70,14 +70,19 @@ class CameraModel:
 
     # ---------------------------------------------------------------- constructors
     @classmethod
+    def pinhole(cls, width: int, height: int, f: float, **distortion) -> CameraModel:
+        """Camera of focal length ``f`` (px), principal point at the array centre, distortion-free
+        unless ``distortion`` gives coefficients."""
+        return cls(width, height, float(f), (width - 1) / 2.0, (height - 1) / 2.0, **distortion)
+
+    @classmethod
     def from_fov(cls, width: int, height: int, half_fov_minor_deg: float, **distortion) -> CameraModel:
         """Distortion-free camera whose half field of view across the minor axis (from the
         array centre to the outer edge of the edge pixels) is ``half_fov_minor_deg``."""
         if not 0.0 < half_fov_minor_deg < 90.0:
             raise ValueError(f"half field of view must be in (0, 90) deg, got {half_fov_minor_deg}")
         half_extent = min(width, height) / 2.0
-        f = half_extent / np.tan(np.radians(half_fov_minor_deg))
-        return cls(width, height, float(f), (width - 1) / 2.0, (height - 1) / 2.0, **distortion)
+        return cls.pinhole(width, height, half_extent / np.tan(np.radians(half_fov_minor_deg)), **distortion)
 
     @classmethod
     def from_horizontal_fov(cls, width: int, height: int, fov_deg: float) -> CameraModel:
@@ -86,8 +91,7 @@ class CameraModel:
         field-of-view estimate gives."""
         if not 0.0 < fov_deg < 180.0:
             raise ValueError(f"field of view must be in (0, 180) deg, got {fov_deg}")
-        f = width / 2.0 / np.tan(np.radians(fov_deg) / 2.0)
-        return cls(width, height, float(f), (width - 1) / 2.0, (height - 1) / 2.0)
+        return cls.pinhole(width, height, width / 2.0 / np.tan(np.radians(fov_deg) / 2.0))
 
     @classmethod
     def from_focal(cls, width: int, height: int, focal_mm: float, pixel_um: float, **distortion) -> CameraModel:
@@ -95,8 +99,7 @@ class CameraModel:
         point at the array centre."""
         if focal_mm <= 0 or pixel_um <= 0:
             raise ValueError("focal length and pixel pitch must be positive")
-        f = focal_mm * 1000.0 / pixel_um
-        return cls(width, height, float(f), (width - 1) / 2.0, (height - 1) / 2.0, **distortion)
+        return cls.pinhole(width, height, focal_mm * 1000.0 / pixel_um, **distortion)
 
     @classmethod
     def reference_design(cls) -> CameraModel:

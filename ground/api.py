@@ -113,7 +113,6 @@ def solve_image(
     read_s = time.perf_counter() - t0  # the image's reading: no stage of the solve
     if camera is not None:
         _check_size(frame, camera)
-    from firmware_model.pipeline import scale_free
     from firmware_model.pipeline.run import PipelineParams, run_pipeline
     from ground.analysis.replay import warm_up_kernels
 
@@ -128,8 +127,6 @@ def solve_image(
         return solved_image(out, camera, {"catalog": catalog_s, "compile": compile_s})
     db = _database(database)
     setup = {"compile": compile_s, "database": db.load_s, "catalog": catalog_s}
-    if given is not None:
-        scale_free.set_sky_patterns(given, db.index)
     if camera is None:
         assert isinstance(fov, FieldRange)
         from ground.analysis.replay import solve_sky

@@ -320,7 +320,7 @@ def read_npy(path) -> Frame:
     """``.npy`` array (no pickles) plus optional ``<stem>.json`` sidecar."""
     path = Path(path)
     try:
-        with open(path, "rb") as f:  # the header alone first: nothing allocated for a bomb
+        with open(path, "rb") as f:  # the header first: nothing allocated for a bomb
             read_header = {
                 (1, 0): np.lib.format.read_array_header_1_0,
                 (2, 0): np.lib.format.read_array_header_2_0,
@@ -328,8 +328,9 @@ def read_npy(path) -> Frame:
             if read_header is None:
                 raise ValueError("unsupported .npy format version")
             shape, _, dtype = read_header(f)
-        _check_size(path, shape, dtype.itemsize)
-        data = np.load(path, allow_pickle=False)
+            _check_size(path, shape, dtype.itemsize)
+            f.seek(0)
+            data = np.lib.format.read_array(f, allow_pickle=False)
     except FrameReadError:
         raise
     except Exception as exc:

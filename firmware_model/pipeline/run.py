@@ -608,7 +608,7 @@ def _first_tier(
     if search is None or search.first_tier <= 0 or search.first_tier_hypotheses <= 0:
         return None
     t1 = time.perf_counter()
-    clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)
+    clean = pattern_rows(stars)
     peek = scale_free.BrightFirstMatches(
         stars.x[clean], stars.y[clean], camera, catalog, search.first_tier, search.pattern_tolerance, search.focal_range
     )
@@ -1029,7 +1029,7 @@ def _pattern_seeds(
     poor fits were among them (hot-pixel clusters and other unblurred clutter can outshine the
     stars), from the brightest detections that also fit the PSF well. ``peek``: the first tier's
     pattern matches of the first pass, already computed."""
-    clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)  # clutter is blended or badly fitted
+    clean = pattern_rows(stars)  # clutter is blended or badly fitted
     well = clean[(stars.flags[clean] & int(StarFlag.POOR_FIT)) == 0]
     for rows in (clean, well):
         if rows is well and np.array_equal(well[: search.n_bright], clean[: search.n_bright]):
@@ -1102,6 +1102,12 @@ def _verify_pattern(
 
 #: Detections left out of the pattern search's brightest stars (saturated stars stay: they are real).
 _PATTERN_EXCLUDE = int(StarFlag.BLEND | StarFlag.FIT_FAILED | StarFlag.EDGE)
+
+
+def pattern_rows(stars: StarList) -> np.ndarray:
+    """Rows of the detections fit to make patterns of (blended, failed-fit and edge ones left out)."""
+    return np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)
+
 
 #: Pattern seeds whose attitudes differ by less than this (rad) lead to the same refined answer.
 _SAME_SEED_RAD = np.radians(0.2)

@@ -83,7 +83,7 @@ class Hypothesis:
     key_distance: float
 
 
-def _keys(vectors: np.ndarray, groups: np.ndarray):
+def pattern_keys(vectors: np.ndarray, groups: np.ndarray):
     """Sorted normalised edge ratios (G, 5) and the largest edge (G,) of 4-star groups (G, 4)."""
     v = vectors[groups]  # (G, 4, 3)
     edges = angle_between(v[:, _PAIR_I], v[:, _PAIR_J])
@@ -163,7 +163,7 @@ def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel) -> PatternInd
     return cache[mrad]
 
 
-def _unique_rows(groups: np.ndarray) -> np.ndarray:
+def unique_rows(groups: np.ndarray) -> np.ndarray:
     """``np.unique(groups, axis=0)`` of 4-star groups: each row packed into one 64-bit number (16
     bits a star, most significant first: the same order) when the star numbers allow, ~5x faster."""
     if len(groups) == 0 or groups.max() >= 1 << 16:
@@ -242,8 +242,8 @@ def field_patterns(
         near = tree.query_ball_point(vec[:n_pattern_stars], chord_of_angle(factor * field))
         brighter = np.array([np.count_nonzero(rank[n] < rank[i]) for i, n in enumerate(near)])
         parts.append(_groups(near, rank, np.flatnonzero(brighter < PATTERN_STARS_PER_CAP), neighbours))
-    groups = _unique_rows(np.sort(np.concatenate(parts), axis=1))  # a 4-set found several ways once
-    keys, top = _keys(vec, groups)
+    groups = unique_rows(np.sort(np.concatenate(parts), axis=1))  # a 4-set found several ways once
+    keys, top = pattern_keys(vec, groups)
     ok = np.isfinite(keys).all(axis=1) & (top > 0)
     return groups[ok], keys[ok], top[ok]
 
@@ -297,18 +297,17 @@ def pattern_matches(
     x: np.ndarray,
     y: np.ndarray,
     camera: CameraModel,
-    catalog: OnboardCatalog | PatternIndex,
+    catalog: OnboardCatalog,
     n_bright: int,
     tolerance: float,
     focal_range: float,
     first: int = 0,
 ) -> PatternMatches:
     """Pattern matches of the ``n_bright`` brightest detections (rows of ``x, y``, brightest first)
-    against the catalog's patterns (:func:`catalog_patterns`) or a given :class:`PatternIndex`
-    with key distance below ``tolerance`` and focal length within ``focal_range`` (relative) of
+    against the catalog's patterns (:func:`catalog_patterns`) with key distance below ``tolerance`` and focal length within ``focal_range`` (relative) of
     the nominal camera's, best key distance first. ``first``: only patterns holding a detection
     at or beyond that rank (the caller has tried those of the ``first`` brightest already)."""
-    index = catalog if isinstance(catalog, PatternIndex) else catalog_patterns(catalog, camera)
+    index = catalog_patterns(catalog, camera)
     return pattern_matches_many(x, y, [(camera, focal_range)], index, n_bright, tolerance, first)[0]
 
 
@@ -331,7 +330,7 @@ def pattern_matches_many(
     per = []
     for camera, focal_range in cameras:
         v = camera.pixel_to_vector(x[:n], y[:n])
-        keys, top = _keys(v, groups)
+        keys, top = pattern_keys(v, groups)
         wide = top <= 2.0 * max(PATTERN_RADIUS_FACTORS) * camera.fov_half_angle_minor * (1 + focal_range)
         per.append((v, keys, top, wide))
     found: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(0, np.int64), np.zeros(0, np.int64))] * len(cameras)
@@ -378,9 +377,7 @@ class BrightFirstMatches:
     cache on the catalog's ~8e5 keys). ``best_f``: the best key match's focal length in
     the first rank with a match (NaN for none), worked out on construction."""
 
-    def __init__(
-        self, x, y, camera: CameraModel, catalog: OnboardCatalog | PatternIndex, n_bright: int, tolerance, focal_range
-    ):
+    def __init__(self, x, y, camera: CameraModel, catalog: OnboardCatalog, n_bright: int, tolerance, focal_range):
         n = min(len(x), n_bright)
         self._ranks = (
             pattern_matches(x, y, camera, catalog, k, tolerance, focal_range, first=k - 1) for k in range(4, n + 1)

@@ -22,6 +22,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from firmware_model.catalog.star_counts import magnitude_for_count
 from firmware_model.pipeline import scale_free
 from firmware_model.pipeline.pattern_index import PatternIndex
 
@@ -42,8 +43,7 @@ def magnitude_limit(half_field_deg: float) -> float:
     """The V magnitude that puts :data:`STARS_IN_VIEW` stars in a 4:3 field of this minor
     half-field (``CatalogDesign.for_field``'s star counts), clamped to V 3.5 - :data:`FAINTEST_MAG`."""
     area = (2.0 * half_field_deg) ** 2 * 4.0 / 3.0
-    m = (math.log10(STARS_IN_VIEW * 41253.0 / area) - 0.63) / 0.515
-    return min(max(m, 3.5), FAINTEST_MAG)
+    return min(max(magnitude_for_count(STARS_IN_VIEW, area), 3.5), FAINTEST_MAG)
 
 
 def sky_pattern_index(
@@ -62,6 +62,6 @@ def sky_pattern_index(
             parts.append(groups)
         if progress is not None:
             progress(done, total)
-    groups = scale_free._unique_rows(np.concatenate(parts))  # each 4-set once, whichever rungs made it
-    keys, top = scale_free._keys(vec, groups)
+    groups = scale_free.unique_rows(np.concatenate(parts))  # each 4-set once, whichever rungs made it
+    keys, top = scale_free.pattern_keys(vec, groups)
     return PatternIndex.from_patterns(vec, groups, keys, top)

@@ -33,12 +33,12 @@ from firmware_model.ident.attitude import quat_matrix
 from firmware_model.ident.solver import Mode
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.pipeline.run import (
-    _PATTERN_EXCLUDE,
     PipelineOutput,
     PipelineParams,
     frame_stars,
     identify_stars,
     label_planets_of,
+    pattern_rows,
 )
 from firmware_model.pipeline.sky_search import (
     DISTINCT_F,
@@ -104,7 +104,7 @@ def run_pipeline_sky(
 
     w, h = frame.width, frame.height
     brackets = fov.focal_brackets(w)
-    mid = CameraModel(w, h, math.sqrt(brackets[0][0] * brackets[-1][0]), (w - 1) / 2.0, (h - 1) / 2.0)
+    mid = CameraModel.pinhole(w, h, math.sqrt(brackets[0][0] * brackets[-1][0]))
     stars = frame_stars(frame, mid, params)
     nothing = SkyReport((fov.lo_deg, fov.hi_deg), math.nan, 0, 1.0, False, False)
     if isinstance(stars, PipelineOutput):
@@ -112,7 +112,7 @@ def run_pipeline_sky(
     if len(stars.x) < 4:  # the pipeline's own TOO_FEW_STARS answer
         seen = replace(stars, vectors=mid.pixel_to_vector(stars.x, stars.y))
         return identify_stars(seen, mid, catalog(mid), params), nothing
-    clean = np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)
+    clean = pattern_rows(stars)
     run = sky.start(stars.x[clean], stars.y[clean], w, h, fov)
     out: PipelineOutput | None = None
     used: SkyFit | None = None
@@ -130,11 +130,11 @@ def run_pipeline_sky(
             if any(abs(fit.f / f - 1.0) <= DISTINCT_F for f in tried_f):
                 continue  # identified with this focal length already
             tried_f.append(fit.f)
-            camera = CameraModel(w, h, fit.f, (w - 1) / 2.0, (h - 1) / 2.0)
-            seen = replace(stars, vectors=camera.pixel_to_vector(stars.x, stars.y))
-            tried = identify_stars(seen, camera, catalog(camera), solve_params)
+            camera = CameraModel.pinhole(w, h, fit.f)
+            seen, field = replace(stars, vectors=camera.pixel_to_vector(stars.x, stars.y)), catalog(camera)
+            tried = identify_stars(seen, camera, field, solve_params)
             if tried.status is not Status.OK and solve_params is not params:  # the colour route after all
-                again = identify_stars(seen, camera, catalog(camera), params)
+                again = identify_stars(seen, camera, field, params)
                 again.timings.identify += tried.timings.identify + tried.timings.attitude
                 tried = again if _better(again, tried) else tried
             if out is None or _better(tried, out):

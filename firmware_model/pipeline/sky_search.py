@@ -208,7 +208,7 @@ class SkySearch:
     def _checked(self, x, y, width: int, height: int, fov: FieldRange):
         """Every hypothesis checked, in the search's order (a generator: the work as asked for)."""
         brackets = fov.focal_brackets(width)
-        cameras = [(CameraModel(width, height, f, (width - 1) / 2.0, (height - 1) / 2.0), h) for f, h in brackets]
+        cameras = [(CameraModel.pinhole(width, height, f), h) for f, h in brackets]
         checks, tried, done_rows = 0, set(), 0
         for n in TIERS:
             n = min(n, len(x))
@@ -229,7 +229,7 @@ class SkySearch:
     def check(self, x, y, width: int, height: int, hyp: scale_free.Hypothesis, checks: int) -> SkyFit:
         """The hypothesis refined and checked against the detections (module docstring);
         ``checks`` the hypotheses checked so far, this one included."""
-        cam = CameraModel(width, height, hyp.f, (width - 1) / 2.0, (height - 1) / 2.0)
+        cam = CameraModel.pinhole(width, height, hyp.f)
         stars = _SkyStars(self, _stars_for(cam))
         refined = scale_free.refine(x, y, cam, hyp, stars, radii_px=REFINE_RADII_PX)
         n = len(x)
@@ -272,9 +272,7 @@ class _SkyStars:
     def in_view(self, cam: CameraModel, a: np.ndarray) -> int:
         """Stars of this depth the camera at attitude ``a`` puts on its array."""
         near = self.stars_within(a[2], cam.fov_half_angle_diagonal * 1.2)
-        px, py = cam.vector_to_pixel(self.vec[near] @ a.T)
-        w, h = cam.width, cam.height
-        return int(np.count_nonzero(np.isfinite(px) & (px >= -0.5) & (px < w - 0.5) & (py >= -0.5) & (py < h - 0.5)))
+        return int(np.count_nonzero(cam.in_frame(*cam.vector_to_pixel(self.vec[near] @ a.T))))
 
 
 def _plate_order(matches: list[scale_free.PatternMatches]) -> list[tuple[int, int]]:

@@ -187,6 +187,13 @@ class SetupCharges:
         """The seconds charged and not yet reported."""
         return dict(self._setup)
 
+    def _take_setup(self) -> dict[str, float]:
+        """The seconds charged so far, the kernels loaded now (``compile``) among them, for the
+        record about to be made; none left for the next."""
+        setup, self._setup = self._setup, {}
+        setup["compile"] = setup.get("compile", 0.0) + warm_up_kernels()
+        return setup
+
 
 class OfflineSolver(SetupCharges):
     """The device pipeline in-process (``replay --offline``).
@@ -202,11 +209,12 @@ class OfflineSolver(SetupCharges):
 
     ``camera`` is one model for every frame, or a function of the frame (``--fov-deg``: a pinhole
     camera per frame size); ``catalog`` one catalog, or a function of the camera (each camera's
-    field catalog, ``ground.api.sky_catalog``).
+    field catalog, ``ground.catalog.field_catalogs.sky_catalog``).
 
     The first solve loads the kernels (:func:`warm_up_kernels`, as the device does before it
-    serves) and reports those seconds as its ``compile`` stage, with ``setup_s`` (set-up stages the
-    caller paid for this solver, e.g. ``{"catalog": s}``) in its ``timings_s`` and their ``total``.
+    serves) and reports those seconds as its ``compile`` stage, with the set-up stages the caller
+    charged to this solver (:meth:`charge_setup`, e.g. ``catalog=s``) in its ``timings_s`` and
+    their ``total``.
     """
 
     def __init__(
@@ -215,17 +223,15 @@ class OfflineSolver(SetupCharges):
         catalog: OnboardCatalog | Callable[[CameraModel], OnboardCatalog],
         params: PipelineParams = PipelineParams(),
         site=None,
-        setup_s: dict[str, float] | None = None,
     ):
         self.camera, self.catalog, self.params, self.site = camera, catalog, params, site
-        self._setup = dict(setup_s or {})  # charged to the first solve
+        self._setup: dict[str, float] = {}  # charged to the first solve
 
     def camera_for(self, frame: Frame) -> CameraModel:
         return self.camera if isinstance(self.camera, CameraModel) else self.camera(frame)
 
     def solve(self, frame: Frame) -> dict:
-        setup, self._setup = self._setup, {}
-        setup["compile"] = setup.get("compile", 0.0) + warm_up_kernels()
+        setup = self._take_setup()
         return add_setup_stages(self._solve(frame), **setup)
 
     def _solve(self, frame: Frame) -> dict:
@@ -271,9 +277,14 @@ class OfflineSolver(SetupCharges):
 
 def solve_sky(frame: Frame, fov, db, params: PipelineParams, catalog: OnboardCatalog | None = None):
     """``sky_run.run_pipeline_sky`` with the database's search and each found camera's field
-    catalog (``catalog``, when given, for every camera): (PipelineOutput, SkyReport)."""
+    catalog (``catalog``, when given, for every camera, matched against the database's patterns):
+    (PipelineOutput, SkyReport)."""
+    from firmware_model.pipeline.scale_free import set_sky_patterns
     from firmware_model.pipeline.sky_run import run_pipeline_sky
     from ground.catalog.field_catalogs import sky_catalog
+
+    if catalog is not None:
+        set_sky_patterns(catalog, db.index)
 
     def catalog_for(camera: CameraModel) -> OnboardCatalog:
         return catalog if catalog is not None else sky_catalog(camera, db)
@@ -284,18 +295,17 @@ def solve_sky(frame: Frame, fov, db, params: PipelineParams, catalog: OnboardCat
 class SkySolver(SetupCharges):
     """The pipeline in-process with the field of view searched (``replay --offline`` and
     ``solve-file`` without ``--camera``): ``fov`` a ``sky_search.FieldRange`` (a hint's, a
-    range or blind), ``database`` the loaded ``ground.catalog.sky_database.SkyDatabase``, ``catalog`` one
-    catalog for every frame (None: each found camera's field catalog, ``ground.api.sky_catalog``).
+    range or blind), ``database`` the loaded ``ground.catalog.sky_database.SkyDatabase``, ``catalog``
+    one catalog for every frame (None: each found camera's field catalog, ``solve_sky``).
     Each record carries the search's ``sky`` block; the first one the set-up seconds, as
     :class:`OfflineSolver`'s."""
 
-    def __init__(self, fov, database, params: PipelineParams = PipelineParams(), catalog=None, setup_s=None):
+    def __init__(self, fov, database, params: PipelineParams = PipelineParams(), catalog=None):
         self.fov, self.database, self.params, self.catalog = fov, database, params, catalog
-        self._setup = dict(setup_s or {})
+        self._setup: dict[str, float] = {}
 
     def solve(self, frame: Frame) -> dict:
-        setup, self._setup = self._setup, {}
-        setup["compile"] = setup.get("compile", 0.0) + warm_up_kernels()
+        setup = self._take_setup()
         out, report = solve_sky(frame, self.fov, self.database, self.params, self.catalog)
         rec = add_setup_stages(record_from_output(out), **setup)
         rec["sky"] = report.to_dict()

@@ -74,11 +74,12 @@ class CatalogDesign:
         the width): the minor half-angle from a pinhole, pairs up to the diagonal, the limiting
         magnitude that puts about ``stars_in_view`` pattern stars in the field and the one that
         puts about ``verify_stars_in_view`` stars in it with the verification-only ones (star
-        counts ``N(<V) ~ 10^(0.515 V + 0.63)`` over the whole sky, a fit to Hipparcos within ~10 %
-        for V 4-7; clamped to V 4-7.5 and 4-8). ``overrides`` are further CatalogDesign fields."""
+        counts of ``firmware_model.catalog.star_counts``; clamped to V 4-7.5 and 4-8).
+        ``overrides`` are further CatalogDesign fields."""
         if not 0.0 < fov_deg < 180.0:
             raise DesignError(f"field of view must be in (0, 180) deg, got {fov_deg}")
         from firmware_model.camera import CameraModel
+        from firmware_model.catalog.star_counts import magnitude_for_count
 
         camera = CameraModel.from_horizontal_fov(width_px, height_px, fov_deg)
         theta = math.degrees(camera.fov_half_angle_minor)
@@ -87,7 +88,7 @@ class CatalogDesign:
         area = fov_deg * 2.0 * math.degrees(vertical)  # deg^2, small-field
 
         def limit(stars: float, brightest: float, faintest: float) -> float:
-            m = (math.log10(stars * 41253.0 / area) - 0.63) / 0.515
+            m = magnitude_for_count(stars, area)
             return math.ceil(min(max(m, brightest), faintest) * 10.0) / 10.0
 
         m_thresh = limit(stars_in_view, 4.0, 7.5)

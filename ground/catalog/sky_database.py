@@ -98,13 +98,14 @@ def build(progress: bool = False) -> SkyDatabase:
     """Build the database from the bundled Hipparcos (~15 s; a bar on stderr with ``progress``)."""
     from tqdm import tqdm
 
-    from firmware_model.pipeline.sky_patterns import sky_pattern_index
+    from firmware_model.pipeline.sky_patterns import HALF_FIELDS_DEG, sky_pattern_index
     from firmware_model.pipeline.sky_search import BLIND_FOV_DEG
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
 
     t0 = time.perf_counter()
-    with tqdm(total=13, desc="sky database", unit=" step", disable=not progress, leave=False) as bar:
+    steps = 1 + len(HALF_FIELDS_DEG)  # the stars, then each rung of the ladder
+    with tqdm(total=steps, desc="sky database", unit=" step", disable=not progress, leave=False) as bar:
         cat = build_catalog(CatalogDesign.for_field(*STAR_FIELD))
         bar.update(1)
         order = np.argsort(cat.mag, kind="stable")
@@ -125,7 +126,8 @@ def build(progress: bool = False) -> SkyDatabase:
 
 
 def save(db: SkyDatabase, path: str | Path) -> None:
-    """Write ``db`` to ``path`` whole or not at all (OSError, the old file intact, when not)."""
+    """Write ``db`` to ``path`` whole or not at all (OSError, the old file intact, when not); in
+    the user cache, other versions' files go once it is written (nothing reads them again)."""
     from ground.atomic_write import atomic_path
 
     path = Path(path)
@@ -134,6 +136,10 @@ def save(db: SkyDatabase, path: str | Path) -> None:
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez(f, meta=meta, mag=db.mag, star_id=db.star_id, **db.index.arrays())  # type: ignore[attr-defined]
     db.path = path
+    if path.resolve() == default_path().resolve():
+        for old in path.parent.glob("sky-v*.npz"):
+            if old != path:
+                old.unlink(missing_ok=True)
 
 
 def load(path: str | Path) -> SkyDatabase:
@@ -207,9 +213,6 @@ def sky_database(path: str | Path | None = None, progress: bool = False) -> SkyD
             db = build(progress)
             try:
                 save(db, target)
-                for old in target.parent.glob("sky-v*.npz"):  # other versions' files: not read again
-                    if old != target:
-                        old.unlink(missing_ok=True)
             except OSError as err:
                 _log.warning("sky database not kept in %s: %s", target, _one_line(err))
     _LOADED[target] = db

@@ -4,7 +4,7 @@
 * Camera: ``--camera FILE`` (``CameraModel`` JSON), or ``--fov-deg F``, a pinhole camera built per
   frame from its size and horizontal field of view (the pipeline's focal-length search and
   optics fit absorb a few per cent of error and the lens distortion); default the reference design.
-  Where the field of view is searched (``solve-file``, ``replay --offline``: :func:`add_sky_options`),
+  Where the field of view is searched (``solve-file``, ``replay --offline``: ``add_camera_options(sky=True)``),
   ``--fov-deg F`` is a hint (the field within F / 1.4 to 1.4 F), ``--fov-range LO HI`` bounds the
   search, and neither solves blind over 5-60 deg, all against the whole-sky pattern database
   (``--database FILE``, default the user cache's; ``ground.catalog.sky_database``).
@@ -31,7 +31,7 @@ if TYPE_CHECKING:  # the pipeline imports scipy: only when a command runs
 
 def add_camera_options(parser, sky: bool = False) -> None:
     """``--camera`` / ``--fov-deg``; with ``sky``, the field-of-view search's options too
-    (:func:`add_sky_options`)."""
+    (``--fov-deg`` a hint, ``--fov-range``, ``--database``)."""
     group = parser.add_mutually_exclusive_group()
     if not sky:
         group.add_argument("--camera", help="camera model JSON (default: the reference design)")
@@ -158,7 +158,7 @@ def offline_solver(args):
         db = load_database(args)
         setup["database"] = db.load_s
         if fov is not None:
-            solver = SkySolver(fov, db, params, catalog=_with_sky(catalog, db))
+            solver = SkySolver(fov, db, params, catalog=catalog)
         else:
             from ground.catalog.field_catalogs import sky_catalog
 
@@ -166,15 +166,6 @@ def offline_solver(args):
             solver = OfflineSolver(camera_of, lambda camera: sky_catalog(camera, db), params, site)
     solver.charge_setup(**setup)
     return solver
-
-
-def _with_sky(catalog, db):
-    """``catalog`` (None passes) matched against the sky database's patterns."""
-    if catalog is not None:
-        from firmware_model.pipeline import scale_free
-
-        scale_free.set_sky_patterns(catalog, db.index)
-    return catalog
 
 
 def _site(args):

@@ -116,7 +116,7 @@ def _solve_file(args) -> int:
     rec = solver.solve(frame)
     rec["frame"] = Path(args.frame).name
     _print_record(rec, args.json)
-    camera = user_camera(args, frame) if args.camera else None
+    camera = user_camera(args, frame)
     if args.wcs:
         _write_wcs(args.wcs, rec, frame, camera)
     if args.overlay:

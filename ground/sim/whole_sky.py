@@ -157,7 +157,7 @@ def observe(
     near = catalog.stars_within(boresight, _field_radius(camera))
     s = catalog.vec[near] @ a.T
     x, y = camera.vector_to_pixel(s)
-    on = (x >= -0.5) & (x < camera.width - 0.5) & (y >= -0.5) & (y < camera.height - 0.5)
+    on = camera.in_frame(x, y)
     idx, s = near[on], s[on]
     n_visible = len(idx)
     if model.p_drop > 0 and len(idx):
