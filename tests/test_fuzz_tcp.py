@@ -1,6 +1,7 @@
 """TCP link policy (firmware_model.device.link.TcpLink): one active client, the newest takes over, idle
 clients closed, cut frames ended, a connection flood absorbed; each proved against a device."""
 
+import random
 import socket
 import threading
 import time
@@ -10,6 +11,8 @@ import pytest
 from firmware_model.device.device import Device
 from firmware_model.device.link import TcpLink, serve
 from ground.fuzz import tcp_faults
+from ground.fuzz.device_proc import DeviceProcess
+from ground.fuzz.tally import Tally
 from ground.link.client import Client, LinkDown
 
 
@@ -34,6 +37,17 @@ def test_the_newest_client_takes_over_and_the_old_one_gets_a_link_error(tcp_devi
             with pytest.raises(LinkDown):
                 a.ping()
             assert b.ping().startswith("ST16-EMU") and link.taken_over == 1
+
+
+def test_a_late_reply_goes_only_to_the_client_that_asked():
+    """A's COMBINATION waits for a slow sequence; B takes over meanwhile and gets only its own
+    PING reply (it used to receive A's COMBINATION reply)."""
+    with DeviceProcess("--tcp", "127.0.0.1:0", "--timing", "realistic", "--processing-ms", "500") as device:
+        tally = Tally()
+        for seed in range(3):
+            tcp_faults.late_takeover(device, random.Random(seed), tally)
+        assert tally.failures == 0, tally.notes
+        assert tally.faults == 3 and device.alive
 
 
 def test_a_silent_client_is_closed_after_the_idle_timeout_and_locks_nobody_out(tcp_device):

@@ -99,11 +99,12 @@ class Dispatcher:
             counters.per_code[msg.code] += 1
             replies = self._replies(msg, lambda: self._dispatch(msg))
             if isinstance(replies, Pending):
-                if self._late_reply() is None:  # no transport to answer later: wait here
+                late = self._late_reply()  # bound now: the reply goes to whoever sent this command
+                if late is None:  # no transport to answer later: wait here
                     replies = self._replies(msg, replies.wait)
                 else:
                     threading.Thread(
-                        target=self._answer_late, args=(msg, replies), daemon=True, name=f"reply-{msg.code:02X}"
+                        target=self._answer_late, args=(msg, replies, late), daemon=True, name=f"reply-{msg.code:02X}"
                     ).start()
                     return []
             return self._count_replies(msg, replies)
@@ -142,11 +143,10 @@ class Dispatcher:
         self._counters().replies += len(replies)
         return replies
 
-    def _answer_late(self, msg: nsp.Message, pending: Pending) -> None:
-        """Wait for ``pending`` (the lock is released while waiting) and hand its replies to the
-        transport's late-reply callback."""
+    def _answer_late(self, msg: nsp.Message, pending: Pending, late: Callable[[list[bytes]], None]) -> None:
+        """Wait for ``pending`` (the lock is released while waiting) and hand its replies to
+        ``late``, the transport's callback of the session that sent ``msg``."""
         with self._lock:
             replies = self._count_replies(msg, self._replies(msg, pending.wait))
-        late = self._late_reply()
-        if replies and late is not None:
+        if replies:
             late([m.frame() for m in replies])

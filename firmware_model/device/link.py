@@ -1,7 +1,8 @@
 """Byte transports for the device (pty, serial port, TCP) and the serving loop with line pacing.
 
 A link (:class:`Link`) offers ``read(timeout) -> bytes`` (``b""`` when nothing arrived),
-``write(data) -> bool``, ``close()`` and ``describe()``; :func:`open_link` makes one from a URL, as
+``write(data, session=None) -> bool``, ``session`` (which peer the bytes read last came from),
+``close()`` and ``describe()``; :func:`open_link` makes one from a URL, as
 pyserial's ``serial_for_url`` does for ports. :func:`serve` moves bytes between a link and a :class:`~firmware_model.device.device.Device`
 until a stop event is set. With pacing (``baud``), received bytes are handed to the device no
 earlier than a UART at ``baud`` (10 bits per byte) could have delivered them, each reply starts
@@ -41,6 +42,7 @@ class PtyLink:
         tty.setraw(self._slave)
         os.set_blocking(self._master, False)
         self.path = os.ttyname(self._slave)
+        self.session = 0  #: a line has one peer: always the same session
 
     def read(self, timeout: float) -> bytes:
         ready, _, _ = select.select([self._master], [], [], timeout)
@@ -51,7 +53,7 @@ class PtyLink:
         except (BlockingIOError, InterruptedError):
             return b""
 
-    def write(self, data: bytes) -> bool:
+    def write(self, data: bytes, session: int | None = None) -> bool:
         view = memoryview(data)
         deadline = time.monotonic() + WRITE_TIMEOUT
         while view:
@@ -81,6 +83,7 @@ class SerialLink:
     def __init__(self, port: str, baud: int):
         self._ser = serial.serial_for_url(port, baudrate=baud, timeout=0.1, write_timeout=WRITE_TIMEOUT)
         self.path = port
+        self.session = 0  #: a line has one peer: always the same session
 
     def read(self, timeout: float) -> bytes:
         if self._ser.timeout != timeout:  # reconfiguring a port costs a system call: only on change
@@ -90,7 +93,7 @@ class SerialLink:
             return b""
         return first + self._ser.read(self._ser.in_waiting)
 
-    def write(self, data: bytes) -> bool:
+    def write(self, data: bytes, session: int | None = None) -> bool:
         try:
             self._ser.write(data)
             return True
@@ -119,7 +122,10 @@ class TcpLink:
     - a connection flood is accepted and closed as fast as it arrives, at most
       :data:`MAX_ACCEPT` per read, the newest connection staying active (one superseded before
       the device read from it is closed unread);
-    - a reply the client does not read within :data:`WRITE_TIMEOUT` s closes the connection.
+    - a reply the client does not read within :data:`WRITE_TIMEOUT` s closes the connection;
+    - a reply goes only to the connection that sent the command: every accepted connection is a
+      new :attr:`session`, and a reply for a session that has gone (a COMBINATION answered after
+      a takeover) is dropped and counted in :attr:`late_dropped`, never written to its successor.
     """
 
     def __init__(self, host: str, port: int, idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT):
@@ -135,6 +141,8 @@ class TcpLink:
         self._newcomer_waited = False  #: a connection waited while the active client's bytes were read
         self._last = 0.0  #: monotonic time of the active client's last byte (or its connection)
         self.taken_over = self.idle_closed = 0  #: connections closed by the policy, per reason
+        self.session = 0  #: number of the active connection (each accepted one gets the next)
+        self.late_dropped = 0  #: replies dropped because their connection had gone
         host, port = self._server.getsockname()[:2]
         self.path = f"socket://{host}:{port}"
 
@@ -181,6 +189,7 @@ class TcpLink:
                 went = self._drop()
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             conn.settimeout(WRITE_TIMEOUT)
+            self.session += 1  # before the connection: a writer that reads it then the number never pairs them wrong
             self._conn, self._last = conn, time.monotonic()
         return went
 
@@ -194,8 +203,13 @@ class TcpLink:
             self._conn = None
         return FEND
 
-    def write(self, data: bytes) -> bool:
-        conn = self._conn  # a late reply is written from another thread: the client may change meanwhile
+    def write(self, data: bytes, session: int | None = None) -> bool:
+        """Send ``data`` to the active client, only if it is still ``session`` (when given)."""
+        conn, active = self._conn, self.session  # a late reply comes from another thread: read both once
+        if session is not None and session != active:
+            self.late_dropped += 1
+            log.info("link: reply for connection %d dropped: connection %d is active", session, active)
+            return False
         if conn is None:
             return False
         try:
@@ -215,11 +229,14 @@ class TcpLink:
 
 
 class Link(Protocol):
-    """The one transport interface :func:`serve` uses."""
+    """The one transport interface :func:`serve` uses. ``session`` numbers the peer the last
+    bytes read came from; ``write(data, session)`` drops ``data`` if that peer has gone."""
+
+    session: int
 
     def read(self, timeout: float) -> bytes: ...
 
-    def write(self, data: bytes) -> bool: ...
+    def write(self, data: bytes, session: int | None = None) -> bool: ...
 
     def close(self) -> None: ...
 
@@ -266,13 +283,13 @@ class Pacer:
         self._rx_end = max(self._rx_end, time.monotonic()) + n * self.byte_time
         return self._rx_end
 
-    def send(self, link, data: bytes, ready_at: float) -> bool:
-        """Write ``data`` starting no earlier than ``ready_at`` and no faster than the line."""
+    def send(self, link, data: bytes, ready_at: float, session: int | None = None) -> bool:
+        """Write ``data`` to ``session`` starting no earlier than ``ready_at`` and no faster than the line."""
         start = max(ready_at, self._tx_free)
         for i in range(0, len(data), PACE_SLICE):
             piece = data[i : i + PACE_SLICE]
             _sleep_until(start + i * self.byte_time)
-            if not link.write(piece):
+            if not link.write(piece, session):
                 return False
         self._tx_free = start + len(data) * self.byte_time
         return True
@@ -299,21 +316,34 @@ def serve(
 ) -> None:
     """Serve ``device`` on ``link`` until ``stop`` is set; pace to ``baud`` if given. Replies the
     device produces later (a COMBINATION's, when its sequence ends) are written as they come,
-    while the loop goes on reading and answering."""
+    while the loop goes on reading and answering, and only to the link session (the TCP
+    connection) that sent the command."""
     pacer = Pacer(baud, turnaround) if baud else None
     write_lock = threading.Lock()
 
-    def send(frames: list[bytes], ready_at: float) -> None:
-        """Write ``frames`` (paced: starting no earlier than ``ready_at``, monotonic s); one
-        writer at a time, the loop's replies and the late ones alike."""
+    def send(frames: list[bytes], ready_at: float, session: int) -> None:
+        """Write ``frames`` to ``session`` (paced: starting no earlier than ``ready_at``,
+        monotonic s); one writer at a time, the loop's replies and the late ones alike."""
         with write_lock:
             if pacer is None:
-                link.write(b"".join(frames))
+                link.write(b"".join(frames), session)
             else:
                 for frame in frames:
-                    pacer.send(link, frame, ready_at)
+                    if not pacer.send(link, frame, ready_at, session):
+                        return
 
-    device.late_reply = lambda frames: send(frames, time.monotonic() + turnaround)
+    serving = True
+
+    def late_reply_to(session: int):
+        """The device's late-reply callback for commands read from ``session`` (a reply ready
+        after serving stopped is dropped)."""
+
+        def late(frames: list[bytes]) -> None:
+            if serving:
+                send(frames, time.monotonic() + turnaround, session)
+
+        return late
+
     try:
         while not stop.is_set():
             try:
@@ -324,16 +354,19 @@ def serve(
                 continue
             if not chunk:
                 continue
+            session = link.session  # the peer these bytes came from; their replies go to it alone
+            device.late_reply = late_reply_to(session)
             if pacer is None:
                 replies = device.receive(chunk)
                 if replies:
                     if turnaround > 0:
                         time.sleep(turnaround)
-                    send(replies, 0.0)
+                    send(replies, 0.0, session)
                 continue
             for piece in _pieces(chunk):
                 done = pacer.arrived(len(piece))
                 _sleep_until(done)
-                send(device.receive(piece), done + pacer.turnaround)
+                send(device.receive(piece), done + pacer.turnaround, session)
     finally:
+        serving = False
         device.late_reply = None

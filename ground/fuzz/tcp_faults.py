@@ -18,9 +18,11 @@ from ground.fuzz.checks import ping_check, stderr_check
 from ground.fuzz.device_proc import DeviceProcess
 from ground.fuzz.tally import Tally
 from ground.link.client import Client, LinkError
-from protocol import nsp
+from protocol import nsp, slip
+from protocol.commands import GO_OPERATIONAL, Code, Combination
 
 TIMEOUT = 1.0  #: client reply timeout, s
+SLOW_SEQUENCE_S = 0.6  #: the campaign device's exposure + processing time (--timing realistic), s
 
 
 def _address(device: DeviceProcess) -> tuple[str, int]:
@@ -129,7 +131,57 @@ def _chatter(device: DeviceProcess, rng: random.Random, tally: Tally) -> None:
             thread.join(2)
 
 
-SCENARIOS = {"takeover": _takeover, "silent": _silent, "cut": _cut, "garbage": _garbage, "chatter": _chatter}
+def _frames(sock: socket.socket, within: float) -> list[nsp.Message]:
+    """The NSP messages ``sock`` receives within ``within`` s."""
+    decoder = slip.Decoder(nsp.MAX_MESSAGE)
+    out: list[nsp.Message] = []
+    deadline = time.monotonic() + within
+    while (left := deadline - time.monotonic()) > 0:
+        sock.settimeout(left)
+        try:
+            data = sock.recv(65536)
+        except TimeoutError:
+            break
+        if not data:
+            break
+        out += [nsp.decode(e.data) for e in decoder.feed(data) if isinstance(e, slip.Frame)]
+    return out
+
+
+def late_takeover(device: DeviceProcess, rng: random.Random, tally: Tally) -> None:
+    """A sends COMBINATION, whose reply waits for the device's slow sequence (the campaign's
+    device runs ``--timing realistic``), and B takes over meanwhile: B gets its PING answered
+    and never A's reply."""
+    with Client(device.path, timeout=TIMEOUT, retries=0) as a:
+        if "BOOTLOADER" in a.ping():
+            a.init()
+    combination = nsp.command(
+        nsp.DEVICE_ADDRESS, nsp.HOST_ADDRESS, Code.COMBINATION, Combination(GO_OPERATIONAL, 1).pack()
+    )
+    ping = nsp.command(nsp.DEVICE_ADDRESS, nsp.HOST_ADDRESS, Code.PING, b"")
+    tally.faults += 1
+    tally.messages += 2
+    with _raw(device) as a_sock:
+        a_sock.sendall(combination.frame())
+        time.sleep(rng.uniform(0.02, 0.1))  # the sequence runs: A's reply is pending
+        with _raw(device) as b_sock:
+            b_sock.sendall(ping.frame())
+            got = _frames(b_sock, SLOW_SEQUENCE_S + 1.0)  # A's sequence ends meanwhile
+    codes = [m.code for m in got]
+    if any(code != Code.PING for code in codes):
+        tally.fail("misattributed", f"a client that took over received replies of codes {codes}")
+    elif not codes:
+        tally.fail("unanswered_pings", "a client that took over got no reply to its PING")
+
+
+SCENARIOS = {
+    "takeover": _takeover,
+    "late_takeover": late_takeover,
+    "silent": _silent,
+    "cut": _cut,
+    "garbage": _garbage,
+    "chatter": _chatter,
+}
 
 
 def flood(device: DeviceProcess, rng: random.Random, tally: Tally, connections: int) -> None:
@@ -172,7 +224,8 @@ def run(seed: int, rounds: int, connections: int = 200, idle: float = 0.5) -> Ta
     """``rounds`` random scenarios, an idle-timeout check and a flood of ``connections``."""
     rng = random.Random(seed)
     tally = Tally()
-    device = DeviceProcess("--tcp", "127.0.0.1:0", "--tcp-idle", str(idle))
+    slow = ("--timing", "realistic", "--exposure-ms", "100", "--processing-ms", str(SLOW_SEQUENCE_S * 1000 - 100))
+    device = DeviceProcess("--tcp", "127.0.0.1:0", "--tcp-idle", str(idle), *slow)
     try:
         names = sorted(SCENARIOS)
         for k in range(rounds):
