@@ -315,6 +315,7 @@ def match_scene(
     verified: list = []
     small: list = []  # (seed Delta, det, cat, explored_all) of sets skipped as too small
     attempts = 0
+    coincidences = 0  # distinct catalog pairs the seed pairs matched (every one a hypothesis)
     seeded = False
     last_reason = _NO_PAIR
     best = None
@@ -336,6 +337,7 @@ def match_scene(
                 last_reason = "no seed pair matched the catalog within Delta*"
             continue
         seeded = True
+        coincidences += pair_hypotheses(cands)
         explored_all = len(cands) <= k_best and not cands.truncated
         good = False
         for m in range(min(k_best, len(cands))):
@@ -421,7 +423,42 @@ def match_scene(
         reason = last_reason
     if _is_high(best, verified, n, params):
         return ConsensusResult(Outcome.HIGH_CONFIDENCE, best, "", attempts, len(verified))
+    expected = chance_answers(best.chance, coincidences)
+    if expected > CHANCE_ANSWERS:
+        return ConsensusResult(Outcome.NO_MATCH, None, _chance_reason(best, coincidences, expected), attempts, 0)
     return ConsensusResult(Outcome.LOW_CONFIDENCE, best, reason, attempts, len(verified), rivals)
+
+
+#: A low-confidence answer is refused (NO_MATCH) when the search is expected to have met more than
+#: this many wrong hypotheses as well supported as it (odds against it) (:func:`chance_answers`): its attitude
+#: cannot then be told from a coincidence (a frame of hot pixels or random blobs, no star in it).
+CHANCE_ANSWERS = 1.0
+#: The reason's opening words for such a refusal.
+NOT_A_STAR_FIELD = "not a star field"
+
+
+def pair_hypotheses(cands) -> int:
+    """Distinct catalog pairs among a seed pair's candidates (both assignments of one catalog pair
+    are one hypothesis of where the pair lies; a truncated window counts what it holds)."""
+    if len(cands) == 0:
+        return 0
+    lo, hi = np.minimum(cands.cat_k, cands.cat_l), np.maximum(cands.cat_k, cands.cat_l)
+    return len(np.unique(lo * (int(hi.max()) + 1) + hi))
+
+
+def chance_answers(chance: float, coincidences: int) -> float:
+    """Expected number of wrong hypotheses as well supported as an answer among those the search
+    met: each catalog pair a seed pair matched (``coincidences``, the answer's own excluded) is a
+    hypothesis, and a wrong one lines up as many stars beyond its two with probability ``chance``
+    (``verify.chance_alignment``; 1 for a two-star answer: its seed pair is all its evidence)."""
+    return max(coincidences - 1, 0) * float(chance)
+
+
+def _chance_reason(best, coincidences: int, expected: float) -> str:
+    return (
+        f"{NOT_A_STAR_FIELD}: {best.n}-star match expected {expected:.2g} times by chance "
+        f"({coincidences} catalog pairs matched the seed pairs; chance {best.chance:.2g} beyond the seed pair)"
+    )
 
 
 _NO_PAIR = "no detection pair within the catalog's pair-angle range"

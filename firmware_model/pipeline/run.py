@@ -23,8 +23,8 @@ from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.ident.attitude import solve_attitude
 from firmware_model.ident.budget import Stop, stop_reason
-from firmware_model.ident.consensus import Outcome
-from firmware_model.ident.solver import SolveParams, SolveResult
+from firmware_model.ident.consensus import NOT_A_STAR_FIELD, Outcome
+from firmware_model.ident.solver import Method, Mode, SolveParams, SolveResult
 from firmware_model.ident.strategy import (
     Detections,
     Identification,
@@ -34,10 +34,10 @@ from firmware_model.ident.strategy import (
     bound_roll,
     estimated_noise_factor,
     geometric_detection_cap,
-    geometric_fallback,
     hold_searched,
     identify,
     routes_geometric,
+    solve_rows,
     verify_pattern,
 )
 from firmware_model.ident.strategy import warm_up as strategy_warm_up
@@ -471,7 +471,10 @@ def _optics_search(frame: FrameSolve) -> str:
 def _fallback(frame: FrameSolve) -> str:
     assert frame.out is not None
     again = _identify(frame.stars, frame.camera, frame.catalog, frame.params, frame.timings, fallback_only=True)
-    if again.status is not Status.NO_MATCH:
+    if again.status is Status.NO_MATCH and NOT_A_STAR_FIELD in again.reason:  # said first
+        why = again.reason[again.reason.index(NOT_A_STAR_FIELD) :]
+        frame.out.reason = f"{why}; {frame.out.reason}" if frame.out.reason else why
+    elif again.status is not Status.NO_MATCH:
         frame.out = again
         if again.status is Status.OK:
             frame.found = None  # the nominal camera's consensus answer: its optics are checked next
@@ -717,9 +720,7 @@ def _identify(
     )
     det = _detections(used, stars, camera, params)
     if fallback_only:
-        found = geometric_fallback(det, catalog, strategy, timings) or Identification(
-            SolveResult(Outcome.NO_MATCH, "mono consensus fallback: no match")
-        )
+        found = geometric_fallback(det, catalog, strategy, timings)
     else:
         found = identify(det, catalog, strategy, timings)
     sol, rows = found.solution, used[found.rows]
@@ -736,6 +737,18 @@ def _identify(
         )
     status = Status.OK if sol.status is Outcome.HIGH_CONFIDENCE else Status.LOW_CONFIDENCE
     return PipelineOutput(status, sol.reason, stars, rows, sol, colour_beta=params.colour_beta, camera=camera)
+
+
+def geometric_fallback(
+    det: Detections, catalog: OnboardCatalog, strategy: StrategyParams, timings: StageTimings
+) -> Identification:
+    """``strategy.geometric_fallback`` (the mono consensus on every detection's geometry), its
+    NO_MATCH answer kept with the reason (a "not a star field" refusal is told)."""
+    found = solve_rows(det, np.arange(len(det)), catalog, strategy, Mode.COLOUR, False, timings)
+    if found.solution.status is Outcome.NO_MATCH:
+        return Identification(SolveResult(Outcome.NO_MATCH, f"mono consensus fallback: {found.solution.reason}"))
+    found.solution.method = Method.GEOMETRIC_CONSENSUS
+    return found
 
 
 def _usable(stars: StarList) -> np.ndarray:
