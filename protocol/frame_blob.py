@@ -1,8 +1,14 @@
 """The frame-upload format (slot 1): a raw frame as one little-endian blob, declared once.
 
-Layout: the 48-byte :data:`HEADER_DTYPE` record, ``json_length`` bytes of UTF-8 JSON (timestamp,
-site, camera, metadata), ``width * height`` uint16 pixels row-major, then the CRC-32 (zlib) of
-every preceding byte. ``pattern`` codes index :data:`PATTERNS`; ``exposure`` is NaN when unknown.
+Layout (version 2): the 52-byte :data:`HEADER_DTYPE` record, ``json_length`` bytes of UTF-8 JSON
+(timestamp, site, camera, metadata), then ``width * height`` uint16 pixels row-major. The
+header's last field is the CRC-32 (zlib) of the header's other 48 bytes followed by everything
+after the header. ``pattern`` codes index :data:`PATTERNS`; ``exposure`` is NaN when unknown.
+
+Version 1 (still read) put that CRC-32 in a 4-byte trailer instead. Every such blob, whatever its
+pixels, has the same whole-file CRC-32, :data:`SELF_CRC_RESIDUE` (the residue of any message
+followed by its own little-endian CRC-32), so a transfer's announced length and CRC-32 could not
+tell two frames of one camera apart, and an upload resumed the wrong frame's bytes.
 """
 
 from __future__ import annotations
@@ -13,23 +19,24 @@ from dataclasses import dataclass
 import numpy as np
 
 MAGIC = b"STFR"
-VERSION = 1
+VERSION = 2
 PATTERNS = ("MONO", "RGGB", "BGGR", "GRBG", "GBRG")
-HEADER_DTYPE = np.dtype(
-    [
-        ("magic", "S4"),
-        ("version", "u1"),
-        ("pattern", "u1"),
-        ("reserved", "<u2"),
-        ("width", "<u4"),
-        ("height", "<u4"),
-        ("black", "<f4", (4,)),
-        ("white", "<f4"),
-        ("exposure", "<f8"),
-        ("json_length", "<u4"),
-    ]
-)
-HEADER_SIZE = HEADER_DTYPE.itemsize  #: 48 bytes
+_V1_FIELDS = [
+    ("magic", "S4"),
+    ("version", "u1"),
+    ("pattern", "u1"),
+    ("reserved", "<u2"),
+    ("width", "<u4"),
+    ("height", "<u4"),
+    ("black", "<f4", (4,)),
+    ("white", "<f4"),
+    ("exposure", "<f8"),
+    ("json_length", "<u4"),
+]
+HEADER_DTYPE = np.dtype([*_V1_FIELDS, ("crc32", "<u4")])
+HEADER_SIZE = HEADER_DTYPE.itemsize  #: 52 bytes
+V1_HEADER_DTYPE = np.dtype(_V1_FIELDS)  #: version 1: 48 bytes, the CRC-32 in a trailer
+SELF_CRC_RESIDUE = 0x2144DF1C  #: CRC-32 of any message followed by its own CRC-32, little-endian
 
 
 @dataclass(frozen=True)
@@ -51,29 +58,42 @@ def pack(blob: FrameBlob) -> bytes:
     h["height"], h["width"] = blob.pixels.shape
     h["black"], h["white"], h["exposure"] = blob.black, blob.white, blob.exposure
     h["json_length"] = len(blob.extras_json)
-    body = h.tobytes() + blob.extras_json + np.ascontiguousarray(blob.pixels, dtype="<u2").tobytes()
-    return body + (zlib.crc32(body) & 0xFFFFFFFF).to_bytes(4, "little")
+    rest = blob.extras_json + np.ascontiguousarray(blob.pixels, dtype="<u2").tobytes()
+    h["crc32"] = _crc(h.tobytes()[:-4], rest)
+    return h.tobytes() + rest
+
+
+def _crc(head: bytes, rest: bytes) -> int:
+    return zlib.crc32(rest, zlib.crc32(head)) & 0xFFFFFFFF
 
 
 def unpack(data: bytes) -> FrameBlob:
-    """Decode and check a blob; ValueError on any inconsistency (size, magic, version, pattern, CRC)."""
+    """Decode and check a blob (version 2, or 1); ValueError on any inconsistency (size, magic,
+    version, pattern, CRC)."""
     data = bytes(data)
-    if len(data) < HEADER_SIZE + 4:
+    if len(data) < V1_HEADER_DTYPE.itemsize + 4:
         raise ValueError(f"frame blob too short ({len(data)} bytes)")
-    h = np.frombuffer(data, HEADER_DTYPE, 1)[0]
+    h = np.frombuffer(data, V1_HEADER_DTYPE, 1)[0]
     if bytes(h["magic"]) != MAGIC:
         raise ValueError(f"not a frame blob (magic {bytes(h['magic'])!r})")
-    if int(h["version"]) != VERSION:
-        raise ValueError(f"unsupported frame blob version {int(h['version'])}")
+    version = int(h["version"])
+    if version not in (1, 2):
+        raise ValueError(f"unsupported frame blob version {version}")
     if int(h["pattern"]) >= len(PATTERNS):
         raise ValueError(f"unknown CFA pattern code {int(h['pattern'])}")
     width, height, jlen = int(h["width"]), int(h["height"]), int(h["json_length"])
-    expected = HEADER_SIZE + jlen + 2 * width * height + 4
+    start = (HEADER_SIZE if version == 2 else V1_HEADER_DTYPE.itemsize) + jlen
+    expected = start + 2 * width * height + (4 if version == 1 else 0)
     if len(data) != expected:
         raise ValueError(f"frame blob is {len(data)} bytes, header implies {expected}")
-    if zlib.crc32(data[:-4]) & 0xFFFFFFFF != int.from_bytes(data[-4:], "little"):
+    if version == 2:
+        ok = _crc(data[: HEADER_SIZE - 4], data[HEADER_SIZE:]) == int.from_bytes(
+            data[HEADER_SIZE - 4 : HEADER_SIZE], "little"
+        )
+    else:
+        ok = zlib.crc32(data[:-4]) & 0xFFFFFFFF == int.from_bytes(data[-4:], "little")
+    if not ok:
         raise ValueError("frame blob CRC-32 mismatch")
-    start = HEADER_SIZE + jlen
     pixels = np.frombuffer(data, dtype="<u2", count=width * height, offset=start).reshape(height, width)
     b = [float(x) for x in h["black"]]
     return FrameBlob(
@@ -81,6 +101,6 @@ def unpack(data: bytes) -> FrameBlob:
         (b[0], b[1], b[2], b[3]),
         float(h["white"]),
         float(h["exposure"]),
-        data[HEADER_SIZE:start],
+        data[start - jlen : start],
         pixels.astype(np.uint16),
     )

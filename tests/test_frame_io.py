@@ -6,6 +6,8 @@ import pytest
 from firmware_model.pipeline.frame_readers import FrameReadError, read_frame
 from firmware_model.pipeline.raw_frame import BLUE, GREEN, RED, Frame, frame_from_bytes, frame_to_bytes, pattern_codes
 from ground.sim.frame_writer import write_dng, write_frame
+from protocol import frame_blob
+from protocol.crc import crc32
 
 
 def _frame(pattern="RGGB", shape=(48, 64), seed=0):
@@ -62,6 +64,25 @@ def test_bytes_round_trip_and_corruption(pattern):
         frame_from_bytes(bytes(bad))
     with pytest.raises(ValueError, match="bytes"):
         frame_from_bytes(blob[:-10])
+
+
+def test_two_frames_of_one_camera_have_different_blob_crcs_and_version_1_is_still_read():
+    """A version-1 blob ended with its own CRC-32, so every blob had the whole-file CRC-32
+    0x2144DF1C and an upload resumed another frame's bytes; version 2 keeps it in the header."""
+    a, b = _frame("RGGB"), _frame("RGGB")
+    b.pixels[0, 0] += 1
+    blob_a, blob_b = frame_to_bytes(a), frame_to_bytes(b)
+    assert crc32(blob_a) != crc32(blob_b) and frame_blob.SELF_CRC_RESIDUE not in (crc32(blob_a), crc32(blob_b))
+    header = bytearray(blob_a)
+    header[30] ^= 1  # the white level, in the header: covered by the CRC-32 too
+    with pytest.raises(ValueError, match="CRC"):
+        frame_from_bytes(bytes(header))
+    v1_head = np.frombuffer(blob_a, frame_blob.V1_HEADER_DTYPE, 1).copy()
+    v1_head["version"] = 1
+    body = v1_head.tobytes() + blob_a[frame_blob.HEADER_SIZE :]
+    v1 = body + crc32(body).to_bytes(4, "little")
+    assert crc32(v1) == frame_blob.SELF_CRC_RESIDUE  # what made version 1 unfit as a transfer's identity
+    assert np.array_equal(frame_from_bytes(v1).pixels, a.pixels)
 
 
 @pytest.mark.parametrize("pattern", ["RGGB", "BGGR", "GRBG", "GBRG", "MONO"])
