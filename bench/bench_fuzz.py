@@ -4,8 +4,10 @@ Campaigns: NSP traffic (random and damaged frames, PING after each burst; on a p
 on TCP), client against
 misbehaving ports (pty and socket://, garbage / slow / silent / flooding), transfer faults on a
 device holding a catalog, damaged state directories (in process and as processes), TCP link
-policy (takeover, silent, cut, chattering clients, idle timeout, connection flood) and SIGKILL
-during a catalog commit. ``--messages`` scales every campaign; the seed makes a run repeatable.
+policy (takeover, a takeover while a late reply is pending, silent, cut, chattering clients, idle
+timeout, connection flood), SIGKILL during a catalog commit, and attitude-feed faults (malformed,
+nested, huge, future and past samples, floods, silent and dropping peers) with the time from each
+fault to the next OK solve. ``--messages`` scales every campaign; the seed makes a run repeatable.
 Every count but messages and faults should be 0; the exit status is 1 otherwise.
 
 Usage: .venv/bin/python bench/bench_fuzz.py [--messages 20000] [--seed 1] [--only nsp,tcp,...]
@@ -17,7 +19,7 @@ import argparse
 import sys
 import time
 
-from ground.fuzz import commit_kill, nsp_fuzz, port_faults, state_faults, tcp_faults, upload_faults
+from ground.fuzz import commit_kill, feed_faults, nsp_fuzz, port_faults, state_faults, tcp_faults, upload_faults
 from ground.fuzz.tally import Tally, table
 
 
@@ -40,6 +42,7 @@ def campaigns(n: int, seed: int) -> dict:
         ),
         "tcp": lambda: tcp_faults.run(seed, rounds=max(5, n // 500), connections=200),
         "commit_kill": lambda: commit_kill.run(seed, kills=max(3, n // 2000))[0],
+        "feed": lambda: feed_faults.run(seed, rounds=max(12, n // 500)),
     }
 
 
