@@ -24,6 +24,7 @@ class NackReason(IntEnum):
     NOT_SUPPORTED = 0x000D
     STORAGE_ERROR = 0x000E
     TOO_LARGE = 0x000F
+    CONFLICT = 0x0010  #: XFER DATA over received bytes with other bytes (received bytes are write-once)
     INTERNAL = 0x00FF  #: unexpected device-side exception (a bug; the device keeps serving)
     #: 0x0100-0xFFFF: reasons raised by slot validators (:class:`SlotRejected` codes)
     VALIDATOR_BASE = 0x0100

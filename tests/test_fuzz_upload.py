@@ -16,7 +16,7 @@ from ground.link.client import Client
 def test_every_transfer_fault_keeps_the_active_catalog_and_a_kill_loses_nothing():
     tally = upload_faults.run(seed=3, scenarios=len(upload_faults.SCENARIOS), restarts=1)
     assert tally.failures == 0, tally.notes
-    assert tally.faults == len(upload_faults.SCENARIOS) - len(upload_faults.REPLACING) + 1
+    assert tally.faults == len(upload_faults.SCENARIOS) - len(upload_faults.FAULTLESS) + 1
 
 
 def test_the_state_check_sees_a_replaced_image(tmp_path):

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from firmware_model.device.dispatch import Refused
-from firmware_model.device.slots import SlotStore
+from firmware_model.device.slots import Conflict, SlotStore
 from protocol import nsp
 from protocol.catalog_patch import PatchError, PatchReason, apply_patch, parse_patch
 from protocol.commands import (
@@ -49,6 +49,9 @@ class SlotHandler:
     patches: int | None = None
     #: ``apply(active image of the patched slot or None, patch)`` -> its new image; raises SlotRejected
     apply: Callable[[bytes | None, bytes], bytes] | None = None
+    #: ``applied(active image of the patched slot, patch)``: is that image already what the patch
+    #: makes (a COMMIT cut after it installed the result, before it dropped the transfer)?
+    applied: Callable[[bytes, bytes], bool] | None = None
 
 
 def _reject_empty(data: bytes) -> None:
@@ -81,11 +84,19 @@ def _patch_apply(base: bytes | None, patch: bytes) -> bytes:
         raise SlotRejected(int(exc.code), exc.message) from None
 
 
+def _patch_applied(active: bytes, patch: bytes) -> bool:
+    try:
+        base_len, _, result_crc, _ = parse_patch(patch)
+    except PatchError:
+        return False
+    return len(active) == base_len and crc32(active) == result_crc
+
+
 def patch_slot_handler(target: int) -> SlotHandler:
     """A slot whose committed image is a ``protocol.catalog_patch`` of slot ``target``'s active image:
     applied to a copy, its CRC-32s checked and the result validated by ``target``'s handler before
     it replaces ``target``'s image (docs/ICD.md section 9)."""
-    return SlotHandler(_patch_validate, patches=target, apply=_patch_apply)
+    return SlotHandler(_patch_validate, patches=target, apply=_patch_apply, applied=_patch_applied)
 
 
 def default_slots() -> dict[int, SlotHandler]:
@@ -182,6 +193,12 @@ class Transfers:
             raise Refused(NackReason.OUT_OF_RANGE, f"bytes {req.offset}+{len(req.data)} beyond length {tr.length}")
         try:
             tr = self.store.write(req.slot, req.offset, req.data)
+        except Conflict as exc:
+            raise Refused(
+                NackReason.CONFLICT,
+                f"byte {exc.offset} differs from the one already received there: received bytes are write-once, "
+                f"the transfer keeps them (ABORT to start again)",
+            ) from None
         except OSError as exc:
             raise Refused(NackReason.STORAGE_ERROR, str(exc)) from None
         return XferDataAck(req.slot, tr.contiguous).pack()
@@ -213,14 +230,26 @@ class Transfers:
                 f"image CRC-32 0x{crc32(image):08X} != announced 0x{tr.crc32:08X}; transfer discarded",
             )
         target = req.slot if handler.patches is None else handler.patches
+        current = self.store.active(target) if target in self.objects else None
         try:
             handler.validate(image)
             if handler.patches is not None:  # the whole new image is built and checked before anything changes
                 assert handler.apply is not None
-                image = handler.apply(self.store.active(target) if target in self.objects else None, image)
+                image = handler.apply(current, image)
                 self.slots[target].validate(image)
             obj = self.slots[target].activate(image)
         except SlotRejected as exc:
+            if exc.code == PatchReason.BASE_MISMATCH and current is not None and handler.applied is not None:
+                if handler.applied(current, image):  # this patch's result is active already: the commit that
+                    log.warning(  # installed it was cut before it dropped the transfer (a kill, a power loss)
+                        "device: slot %d: the patch's result (CRC-32 0x%08X) is slot %d's active image already; "
+                        "the transfer is dropped",
+                        req.slot,
+                        crc32(current),
+                        target,
+                    )
+                    self.store.drop_transfer(req.slot)
+                    return SlotImage(req.slot, True, len(current), crc32(current)).pack()
             self.store.drop_transfer(req.slot)
             raise Refused(exc.code, exc.message) from None
         except Exception as exc:

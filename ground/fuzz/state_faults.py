@@ -15,6 +15,7 @@ import json
 import logging
 import random
 import shutil
+import struct
 import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -74,6 +75,44 @@ def _img(root):
     return root / "slot0" / "active.img"
 
 
+def _forge_log(root: Path, rng: random.Random) -> None:
+    """Records appended to ``partial.log`` claiming the never-written second half of the transfer."""
+    meta = json.loads((root / "slot0" / "partial.json").read_text())
+    end = meta["length"]
+    start = max(r[1] for r in meta["ranges"])
+    cuts = sorted(rng.sample(range(start + 1, end), 2))
+    records = [(start, cuts[0]), (cuts[0], cuts[1]), (cuts[1], end)][: rng.randrange(1, 4)]
+    with open(root / "slot0" / "partial.log", "ab") as fh:
+        for a, b in records:
+            fh.write(struct.pack("<III", a, b, rng.getrandbits(32)))
+
+
+def _forge_json(root: Path, rng: random.Random) -> None:
+    """``partial.json``'s checkpoint claiming the never-written rest of the transfer."""
+    path = root / "slot0" / "partial.json"
+    meta = json.loads(path.read_text())
+    start = max(r[1] for r in meta["ranges"])
+    meta["ranges"].append([start, meta["length"], rng.getrandbits(32)])
+    path.write_text(json.dumps(meta))
+
+
+def _forge_old_json(root: Path, rng: random.Random) -> None:
+    """The ``partial.json`` of an older state directory (ranges without CRC-32s) claiming the whole
+    transfer, over a ``partial.bin`` whose second half was never written (a hole, as the device
+    leaves it; a copy of the directory may have filled it in)."""
+    sub = root / "slot0"
+    meta = json.loads((sub / "partial.json").read_text())
+    written = max(r[1] for r in meta["ranges"])
+    head = (sub / "partial.bin").read_bytes()[:written]
+    with open(sub / "partial.bin", "wb") as fh:
+        fh.truncate(meta["length"])
+        fh.write(head)
+    (sub / "partial.log").unlink()
+    (sub / "partial.json").write_text(
+        json.dumps({"length": meta["length"], "crc32": meta["crc32"], "ranges": [[0, meta["length"]]]})
+    )
+
+
 #: name -> (fn(root, rng), touches slot 0's committed image, touches slot 0's transfer)
 DAMAGE = {
     "img_truncated": (
@@ -89,12 +128,22 @@ DAMAGE = {
         True,
         False,
     ),
+    "img_deleted": (lambda r, g: _img(r).unlink(), True, False),
     "img_is_a_directory": (lambda r, g: (_img(r).unlink(), _img(r).mkdir()), True, False),
     "img_symlink_loop": (lambda r, g: (_img(r).unlink(), _img(r).symlink_to(_img(r).name)), True, False),
     "img_not_a_catalog": (lambda r, g: _img(r).write_bytes(pack_image(g.randbytes(3000))), True, False),
     "partial_json_garbage": (lambda r, g: (r / "slot0" / "partial.json").write_bytes(g.randbytes(200)), False, True),
     "partial_json_wrong": (
         lambda r, g: (r / "slot0" / "partial.json").write_text(g.choice(BAD_PARTIAL_JSON)),
+        False,
+        True,
+    ),
+    "partial_log_forged": (_forge_log, False, True),
+    "partial_json_forged": (_forge_json, False, True),
+    "partial_json_old_forged": (_forge_old_json, False, True),
+    "partial_log_missing": (lambda r, g: (r / "slot0" / "partial.log").unlink(), False, True),
+    "partial_log_cut": (
+        lambda r, g: (r / "slot0" / "partial.log").write_bytes((r / "slot0" / "partial.log").read_bytes() + b"\1" * 5),
         False,
         True,
     ),
@@ -116,6 +165,12 @@ DAMAGE = {
         False,
         False,
     ),
+    "slot_dir_deleted": (lambda r, g: shutil.rmtree(r / "slot0"), True, True),
+    "manifest_garbage": (
+        lambda r, g: (r / "manifest.json").write_bytes(g.randbytes(g.randrange(0, 300))),
+        False,
+        False,
+    ),
     "odd_entries": (
         lambda r, g: (
             (r / "slotX").mkdir(),
@@ -128,6 +183,10 @@ DAMAGE = {
         False,
     ),
 }
+
+
+#: damage applied after the others of a combination (it removes the files they damage)
+LAST = ("slot_dir_deleted",)
 
 
 def start_in_process(root: Path) -> tuple[Device, str]:
@@ -177,7 +236,7 @@ def _check_slots(
 
 def trial(root: Path, rng: random.Random, catalog: bytes, names: list[str], tally: Tally, process: bool) -> None:
     """Damage ``root`` (a base state) with ``names``, start a device on it and check it."""
-    for name in names:
+    for name in sorted(names, key=lambda n: n in LAST):
         DAMAGE[name][0](root, rng)
     tally.faults += len(names)
     touches_img = any(DAMAGE[n][1] for n in names)

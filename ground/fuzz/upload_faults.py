@@ -1,9 +1,10 @@
 """Transfer (upload) faults against a device holding a catalog: interrupted, corrupted,
-truncated, wrong version, out-of-order and overlapping chunks, commit without all data, data
+truncated, wrong version, out-of-order, overlapping and conflicting chunks, commit without all data, data
 out of range or without BEGIN, a device killed mid-transfer.
 
 Each scenario knows whether it must leave the active catalog as it was ("kept") or replace it
-with the image it sent ("replaced": a valid image sent out of order or in overlapping chunks).
+with the image it sent ("replaced": a valid image sent out of order or in overlapping chunks,
+or with chunks carrying other bytes over received ones in between, which are NACKed CONFLICT).
 After each one, SLOT_INFO and the state file ``slot0/active.img`` must hold exactly the
 expected image, and a PING must be answered.
 """
@@ -129,14 +130,24 @@ def commit_incomplete(c, rng, tally, image):
 
 
 def overlapping_conflicting(c, rng, tally, image):
-    """Every byte sent, then an overlapping chunk carrying other bytes (a stale retransmission)."""
+    """Part of the image sent, then chunks carrying other bytes over received ones (a stale
+    retransmission, another client's image): each NACKed CONFLICT, the received bytes kept, so
+    the rest of the image commits."""
+    pieces = _chunks(len(image))
+    half = rng.randrange(1, len(pieces))
     c.xfer_begin(SLOT, len(image), crc32(image))
-    _send(c, image, _chunks(len(image)), tally)
-    off = rng.randrange(len(image) - 16)
-    c.xfer_data(SLOT, off, bytes(b ^ 0xFF for b in image[off : off + rng.randrange(1, 3000)]))
+    _send(c, image, pieces[:half], tally)
+    received = pieces[half - 1][0] + pieces[half - 1][1]
+    for _ in range(3):  # over received bytes only, or reaching past them into missing ones
+        off = rng.randrange(received)
+        n = min(rng.randrange(1, 3000), len(image) - off)
+        _expect_nack(
+            tally, (NackReason.CONFLICT,), c.xfer_data, SLOT, off, bytes(b ^ 0xFF for b in image[off : off + n])
+        )
+    _send(c, image, pieces[half:], tally)
+    c.xfer_commit(SLOT)
     tally.messages += 2
-    _expect_nack(tally, (NackReason.CRC_MISMATCH,), c.xfer_commit, SLOT)
-    return "kept"
+    return "replaced"
 
 
 def interrupted(c, rng, tally, image):
@@ -220,7 +231,8 @@ SCENARIOS = {
         overlapping,
     )
 }
-REPLACING = ("out_of_order", "overlapping")
+REPLACING = ("out_of_order", "overlapping", "overlapping_conflicting")
+FAULTLESS = ("out_of_order", "overlapping")  #: the replacing scenarios that send no fault
 
 
 def check_state(c: Client, state: Path, expected: bytes, tally: Tally, when: str) -> None:
@@ -261,7 +273,7 @@ def run(seed: int, scenarios: int, restarts: int = 1, images: int = 3) -> Tally:
                 name = names[k] if k < len(names) else rng.choice(names)
                 image = rng.choice([g for g in goods if g != active] if name in REPLACING else goods)
                 with Client(device.path, timeout=5.0, retries=0) as c:
-                    tally.faults += name not in REPLACING
+                    tally.faults += name not in FAULTLESS
                     try:
                         outcome = SCENARIOS[name](c, rng, tally, image)
                     except LinkError as exc:
