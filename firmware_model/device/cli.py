@@ -54,6 +54,11 @@ DEFAULT_PACED_TURNAROUND_MS = 1.0  #: ours; the research documents no turnaround
 DEFAULT_EXPOSURE_MS = 100.0  #: the simulated detector's exposure (ground.sim.sensor_sim.DetectorModel)
 DEFAULT_PROCESSING_MS = 100.0  #: ours; the research documents no processing time
 DEFAULT_DEADLINE_MS = 1500.0  #: ours: flight timing's search deadline, inside the 2 s GO-to-result budget
+#: The interpreter's thread switch interval in the device (Python's default is 5 ms): the link
+#: thread waits up to this long for the GIL each time it wakes (select, read, write) while a GO
+#: sequence computes in its worker thread; it costs the worker nothing while the link is quiet
+#: (docs/ICD.md: PING p99 <= 50 ms during any GO, bench/bench_link_during_go.py).
+SWITCH_INTERVAL_S = 0.001
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -221,6 +226,7 @@ def main(argv: list[str] | None = None) -> int:
     if any(v is not None and not 0 <= v <= 60_000 for v in timed):
         parser.error("--exposure-ms, --processing-ms and --deadline-ms must be 0..60000")
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr, format="%(message)s")
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     try:
         device = build_device(args)
         link = build_link(args)
