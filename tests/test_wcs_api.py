@@ -38,6 +38,37 @@ def test_wcs_round_trips_our_camera_model_within_0p05_px(camera, tmp_path):
     assert fits.getheader(tmp_path / "f.wcs")["IMAGEW"] == camera.width
 
 
+README_SNIPPET = "from astropy.wcs import WCS; from astropy.io import fits; print(WCS(fits.getheader('frame.wcs')))"
+
+
+def test_the_wcs_file_reads_without_a_warning(tmp_path):
+    """Issue 30: astropy warned 'The WCS transformation has more axes (2) than the image it is
+    associated with (0)' on every .wcs (NAXIS = 0). The header now has two axes of length 0 (no
+    data; the image size in IMAGEW/IMAGEH), and astropy, its verifier and the README's line read it
+    with no warning at all."""
+    import warnings
+
+    from astropy.io import fits
+    from astropy.wcs import WCS
+
+    camera = CAMERAS[1]
+    path = write_wcs(tmp_path / "frame.wcs", frame_wcs(camera, Q)[0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        header = fits.getheader(path)
+        wcs = WCS(header)
+        with fits.open(path) as hdul:
+            hdul.verify("exception")
+            assert hdul[0].data is None or hdul[0].data.size == 0
+    assert (header["NAXIS"], header["NAXIS1"], header["NAXIS2"]) == (2, 0, 0)
+    assert (header["IMAGEW"], header["IMAGEH"]) == (camera.width, camera.height)
+    assert path.stat().st_size % 2880 == 0 and wcs.sip is not None  # the header blocks alone
+    run = subprocess.run(
+        [sys.executable, "-W", "error", "-c", README_SNIPPET], cwd=tmp_path, capture_output=True, text=True, timeout=60
+    )
+    assert run.returncode == 0 and run.stderr == "" and "RA---TAN-SIP" in run.stdout, run.stderr
+
+
 def test_wcs_orientation_north_and_boresight():
     camera = CAMERAS[0]
     wcs, _ = frame_wcs(camera, Q)
@@ -78,9 +109,6 @@ def test_solve_image_bad_input():
         solve_image("/nonexistent/frame.tiff", fov_deg=10.0)
 
 
-pytestmark = pytest.mark.filterwarnings("ignore:The WCS transformation has more axes")  # header-only .wcs
-
-
 @pytest.fixture(scope="module")
 def tetra3_frames(shared_data_module):
     frames = sorted((shared_data_module / "frames" / "tetra3-mono").glob("*.tiff"))
@@ -96,12 +124,9 @@ def tetra3_frame(tetra3_frames):
 
 @pytest.fixture(scope="module")
 def shared_data_module():
-    from tests.conftest import SHARED
+    from tests.conftest import SHARED, require_shared
 
-    path = SHARED / "data"
-    if not path.is_dir():
-        pytest.skip("../shared/data is absent")
-    return path
+    return require_shared(SHARED / "data")
 
 
 def test_solve_image_on_the_real_frames_and_their_wcs(tetra3_frames):

@@ -73,12 +73,24 @@ def record_wcs(record: dict, width: int, height: int, camera: CameraModel | None
 
 def write_wcs(path: str | Path, wcs) -> Path:
     """A FITS file holding only the WCS header (as astrometry.net's ``.wcs``, with its IMAGEW and
-    IMAGEH), written atomically."""
-    hdu = wcs.to_fits(relax=True)
+    IMAGEH: the image size), written atomically.
+
+    The header says ``NAXIS = 2`` with ``NAXIS1 = NAXIS2 = 0``: two axes, as the WCS has, and no data
+    array (FITS 4.0 section 4.4.1.1: a zero axis length means no data follow). astropy then reads it
+    without a warning: with ``NAXIS = 0`` (astropy's own ``to_fits``, and astrometry.net's "minimal
+    header") it warns that the WCS has more axes than the image, and with the image's size as
+    ``NAXIS1``/``NAXIS2`` the file would be a truncated image of that size (astropy warns that it may
+    have been truncated; other readers fail)."""
+    header = wcs.to_fits(relax=True)[0].header
+    header["NAXIS"] = 2
+    header.insert("NAXIS", ("NAXIS1", 0, "no data: the image width is IMAGEW"), after=True)
+    header.insert("NAXIS1", ("NAXIS2", 0, "no data: the image height is IMAGEH"), after=True)
     if wcs.pixel_shape is not None:
-        hdu[0].header["IMAGEW"], hdu[0].header["IMAGEH"] = (int(n) for n in wcs.pixel_shape)
+        width, height = (int(n) for n in wcs.pixel_shape)
+        header["IMAGEW"] = (width, "Image width,  in pixels.")
+        header["IMAGEH"] = (height, "Image height, in pixels.")
     with atomic_path(path) as tmp:
-        hdu.writeto(tmp, output_verify="exception")
+        header.tofile(tmp, overwrite=True)  # the header alone, padded to 2880 bytes (a PrimaryHDU resets NAXIS)
     return Path(path)
 
 
