@@ -1,6 +1,9 @@
-"""Shared fixtures: the read-only data in ../shared (skipped cleanly when absent); the long
-tests' markers (:data:`LONG_TESTS`)."""
+"""Shared fixtures: the read-only data in ../shared (skipped cleanly when absent, a failure under
+CI=true, where CI lays ../shared beside the clone); the [test] extra's packages (a failure when one
+cannot be imported: a broken install, never a skip); the long tests' markers (:data:`LONG_TESTS`)."""
 
+import importlib
+import os
 import threading
 import warnings
 from pathlib import Path
@@ -13,6 +16,27 @@ settings.register_profile("project", deadline=None)
 settings.load_profile("project")
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+
+
+def require_shared(path: Path) -> Path:
+    """``path`` (under ../shared) when it exists; else a clean skip, or a failure under CI=true."""
+    if path.exists():
+        return path
+    if os.environ.get("CI", "").lower() == "true":
+        pytest.fail(f"{path} is absent, and CI=true: CI lays ../shared beside the clone", pytrace=False)
+    pytest.skip(f"{path} is absent")
+
+
+def required(module: str):
+    """Import ``module``, a package the [test] extra installs: one that cannot be imported fails
+    the test (a broken install must show, not skip)."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        pytest.fail(
+            f"{module} is declared in [test] but cannot be imported ({exc}): pip install -e '.[test]'", pytrace=False
+        )
+
 
 #: Tests the default run leaves out (pyproject's ``addopts`` deselects these markers; CI runs them
 #: in a second invocation, ``-m "slow or hil or realdata"``): test name -> marker. Kept here, in
@@ -83,10 +107,7 @@ def synthetic_catalog():
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
-    path = SHARED / "data"
-    if not path.is_dir():
-        pytest.skip("../shared/data is absent")
-    return path
+    return require_shared(SHARED / "data")
 
 
 @pytest.hookimpl(tryfirst=True)

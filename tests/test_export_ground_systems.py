@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import required
 
 from ground.cli.main import main
 from ground.fuzz.device_proc import DeviceProcess
@@ -80,7 +81,7 @@ def _same(decoded, data: bytes, offset: int, dt: np.dtype) -> bool:
 
 
 def test_definitions_parse_with_openc3_and_follow_protocol(tmp_path):
-    pytest.importorskip("openc3")
+    required("openc3")
     from ground.export import model
 
     config = _packet_config(_export(tmp_path))
@@ -175,7 +176,7 @@ class Openc3Link:
 
 
 def test_openc3_interface_against_the_device_decodes_what_our_client_does(tmp_path):
-    pytest.importorskip("openc3")
+    required("openc3")
     from ground.export.openc3 import quiet_logger
 
     root = _export(tmp_path)
@@ -255,7 +256,7 @@ def test_openc3_interface_against_the_device_decodes_what_our_client_does(tmp_pa
 
 
 def test_xtce_holds_every_parameter(tmp_path):
-    pytest.importorskip("yamcs.pymdb")
+    required("yamcs.pymdb")
     from ground.export import model
 
     path = tmp_path / "st16.xml"
@@ -318,7 +319,7 @@ def test_a_missing_extra_is_named(tmp_path, capsys, monkeypatch, fmt, module):
 
 
 def test_an_openc3_without_a_needed_feature_names_its_version(tmp_path, capsys, monkeypatch):
-    pytest.importorskip("openc3")
+    required("openc3")
     from importlib.metadata import version
 
     from openc3.interfaces.protocols import crc_protocol
@@ -338,8 +339,8 @@ def test_an_openc3_without_a_needed_feature_names_its_version(tmp_path, capsys, 
 def test_docs_examples_are_what_the_exporter_writes(tmp_path):
     """docs/examples holds the generated target and XTCE; regenerate them when protocol/ changes:
     ``st16-ground export openc3 docs/examples/openc3 --force``, ``export xtce docs/examples/st16.xtce.xml --force``."""
-    pytest.importorskip("openc3")
-    pytest.importorskip("yamcs.pymdb")
+    required("openc3")
+    required("yamcs.pymdb")
     import filecmp
     import subprocess
 

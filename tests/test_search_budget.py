@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import require_shared
 from ident_sky import random_attitude, random_catalog, scene
 
 from firmware_model.camera import CameraModel
@@ -149,11 +150,11 @@ def test_the_deadline_is_flight_timing_only(capsys):
 TREE = Path(__file__).resolve().parents[2] / "shared" / "data" / "frames" / "colour-real" / "tree.jpg"
 
 
-@pytest.mark.skipif(not TREE.exists(), reason="../shared/data/frames/colour-real absent")
 def test_a_real_frame_spending_its_whole_search_gives_one_answer_under_any_clock(monkeypatch):
     """tree.jpg with its field of view only: clutter holds the brightest detections, so the optics
     search spends its counted budget (seeds or the frame's verifications); on a loaded machine
     its old 1.5 s clock ran out earlier."""
+    require_shared(TREE)
     from ground.api import solve_image
 
     fov = json.loads((TREE.parent / "reference_pointing.json").read_text())["tree.jpg"]["fov_deg"][0]

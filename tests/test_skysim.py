@@ -5,6 +5,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from conftest import required
 
 from firmware_model.camera import CameraModel
 from firmware_model.ident.budget import Stop
@@ -91,7 +92,7 @@ def test_small_seeded_colour_run_has_fixed_outcomes(colour_catalog):
 
 
 def test_executors_agree(colour_catalog):
-    LocalCluster = pytest.importorskip("dask.distributed").LocalCluster  # the [dask] extra
+    LocalCluster = required("dask.distributed").LocalCluster  # the [dask] extra
 
     cfg = replace(small_config(), n_boresights=40)
     local, _ = skysim.execute("colour", colour_catalog, CAM, cfg, 80, workers=1, chunk=25, progress=False)
