@@ -10,9 +10,9 @@ starts it) and is PINGed every ``--interval`` s (default 10 ms) while it
   a dense synthetic frame with ``--blobs`` star-like blobs, one with ``--hot`` hot pixels (both at
   the reference design's 2592 x 1944);
 * runs GOs from a ``--frames`` capture source: the real tetra3 frames of ../shared/data (skipped
-  when absent) with their datasheet camera, and a large legal image (a zlib TIFF of
-  ``--big-side``\\ ² uint16 px, under frame_readers.MAX_FRAME_PIXELS: decoded, then refused as the
-  wrong size for the camera).
+  when absent) with their datasheet camera, and large legal images (an RGB JPEG and a zlib TIFF
+  of ``--big-side``\\ ² uint16 px, under frame_readers.MAX_FRAME_PIXELS: decoded, then refused as
+  the wrong size for the camera).
 
 Per phase it prints the number of PINGs, median, p99 and max round trip (target: p99 <= 50 ms).
 Run it quiet and beside three busy loops
@@ -239,7 +239,10 @@ def real(args, env: dict[str, str], work: Path) -> None:
 
 
 def big(args, env: dict[str, str], work: Path, image: bytes) -> None:
+    """GOs from a ``--frames`` folder of two large legal images (under MAX_FRAME_PIXELS, the wrong
+    size for the camera: decoded, then BAD_FRAME): an RGB JPEG and a zlib uint16 TIFF."""
     import tifffile
+    from PIL import Image
 
     from protocol.commands import Slot
 
@@ -247,10 +250,11 @@ def big(args, env: dict[str, str], work: Path, image: bytes) -> None:
     folder = work / "big"
     folder.mkdir()
     rng = np.random.default_rng(3)
+    Image.fromarray(rng.integers(0, 256, (side * 3 // 4, side, 3), dtype=np.uint8)).save(folder / "a.jpg", quality=90)
     pixels = rng.integers(0, 4096, (side, side), dtype=np.uint16)
-    tifffile.imwrite(folder / "big.tiff", pixels, compression="zlib")
+    tifffile.imwrite(folder / "b.tiff", pixels, compression="zlib")
     del pixels
-    size = (folder / "big.tiff").stat().st_size
+    sizes = [(folder / name).stat().st_size >> 20 for name in ("a.jpg", "b.tiff")]
     dev, _ = start_device(work / "state-big", "--frames", str(folder), env=env)
     try:
         with Client(dev.path, timeout=30.0) as c:
@@ -258,7 +262,8 @@ def big(args, env: dict[str, str], work: Path, image: bytes) -> None:
             c.init()
             c.upload(Slot.CATALOG, image, progress=False)
             pinger.for_s(3.0)  # the index is built
-            go_phase(c, pinger, f"GO, {side}^2 uint16 zlib TIFF ({size >> 20} MB)")
+            go_phase(c, pinger, f"GO, {side}x{side * 3 // 4} RGB JPEG ({sizes[0]} MB)")
+            go_phase(c, pinger, f"GO, {side}^2 uint16 zlib TIFF ({sizes[1]} MB)")
     finally:
         dev.stop()
 
