@@ -22,7 +22,7 @@ def test_every_kind_of_damage_alone_and_combined_in_process():
 
 
 def test_damaged_state_gives_one_line_messages_and_a_serving_device_process():
-    tally = state_faults.run(seed=2, trials=3, process=True)  # img_bit_flips, img_empty, img_garbage
+    tally = state_faults.run(seed=2, trials=3, process=True)  # img_bit_flips, img_deleted, img_empty
     assert tally.failures == 0, tally.notes
     assert tally.messages == 9
 

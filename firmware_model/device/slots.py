@@ -63,9 +63,9 @@ IMAGE_MAGIC = b"ST16IMG1"
 _IMAGE_HEADER = struct.Struct("<8sQI")
 
 
-def pack_image(data: bytes) -> bytes:
-    """A committed image with its header (magic, length, CRC-32)."""
-    return _IMAGE_HEADER.pack(IMAGE_MAGIC, len(data), crc32(data)) + data
+def pack_image(data: bytes, crc: int | None = None) -> bytes:
+    """A committed image with its header (magic, length, CRC-32: ``crc`` if the caller has it)."""
+    return _IMAGE_HEADER.pack(IMAGE_MAGIC, len(data), crc32(data) if crc is None else crc) + data
 
 
 def unpack_image(blob: bytes) -> bytes:
@@ -334,14 +334,15 @@ class SlotStore:
             _warn(f"removing {MANIFEST}.tmp, a write that did not finish")
             _remove(self.root / (MANIFEST + ".tmp"))
         listed: dict[int, tuple[int, int]] = {}
+        damaged = False
         if path.exists() or path.is_symlink():
             try:
                 listed = _parse_manifest(json.loads(path.read_text()))
             except Exception as exc:  # noqa: BLE001 - any damage: report it, keep starting
                 _warn(f"{MANIFEST} unreadable ({type(exc).__name__}: {exc}); rebuilt from the slots found")
-                listed = {-1: (0, 0)}  # never equal to what was found: rewritten below
+                damaged = True
         for slot, (length, crc) in sorted(listed.items()):
-            if slot in self.volatile or slot in self._active or slot < 0:
+            if slot in self.volatile or slot in self._active:
                 continue
             sub = self.root / f"slot{slot}"
             if any((sub / n).exists() or (sub / n).is_symlink() for n in ("active.img", "active.bin", "active.json")):
@@ -351,7 +352,7 @@ class SlotStore:
                 f"slot {slot}: {gone} is missing, but {MANIFEST} lists a committed image of {length} bytes, "
                 f"CRC-32 0x{crc:08X}; the slot has no image"
             )
-        if self._manifest != listed:
+        if damaged or self._manifest != listed:
             try:
                 self._write_manifest()
             except OSError as exc:
@@ -367,7 +368,8 @@ class SlotStore:
         meta_path, bin_path, img = sub / "active.json", sub / "active.bin", sub / "active.img"
         if img.exists() or img.is_symlink():
             try:
-                self._install(slot, unpack_image(img.read_bytes()))
+                blob = img.read_bytes()
+                self._install(slot, unpack_image(blob), _IMAGE_HEADER.unpack_from(blob)[2])
             except ValueError as exc:
                 _warn(f"slot {slot}: active.img: {exc}; ignored, the slot has no image")
         elif meta_path.exists() or bin_path.exists():  # a state directory from before active.img
@@ -383,9 +385,10 @@ class SlotStore:
             else:
                 _warn(f"slot {slot}: active.bin fails its length/CRC-32 check; ignored")
 
-    def _install(self, slot: int, data: bytes) -> None:
+    def _install(self, slot: int, data: bytes, crc: int | None = None) -> None:
+        """``data`` is the committed image of persisted ``slot`` (its CRC-32 ``crc`` if known)."""
         self._active[slot] = data
-        self._manifest[slot] = (len(data), crc32(data))
+        self._manifest[slot] = (len(data), crc32(data) if crc is None else crc)
 
     def _load_partial(self, slot: int, sub: Path) -> None:
         """partial transfer"""
@@ -484,17 +487,19 @@ class SlotStore:
     def set_active(self, slot: int, data: bytes) -> None:
         """Persist ``data`` as the committed image of ``slot`` (atomic replace), then the manifest."""
         data = bytes(data)
-        if self._persistent(slot):
-            d = self._dir(slot)
-            _atomic_write(d / "active.img", pack_image(data))  # the commit: one rename
-            for old in ("active.json", "active.bin"):  # an older directory's pair, superseded
-                (d / old).unlink(missing_ok=True)
-            self._install(slot, data)
-            try:
-                self._write_manifest()
-            except OSError as exc:  # the image is committed; the manifest is rewritten at the next start
-                _warn(f"could not write {MANIFEST}: {exc}")
-        self._active[slot] = data
+        if not self._persistent(slot):
+            self._active[slot] = data
+            return
+        d = self._dir(slot)
+        crc = crc32(data)
+        _atomic_write(d / "active.img", pack_image(data, crc))  # the commit: one rename
+        for old in ("active.json", "active.bin"):  # an older directory's pair, superseded
+            (d / old).unlink(missing_ok=True)
+        self._install(slot, data, crc)
+        try:
+            self._write_manifest()
+        except OSError as exc:  # the image is committed; the manifest is rewritten at the next start
+            _warn(f"could not write {MANIFEST}: {exc}")
 
     # ------------------------------------------------------------------ transfers
 
@@ -572,6 +577,11 @@ class SlotStore:
         j = self._journals[tr.slot]
         if data is None:
             data = (d / "partial.bin").read_bytes()
+        if j.bin_fd is not None:  # the bytes it vouches for are on disk before the checkpoint is
+            os.fdatasync(j.bin_fd)
+        else:
+            with open(d / "partial.bin", "rb+") as fh:
+                os.fdatasync(fh.fileno())
         view = memoryview(data)
         ranges = [[a, b, zlib.crc32(view[a:b])] for a, b in tr.ranges]  # protocol.crc's, without a copy
         meta = {"format": PARTIAL_FORMAT, "length": tr.length, "crc32": tr.crc32, "ranges": ranges}
