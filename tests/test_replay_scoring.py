@@ -56,3 +56,46 @@ def test_a_malformed_or_foreign_truth_file_is_not_scored_and_says_why(tmp_path):
     truth = Truth.for_frame(tmp_path / "ok.dng", frame, said.append)
     assert truth is not None and not said and truth.stars_near(3.2, 4.1) == {7}
     assert Truth.for_frame(tmp_path / "absent.dng", frame, said.append) is None and not said
+
+
+def test_table5_with_no_frame_to_score_says_why_and_exits_2(tmp_path, capsys):
+    """Issue 30: table5 on frames without truth printed an all-zero '(0 frames)' table, exit 0."""
+    import pytest
+
+    from firmware_model.catalog.image_io import catalog_to_image
+    from firmware_model.pipeline.frame_readers import frame_files
+    from ground.analysis.replay import NothingToScore, table5
+    from ground.arg_types import InputError
+    from ground.catalog.build import build_catalog
+    from ground.catalog.design import CatalogDesign
+    from ground.cli.main import main
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(2):
+        np.save(frames / f"f{k}.npy", np.zeros((48, 64), np.uint16))
+    catalog = build_catalog(CatalogDesign(m_thresh=3.0))
+    with pytest.raises(NothingToScore, match=r"none of the 2 frames in .*frames has truth: .*<stem>\.truth\.json"):
+        table5(frame_files(frames), None, catalog, progress=False)
+    with pytest.raises(InputError, match="no frame to score"):
+        table5([], None, catalog, progress=False)
+    image = tmp_path / "cat.st16cat"
+    image.write_bytes(catalog_to_image(catalog))
+    capsys.readouterr()
+    assert main(["table5", str(frames), "--catalog", str(image)]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1 and "has truth: table5 scores frames against truth files" in err
+
+
+def test_a_star_never_measured_in_colour_has_no_mean_colour_error():
+    """Mono frames measure no colour (rg, bg NaN): table5's per-star mean colour error leaves such a
+    star out instead of numpy's 'Mean of empty slice' warning."""
+    import warnings
+
+    from ground.analysis.replay import _mean_colour_error
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _mean_colour_error([(np.nan, np.nan), (np.nan, np.nan)]) is None
+        mean = _mean_colour_error([(0.1, -0.2), (np.nan, np.nan), (0.3, 0.0)])
+    assert mean is not None and np.allclose(mean, [0.2, -0.1])

@@ -40,6 +40,7 @@ from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes
 from firmware_model.pipeline.run import PipelineParams, identify_stars, run_pipeline, warm_up
 from firmware_model.reference_frames import quat_to_matrix, rotation_angle
 from ground.analysis.results_log import ResultsLog, plot_summary, summarize
+from ground.arg_types import InputError
 from ground.atomic_write import write_text
 from ground.link.solve_report import add_setup_stages, matched_stars, record_from_output, solve_record
 
@@ -397,16 +398,19 @@ def replay(
     """Solve every frame of ``directory`` with ``solver`` (Link/OfflineSolver); log and summarise.
     Each record is on disk before the next frame starts, so an interrupted run keeps what it
     solved; ``resume`` continues it (frames already logged in ``out_dir`` are skipped). Without
-    ``resume`` an ``out_dir`` that already holds results is refused (ValueError): runs never mix.
+    ``resume`` an ``out_dir`` that already holds results is refused (InputError, exit 2): runs never mix.
     With ``wcs_camera`` (frame -> CameraModel) every solved frame's WCS goes to
     ``out_dir/wcs/NAME.wcs`` (``record["wcs"]`` names it)."""
+    from ground.arg_types import InputError
     from ground.link.client import Nack
 
+    if not Path(directory).is_dir():  # a missing input: exit 2, as every other
+        raise InputError(f"{directory}: {'not a directory' if Path(directory).exists() else 'no such directory'}")
     paths = frame_files(directory)
     log = ResultsLog(out_dir)
     done = {r.get("frame") for r in log.records()}
     if done and not resume:
-        raise ValueError(
+        raise InputError(
             f"{out_dir} already holds {len(done)} frame result(s): --resume continues that run, or choose another --out"
         )
     say = _log.warning  # above the progress bar: st16-ground's log handler writes through tqdm
@@ -477,6 +481,19 @@ def _associate(stars: StarList, truth: Truth):
     return pairs
 
 
+class NothingToScore(InputError):
+    """``table5`` was given no frame it can score (none has a truth file): ``st16-ground`` says why in
+    one line and exits 2, as for any input it cannot use."""
+
+
+def _mean_colour_error(errors: list) -> np.ndarray | None:
+    """Mean (rg, bg) error of one star over the frames where its colour was measured; None when it
+    never was (a mono frame measures no colour: its rg, bg are NaN)."""
+    e = np.array(errors, dtype=float)
+    e = e[np.isfinite(e).all(axis=1)]
+    return e.mean(axis=0) if len(e) else None
+
+
 def table5(
     paths,
     camera: CameraModel,
@@ -487,15 +504,24 @@ def table5(
     """Enright & McVittie table 5 on frames with truth: correct/incorrect matches for the basic pipeline,
     with idealised colour (each star's mean colour error over the run removed), with
     idealised geometry (each star's mean centroid error removed: the paper's chromatic
-    correction) and with both."""
+    correction) and with both. Frames without a truth file are left out; none with one raises
+    :class:`NothingToScore`."""
     ids = {int(s): k for k, s in enumerate(catalog.star_id)}
+    paths = [Path(p) for p in paths]
     runs = []
-    for path in tqdm(list(paths), desc="extract", unit="frame", disable=not progress):
+    for path in tqdm(paths, desc="extract", unit="frame", disable=not progress):
         truth = Truth.for_frame(path)
         if truth is None:
             continue
         stars = extract_stars(read_frame(path), camera, params.extract)
         runs.append((stars, truth, _associate(stars, truth)))
+    if not runs:
+        where = f" in {paths[0].parent}" if len({p.parent for p in paths}) == 1 else ""
+        missing = f"none of the {len(paths)} frames{where} has truth" if paths else "no frame to score"
+        raise NothingToScore(
+            f"table5: {missing}: table5 scores frames against truth files <stem>.truth.json beside them "
+            "(frame render and the demo write them)"
+        )
     colour_err: dict[int, list] = {}
     pos_err: dict[int, list] = {}
     for stars, truth, pairs in runs:
@@ -505,7 +531,7 @@ def table5(
             if sid in ids:
                 c = ids[sid]
                 colour_err.setdefault(sid, []).append((stars.rg[i] - catalog.rg[c], stars.bg[i] - catalog.bg[c]))
-    mean_colour = {s: np.nanmean(np.array(v), axis=0) for s, v in colour_err.items()}
+    mean_colour = {s: m for s, v in colour_err.items() if (m := _mean_colour_error(v)) is not None}
     mean_pos = {s: np.mean(np.array(v), axis=0) for s, v in pos_err.items()}
     table = {}
     for mode in TABLE5_MODES:
