@@ -66,7 +66,7 @@ def frames() -> list[dict]:
         ref = json.loads(REFERENCE.read_text())["frames"]
         scale = 3600 * np.degrees(6.9e-3 / 35.0)
         for p in sorted(t3.glob("*.tiff")):
-            ra, dec, _ = ref[p.name]
+            ra, dec = ref[p.name][:2]
             jobs.append(
                 {
                     "path": p,
@@ -294,6 +294,7 @@ def write_tetra3_reference() -> int:
             round(res[str(j["path"])]["ra"], 5),
             round(res[str(j["path"])]["dec"], 5),
             round(res[str(j["path"])]["rmse"], 2),
+            round(res[str(j["path"])]["fov"], 4),
         ]
         for j in jobs
     }
@@ -305,7 +306,7 @@ def write_tetra3_reference() -> int:
                 "independent reference for our solutions (agreement, not truth)",
                 "how": "bench/bench_realframes.py --write-tetra3-reference (runs cedar-solve in the benchmark venv .venv-peers)",
                 "frames": rows,
-                "columns": ["ra_deg", "dec_deg", "cedar_rmse_arcsec"],
+                "columns": ["ra_deg", "dec_deg", "cedar_rmse_arcsec", "cedar_fov_deg"],
             },
             indent=2,
         )
@@ -315,7 +316,7 @@ def write_tetra3_reference() -> int:
         + "\n"
     )  # one line per frame
     for name, r in rows.items():
-        print(f"{name}: RA {r[0]:.5f} Dec {r[1]:.5f} RMSE {r[2]:.2f} arcsec")
+        print(f"{name}: RA {r[0]:.5f} Dec {r[1]:.5f} RMSE {r[2]:.2f} arcsec FOV {r[3]:.4f} deg")
     print(f"written {REFERENCE}")
     return 0
 

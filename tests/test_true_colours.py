@@ -1,6 +1,7 @@
 """Open-loop colours in the whole-sky run: blackbody true colours, channel gain errors,
 scintillation, the closed loop unchanged without them, and the command line's refusals."""
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -127,13 +128,22 @@ def test_cli_refuses_out_of_range_open_loop_values_before_any_work(argv, flag, c
     assert not (tmp_path / "never").exists()
 
 
-def test_cli_runs_an_open_loop_run(capsys):
+def test_cli_open_loop_options_reach_the_simulator(capsys):
+    """The options change what is simulated, not only what is printed: colours off by a 40 %
+    gain error and 40 % scintillation leave no high-confidence solve of poses that all solve
+    with the catalog's own colours (measured 30 of 30, then 0 of 30, 29 no solution)."""
     from ground.cli.main import main
 
-    argv = ["sim", "colour", "--boresights", "20", "--rolls", "1", "--workers", "1", "--no-progress"]
-    open_loop = ["--true-colours", "blackbody", "--gain-error", "0.05", "--scintillation", "0.03"]
-    assert main([*argv, *open_loop]) == 0
-    assert "true colours: blackbody, gain error 0.05, scintillation 0.03" in capsys.readouterr().out
+    argv = ["--json", "sim", "colour", "--boresights", "20", "--rolls", "1", "--workers", "1", "--no-progress"]
+    assert main(argv) == 0
+    clean = json.loads(capsys.readouterr().out)
+    impaired_args = ["--true-colours", "blackbody", "--gain-error", "0.4", "--scintillation", "0.4"]
+    assert main([*argv, *impaired_args]) == 0
+    impaired = json.loads(capsys.readouterr().out)
+    assert (clean["true_colours"], clean["gain_error"], clean["scintillation"]) == ("catalog", 0.0, 0.0)
+    assert (impaired["true_colours"], impaired["gain_error"], impaired["scintillation"]) == ("blackbody", 0.4, 0.4)
+    assert clean["high_confidence"] == clean["poses"] == 20
+    assert impaired["high_confidence"] < 10 and impaired["high_confidence_wrong"] == 0
 
 
 def test_blackbody_colours_go_through_the_catalog_qe():
