@@ -35,6 +35,8 @@ def output_file(text: str) -> str:
     path = Path(text)
     if path.is_dir():
         raise argparse.ArgumentTypeError(f"{text} is a directory, not a file")
+    if path.parent.exists() and not path.parent.is_dir():
+        raise argparse.ArgumentTypeError(f"{path.parent} is a file, not a directory (for {text})")
     if not path.parent.is_dir():
         raise argparse.ArgumentTypeError(f"directory {path.parent} does not exist (for {text})")
     return text
@@ -50,6 +52,11 @@ SEED = ranged(int, 0, 2**63 - 1, "a seed")
 RA_DEG = ranged(float, 0.0, 360.0, "RA in degrees")
 DEC_DEG = ranged(float, -90.0, 90.0, "Dec in degrees")
 ANGLE_DEG = ranged(float, -360.0, 360.0, "an angle in degrees")
+#: ``--fov-deg`` / ``--fov-range`` everywhere: a horizontal field of view, deg; the options' help
+#: states it, their checks read it (``firmware_model.pipeline.sky_search.FOV_LIMITS_DEG``, kept
+#: equal by a test): the whole-sky search covers it, and a field catalog's half-angle on the short
+#: side of a landscape frame stays under 45 deg.
+FOV_LIMITS_DEG = (1.0, 90.0)
 
 
 def progress_on(args) -> bool:

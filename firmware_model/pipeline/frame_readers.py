@@ -105,7 +105,7 @@ def read_frame(path) -> Frame:
     """Read any supported frame file (module docstring); raises FrameReadError."""
     path = Path(path)
     if not path.is_file():
-        raise FrameReadError(f"{path}: no such file")
+        raise FrameReadError(f"{path}: {'a directory, not a frame file' if path.is_dir() else 'no such file'}")
     with open(path, "rb") as fh:
         head = fh.read(16)
     if not head:

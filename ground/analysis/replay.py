@@ -178,6 +178,12 @@ class SetupCharges:
     its first frame, reported by its next record (``add_setup_stages``)."""
 
     _setup: dict[str, float]
+    #: list every detection in a record's ``stars``, not only the result record's brightest
+    #: (``record_from_output(every_star=True)``: ``solve-file``, whose record is not a device's)
+    every_star: bool = False
+
+    def _record(self, out) -> dict:
+        return record_from_output(out, every_star=self.every_star)
 
     def charge_setup(self, **seconds: float) -> None:
         for name, value in seconds.items():
@@ -239,13 +245,13 @@ class OfflineSolver(SetupCharges):
         camera = self.camera_for(frame)
         catalog = self.catalog(camera) if callable(self.catalog) else self.catalog
         if self.site is None:
-            return record_from_output(run_pipeline(frame, camera, catalog, self.params))
+            return self._record(run_pipeline(frame, camera, catalog, self.params))
         # refraction squeezes a low field like a focal-length error: with a site, the camera is
         # taken as calibrated (no optics search), so the two are not confused
         params = replace(self.params, optics=None)
         out = run_pipeline(frame, camera, catalog, params)
         if out.stars is None or len(out.stars) < 2:
-            return record_from_output(out)
+            return self._record(out)
         if not frame.timestamp:
             raise ValueError("refraction correction needs the frame's timestamp")
         from astropy.time import Time
@@ -261,7 +267,7 @@ class OfflineSolver(SetupCharges):
             approx = identify_stars(stars, camera, catalog, replace(params, fixed_sigma_px=LOOSE_SIGMA_PX))
         q_approx = approx.solution.q_icrs_to_sensor if approx.solution is not None else None
         if q_approx is None:  # (an OK answer always has its attitude)
-            rec = record_from_output(out)
+            rec = self._record(out)
             rec["refraction"] = "not corrected: no approximate attitude"
             return rec
         vec = correct_refraction(
@@ -271,7 +277,7 @@ class OfflineSolver(SetupCharges):
             Time(frame.timestamp, scale="utc"),
         )
         corrected = identify_stars(replace(stars, vectors=vec), camera, catalog, params)
-        rec = record_from_output(corrected)
+        rec = self._record(corrected)
         rec["refraction"] = "corrected"
         return rec
 
@@ -308,7 +314,7 @@ class SkySolver(SetupCharges):
     def solve(self, frame: Frame) -> dict:
         setup = self._take_setup()
         out, report = solve_sky(frame, self.fov, self.database, self.params, self.catalog)
-        rec = add_setup_stages(record_from_output(out), **setup)
+        rec = add_setup_stages(self._record(out), **setup)
         rec["sky"] = report.to_dict()
         return rec
 

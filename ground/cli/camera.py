@@ -64,7 +64,12 @@ def _calibrate(args) -> int:
         "fov_major_deg": float(2 * np.degrees(cam.fov_half_angle_major)),
         "fov_minor_deg": float(2 * np.degrees(cam.fov_half_angle_minor)),
     }
-    print(json_text.dumps(report, indent=None if args.json else 2))
+    if args.json:
+        print(json_text.dumps(report))
+    else:
+        from ground.link.commands import render
+
+        print(render(report))
     return 0
 
 

@@ -6,9 +6,10 @@ import json
 import sys
 from dataclasses import fields
 from pathlib import Path
+from typing import NoReturn
 
 from ground import atomic_write, json_text
-from ground.arg_types import SENSOR_PX, output_file, progress_on, ranged
+from ground.arg_types import SENSOR_PX, InputError, output_file, progress_on, ranged
 from ground.catalog.design import CatalogDesign, DesignError
 from protocol.commands import Slot
 
@@ -107,9 +108,9 @@ def design_from_args(args) -> CatalogDesign:
     return CatalogDesign.from_dict(base, origin=args.design or "command line")
 
 
-def _fail(message: str) -> int:
-    print(f"st16-ground catalog: {message}", file=sys.stderr)
-    return 2
+def _fail(message: str) -> NoReturn:
+    """Bad input: one line, exit 2 (``ground.cli.main``; under ``--json`` its error document too)."""
+    raise InputError(message)
 
 
 def _print(out: dict, as_json: bool) -> None:

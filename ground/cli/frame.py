@@ -13,18 +13,18 @@ from __future__ import annotations
 
 import json
 import logging
-import sys
 from pathlib import Path
+from typing import NoReturn
 
 from ground import json_text
-from ground.arg_types import ANGLE_DEG, DEC_DEG, RA_DEG, SECONDS, SEED, SENSOR_PX, output_file, ranged
+from ground.arg_types import ANGLE_DEG, DEC_DEG, RA_DEG, SECONDS, SEED, SENSOR_PX, InputError, output_file, ranged
 
 log = logging.getLogger(__name__)
 
 
-def _fail(message: str) -> int:
-    print(f"st16-ground frame: {message}", file=sys.stderr)
-    return 2
+def _fail(message: str) -> NoReturn:
+    """Bad input: one line, exit 2 (``ground.cli.main``; under ``--json`` its error document too)."""
+    raise InputError(message)
 
 
 def register(sub) -> None:
@@ -257,21 +257,23 @@ def cmd_inspect(args) -> int:
         stars = extract_stars(frame, camera, params)
     except ValueError as exc:
         return _fail(str(exc))
-    truth = None
+    truth, matches = None, None
     tpath = Path(args.truth) if args.truth else truth_path_for(args.frame)
     if args.truth or tpath.is_file():
         try:
             truth = json.loads(tpath.read_text())
             if not isinstance(truth, dict):
                 raise ValueError("not a JSON object")
-        except (OSError, ValueError) as exc:
+            matches = _match_truth(stars, truth)
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:  # a star without "y" too
+            why = f"{type(exc).__name__}: {exc}" if isinstance(exc, (KeyError, TypeError, AttributeError)) else exc
             if args.truth:  # asked for: an error
-                return _fail(f"--truth {args.truth}: {exc}")
-            log.warning("st16-ground: %s is not a readable truth file (%s); ignored", tpath.name, exc)
-            truth = None
+                return _fail(f"--truth {args.truth}: not a readable truth file ({why})")
+            log.warning("st16-ground: %s is not a readable truth file (%s); ignored", tpath.name, why)
+            truth, matches = None, None
     records = stars.to_records()
-    if truth:
-        for rec, m in zip(records, _match_truth(stars, truth)):
+    if matches is not None:
+        for rec, m in zip(records, matches):
             rec["truth"] = m
         log.debug(
             "%s: truth for %d of %d stars", tpath.name, sum(r.get("truth") is not None for r in records), len(records)

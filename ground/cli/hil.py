@@ -11,7 +11,9 @@ Writes ``hil_log.jsonl`` (truth vs measured per update), ``summary.json`` and ``
 from __future__ import annotations
 
 import importlib.util
+import sys
 
+from ground import json_text
 from ground.arg_types import InputError, progress_on, ranged
 
 
@@ -158,13 +160,36 @@ def _plot(log, rows: list[dict], path) -> None:
     plt.close(fig)
 
 
+#: The demo passes when its final pointing error is under this, deg.
+PASS_MARK_DEG = 0.05
+
+
 def _demo(args) -> int:
-    summary = run_hil(args.out, args.duration, args.dynamics, args.seed, progress=progress_on(args))
-    for key, value in summary.items():
-        print(f"{key}: {value:.4g}" if isinstance(value, float) else f"{key}: {value}")
-    print(f"written: {args.out}/hil_log.jsonl, summary.json, hil.png")
+    import contextlib
+
+    # under --json the loop's own progress lines go to stderr: stdout is the one summary document
+    with contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext():
+        summary = run_hil(args.out, args.duration, args.dynamics, args.seed, progress=progress_on(args))
+    if args.json:
+        print(json_text.dumps({**summary, "written": [f"{args.out}/{n}" for n in _WRITTEN]}))
+    else:
+        for key, value in summary.items():
+            print(f"{key}: {value:.4g}" if isinstance(value, float) else f"{key}: {value}")
+        print(f"written: {args.out}/{', '.join(_WRITTEN)}")
     last = summary["pointing_error_deg_last"]
-    return 0 if last is not None and last < 0.05 else 1
+    if last is None:
+        print("st16-ground: hil demo failed: no pointing error measured (no solve answered)", file=sys.stderr)
+        return 1
+    if not last < PASS_MARK_DEG:
+        print(
+            f"st16-ground: hil demo failed: final pointing error {last:.3g} deg is over the {PASS_MARK_DEG} deg pass mark",
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
+_WRITTEN = ("hil_log.jsonl", "summary.json", "hil.png")
 
 
 def register(sub) -> None:

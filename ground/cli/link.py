@@ -10,6 +10,16 @@ from ground import json_text
 from ground.arg_types import InputError
 from ground.link.commands import Run, add_commands, render, report_error
 
+
+def solve_exit_code(rec: dict) -> int:
+    """A solve's exit code (``ground.cli.main.EXIT_CODES``): 0 a high-confidence attitude, 1 an
+    attitude that is not (use with care), 3 no attitude; for ``solve``, ``solve-file``, and
+    ``result`` / ``go --wait`` / ``combination``, which report one."""
+    if rec.get("q_icrs_to_sensor") is None:
+        return 3
+    return 0 if rec.get("status") == "OK" else 1
+
+
 if TYPE_CHECKING:  # the client imports numpy and pyserial: only when a command runs
     from ground.link.client import Client
 
@@ -43,7 +53,7 @@ def _handler(run: Run):
             except LinkError as exc:
                 return report_error(exc, args.json)
         print(json_text.dumps(out) if args.json else render(out))
-        return 0
+        return solve_exit_code(out) if "q_icrs_to_sensor" in out else 0  # a result: judged as a solve
 
     return handle
 

@@ -54,6 +54,24 @@ EXIT_CODES = {
 }
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with a usage error on one line (``PROG: error: MESSAGE (PROG --help: usage)``),
+    exit 2, as every other refusal of ``st16-ground``; subcommands' parsers are of this class too."""
+
+    def error(self, message: str):
+        line = f"{self.prog}: error: {message} ({self.prog} --help: usage)"
+        print(line, file=sys.stderr)
+        raise UsageError(line)
+
+
+class UsageError(SystemExit):
+    """A command line argparse refused (exit 2); ``line`` is what was printed."""
+
+    def __init__(self, line: str):
+        super().__init__(2)
+        self.line = line
+
+
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):
     """Descriptions as written; an option's help ends with its default unless the default is
     None, False or suppressed, or the help already says what it is."""
@@ -155,7 +173,7 @@ def _leaf_parsers(parser: argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="st16-ground",
         description=__doc__.splitlines()[0],
         formatter_class=HelpFormatter,
@@ -182,8 +200,26 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def check_port_url(url: str) -> None:
+    """Refuse a ``--port`` URL pyserial cannot parse (an unknown ``scheme://``, a bad option)
+    before anything is opened: :class:`InputError` (exit 2), not a traceback."""
+    import serial
+
+    try:
+        serial.serial_for_url(url, do_not_open=True)
+    except ValueError as exc:
+        raise InputError(f"--port {url}: {exc}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except UsageError as exc:  # the line is on stderr; under --json stdout has its document too
+        if "--json" in (sys.argv[1:] if argv is None else argv):
+            from ground import json_text
+
+            print(json_text.dumps({"error": "UsageError", "message": exc.line, "exit_code": 2}))
+        raise
     from serial import SerialException  # after parsing: --help and usage errors stay fast
 
     from ground.link.client import LinkError
@@ -193,22 +229,32 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         with stderr_logging(args.log_level):
+            if args.port:
+                check_port_url(args.port)
             return int(args.func(args) or 0)
     except KeyboardInterrupt:
         if args.debug:
             raise
-        print("st16-ground: interrupted", file=sys.stderr)
-        return 130
+        return _failed(args, "interrupted", "Interrupted", 130)
     except (InputError, LogWriteError, MissingExtra) as exc:  # bad input, an unwritable --log, a part not installed
         if args.debug:
             raise
-        print(f"st16-ground: {exc}", file=sys.stderr)
-        return 2
+        return _failed(args, str(exc), type(exc).__name__, 2)
     except BrokenPipeError:  # the reader went away (| head): no traceback, no second error at exit
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 1
     except (LinkError, SerialException, OSError) as exc:
         if args.debug:
             raise
-        print(f"st16-ground: {exc}", file=sys.stderr)
-        return exit_code(exc)
+        return _failed(args, str(exc), type(exc).__name__, exit_code(exc))
+
+
+def _failed(args, message: str, kind: str, code: int) -> int:
+    """A failure that ends the command: one line on stderr (``st16-ground: MESSAGE``) and its exit
+    code; under ``--json`` stdout gets its one document too, ``{"error", "message", "exit_code"}``."""
+    print(f"st16-ground: {message}", file=sys.stderr)
+    if args.json:
+        from ground import json_text
+
+        print(json_text.dumps({"error": kind, "message": message, "exit_code": code}))
+    return code

@@ -21,12 +21,15 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ground.arg_types import InputError, progress_on
+from ground.arg_types import FOV_LIMITS_DEG, InputError, progress_on
 
 if TYPE_CHECKING:  # the pipeline imports scipy: only when a command runs
     from firmware_model.camera import CameraModel
     from firmware_model.pipeline.raw_frame import Frame
     from firmware_model.pipeline.run import PipelineParams
+
+
+_FOV_TEXT = "{:g}-{:g}".format(*FOV_LIMITS_DEG)
 
 
 def add_camera_options(parser, sky: bool = False) -> None:
@@ -38,14 +41,15 @@ def add_camera_options(parser, sky: bool = False) -> None:
         group.add_argument(
             "--fov-deg",
             type=float,
-            help="horizontal field of view across the frame width, deg: a distortion-free pinhole camera per frame",
+            help=f"horizontal field of view across the frame width, deg ({_FOV_TEXT}): a distortion-free pinhole "
+            "camera per frame",
         )
         return
     group.add_argument("--camera", help="calibrated camera model JSON: no field-of-view search")
     group.add_argument(
         "--fov-deg",
         type=float,
-        help="horizontal field of view hint across the frame width, deg (1-90): the field is searched "
+        help=f"horizontal field of view hint across the frame width, deg ({_FOV_TEXT}): the field is searched "
         "from F/1.4 to 1.4 F; without a hint or range the search is blind over 5-60 deg",
     )
     group.add_argument(
@@ -53,7 +57,7 @@ def add_camera_options(parser, sky: bool = False) -> None:
         type=float,
         nargs=2,
         metavar=("LO", "HI"),
-        help="horizontal fields of view to search, deg (1-90)",
+        help=f"horizontal fields of view to search, deg ({_FOV_TEXT})",
     )
     parser.add_argument(
         "--database", help="whole-sky pattern database file (default: the user cache's, built once if missing)"
@@ -106,8 +110,9 @@ def camera_for_frames(args) -> Callable[[Frame], CameraModel]:
 
     fov = getattr(args, "fov_deg", None)
     if fov is not None:
-        if not 0.0 < fov < 180.0:
-            raise InputError(f"--fov-deg must be in (0, 180) deg, got {fov}")
+        lo, hi = FOV_LIMITS_DEG  # the range the option's help states (the sky search's: sky_field)
+        if not lo <= fov <= hi:
+            raise InputError(f"--fov-deg {fov:g} deg is outside {_FOV_TEXT} deg")
         return lambda frame: CameraModel.from_horizontal_fov(frame.width, frame.height, fov)
     try:
         camera = load_camera(args.camera)
@@ -160,12 +165,24 @@ def offline_solver(args):
         if fov is not None:
             solver = SkySolver(fov, db, params, catalog=catalog)
         else:
-            from ground.catalog.field_catalogs import sky_catalog
-
             assert camera_of is not None
-            solver = OfflineSolver(camera_of, lambda camera: sky_catalog(camera, db), params, site)
+            solver = OfflineSolver(camera_of, lambda camera: _field_catalog(camera, db), params, site)
     solver.charge_setup(**setup)
     return solver
+
+
+def _field_catalog(camera, db):
+    """The field catalog of ``camera`` (``sky_catalog``); a camera too wide for one is bad input
+    (one line, exit 2), not a traceback."""
+    from ground.catalog.design import DesignError
+    from ground.catalog.field_catalogs import sky_catalog
+
+    try:
+        return sky_catalog(camera, db)
+    except DesignError as exc:
+        raise InputError(
+            f"the camera's field of view is too wide for a field catalog ({camera.width} x {camera.height} px: {exc})"
+        ) from None
 
 
 def _site(args):

@@ -3,17 +3,16 @@ would, then upload and commit it."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 from ground import json_text
-from ground.arg_types import progress_on
+from ground.arg_types import InputError, progress_on
 from protocol.commands import Slot
 
 
 def _params_upload(args) -> int:
     from firmware_model.device.sensor_input import DeviceParams
-    from ground.cli.link import open_client, report_error
+    from ground.cli.link import open_client, render, report_error
     from ground.link.client import LinkError
     from protocol.commands import SlotRejected
 
@@ -21,15 +20,15 @@ def _params_upload(args) -> int:
     try:
         DeviceParams.from_json(data)  # refuse locally what the device would refuse
     except SlotRejected as exc:
-        print(f"st16-ground: {args.file}: {exc.message}", file=sys.stderr)
-        return 2
+        raise InputError(f"{args.file}: {exc.message}") from None
     with open_client(args) as client:
         try:
             client.upload(Slot.PARAMS, data, progress=progress_on(args))
             info = client.slot_info(Slot.PARAMS)
         except LinkError as exc:
             return report_error(exc, args.json)
-    print(json_text.dumps({"slot": 2, "active": info.active, "length": info.length, "crc32": f"0x{info.crc32:08X}"}))
+    out = {"slot": 2, "active": info.active, "length": info.length, "crc32": f"0x{info.crc32:08X}"}
+    print(json_text.dumps(out) if args.json else render(out))
     return 0
 
 

@@ -35,15 +35,22 @@ def _replay(args) -> int:
             resume=args.resume,
             wcs_camera=(lambda frame: user_camera(args, frame)) if args.wcs else None,
         )
-    except (ValueError, TimeoutError) as exc:
+    except TimeoutError as exc:  # the device did not come back: a link failure
         print(f"st16-ground: {exc}", file=sys.stderr)
-        return 1
+        return 4
     finally:
         if isinstance(solver, LinkSolver):
             solver.close()
     summary["log"] = str(Path(args.out) / "results.jsonl")
-    print(json_text.dumps(summary, indent=None if args.json else 2))
+    print(json_text.dumps(summary) if args.json else _summary_text(summary))
     return 0
+
+
+def _summary_text(summary: dict) -> str:
+    """The summary for a reader: one ``key: value`` line each (nested values as JSON)."""
+    from ground.link.commands import render
+
+    return render(summary)
 
 
 def _table5(args) -> int:

@@ -10,11 +10,10 @@ more tolerances. Both run on local cores (``--workers``) or a Dask cluster (``--
 from __future__ import annotations
 
 import logging
-import sys
 from pathlib import Path
 
 from ground import json_text
-from ground.arg_types import SEED, SENSOR_PX, progress_on, ranged
+from ground.arg_types import SEED, SENSOR_PX, InputError, progress_on, ranged
 from ground.atomic_write import atomic_path, write_text
 from ground.optional import MissingExtra
 
@@ -134,8 +133,7 @@ def run_colour(args) -> int:
         if args.boresights < 2 or args.rolls < 1:
             raise DesignError("need --boresights >= 2 and --rolls >= 1")
     except (DesignError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        raise InputError(str(exc)) from None
     catalog = build_catalog(design)
     camera = CameraModel.from_fov(args.width, args.height, args.theta_fov)
     cfg = skysim.ColourSimConfig(
@@ -229,8 +227,7 @@ def run_fourstar(args) -> int:
             source=args.source,
         )
     except (DesignError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        raise InputError(str(exc)) from None
     catalog = build_catalog(design)
     n = len(skysim.grid_boresights(args.step))
     results, lines = (

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from ground import json_text
 from ground.arg_types import InputError, output_file, progress_on
+from ground.cli.link import solve_exit_code
 from ground.cli.offline_options import offline_solver
 
 DEFAULT_RESULTS = "st16-results"
@@ -33,7 +34,7 @@ def _print_record(rec: dict, as_json: bool) -> None:
 
 
 def _solve(args) -> int:
-    from firmware_model.pipeline.frame_readers import read_frame
+    from firmware_model.pipeline.frame_readers import FrameReadError, read_frame
     from ground.analysis.replay import Truth, score
     from ground.analysis.results_log import ResultsLog
 
@@ -46,9 +47,8 @@ def _solve(args) -> int:
     if args.frame:
         try:
             frame = read_frame(args.frame)
-        except Exception as exc:
-            print(f"st16-ground: {args.frame}: {exc}", file=sys.stderr)
-            return 2
+        except FrameReadError as exc:  # it names the file
+            raise InputError(str(exc)) from None
     t0 = time.perf_counter()
     if solver is not None:
         rec = solver.solve(frame)
@@ -61,16 +61,25 @@ def _solve(args) -> int:
     if args.frame:
         rec.update(score(rec, Truth.for_frame(args.frame, frame)))
     ResultsLog(args.out).append(rec)
-    _print_record(rec, args.json)
+    written = {}
     if args.wcs and frame is not None:
-        _write_wcs(args.wcs, rec, frame, user_camera(args, frame))
-    return _exit_code(rec)
+        written["wcs"] = _write_wcs(args.wcs, rec, frame, user_camera(args, frame))
+    _print_outcome(rec, written, args.json)
+    return solve_exit_code(rec)
 
 
-def _exit_code(rec: dict) -> int:
-    if rec["q_icrs_to_sensor"] is None:
-        return 3
-    return 0 if rec["status"] == "OK" else 1  # an attitude that is not high confidence: use with care
+def _print_outcome(rec: dict, written: dict, as_json: bool) -> None:
+    """The record, and the files written beside it (``written``: kind -> a dict with ``path``, or
+    None when not written, which was said on stderr): under ``--json`` one document, the files in
+    its ``"written"`` member; else the record's text and a ``KIND: PATH (...)`` line per file."""
+    if as_json:
+        print(json_text.dumps({**rec, "written": written} if written else rec))
+        return
+    _print_record(rec, False)
+    for kind, info in written.items():
+        if info is not None:
+            note = f" ({info['note']})" if info.get("note") else ""
+            print(f"{kind}: {info['path']}{note}")
 
 
 def user_camera(args, frame):
@@ -84,8 +93,9 @@ def user_camera(args, frame):
     return camera_for_frames(args)(frame)
 
 
-def _write_wcs(path, rec: dict, frame, camera) -> None:
-    """Write the frame's WCS, or say in one line why there is none (the record is kept either way)."""
+def _write_wcs(path, rec: dict, frame, camera) -> dict | None:
+    """Write the frame's WCS (its path and a note returned), or say in one line why there is none
+    and return None (the record is kept either way)."""
     from ground.analysis.wcs import WcsError, record_wcs, write_wcs
 
     try:
@@ -93,8 +103,14 @@ def _write_wcs(path, rec: dict, frame, camera) -> None:
         write_wcs(path, wcs)
     except WcsError as exc:
         print(f"st16-ground: --wcs {path} not written: {exc}", file=sys.stderr)
-        return
-    print(f"wcs: {path} (TAN{'-SIP' if wcs.sip is not None else ''}, {err:.3f} px from the camera model)")
+        return None
+    projection = f"TAN{'-SIP' if wcs.sip is not None else ''}"
+    return {
+        "path": str(path),
+        "projection": projection,
+        "model_error_px": err,
+        "note": f"{projection}, {err:.3f} px from the camera model",
+    }
 
 
 def _solve_file(args) -> int:
@@ -104,6 +120,7 @@ def _solve_file(args) -> int:
     from ground.cli.offline_options import offline_solver
 
     solver = offline_solver(args)  # options checked, the database and --catalog loaded
+    solver.every_star = True  # no result record in between: list every detection (issue 30)
     modules_s = time.perf_counter() - t0 - sum(solver.setup_s.values())  # the rest: imports
     try:
         frame = read_frame(args.frame)
@@ -115,17 +132,23 @@ def _solve_file(args) -> int:
     solver.charge_setup(compile=modules_s + time.perf_counter() - t1 if loaded else 0.0)
     rec = solver.solve(frame)
     rec["frame"] = Path(args.frame).name
-    _print_record(rec, args.json)
     camera = user_camera(args, frame)
+    written = {}
     if args.wcs:
-        _write_wcs(args.wcs, rec, frame, camera)
+        written["wcs"] = _write_wcs(args.wcs, rec, frame, camera)
     if args.overlay:
         from ground.analysis.frame_plot import plot_identified
+        from ground.optional import MissingExtra
 
         catalog = getattr(solver, "catalog", None)
         label = "HR" if getattr(catalog, "meta", {}).get("source") == "bsc5" else "HIP"
-        print(f"overlay: {plot_identified(frame, rec, args.overlay, label=label)}")
-    return _exit_code(rec)
+        try:
+            written["overlay"] = {"path": str(plot_identified(frame, rec, args.overlay, label=label))}
+        except MissingExtra as exc:  # the solve is kept: only the drawing is missing
+            print(f"st16-ground: --overlay {args.overlay} not written: {exc}", file=sys.stderr)
+            written["overlay"] = None
+    _print_outcome(rec, written, args.json)
+    return solve_exit_code(rec)
 
 
 def _solve_on_device(args, frame):
