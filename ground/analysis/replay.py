@@ -417,7 +417,7 @@ def replay(
     done = {r.get("frame") for r in log.records()}
     if done and not resume:
         raise InputError(
-            f"{out_dir} already holds {len(done)} frame result(s): --resume continues that run, or choose another --out"
+            f"{out_dir} already holds {len(done)} frame result(s): --resume continues that run, or choose another -o/--output"
         )
     say = _log.warning  # above the progress bar: st16-ground's log handler writes through tqdm
     todo = [p for p in paths if p.name not in done]

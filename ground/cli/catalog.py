@@ -376,7 +376,9 @@ def register(sub) -> None:
     p = csub.add_parser("colours", help="plot colour ratios against spectral type (Enright & McVittie fig. 7)")
     p.add_argument("--qe", help=_QE_HELP)
     p.add_argument("--pickles", help="directory of Pickles .sed spectra")
-    p.add_argument("--plot", type=output_file, default="colour_ratios.png", help="PNG to write")
+    p.add_argument(
+        "-o", "--output", "--plot", dest="plot", type=output_file, default="colour_ratios.png", help="PNG to write"
+    )
     p.set_defaults(func=_colours)
 
     p = csub.add_parser("upload", help="upload an image to the device (resumable), verify CRC-32, commit")

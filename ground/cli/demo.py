@@ -46,7 +46,9 @@ def _warm_up(args) -> int:
 
 def register(sub) -> None:
     p = sub.add_parser("demo", help="end-to-end demo: device on a pty, catalog upload, solves over the link")
-    p.add_argument("--out", default="st16-demo", help="output folder for logs, frames and plots")
+    p.add_argument(
+        "-o", "--output", "--out", dest="out", default="st16-demo", help="output folder for logs, frames and plots"
+    )
     p.add_argument("--frames", type=int, default=6, help="frames to render and solve")
     p.add_argument("--seed", type=int, default=2026, help="render seed")
     p.set_defaults(func=_demo)

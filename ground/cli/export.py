@@ -1,10 +1,12 @@
-"""``st16-ground export openc3 DIR`` and ``export xtce FILE``: ground-system definitions generated
-from ``protocol/`` (docs/ground_systems.md). An existing non-empty DIR or existing FILE is kept
-unless ``--force``; the OpenC3 target is written beside DIR first, parsed back with openc3's own
-``PacketConfig``, and moved into place only then."""
+"""``st16-ground export openc3 DIR`` and ``export xtce FILE`` (or ``-o PATH``): ground-system
+definitions generated from ``protocol/`` (docs/ground_systems.md). An existing FILE is replaced
+(docs/cli.md "Outputs"); a DIR that holds anything is written into only with ``--force``; the
+OpenC3 target is written beside DIR first, parsed back with openc3's own ``PacketConfig``, and
+moved into place only then."""
 
 from __future__ import annotations
 
+import argparse
 import os
 import shutil
 import tempfile
@@ -20,20 +22,28 @@ def _umask() -> int:
     return mask
 
 
-def _refuse_existing(path: Path, force: bool, directory: bool) -> None:
-    if force or not path.exists():
+def _output(args, positional: str) -> Path:
+    """The output path: the positional or ``-o/--output`` (one of them)."""
+    given = [v for v in (getattr(args, positional), args.output) if v]
+    if len(given) != 1:
+        raise InputError(f"give the output once: {positional.upper()} or -o/--output")
+    return Path(given[0])
+
+
+def _refuse_existing_directory(path: Path, force: bool) -> None:
+    """docs/cli.md "Outputs": a file is replaced, a directory that holds anything is written into
+    only with ``--force`` (files of the same name replaced, the others kept)."""
+    if force or not path.exists() or (path.is_dir() and not any(path.iterdir())):
         return
-    if directory and path.is_dir() and not any(path.iterdir()):
-        return
-    what = "is not an empty directory" if directory else "exists"
-    raise InputError(f"{path} {what}: add --force to write over it")
+    what = "is not an empty directory" if path.is_dir() else "is a file, not a directory"
+    raise InputError(f"{path} {what}: add --force to write over it" if path.is_dir() else f"{path} {what}")
 
 
 def _openc3(args) -> int:
     from ground.export import model, openc3
 
-    root = Path(args.dir)
-    _refuse_existing(root, args.force, directory=True)
+    root = _output(args, "dir")
+    _refuse_existing_directory(root, args.force)
     version = openc3.check_openc3()
     root.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=f".{root.name}.", dir=root.parent) as tmp:
@@ -54,8 +64,9 @@ def _xtce(args) -> int:
     from ground.atomic_write import write_text
     from ground.export import model, xtce
 
-    path = Path(args.file)
-    _refuse_existing(path, args.force, directory=False)
+    path = _output(args, "file")
+    if path.is_dir():
+        raise InputError(f"{path} is a directory, not a file")
     text = xtce.dumps(model.build())
     write_text(path, text)
     out = {"file": str(path), "bytes": len(text.encode())}
@@ -69,7 +80,8 @@ def register(sub) -> None:
     esub = export.add_subparsers(dest="export_command", metavar="FORMAT")
     esub.required = True
     p = esub.add_parser("openc3", help="an OpenC3 COSMOS plugin tree: target, command/telemetry files, interface")
-    p.add_argument("dir", help="directory to write (created; a non-empty one needs --force)")
+    p.add_argument("dir", nargs="?", help="directory to write (created; a non-empty one needs --force); or -o DIR")
+    p.add_argument("-o", "--output", help="the same as DIR")
     p.add_argument(
         "--force",
         action="store_true",
@@ -77,6 +89,7 @@ def register(sub) -> None:
     )
     p.set_defaults(func=_openc3)
     p = esub.add_parser("xtce", help="the same space system as XTCE 1.2 (via yamcs-pymdb)")
-    p.add_argument("file", help="XTCE file to write (an existing one needs --force)")
-    p.add_argument("--force", action="store_true", help="replace an existing file")
+    p.add_argument("file", nargs="?", help="XTCE file to write (an existing one is replaced); or -o FILE")
+    p.add_argument("-o", "--output", help="the same as FILE")
+    p.add_argument("--force", action="store_true", help=argparse.SUPPRESS)  # files are replaced: kept for old scripts
     p.set_defaults(func=_xtce)

@@ -33,7 +33,9 @@ def register(sub) -> None:
     fsub.required = True
 
     p = fsub.add_parser("render", help="render a raw frame with truth from a catalog or random stars")
-    p.add_argument("--out", type=output_file, required=True, help="output frame: .dng, .fits or .npy")
+    p.add_argument(
+        "-o", "--output", "--out", dest="out", type=output_file, required=True, help="output frame: .dng, .fits or .npy"
+    )
     sky = p.add_argument_group("sky")
     sky.add_argument("--catalog", help="on-board catalog image (st16-ground catalog build)")
     sky.add_argument("--ra", type=RA_DEG, default=83.8, help="boresight RA, deg")

@@ -11,6 +11,20 @@ from ground.arg_types import InputError
 from ground.link.commands import Run, add_commands, render, report_error
 
 
+def mark_cut_reason(rec: dict) -> dict:
+    """A device result's reason fills its 96-byte field (``protocol.result.EXT_REASON_BYTES``) when
+    the text was longer: end it at its last whole word with " ..." and set ``reason_cut``, so a
+    reader never takes "fitted to a search-chosen" for the whole reason (the offline record of the
+    same frame has it all)."""
+    from protocol.result import EXT_REASON_BYTES
+
+    reason = rec.get("reason")
+    if isinstance(reason, str) and len(reason.encode()) >= EXT_REASON_BYTES - 3:  # full, but for a cut character
+        rec["reason"] = reason.rsplit(" ", 1)[0].rstrip(" ,;:(") + " ..."
+        rec["reason_cut"] = True
+    return rec
+
+
 def solve_exit_code(rec: dict) -> int:
     """A solve's exit code (``ground.cli.main.EXIT_CODES``): 0 a high-confidence attitude, 1 an
     attitude that is not (use with care), 3 no attitude; for ``solve``, ``solve-file``, and
@@ -52,6 +66,8 @@ def _handler(run: Run):
                 out = run(client, args)
             except LinkError as exc:
                 return report_error(exc, args.json)
+        if "q_icrs_to_sensor" in out:  # a result: its reason as cut by the device, and judged as a solve
+            mark_cut_reason(out)
         print(json_text.dumps(out) if args.json else render(out))
         return solve_exit_code(out) if "q_icrs_to_sensor" in out else 0  # a result: judged as a solve
 

@@ -83,7 +83,9 @@ def register(sub) -> None:
     p.add_argument("--site", help="with --offline: LAT,LON[,HEIGHT] (deg, m) of a ground site: correct refraction")
     p.add_argument("--pressure", type=float, default=1013.25, help="site pressure, hPa (with --site)")
     p.add_argument("--temperature", type=float, default=10.0, help="site temperature, deg C (with --site)")
-    p.add_argument("--out", default=DEFAULT_RESULTS, help="output directory (log, summary, plots)")
+    p.add_argument(
+        "-o", "--output", "--out", dest="out", default=DEFAULT_RESULTS, help="output directory (log, summary, plots)"
+    )
     p.add_argument(
         "--resume",
         action="store_true",

@@ -48,7 +48,7 @@ def _common(p) -> None:
     p.add_argument("--workers", type=int, default=None, help="local processes (default: all cores)")
     p.add_argument("--chunk", type=int, default=500, help="poses per task")
     p.add_argument("--scheduler", help="Dask scheduler address (tcp://host:8786) instead of local processes")
-    p.add_argument("--out", type=Path, help="directory for rows, summary and plots")
+    p.add_argument("-o", "--output", "--out", dest="out", type=Path, help="directory for rows, summary and plots")
     p.add_argument("--source", choices=("hipparcos", "bsc5"), default="hipparcos", help="source catalog")
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from ground import json_text
 from ground.arg_types import InputError, output_file, progress_on
-from ground.cli.link import solve_exit_code
+from ground.cli.link import mark_cut_reason, solve_exit_code
 from ground.cli.offline_options import offline_solver
 
 DEFAULT_RESULTS = "st16-results"
@@ -53,7 +53,7 @@ def _solve(args) -> int:
     if solver is not None:
         rec = solver.solve(frame)
     else:
-        rec = _solve_on_device(args, frame)
+        rec = mark_cut_reason(_solve_on_device(args, frame))
     rec["exchange_s"] = time.perf_counter() - t0
     rec["solve_s"] = rec["timings_s"].get("total")
     rec["time_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
@@ -174,7 +174,9 @@ def register(sub) -> None:
     p.add_argument("--catalog", help="catalog image for --offline")
     add_camera_options(p)
     add_params_option(p)
-    p.add_argument("--out", default=DEFAULT_RESULTS, help="results log directory (JSONL + CSV)")
+    p.add_argument(
+        "-o", "--output", "--out", dest="out", default=DEFAULT_RESULTS, help="results log directory (JSONL + CSV)"
+    )
     p.add_argument("--reconnect-timeout", type=float, default=30.0, help="wait this long for a silent device, s")
     p.add_argument("--wcs", type=output_file, help="write the solved frame's FITS WCS (TAN-SIP) here")
     p.set_defaults(func=_solve)
