@@ -117,7 +117,6 @@ def _solve_file(args) -> int:
     t0 = time.perf_counter()
     from firmware_model.pipeline.frame_readers import FrameReadError, read_frame
     from ground.analysis.replay import warm_up_kernels
-    from ground.cli.offline_options import offline_solver
 
     solver = offline_solver(args)  # options checked, the database and --catalog loaded
     solver.every_star = True  # no result record in between: list every detection (issue 30)
