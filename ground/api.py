@@ -163,7 +163,7 @@ def solved_image(out: PipelineOutput, camera: CameraModel, setup_s: dict[str, fl
     (``catalog``, ``compile``) the call paid before the frame, added to the record's timings."""
     from ground.link.solve_report import add_setup_stages, record_from_output
 
-    rec = add_setup_stages(record_from_output(out), **(setup_s or {}))
+    rec = add_setup_stages(record_from_output(out, every_star=True), **(setup_s or {}))
     used = out.optics.camera if out.optics is not None else (out.camera or camera)
     stars = tuple(
         IdentifiedStar(s["x"], s["y"], s["flux"], s["rg"], s["bg"], s["catalog_id"], s["residual_arcsec"])

@@ -98,6 +98,36 @@ def omega_fields(omega, covariance) -> dict:
     }
 
 
+def star_entries(out: PipelineOutput, first: int, count: int) -> np.ndarray:
+    """``count`` extension star entries (``protocol.result.EXT_STAR``) of the detections ``first``,
+    ``first + 1``, ...: position, flux, colour, the matched catalog id and residual, the saturated
+    and planet flags; entries past the last detection stay empty (catalog id -1). The result record
+    holds the first :data:`protocol.result.EXT_MAX_STARS` (the brightest); an offline solve may
+    list the rest the same way."""
+    entries = np.zeros(count, dtype=result.EXT_STAR)
+    entries["catalog_id"] = -1
+    stars, sol = out.stars, out.solution
+    if stars is None:
+        return entries
+    rows = np.arange(first, min(len(stars), first + count))
+    n = len(rows)
+    for name in ("x", "y", "flux", "rg", "bg"):
+        entries[name][:n] = getattr(stars, name)[rows]
+    entries["rg_sigma"][:n] = np.sqrt(stars.cov_colour[rows, 0, 0])
+    entries["bg_sigma"][:n] = np.sqrt(stars.cov_colour[rows, 1, 1])
+    entries["flags"][:n] = ((stars.flags[rows] & int(StarFlag.SATURATED)) != 0).astype(np.uint32) << 1
+    if sol is not None and sol.q_icrs_to_sensor is not None:
+        for k, row in enumerate(out.used[sol.matched_det]):
+            if first <= row < first + n:
+                entries["catalog_id"][row - first] = sol.matched_star_id[k]
+                entries["residual"][row - first] = sol.residuals[k]
+                entries["flags"][row - first] |= 1
+    for lab in out.planets:
+        if first <= lab.index < first + n:
+            entries["flags"][lab.index - first] |= 4 | (1 + result.BODIES.index(lab.body)) << 8
+    return entries
+
+
 def result_fields(out: PipelineOutput) -> dict:
     """Result-structure fields (dotted paths of ``protocol.result.RESULT``) for one output."""
     fields: dict = {}
@@ -120,26 +150,14 @@ def result_fields(out: PipelineOutput) -> dict:
             }
         )
     n_matched = 0
-    ext_stars = np.zeros(result.EXT_MAX_STARS, dtype=result.EXT_STAR)
-    ext_stars["catalog_id"] = -1
+    ext_stars = star_entries(out, 0, result.EXT_MAX_STARS)
     if stars is not None:
-        n_rep = min(len(stars), result.EXT_MAX_STARS)
-        for name in ("x", "y", "flux", "rg", "bg"):
-            ext_stars[name][:n_rep] = getattr(stars, name)[:n_rep]
-        ext_stars["rg_sigma"][:n_rep] = np.sqrt(stars.cov_colour[:n_rep, 0, 0])
-        ext_stars["bg_sigma"][:n_rep] = np.sqrt(stars.cov_colour[:n_rep, 1, 1])
-        ext_stars["flags"][:n_rep] = ((stars.flags[:n_rep] & int(StarFlag.SATURATED)) != 0).astype(np.uint32) << 1
         fields["ext.n_detected"] = len(stars)
-        fields["ext.n_reported"] = n_rep
+        fields["ext.n_reported"] = min(len(stars), result.EXT_MAX_STARS)
     if sol is not None and sol.q_icrs_to_sensor is not None:
         q = np.asarray(sol.q_icrs_to_sensor, dtype=float)
         rows = out.used[sol.matched_det]
         n_matched = len(rows)
-        for k, row in enumerate(rows):
-            if row < result.EXT_MAX_STARS:
-                ext_stars["catalog_id"][row] = sol.matched_star_id[k]
-                ext_stars["residual"][row] = sol.residuals[k]
-                ext_stars["flags"][row] |= 1
         matched10 = np.full(10, -1, dtype=np.int32)
         matched10[: min(10, n_matched)] = sol.matched_star_id[:10]
         fields.update(
@@ -163,9 +181,6 @@ def result_fields(out: PipelineOutput) -> dict:
                 obs_rg, obs_bg = apply_colour_correction(obs_rg, obs_bg, out.colour_beta)
             d = np.concatenate([obs_rg - sol.matched_rg, obs_bg - sol.matched_bg])
             fields["ext.colour_rms"] = float(np.sqrt(np.nanmean(d**2)))
-    for lab in out.planets:
-        if lab.index < result.EXT_MAX_STARS:
-            ext_stars["flags"][lab.index] |= 4 | (1 + result.BODIES.index(lab.body)) << 8
     if out.omega is not None and out.omega_covariance is not None:
         fields.update(omega_fields(out.omega, out.omega_covariance))
     fields["ext.n_planets"] = min(len(out.planets), 255)

@@ -2,8 +2,8 @@
 
 ``solve_record(rec)`` returns the ``--json`` form of ``st16-ground solve``: status, the
 quaternion ``q_icrs_to_sensor`` [w, x, y, z], boresight RA/Dec/roll in degrees
-(docs/CONVENTIONS.md), detected and matched counts, the matched stars (catalog id, pixel
-position, colour ratios, residual), attitude 1-sigma per sensor axis (arcsec), and the time per
+(docs/CONVENTIONS.md), detected and matched counts, the brightest detections the result holds
+(pixel position, colour ratios; catalog id and residual when matched), attitude 1-sigma per sensor axis (arcsec), and the time per
 pipeline stage. The same function serves offline runs through :func:`record_from_output`.
 :func:`result_record` adds what READ RESULT carries besides (COSMOS bits, epoch, omega and its sigma, the
 hardware section), :func:`combination_record` decodes the sections a COMBINATION returned (the
@@ -18,7 +18,7 @@ from datetime import UTC, datetime
 import numpy as np
 
 from firmware_model.ident.solver import Method
-from firmware_model.pipeline.result_fields import result_fields
+from firmware_model.pipeline.result_fields import result_fields, star_entries
 from firmware_model.pipeline.run import STAGES, PipelineOutput
 from firmware_model.reference_frames import quat_to_matrix, radec_roll_from_attitude
 from protocol import result
@@ -80,6 +80,23 @@ def _search(ext) -> dict:
     }
 
 
+def _star(s) -> dict:
+    """One extension star entry (``protocol.result.EXT_STAR``) as the record lists it."""
+    return {
+        "x": _num(s["x"]),
+        "y": _num(s["y"]),
+        "flux": _num(s["flux"]),
+        "rg": _num(s["rg"]),
+        "bg": _num(s["bg"]),
+        "rg_sigma": _num(s["rg_sigma"]),
+        "bg_sigma": _num(s["bg_sigma"]),
+        "catalog_id": int(s["catalog_id"]) if int(s["catalog_id"]) >= 0 else None,
+        "residual_arcsec": _num(s["residual"] * ARCSEC) if int(s["flags"]) & 1 else None,
+        "saturated": bool(int(s["flags"]) & 2),
+        "body": _body(int(s["flags"])),
+    }
+
+
 def solve_record(rec: np.ndarray) -> dict:
     """JSON-ready dict of a parsed result record (protocol.result.RESULT)."""
     rc = int(rec["return_code"])
@@ -113,33 +130,24 @@ def solve_record(rec: np.ndarray) -> dict:
             sigma_arcsec=[float(s * ARCSEC) for s in ext["sigma"]],
             residual_rms_arcsec=_num(ext["residual_rms"] * ARCSEC),
         )
-    for s in ext["stars"][: int(ext["n_reported"])]:
-        stars.append(
-            {
-                "x": _num(s["x"]),
-                "y": _num(s["y"]),
-                "flux": _num(s["flux"]),
-                "rg": _num(s["rg"]),
-                "bg": _num(s["bg"]),
-                "rg_sigma": _num(s["rg_sigma"]),
-                "bg_sigma": _num(s["bg_sigma"]),
-                "catalog_id": int(s["catalog_id"]) if int(s["catalog_id"]) >= 0 else None,
-                "residual_arcsec": _num(s["residual"] * ARCSEC) if int(s["flags"]) & 1 else None,
-                "saturated": bool(int(s["flags"]) & 2),
-                "body": _body(int(s["flags"])),
-            }
-        )
+    stars.extend(_star(s) for s in ext["stars"][: int(ext["n_reported"])])
     return out
 
 
-def record_from_output(out: PipelineOutput, sequence: int = 0) -> dict:
+def record_from_output(out: PipelineOutput, sequence: int = 0, every_star: bool = False) -> dict:
     """The same dict for an in-process pipeline run (offline replay); its ``timings_s`` are the
     run's own (``StageTimings.to_dict``: full precision, with the set-up stages such as the
-    pattern index that the wire's six leave out)."""
+    pattern index that the wire's six leave out). Its ``stars`` are the result record's, the
+    :data:`protocol.result.EXT_MAX_STARS` brightest detections, as a device would report them;
+    with ``every_star`` every detection (``solve-file``, ``solve_image``: no record in between),
+    so that the matched ones among them are ``n_matched``."""
     fields = result_fields(out)
     fields["ext.reason"] = out.reason.encode()[: result.EXT_REASON_BYTES]
     rec = solve_record(result.parse(result.build(fields, sequence)))
     rec["timings_s"] = out.timings.to_dict()
+    rest = len(out.stars) - result.EXT_MAX_STARS if out.stars is not None else 0
+    if every_star and rest > 0:
+        rec["stars"].extend(_star(s) for s in star_entries(out, result.EXT_MAX_STARS, rest))
     return rec
 
 
@@ -280,6 +288,19 @@ def _optics_line(o: dict) -> str:
     )
 
 
+def _listed(rec: dict) -> str:
+    """What the star list below holds when it is not every detection (a result record holds the
+    :data:`protocol.result.EXT_MAX_STARS` brightest): how many it lists and how many of those matched."""
+    stars = rec.get("stars")
+    if stars is None or len(stars) >= rec["n_detected"]:
+        return ""
+    listed = sum(s["catalog_id"] is not None for s in stars)
+    return (
+        f"; the result lists the {len(stars)} brightest detections, {listed} of them matched "
+        f"(a result record holds {result.EXT_MAX_STARS})"
+    )
+
+
 def format_record(rec: dict) -> str:
     """Lines for people from a :func:`solve_record`, :func:`result_record` or :func:`combination_record`
     (only the fields present are shown)."""
@@ -326,7 +347,7 @@ def format_record(rec: dict) -> str:
         spread = " +- [" + " ".join(f"{s:.1e}" for s in sigma) + "]" if any(sigma) else ""
         lines.append("omega [x y z] = [" + " ".join(f"{w:+.3e}" for w in rec["omega_rad_s"]) + f"]{spread} rad/s")
     if "n_detected" in rec:
-        lines.append(f"detected {rec['n_detected']}, matched {rec['n_matched']}")
+        lines.append(f"detected {rec['n_detected']}, matched {rec['n_matched']}" + _listed(rec))
     if "matching" in rec:
         m = rec["matching"]
         lines.append(
