@@ -5,13 +5,17 @@ initial value 0xFFFF, no final XOR; check value 0x6F91 for ASCII ``123456789``. 
 CRC follows the data low byte first, so running the CRC over a whole message including its two
 CRC bytes gives 0x0000.
 
-CRC-32 is zlib's (CRC-32/ISO-HDLC), used for slot images and transfers.
+CRC-32 is zlib's (CRC-32/ISO-HDLC), used for slot images and transfers. Any message followed by
+its own CRC-32, little-endian, has the CRC-32 :data:`CRC32_RESIDUE`, whatever the message: such a
+CRC-32 names no content.
 """
 
 from __future__ import annotations
 
 import binascii
 import zlib
+
+CRC32_RESIDUE = 0x2144DF1C  #: CRC-32 of any message followed by its own CRC-32, little-endian
 
 #: Bit-reversal of every byte value.
 _REVERSE8 = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))

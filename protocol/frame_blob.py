@@ -6,7 +6,7 @@ header's last field is the CRC-32 (zlib) of the header's other 48 bytes followed
 after the header. ``pattern`` codes index :data:`PATTERNS`; ``exposure`` is NaN when unknown.
 
 Version 1 (still read) put that CRC-32 in a 4-byte trailer instead. Every such blob, whatever its
-pixels, has the same whole-file CRC-32, :data:`SELF_CRC_RESIDUE` (the residue of any message
+pixels, has the same whole-file CRC-32, :data:`~protocol.crc.CRC32_RESIDUE` (the residue of any message
 followed by its own little-endian CRC-32), so a transfer's announced length and CRC-32 could not
 tell two frames of one camera apart, and an upload resumed the wrong frame's bytes.
 """
@@ -36,7 +36,6 @@ _V1_FIELDS = [
 HEADER_DTYPE = np.dtype([*_V1_FIELDS, ("crc32", "<u4")])
 HEADER_SIZE = HEADER_DTYPE.itemsize  #: 52 bytes
 V1_HEADER_DTYPE = np.dtype(_V1_FIELDS)  #: version 1: 48 bytes, the CRC-32 in a trailer
-SELF_CRC_RESIDUE = 0x2144DF1C  #: CRC-32 of any message followed by its own CRC-32, little-endian
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ from firmware_model.pipeline.frame_readers import FrameReadError, read_frame
 from firmware_model.pipeline.raw_frame import BLUE, GREEN, RED, Frame, frame_from_bytes, frame_to_bytes, pattern_codes
 from ground.sim.frame_writer import write_dng, write_frame
 from protocol import frame_blob
-from protocol.crc import crc32
+from protocol.crc import CRC32_RESIDUE, crc32
 
 
 def _frame(pattern="RGGB", shape=(48, 64), seed=0):
@@ -72,7 +72,7 @@ def test_two_frames_of_one_camera_have_different_blob_crcs_and_version_1_is_stil
     a, b = _frame("RGGB"), _frame("RGGB")
     b.pixels[0, 0] += 1
     blob_a, blob_b = frame_to_bytes(a), frame_to_bytes(b)
-    assert crc32(blob_a) != crc32(blob_b) and frame_blob.SELF_CRC_RESIDUE not in (crc32(blob_a), crc32(blob_b))
+    assert crc32(blob_a) != crc32(blob_b) and CRC32_RESIDUE not in (crc32(blob_a), crc32(blob_b))
     header = bytearray(blob_a)
     header[30] ^= 1  # the white level, in the header: covered by the CRC-32 too
     with pytest.raises(ValueError, match="CRC"):
@@ -81,7 +81,7 @@ def test_two_frames_of_one_camera_have_different_blob_crcs_and_version_1_is_stil
     v1_head["version"] = 1
     body = v1_head.tobytes() + blob_a[frame_blob.HEADER_SIZE :]
     v1 = body + crc32(body).to_bytes(4, "little")
-    assert crc32(v1) == frame_blob.SELF_CRC_RESIDUE  # what made version 1 unfit as a transfer's identity
+    assert crc32(v1) == CRC32_RESIDUE  # what made version 1 unfit as a transfer's identity
     assert np.array_equal(frame_from_bytes(v1).pixels, a.pixels)
 
 

@@ -28,7 +28,7 @@ from protocol.commands import (
     XferState,
     XferStatus,
 )
-from protocol.crc import crc32
+from protocol.crc import CRC32_RESIDUE, crc32
 
 IMAGE = bytes((i * 7 + (i >> 8)) & 0xFF for i in range(50_000))
 
@@ -47,6 +47,25 @@ def data(dev: Device, slot: int, offset: int, chunk: bytes) -> nsp.Message:
 
 def state_lines(caplog) -> list[str]:
     return [r.getMessage() for r in caplog.records if r.getMessage().startswith("state: ")]
+
+
+# --------------------------------------------------------------------------- 7: what a BEGIN resumes
+
+
+def test_a_begin_never_resumes_on_the_crc_every_self_checked_image_has():
+    """Two images of one length that each end with their own CRC-32 share the whole-image CRC-32
+    0x2144DF1C: the second BEGIN starts afresh (it resumed the first one's bytes); a BEGIN of the
+    same image with an ordinary CRC-32 still resumes."""
+    dev = Device()
+    first, second = (body + crc32(body).to_bytes(4, "little") for body in (b"A" * 5000, b"B" * 5000))
+    assert crc32(first) == crc32(second) == CRC32_RESIDUE
+    begin(dev, Slot.FRAME, first)
+    assert data(dev, Slot.FRAME, 0, first[:3000]).ack
+    assert begin(dev, Slot.FRAME, second).received == 0
+    plain = b"C" * 5004
+    begin(dev, Slot.FRAME, plain)
+    assert data(dev, Slot.FRAME, 0, plain[:3000]).ack
+    assert begin(dev, Slot.FRAME, plain).received == 3000
 
 
 # --------------------------------------------------------------------------- 6: write-once bytes

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from protocol.commands import MAX_SLOT_BYTES
-from protocol.crc import crc32
+from protocol.crc import CRC32_RESIDUE, crc32
 
 log = logging.getLogger(__name__)
 
@@ -507,9 +507,11 @@ class SlotStore:
         return self._transfers.get(slot)
 
     def begin(self, slot: int, length: int, crc: int) -> Transfer:
-        """Start a transfer, or keep the pending one if it has the same length and CRC-32."""
+        """Start a transfer, or keep the pending one if it has the same length and CRC-32 (never
+        for the CRC-32 :data:`~protocol.crc.CRC32_RESIDUE`: every image that ends with its own
+        CRC-32 has it, so it cannot tell two such images apart)."""
         current = self._transfers.get(slot)
-        if current is not None and current.length == length and current.crc32 == crc:
+        if current is not None and current.length == length and current.crc32 == crc != CRC32_RESIDUE:
             return current
         self.drop_transfer(slot)
         tr = Transfer(slot, length, crc)
