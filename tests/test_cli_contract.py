@@ -193,6 +193,7 @@ def test_hil_demo_says_why_it_failed(tmp_path, capsys, monkeypatch):
         (["solve"], "out"),
         (["sim", "colour"], "out"),
         (["demo"], "out"),
+        (["hil", "demo"], "out"),
         (["camera", "calibrate", "f.dng", "--catalog", "c"], "output"),
         (["export", "xtce"], "output"),
     ],
@@ -238,3 +239,127 @@ def test_the_field_of_view_range_is_stated_once():
     assert arg_types.FOV_LIMITS_DEG == FOV_LIMITS_DEG
     help_text = build_parser()._subparsers._group_actions[0].choices["solve-file"].format_help()
     assert help_text.count("(1-90)") == 2  # --fov-deg and --fov-range, from the one constant
+
+
+def test_json_is_one_document_from_database_frame_render_and_learn_colours(
+    files, capsys, monkeypatch, tmp_path, synthetic_catalog
+):
+    """``--json`` in the commands that used to print plain lines: the document is all of stdout."""
+    from firmware_model.catalog.image_io import catalog_to_image
+    from ground.catalog import sky_database
+    from protocol.catalog_image import parse_image
+
+    db_file = tmp_path / "sky.npz"
+    db_file.write_bytes(b"x" * 10)
+    meta = {"version": 2, "patterns": 7, "stars": 5, "faintest_mag": 8.0, "fov_deg": [5, 60], "build_s": 0.1}
+    fake = sky_database.SkyDatabase(index=None, mag=np.zeros(5), star_id=np.zeros(5), meta=meta, path=db_file)
+    monkeypatch.setattr(sky_database, "load", lambda path: fake)
+    monkeypatch.setattr(sky_database, "build", lambda progress=False: fake)
+    monkeypatch.setattr(sky_database, "save", lambda db, path: None)
+    for argv, member in (
+        (["database", "info", "--database", str(db_file)], {}),
+        (["database", "build", "--database", str(db_file)], {"built": False}),
+        (["database", "build", "--database", str(db_file), "--force"], {"built": True}),
+    ):
+        rc, out, err = run(["--json", *argv], capsys)
+        doc = json.loads(out)
+        assert rc == 0 and err == [] and doc["patterns"] == 7 and doc["bytes"] == 10, (argv, out, err)
+        assert all(doc[k] == v for k, v in member.items()), doc
+
+    rc, out, _ = run(
+        [
+            "--json",
+            "frame",
+            "render",
+            "--random",
+            "4",
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "-o",
+            str(tmp_path / "G.npy"),
+        ],
+        capsys,
+    )
+    assert rc == 0 and json.loads(out)["frame"] == str(tmp_path / "G.npy")
+
+    image = catalog_to_image(synthetic_catalog(30), created_unix=1_700_000_000)
+    (tmp_path / "cat.st16cat").write_bytes(image)
+    stars = [
+        {
+            "catalog_id": int(s["star_id"]),
+            "rg": float(s["rg"]) * 1.1,
+            "bg": float(s["bg"]) * 1.1,
+            "rg_sigma": 0.01,
+            "bg_sigma": 0.01,
+            "saturated": False,
+            "body": None,
+        }
+        for s in parse_image(image).stars[:5]
+    ]
+    (tmp_path / "results.jsonl").write_text(3 * (json.dumps({"status": "OK", "stars": stars}) + "\n"))
+    argv = ["catalog", "learn-colours", str(tmp_path), "--catalog", str(tmp_path / "cat.st16cat")]
+    rc, out, err = run(["--json", *argv, "-o", str(tmp_path / "new.st16cat")], capsys)
+    doc = json.loads(out)
+    assert rc == 0 and doc["stars_updated"] == 5 and err == []
+    assert doc["written"] == {"image": str(tmp_path / "new.st16cat"), "report": None, "plot": None}
+    rc, out, err = run(["--json", *argv, "--min-obs", "4", "-o", str(tmp_path / "no.st16cat")], capsys)
+    assert rc == 1 and json.loads(out)["written"]["image"] is None and len(err) == 1
+
+
+def test_demo_and_warm_up_json_is_one_document_and_the_steps_go_to_stderr(tmp_path, capsys, monkeypatch):
+    """``demo`` and ``warm-up`` (their work stubbed): under ``--json`` the steps' lines are on stderr
+    and stdout is the document; in text the demo's summary line, which .ci/run reads, and without
+    matplotlib it says the plots were skipped and why."""
+    import ground.cli.demo as demo
+    import ground.cli.end_to_end as end_to_end
+    from ground.catalog import sky_database
+
+    def fake_demo(out, n_frames, seed, progress):
+        print("st16 demo: output folder ...")
+        rows = [
+            {
+                "frame": "frame_00_rggb.dng",
+                "method": "lis",
+                "status": "OK",
+                "matched": 12,
+                "error_arcsec": 1.5,
+                "device_ms": 80.0,
+                "exchange_s": 0.4,
+            }
+        ]
+        return {
+            "output": str(out),
+            "frames": 1,
+            "counts": {"correct": 1, "wrong": 0, "no_match": 0},
+            "results": rows,
+            "written": {"log": f"{out}/results.jsonl", "plots": []},
+        }
+
+    monkeypatch.setattr(demo, "_kernels", lambda progress: {"seconds": 0.4, "cache": None})
+    monkeypatch.setattr(end_to_end, "run_demo", fake_demo)
+    rc, out, err = run(["--json", "demo", "-o", str(tmp_path)], capsys)
+    doc = json.loads(out)
+    assert rc == 0 and doc["counts"]["correct"] == 1 and doc["kernels"]["seconds"] == 0.4
+    assert err[0].startswith("kernels: ready in 0.4 s") and err[1] == "st16 demo: output folder ..."
+    rc, out, err = run(["demo", "-o", str(tmp_path)], capsys)
+    last = out.strip().splitlines()[-1]
+    assert rc == 0 and err == [] and last.startswith("1 of 1 frames solved correctly (wrong 0, no match 0); log ")
+    assert last.endswith(end_to_end.NO_PLOTS), last
+
+    class Db:
+        meta = {"version": 2, "patterns": 7, "stars": 5, "faintest_mag": 8.0, "fov_deg": [5, 60], "build_s": 0.1}
+        path = None
+
+        def summary(self):
+            return "sky database: 7 patterns"
+
+    monkeypatch.setattr(sky_database, "sky_database", lambda progress=False: Db())
+    rc, out, err = run(["--json", "warm-up"], capsys)
+    assert rc == 0 and json.loads(out)["database"]["patterns"] == 7 and err[0].startswith("kernels: ready")
+    rc, out, err = run(["warm-up"], capsys)
+    assert rc == 0 and out.splitlines() == [
+        "kernels: ready in 0.4 s (numba's cache: beside the modules, in __pycache__)",
+        "sky database: 7 patterns",
+    ]

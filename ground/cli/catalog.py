@@ -301,8 +301,14 @@ def _learn_colours(args) -> int:
         atomic_write.write_bytes(args.output, new_image)
         if args.plot:
             plot_learned(learned, args.plot, f"Learned colours: {results}")
-    if args.json:
-        print(json_text.dumps(report))
+    if args.json:  # one document: what was written, and the patch when --upload sends one
+        report["written"] = {
+            "image": str(args.output) if new_image is not None else None,
+            "report": str(args.report) if args.report else None,
+            "plot": str(args.plot) if args.plot and new_image is not None else None,
+        }
+        if not (args.upload and new_image is not None):
+            print(json_text.dumps(report))
     else:
         _print(learned.summary(), False)
         top = sorted(learned.updated, key=lambda s: -max(abs(v) for v in s.shift_sigma))[: args.show]
@@ -320,12 +326,13 @@ def _learn_colours(args) -> int:
     if new_image is None:
         print(f"st16-ground catalog: learn-colours: {learned.reason}; no image written", file=sys.stderr)
         return 1
-    return _upload_patch(args, image, new_image) if args.upload else 0
+    return _upload_patch(args, image, new_image, report) if args.upload else 0
 
 
-def _upload_patch(args, old: bytes, new: bytes) -> int:
+def _upload_patch(args, old: bytes, new: bytes, report: dict) -> int:
     """Send only the bytes ``new`` changes to the device's catalog (slot 3 patches slot 0 at COMMIT),
-    after checking that the device holds ``old``; verify the result."""
+    after checking that the device holds ``old``; verify the result. Under ``--json`` prints
+    ``report`` with the patch sent (``"patch"``): the command's one document."""
     from ground.cli.link import open_client, report_error
     from ground.link.client import LinkError
     from protocol.catalog_image import crc32
@@ -340,7 +347,7 @@ def _upload_patch(args, old: bytes, new: bytes) -> int:
                     f"learn-colours: the device holds catalog CRC-32 0x{held.crc32:08X}, not {args.catalog} "
                     f"(0x{crc32(old):08X}) the colours were learned for: nothing sent"
                 )
-            report = client.upload(Slot.CATALOG_PATCH, patch, progress=progress_on(args))
+            sent = client.upload(Slot.CATALOG_PATCH, patch, progress=progress_on(args))
             info = client.slot_info(Slot.CATALOG)
         except LinkError as exc:
             return report_error(exc, args.json)
@@ -348,10 +355,14 @@ def _upload_patch(args, old: bytes, new: bytes) -> int:
         return _fail(
             f"learn-colours: device catalog CRC-32 0x{info.crc32:08X} after the patch, want 0x{crc32(new):08X}"
         )
-    if not args.json:
+    ranges = len(diff_ranges(old, new))
+    if args.json:
+        patched = {"bytes": len(patch), "ranges": ranges, "image_bytes": len(new), "seconds": sent.seconds}
+        print(json_text.dumps({**report, "patch": {**patched, "crc32": f"0x{info.crc32:08X}", "verified": True}}))
+    else:
         print(
-            f"patched the device's catalog: {len(patch)} bytes sent in {len(diff_ranges(old, new))} ranges "
-            f"(the image is {len(new)}), {report.seconds:.2f} s; CRC-32 0x{info.crc32:08X} verified"
+            f"patched the device's catalog: {len(patch)} bytes sent in {ranges} ranges "
+            f"(the image is {len(new)}), {sent.seconds:.2f} s; CRC-32 0x{info.crc32:08X} verified"
         )
     return 0
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from ground import json_text
 from ground.arg_types import InputError, output_file, progress_on
 
 
@@ -20,7 +21,7 @@ def _build(args) -> int:
         except sky_database.DatabaseError as exc:
             print(f"st16-ground: {exc}: building it again", file=sys.stderr)
         else:
-            print(f"{db.summary()} (kept; --force builds it again)")
+            _say(args, db, f"{db.summary()} (kept; --force builds it again)", built=False)
             return 0
     db = sky_database.build(progress=progress_on(args))
     try:
@@ -29,7 +30,7 @@ def _build(args) -> int:
         raise InputError(
             f"sky database {path} not written ({exc.strerror or exc}); the old file is as it was"
         ) from None
-    print(db.summary())
+    _say(args, db, db.summary(), built=True)
     return 0
 
 
@@ -44,8 +45,29 @@ def _info(args) -> int:
             f"{exc}; build it with: st16-ground database build"
             + (f" --database {args.database}" if args.database else "")
         ) from None
-    print(db.summary())
+    _say(args, db, db.summary())
     return 0
+
+
+def database_doc(db) -> dict:
+    """What a loaded database holds, for ``--json`` (``summary()`` says it in one line)."""
+    m = db.meta
+    size = db.path.stat().st_size if db.path is not None and db.path.exists() else None
+    return {
+        "path": str(db.path) if db.path is not None else None,
+        "version": m["version"],
+        "patterns": m["patterns"],
+        "stars": m["stars"],
+        "faintest_mag": m["faintest_mag"],
+        "fov_deg": list(m["fov_deg"]),
+        "bytes": size,
+        "build_s": m["build_s"],
+    }
+
+
+def _say(args, db, line: str, **extra) -> None:
+    """The command's answer: ``line``, or under ``--json`` one document (``extra`` members added)."""
+    print(json_text.dumps({**database_doc(db), **extra}) if args.json else line)
 
 
 def register(sub) -> None:

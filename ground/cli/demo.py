@@ -10,17 +10,32 @@ whole-sky pattern database the offline solves search (``ground.catalog.sky_datab
 
 from __future__ import annotations
 
+import sys
+
+from ground import json_text
 from ground.arg_types import progress_on
 
 
-def _kernels(progress: bool) -> str:
-    """Load (or compile) the kernels; a line saying how long it took and where they are cached."""
+def _kernels(progress: bool) -> dict:
+    """Load (or compile) the kernels: how long it took and where they are cached."""
     from firmware_model import kernel_cache_dir
     from ground.analysis.replay import warm_up_kernels
 
     seconds = warm_up_kernels(progress=progress)
     where, _ = kernel_cache_dir()
-    return f"kernels: ready in {seconds:.1f} s (numba's cache: {where or 'beside the modules, in __pycache__'})"
+    return {"seconds": seconds, "cache": str(where) if where else None}
+
+
+def _kernels_line(kernels: dict) -> str:
+    where = kernels["cache"] or "beside the modules, in __pycache__"
+    return f"kernels: ready in {kernels['seconds']:.1f} s (numba's cache: {where})"
+
+
+def _steps_to_stderr(args):
+    """Under ``--json`` the steps' lines go to stderr: stdout is the one document."""
+    import contextlib
+
+    return contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext()
 
 
 def _demo(args) -> int:
@@ -28,19 +43,30 @@ def _demo(args) -> int:
     import os
     from pathlib import Path
 
-    from ground.cli.end_to_end import run_demo
+    from ground.cli.end_to_end import demo_exit_code, print_demo, run_demo
 
     if Path(args.out).exists() and not Path(args.out).is_dir():  # said before any wait
         raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), args.out)
-    print(_kernels(progress_on(args)), flush=True)
-    return run_demo(args.out, n_frames=args.frames, seed=args.seed, progress=progress_on(args))
+    with _steps_to_stderr(args):
+        kernels = _kernels(progress_on(args))
+        print(_kernels_line(kernels), flush=True)
+        result = run_demo(args.out, n_frames=args.frames, seed=args.seed, progress=progress_on(args))
+    if args.json:
+        print(json_text.dumps({**result, "kernels": kernels}))
+    else:
+        print_demo(result)
+    return demo_exit_code(result)
 
 
 def _warm_up(args) -> int:
     from ground.catalog.sky_database import sky_database
+    from ground.cli.database import database_doc
 
-    print(_kernels(progress_on(args)), flush=True)
-    print(sky_database(progress=progress_on(args)).summary(), flush=True)
+    with _steps_to_stderr(args):
+        kernels = _kernels(progress_on(args))
+        print(_kernels_line(kernels), flush=True)
+        db = sky_database(progress=progress_on(args))
+    print(json_text.dumps({"kernels": kernels, "database": database_doc(db)}) if args.json else db.summary())
     return 0
 
 

@@ -69,7 +69,9 @@ def stop_device(proc: subprocess.Popen[str]) -> int:
     return rc
 
 
-def run_demo(out, n_frames: int = 6, seed: int = 2026, progress: bool = True) -> int:
+def run_demo(out, n_frames: int = 6, seed: int = 2026, progress: bool = True) -> dict:
+    """Run the demo, its steps said on stdout as they end; the results (:func:`print_demo` prints
+    them for a reader, ``--json`` as they are)."""
     from ground.link.client import Client
 
     out = Path(out).resolve()
@@ -130,22 +132,61 @@ def run_demo(out, n_frames: int = 6, seed: int = 2026, progress: bool = True) ->
 
     from ground.analysis.results_log import ResultsLog
 
+    counts = summary["counts"]
+    return {
+        "output": str(out),
+        "frames": summary["frames"],
+        "counts": {k: counts.get(k, 0) for k in ("correct", "wrong", "no_match")} | counts,
+        "results": [
+            {
+                "frame": rec["frame"],
+                "method": rec.get("method"),
+                "status": rec.get("status", rec["outcome"]),
+                "matched": rec.get("n_matched", 0),
+                "error_arcsec": None if rec.get("attitude_error_deg") is None else rec["attitude_error_deg"] * 3600,
+                "device_ms": (rec.get("solve_s") or 0) * 1e3,
+                "exchange_s": rec.get("exchange_s", 0),
+            }
+            for rec in ResultsLog(out).records()
+        ],
+        "written": {
+            "catalog": str(out / "catalog.st16cat"),
+            "frames": str(frames_dir),
+            "log": str(out / "results.jsonl"),
+            "summary": str(out / "summary.json"),
+            "plots": list(summary["plots"]),
+        },
+    }
+
+
+#: The demo's summary line when there are no plots: the core install leaves out matplotlib.
+NO_PLOTS = "plots skipped (matplotlib not installed: pip install 'colour-st16[plots]')"
+
+
+def print_demo(result: dict) -> None:
+    """The demo's answer for a reader: a table of the frames and the summary line (.ci/run reads
+    its start, ``N of N frames solved correctly (wrong 0, no match 0)``)."""
     print()
     print(
         f"{'frame':<22}{'method':<11}{'status':<16}{'matched':>8}{'error (arcsec)':>16}{'device (ms)':>13}"
         f"{'exchange (s)':>14}"
     )
-    for rec in ResultsLog(out).records():
-        err = rec.get("attitude_error_deg")
+    for row in result["results"]:
+        err = row["error_arcsec"]
         print(
-            f"{rec['frame']:<22}{rec.get('method') or '-':<11}{rec.get('status', rec['outcome']):<16}"
-            f"{rec.get('n_matched', 0):>8}{'-' if err is None else f'{err * 3600:.2f}':>16}"
-            f"{(rec.get('solve_s') or 0) * 1e3:>13.1f}{rec.get('exchange_s', 0):>14.2f}"
+            f"{row['frame']:<22}{row['method'] or '-':<11}{row['status']:<16}"
+            f"{row['matched']:>8}{'-' if err is None else f'{err:.2f}':>16}"
+            f"{row['device_ms']:>13.1f}{row['exchange_s']:>14.2f}"
         )
-    counts = summary["counts"]
+    counts, written = result["counts"], result["written"]
+    plots = written["plots"]
     print(
-        f"\n{counts.get('correct', 0)} of {summary['frames']} frames solved correctly "
-        f"(wrong {counts.get('wrong', 0)}, no match {counts.get('no_match', 0)}); "
-        f"log {out / 'results.jsonl'}, plots {', '.join(Path(p).name for p in summary['plots'])} in {out}"
+        f"\n{counts['correct']} of {result['frames']} frames solved correctly "
+        f"(wrong {counts['wrong']}, no match {counts['no_match']}); log {written['log']}, "
+        + (f"plots {', '.join(Path(p).name for p in plots)} in {result['output']}" if plots else NO_PLOTS)
     )
-    return 0 if counts.get("wrong", 0) == 0 else 1
+
+
+def demo_exit_code(result: dict) -> int:
+    """0 when no frame was solved wrongly, else 1."""
+    return 0 if result["counts"]["wrong"] == 0 else 1

@@ -197,7 +197,9 @@ def register(sub) -> None:
     hsub = p.add_subparsers(dest="hil_command", metavar="ACTION")
     hsub.required = True
     d = hsub.add_parser("demo", help="Basilisk (or a numpy stand-in) slews to a target on the tracker's attitude")
-    d.add_argument("--out", default="st16-hil", help="output folder for the log, summary and plot")
+    d.add_argument(
+        "-o", "--output", "--out", dest="out", default="st16-hil", help="output folder for the log, summary and plot"
+    )
     d.add_argument(
         "--duration", type=ranged(float, 2.0, 3600.0, "a duration in s"), default=30.0, help="seconds of loop"
     )
