@@ -4,17 +4,20 @@ interface built from the generated ``plugin.txt`` talks to a running ``st16-devi
 what our own client decodes, the XTCE parses back with every parameter, and bad input is refused
 in one line. The openc3 and yamcs-pymdb tests skip without the ``[ground-systems]`` extra."""
 
+import enum
 import importlib.util
+import re
 import shlex
 import struct
 import sys
 import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import numpy as np
 import pytest
-from conftest import required
+from conftest import SHARED, require_shared, required
 
 from ground.cli.main import main
 from ground.fuzz.device_proc import DeviceProcess
@@ -122,35 +125,61 @@ def test_definitions_parse_with_openc3_and_follow_protocol(tmp_path):
 # ----------------------------------------------------------------------------- end to end
 
 
-class Openc3Link:
-    """The interface and protocol stack that the generated plugin.txt declares, built as COSMOS's
-    interface microservice builds it (class from file name, arguments as written), on ``port``;
-    packets built from the generated command definitions, replies identified and decoded by the
-    generated telemetry definitions."""
+def render_plugin(text: str, values: dict[str, str]) -> str:
+    """plugin.txt as COSMOS renders it on install (Ruby ERB with the VARIABLEs as local
+    variables): the subset the generated file uses, ``<%= name %>`` and one level of
+    ``<% if name == "value" %>`` / ``<% else %>`` / ``<% end %>``; anything else fails."""
+    variables = {w[1]: w[2] for w in map(shlex.split, text.splitlines()) if w[:1] == ["VARIABLE"]}
+    assert set(values) <= set(variables), set(values) - set(variables)
+    variables.update(values)
+    out, taking = [], []
+    for line in text.splitlines():
+        if m := re.fullmatch(r'<% if (\w+) == "([^"]*)" %>', line.strip()):
+            assert not taking, "nested condition"
+            taking.append(variables[m[1]] == m[2])
+        elif line.strip() == "<% else %>":
+            taking[-1] = not taking[-1]
+        elif line.strip() == "<% end %>":
+            taking.pop()
+        elif all(taking):
+            line = re.sub(r"<%= (\w+) %>", lambda m: variables[m[1]], line)
+            assert "<%" not in line, line
+            out.append(line)
+    assert not taking
+    return "\n".join(out) + "\n"
 
-    def __init__(self, root: Path, port: str):
+
+class Openc3Link:
+    """The interface and protocol stack that the generated plugin.txt declares for the variables
+    ``values`` (rendered as COSMOS renders it), built as COSMOS's interface microservice builds
+    it (class from file name, arguments as written: the read timeout too); packets built from
+    the generated command definitions, replies identified and decoded by the generated telemetry
+    definitions. Interface OPTIONs are kept in :attr:`options`, not applied: the keep-alive PING
+    goes through COSMOS's command API, which needs a server."""
+
+    def __init__(self, root: Path, values: dict[str, str]):
         from openc3.packets.telemetry import Telemetry
         from openc3.top_level import get_class_from_module
         from openc3.utilities.string import filename_to_class_name, filename_to_module
 
         self.config = _packet_config(root)
         self.telemetry = Telemetry(self.config, None)
-        text = (root / "plugin.txt").read_text()
-        variables = {w[1]: w[2] for w in map(shlex.split, text.splitlines()) if w[:1] == ["VARIABLE"]}
-        variables["port"] = port
-        for name, value in variables.items():
-            text = text.replace(f"<%= {name} %>", value)
+        text = render_plugin((root / "plugin.txt").read_text(), values)
         self.lib = str(root / "targets" / TARGET / "lib")
         sys.path.insert(0, self.lib)  # COSMOS puts a target's lib/ on the path
         self.interface = None
+        self.interfaces, self.options = [], []
         for words in map(shlex.split, text.splitlines()):
-            if words[:1] not in (["INTERFACE"], ["PROTOCOL"]):
-                continue
-            klass = get_class_from_module(filename_to_module(words[2]), filename_to_class_name(words[2]))
-            if words[0] == "INTERFACE":
-                self.interface = klass(*words[3:-1], "10.0")  # a read timeout instead of blocking for ever
-            else:
+            if words[:1] == ["INTERFACE"]:
+                self.interfaces.append(words)
+                klass = get_class_from_module(filename_to_module(words[2]), filename_to_class_name(words[2]))
+                self.interface = klass(*words[3:])
+            elif words[:1] == ["OPTION"]:
+                self.options.append(words[1:])
+            elif words[:1] == ["PROTOCOL"]:
+                klass = get_class_from_module(filename_to_module(words[2]), filename_to_class_name(words[2]))
                 self.interface.add_protocol(klass, words[3:], words[1])
+        assert len(self.interfaces) == 1, self.interfaces  # the link variable picks one
         self.interface.connect()
 
     def send(self, name: str, **values):
@@ -176,13 +205,51 @@ class Openc3Link:
         sys.path.remove(self.lib)
 
 
-def test_openc3_interface_against_the_device_decodes_what_our_client_does(tmp_path):
+LINKS = {"serial": ("--pty",), "tcp": ("--tcp", "127.0.0.1:0")}
+
+
+def _values(link: str, path: str) -> dict[str, str]:
+    """plugin.txt's variables for a device serving ``path`` (a pty, or socket://HOST:PORT)."""
+    if link == "serial":
+        return {"link": "serial", "port": path}
+    url = urlsplit(path)
+    assert url.scheme == "socket" and url.hostname and url.port, path
+    return {"link": "tcp", "host": url.hostname, "tcp_port": str(url.port)}
+
+
+def test_plugin_declares_both_links_with_a_finite_read_timeout_and_a_keepalive(tmp_path):
+    required("openc3")
+    from ground.export.openc3 import PROTOCOLS
+
+    root = _export(tmp_path)
+    text = (root / "plugin.txt").read_text()
+    for link, file in (("serial", "serial_interface.py"), ("tcp", "tcpip_client_interface.py")):
+        rendered = render_plugin(text, {"link": link})
+        (interface,) = [shlex.split(line) for line in rendered.splitlines() if line.startswith("INTERFACE")]
+        assert interface[2] == f"openc3/interfaces/{file}"
+        write_timeout, read_timeout = map(float, interface[-2:])  # both interfaces end with them
+        assert 0 < read_timeout < 60 and write_timeout > 0
+        (option,) = [shlex.split(line) for line in rendered.splitlines() if "PERIODIC_CMD" in line]
+        assert option[:3] == ["OPTION", "PERIODIC_CMD", "DONT_LOG"] and option[4] == f"{TARGET} PING"
+        assert 0 < float(option[3]) < read_timeout  # the keep-alive comes before the timeout
+        assert [w[2] for w in map(shlex.split, rendered.splitlines()) if w[:1] == ["PROTOCOL"]] == [
+            path for path, _ in PROTOCOLS
+        ]
+    assert "nil" not in render_plugin(text, {}).split("INTERFACE", 1)[1].split("\n", 1)[0]
+
+
+@pytest.mark.parametrize("link", LINKS)
+def test_openc3_interface_against_the_device_decodes_what_our_client_does(tmp_path, link):
+    """Over a pty (the serial interface) and over TCP (``st16-device --tcp 127.0.0.1:0``, the
+    TCP client interface): the same plugin.txt, its link variable set."""
     required("openc3")
     from ground.export.openc3 import quiet_logger
 
     root = _export(tmp_path)
-    with DeviceProcess("--pty") as device, quiet_logger():
-        link = Openc3Link(root, device.path)
+    transport = link
+    with DeviceProcess(*LINKS[transport]) as device, quiet_logger():
+        values = _values(transport, device.path)
+        link = Openc3Link(root, values)
         try:
             boot = link.command("PING")
             assert boot.packet_name == "PING_REPLY"
@@ -228,12 +295,17 @@ def test_openc3_interface_against_the_device_decodes_what_our_client_does(tmp_pa
         assert decoded_first["EXT_MAGIC"] == result.EXT_MAGIC
         assert whole.read("EXT_REASON") == rec["ext"]["reason"].decode() != ""
 
-        # COMBINATION: a sequence, then one message per section (the extension joined from 2 parts)
-        link = Openc3Link(root, device.path)
+        # COMBINATION: a sequence, then one packet per section bit (the extension joined from 2
+        # parts), nothing more (the next packet is the next command's); a mask of 0: one
+        # empty COMBINATION_REPLY (the target's README says so)
+        link = Openc3Link(root, values)
         try:
             mask = 0x0001 | 0x0002 | 0x0004 | 0x1000
-            link.send("COMBINATION_MASK_BYTES3", GO_CODE=GO_OPERATIONAL, MASK=mask)
-            sections = {p.packet_name: p for p in (link.receive() for _ in range(4))}
+            link.send("COMBINATION_MASK_BYTES3", GO_CODE=GO_OPERATIONAL, MASK=mask & 0xFFFF, MASK_HIGH=mask >> 16)
+            sections = {p.packet_name: p for p in (link.receive() for _ in range(bin(mask).count("1")))}
+            assert link.command("PING").packet_name == "PING_REPLY"
+            empty = link.command("COMBINATION_MASK_BYTES3", GO_CODE=0, MASK=0, MASK_HIGH=0)
+            assert empty.packet_name == "COMBINATION_REPLY" and len(empty.buffer) == 3
         finally:
             link.close()
         with Client(device.path) as client:
@@ -253,6 +325,30 @@ def test_openc3_interface_against_the_device_decodes_what_our_client_does(tmp_pa
     assert len(ext.buffer) == 5 + result.EXTENSION.itemsize
 
 
+def test_the_target_readme_says_what_the_operator_must_know(tmp_path):
+    """README.md of the plugin: the packets a COMBINATION returns per mask bit (the end-to-end
+    test checks them on a device), the MASK / MASK_HIGH split, how lib/nsp_protocol.py loads."""
+    required("openc3")
+    from firmware_model.device.sequence import RESULT_PART
+    from ground.export.openc3 import DEVICE_PART
+
+    assert DEVICE_PART == RESULT_PART
+    root = _export(tmp_path)
+    text = (root / "README.md").read_text()
+    telemetry = _packet_config(root).telemetry[TARGET]
+    rows = re.findall(r"^\| 0x([0-9A-F]{4}) \| `(\w+)` \| 0x([0-9A-F]{3}) \| (\d+) \| (\d+) \|$", text, re.M)
+    assert len(rows) == len(result.SECTIONS)
+    for mask, name, address, length, parts in rows:
+        assert result.SECTIONS[int(mask, 16)] == (int(address, 16), int(length))
+        assert telemetry[name].items["ADDRESS"].id_value == int(address, 16)
+        assert int(parts) == -(-int(length) // RESULT_PART)
+    assert "one telemetry packet per bit set in the mask" in text
+    assert "`MASK = mask & 0xFFFF` and `MASK_HIGH = mask >> 16`" in text
+    assert max(result.SECTIONS) <= 0xFFFF  # so MASK_HIGH is 0, as the README says
+    assert "`targets/ST16/lib/nsp_protocol.py`" in text and "PROTOCOL" in text and "NspProtocol" in text
+    assert "scalar_last" in text
+
+
 # ----------------------------------------------------------------------------- XTCE
 
 
@@ -262,11 +358,6 @@ def test_xtce_holds_every_parameter(tmp_path):
 
     path = tmp_path / "st16.xml"
     assert main(["export", "xtce", str(path)]) == 0
-    schema = _packaged_xtce_schema()
-    if schema is not None:  # none of the installed packages ships one (checked: see docs/ground_systems.md)
-        import xmlschema
-
-        xmlschema.XMLSchema(schema).validate(str(path))
     ns = {"x": "http://www.omg.org/spec/XTCE/20180204"}
     tree = ET.parse(path).getroot()
     system = model.build()
@@ -284,11 +375,55 @@ def test_xtce_holds_every_parameter(tmp_path):
     assert {c.get("name") for c in tree.findall(".//x:MetaCommand", ns)} == {p.name for p in system.commands}
 
 
-def _packaged_xtce_schema() -> Path | None:
-    for site in map(Path, sys.path):
-        for xsd in site.glob("*/**/SpaceSystem*.xsd") if site.is_dir() else ():
-            return xsd
-    return None
+XTCE_SCHEMA = SHARED / "data" / "xtce" / "SpaceSystemV1.2.xsd"
+
+
+def test_xtce_validates_against_the_xtce_1_2_schema(tmp_path, capsys):
+    """0 errors against the OMG schema (there were 26: every command's CODE initialValue was
+    the code's name, an enum member as yamcs-pymdb writes it), said by the export itself."""
+    required("yamcs.pymdb")
+    required("xmlschema")
+    schema = require_shared(XTCE_SCHEMA)
+    from ground.export import model, xtce
+
+    path = tmp_path / "st16.xml"
+    assert main(["export", "xtce", str(path), "--schema", str(schema)]) == 0
+    assert capsys.readouterr().out.strip().endswith(f"0 errors against {schema.name}")
+    assert xtce.schema_errors(path.read_text(), schema) == []
+    import xmlschema
+
+    xmlschema.XMLSchema(str(schema)).validate(str(path))  # and as xmlschema's own validate sees it
+    # the command codes are numbers in the file, each its command's
+    ns = {"x": "http://www.omg.org/spec/XTCE/20180204"}
+    types = {t.get("name"): t for t in ET.parse(path).getroot().iterfind(".//x:IntegerArgumentType", ns)}
+    for p in model.build().commands:
+        (code,) = [f for f in p.fields if f.name == "CODE"]
+        assert types[f"{p.name}__CODE"].get("initialValue") == str(code.default)
+    # no field of the description holds an enum member (a writer may spell it by its name)
+    for p in model.build().commands + model.build().telemetry:
+        for f in p.fields:
+            assert not isinstance(f.default, enum.Enum) and not isinstance(f.id_value, enum.Enum), (p.name, f.name)
+
+
+def test_an_xtce_that_breaks_the_schema_is_refused_naming_its_first_errors(tmp_path, capsys, monkeypatch):
+    required("yamcs.pymdb")
+    schema = require_shared(XTCE_SCHEMA)
+    from ground.export import xtce
+
+    dumps = xtce.dumps
+
+    def broken(system, name=xtce.SYSTEM):  # the bug of issue 31: initialValue="PING"
+        return re.sub(r'(name="PING__CODE"[^>]*initialValue=)"\d+"', r'\1"PING"', dumps(system, name))
+
+    monkeypatch.setattr(xtce, "dumps", broken)
+    path = tmp_path / "st16.xml"
+    assert main(["export", "xtce", str(path), "--schema", str(schema)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("st16-ground: XTCE not written: 1 errors against")
+    assert "(PING__CODE): attribute initialValue='PING'" in err
+    assert not path.exists() and list(tmp_path.iterdir()) == []
+    assert main(["export", "xtce", str(path), "--schema", str(tmp_path / "none.xsd")]) == 2
+    assert "no such file" in capsys.readouterr().err
 
 
 # ----------------------------------------------------------------------------- bad input
@@ -351,6 +486,8 @@ def test_docs_examples_are_what_the_exporter_writes(tmp_path):
         run = subprocess.run([sys.executable, "-m", "ground.cli", "export", *args], capture_output=True, text=True)
         assert run.returncode == 0, run.stderr
     assert (tmp_path / "st16.xtce.xml").read_bytes() == (docs / "st16.xtce.xml").read_bytes()
+    written = sorted(str(p.relative_to(tmp_path / "openc3")) for p in (tmp_path / "openc3").rglob("*"))
+    assert sorted(str(p.relative_to(docs / "openc3")) for p in (docs / "openc3").rglob("*")) == written
     for path in (docs / "openc3").rglob("*"):
         if path.is_file():
             assert filecmp.cmp(path, tmp_path / "openc3" / path.relative_to(docs / "openc3"), shallow=False), path

@@ -1,25 +1,19 @@
 """``st16-ground export openc3 DIR`` and ``export xtce FILE`` (or ``-o PATH``): ground-system
 definitions generated from ``protocol/`` (docs/ground_systems.md). An existing FILE is replaced
-(docs/cli.md "Outputs"); a DIR that holds anything is written into only with ``--force``; the
-OpenC3 target is written beside DIR first, parsed back with openc3's own ``PacketConfig``, and
-moved into place only then."""
+(docs/cli.md "Outputs"); a DIR that holds anything is replaced (whole, never merged into) only
+with ``--force``. Both are written beside their target first (the OpenC3 target parsed back with
+openc3's own ``PacketConfig``, the XTCE validated against the XTCE 1.2 schema when it is found)
+and renamed into place only then (``ground.export.staging``): a killed export leaves no output or
+a whole one."""
 
 from __future__ import annotations
 
 import argparse
-import os
-import shutil
-import tempfile
+import sys
 from pathlib import Path
 
 from ground import json_text
 from ground.arg_types import InputError
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def _output(args, positional: str) -> Path:
@@ -31,8 +25,8 @@ def _output(args, positional: str) -> Path:
 
 
 def _refuse_existing_directory(path: Path, force: bool) -> None:
-    """docs/cli.md "Outputs": a file is replaced, a directory that holds anything is written into
-    only with ``--force`` (files of the same name replaced, the others kept)."""
+    """docs/cli.md "Outputs": a file is replaced, a directory that holds anything is replaced
+    (whole, never merged into) only with ``--force``."""
     if force or not path.exists() or (path.is_dir() and not any(path.iterdir())):
         return
     what = "is not an empty directory" if path.is_dir() else "is a file, not a directory"
@@ -40,17 +34,14 @@ def _refuse_existing_directory(path: Path, force: bool) -> None:
 
 
 def _openc3(args) -> int:
-    from ground.export import model, openc3
+    from ground.export import model, openc3, staging
 
     root = _output(args, "dir")
     _refuse_existing_directory(root, args.force)
     version = openc3.check_openc3()
-    root.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix=f".{root.name}.", dir=root.parent) as tmp:
-        openc3.write_target(Path(tmp), model.build())
-        n_cmd, n_tlm = openc3.validate(Path(tmp))
-        Path(tmp).chmod(0o777 & ~_umask())  # TemporaryDirectory's 0700 would make the target private
-        shutil.copytree(tmp, root, dirs_exist_ok=True)
+    with staging.staged(root, args.force, directory=True) as tmp:
+        openc3.write_target(tmp, model.build())
+        n_cmd, n_tlm = openc3.validate(tmp)
     out = {"dir": str(root), "openc3": version, "commands": n_cmd, "telemetry": n_tlm}
     print(
         json_text.dumps(out)
@@ -60,17 +51,39 @@ def _openc3(args) -> int:
     return 0
 
 
+SHOWN_ERRORS = 3  #: schema errors a refused XTCE export names
+
+
 def _xtce(args) -> int:
-    from ground.atomic_write import write_text
-    from ground.export import model, xtce
+    from ground.export import model, staging, xtce
 
     path = _output(args, "file")
     if path.is_dir():
         raise InputError(f"{path} is a directory, not a file")
+    try:
+        schema = xtce.find_schema(args.schema)
+    except FileNotFoundError as exc:
+        raise InputError(str(exc)) from None
     text = xtce.dumps(model.build())
-    write_text(path, text)
-    out = {"file": str(path), "bytes": len(text.encode())}
-    print(json_text.dumps(out) if args.json else f"wrote {path}: XTCE 1.2, {out['bytes']} bytes")
+    if schema is not None:
+        errors = xtce.schema_errors(text, schema)
+        if errors:  # a bug of the exporter, not bad input: exit 1, nothing written
+            first = "; ".join(errors[:SHOWN_ERRORS])
+            message = f"XTCE not written: {len(errors)} errors against {schema}; first: {first}"
+            print(f"st16-ground: {message}", file=sys.stderr)
+            if args.json:
+                print(json_text.dumps({"error": "XtceInvalid", "message": message, "exit_code": 1}))
+            return 1
+    with staging.staged(path, True, directory=False) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    out = {
+        "file": str(path),
+        "bytes": len(text.encode()),
+        "schema": str(schema) if schema else None,
+        "schema_errors": 0 if schema else None,
+    }
+    checked = f"0 errors against {schema.name}" if schema else "not validated: no XTCE schema found (--schema XSD)"
+    print(json_text.dumps(out) if args.json else f"wrote {path}: XTCE 1.2, {out['bytes']} bytes, {checked}")
     return 0
 
 
@@ -85,11 +98,17 @@ def register(sub) -> None:
     p.add_argument(
         "--force",
         action="store_true",
-        help="write into a non-empty directory (files of the same name are replaced, others kept)",
+        help="replace a non-empty directory (whole: nothing of it is kept)",
     )
     p.set_defaults(func=_openc3)
     p = esub.add_parser("xtce", help="the same space system as XTCE 1.2 (via yamcs-pymdb)")
     p.add_argument("file", nargs="?", help="XTCE file to write (an existing one is replaced); or -o FILE")
     p.add_argument("-o", "--output", help="the same as FILE")
     p.add_argument("--force", action="store_true", help=argparse.SUPPRESS)  # files are replaced: kept for old scripts
+    p.add_argument(
+        "--schema",
+        metavar="XSD",
+        help="XTCE 1.2 schema to validate against before writing (default: ../shared/data/xtce/"
+        "SpaceSystemV1.2.xsd of a checkout, when there); an invalid export is refused",
+    )
     p.set_defaults(func=_xtce)

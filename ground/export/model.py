@@ -12,6 +12,7 @@ OpenC3 and XTCE count bits.
 
 from __future__ import annotations
 
+import enum
 import re
 import struct
 from collections.abc import Iterator, Mapping
@@ -46,6 +47,16 @@ class Field:
     id_value: int | None = None  #: identifies the packet
     overlap: bool = False  #: a bit field inside another field
     default: Any = None  #: commands: the value sent unless given
+
+    def __post_init__(self) -> None:
+        # Plain numbers only: a writer may spell an enum member by its name (yamcs-pymdb wrote
+        # the code ``Code.PING`` as initialValue="PING", which the XTCE schema refuses).
+        for name in ("id_value", "default"):
+            value = getattr(self, name)
+            if isinstance(value, enum.Enum):
+                object.__setattr__(self, name, value.value)
+        if any(isinstance(v, enum.Enum) for v in self.states.values()):
+            object.__setattr__(self, "states", {k: int(v) for k, v in self.states.items()})
 
 
 @dataclass(frozen=True)
