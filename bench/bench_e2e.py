@@ -118,9 +118,9 @@ def part_a(n: int, workers: int, seed: int, out: Path) -> None:
 def part_b(n: int, out: Path) -> None:
     from firmware_model.camera import CameraModel
     from firmware_model.catalog.image_io import catalog_to_image
-    from ground.cli.end_to_end import pick_attitudes, start_device, stop_device
     from ground.link.client import Client
     from ground.link.solve_report import solve_record
+    from ground.sim.device_process import pick_attitudes, start_device, stop_device
     from ground.sim.frame_writer import write_frame
     from ground.sim.sensor_sim import DetectorModel, render_frame
     from ground.sim.sky_model import sky_stars

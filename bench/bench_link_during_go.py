@@ -93,7 +93,7 @@ def demo_catalog_image() -> bytes:
 def rendered_frame():
     from firmware_model.camera import CameraModel
     from firmware_model.catalog.image_io import catalog_from_image
-    from ground.cli.end_to_end import pick_attitudes
+    from ground.sim.device_process import pick_attitudes
     from ground.sim.sensor_sim import DetectorModel, render_frame
     from ground.sim.sky_model import sky_stars
 

@@ -33,8 +33,8 @@ from bench_timing import _catalog_and_attitudes, _ready_ms, _sky_args
 
 from firmware_model.catalog.image_io import catalog_to_image
 from firmware_model.device.slots import SlotStore
-from ground.cli.end_to_end import start_device, stop_device
 from ground.link.client import Client
+from ground.sim.device_process import start_device, stop_device
 from protocol import result
 from protocol.commands import Slot
 

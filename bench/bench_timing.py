@@ -8,7 +8,7 @@ A. GO -> result ready for each capture source, each its own ``st16-device --pty`
    (2 shared cores) falls on every source alike; ``frames`` is the baseline the others are read
    against. Budget: p99 <= 300 ms. ``realistic``: ``--sky --timing realistic`` (result held until
    100 ms exposure + 100 ms processing after GO), the cadence a flight computer would see.
-B. The HIL loop (``ground.cli.hil``): update rate with a minimal COMBINATION mask at paced
+B. The HIL loop (``ground.hil.run``): update rate with a minimal COMBINATION mask at paced
    115 200 baud, and latency from exposure mid-time to the result at the host.
 
     .venv/bin/python bench/bench_timing.py [--n 100] [--sources frames,sky,feed] [--skip-hil]
@@ -36,7 +36,7 @@ def _catalog_and_attitudes(n: int):
     from firmware_model.camera import CameraModel
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
-    from ground.cli.end_to_end import pick_attitudes
+    from ground.sim.device_process import pick_attitudes
 
     cat = build_catalog(CatalogDesign())
     return cat, pick_attitudes(cat, CameraModel.reference_design(), n, np.random.default_rng(15))
@@ -101,9 +101,9 @@ class _Feeder:
 
 def _feed_args(atts, work: Path) -> list:
     """Device options for a UDP feed turning at 0.2 deg/s about sensor x, and (last) the feeder."""
-    from ground.cli.hil import _free_udp_port
+    from ground.hil.run import free_udp_port
 
-    url = f"udp://127.0.0.1:{_free_udp_port()}"
+    url = f"udp://127.0.0.1:{free_udp_port()}"
     return ["--attitude-feed", url, _Feeder(url, atts[0], np.radians([0.2, 0.0, 0.0]))]
 
 
@@ -117,9 +117,9 @@ def _ready_ms(client) -> float:
 
 def part_a(n: int, sources: list[str], n_frames: int) -> None:
     from firmware_model.catalog.image_io import catalog_to_image
-    from ground.cli.end_to_end import start_device, stop_device
     from ground.link.client import Client
     from ground.link.solve_report import solve_record
+    from ground.sim.device_process import start_device, stop_device
 
     cat, atts = _catalog_and_attitudes(n_frames)
     image = catalog_to_image(cat)
@@ -171,7 +171,7 @@ def part_a(n: int, sources: list[str], n_frames: int) -> None:
 
 
 def part_b(duration_s: float, dynamics: str, out: Path) -> None:
-    from ground.cli.hil import run_hil
+    from ground.hil.run import run_hil
 
     s = run_hil(out, duration_s, dynamics, progress=True)
     print(f"\nB. HIL closed loop, {s['duration_s']:g} s, {s['dynamics']}, {s['link']}, COMBINATION mask {s['mask']}")

@@ -533,9 +533,9 @@ def test_device_cli_solves_along_a_fed_path(tmp_path):
     from firmware_model.catalog.image_io import catalog_to_image
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
-    from ground.cli.end_to_end import pick_attitudes, start_device, stop_device
     from ground.link.client import Client
     from ground.link.solve_report import solve_record
+    from ground.sim.device_process import pick_attitudes, start_device, stop_device
 
     cam = CameraModel.reference_design()
     catalog = build_catalog(CatalogDesign())

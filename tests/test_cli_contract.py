@@ -167,7 +167,7 @@ def test_solve_file_json_is_one_document_with_the_files_written(files, capsys, m
 
 
 def test_hil_demo_says_why_it_failed(tmp_path, capsys, monkeypatch):
-    import ground.cli.hil as hil
+    import ground.hil.run as hil
 
     summary = {"updates": 57, "pointing_error_deg_first": 4.003, "pointing_error_deg_last": 0.648}
     monkeypatch.setattr(hil, "run_hil", lambda *a, **kw: dict(summary))

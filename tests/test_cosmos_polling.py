@@ -15,9 +15,9 @@ from firmware_model.catalog.image_io import catalog_to_image
 from firmware_model.reference_frames import matrix_to_quat
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
-from ground.cli.end_to_end import pick_attitudes, start_device, stop_device
 from ground.link.client import Client
 from ground.link.solve_report import solve_record
+from ground.sim.device_process import pick_attitudes, start_device, stop_device
 from protocol import result
 
 POLL_S = 0.1  # the COSMOS driver's practice (docs/ICD.md, timing): every 100 ms

@@ -18,9 +18,9 @@ from ground.analysis.replay import TABLE5_MODES, OfflineSolver, replay, table5
 from ground.calibration.corrections import ColourCorrection
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
-from ground.cli.end_to_end import pick_attitudes, start_device, stop_device
 from ground.link.client import Client
 from ground.link.solve_report import solve_record
+from ground.sim.device_process import pick_attitudes, start_device, stop_device
 from ground.sim.frame_writer import write_rendered
 from ground.sim.sensor_sim import DetectorModel, Stars, render_frame
 from ground.sim.sky_model import sky_stars

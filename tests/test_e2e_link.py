@@ -18,10 +18,11 @@ from firmware_model.camera import CameraModel
 from firmware_model.catalog.image_io import catalog_to_image
 from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes
 from ground.analysis.replay import LinkSolver, Truth, replay, score
+from ground.arg_types import InputError
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
-from ground.cli.end_to_end import pick_attitudes, start_device, stop_device
 from ground.link.client import Client, Nack
+from ground.sim.device_process import pick_attitudes, start_device, stop_device
 from ground.sim.frame_writer import write_rendered
 from ground.sim.sensor_sim import DetectorModel, render_frame
 from ground.sim.sky_model import sky_stars
@@ -239,7 +240,7 @@ def test_replay_refuses_to_mix_runs_and_resumes_where_it_stopped(scene, tmp_path
         for f in (p, p.with_name(p.stem + ".truth.json")):
             (first / f.name).symlink_to(f)
     replay(first, solver, out, progress=False, make_plots=False)
-    with pytest.raises(ValueError, match="--resume"):
+    with pytest.raises(InputError, match="--resume"):
         replay(scene["frames"], solver, out, progress=False, make_plots=False)
     summary = replay(scene["frames"], solver, out, progress=False, make_plots=False, resume=True)
     log = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]

@@ -64,7 +64,7 @@ MIN_OK = 5  #: OK answers the loop runs on for
 def test_short_closed_loop_through_the_paced_device(tmp_path, kind, monkeypatch):
     if kind == "basilisk":
         required("Basilisk")
-    from ground.cli.hil import run_hil
+    from ground.hil.run import run_hil
     from ground.sim import hil_loop
 
     # the demo's loop, told to run on until MIN_OK answers (hang guards: 10 min, 60 s a COMBINATION)

@@ -13,7 +13,7 @@ from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.pipeline.run import run_pipeline
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
-from ground.cli.end_to_end import pick_attitudes
+from ground.sim.device_process import pick_attitudes
 from ground.sim.sensor_sim import DetectorModel, render_frame
 from ground.sim.sky_model import sky_stars
 from protocol.result import Status

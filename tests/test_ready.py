@@ -81,7 +81,7 @@ def scene():
     from firmware_model.catalog.image_io import catalog_from_image, catalog_to_image
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
-    from ground.cli.end_to_end import pick_attitudes
+    from ground.sim.device_process import pick_attitudes
     from ground.sim.sensor_sim import DetectorModel, render_frame
     from ground.sim.sky_model import sky_stars
 

@@ -109,9 +109,9 @@ def test_real_frames_solve_through_the_cli(tetra3, camera, tmp_path):
 
 
 def test_device_and_offline_replay_give_the_same_answers(tetra3, tmp_path):
-    from ground.cli.end_to_end import start_device, stop_device
     from ground.link.client import Client
     from ground.link.solve_report import solve_record
+    from ground.sim.device_process import start_device, stop_device
 
     params = tmp_path / "params.json"
     params.write_text(json.dumps({"mode": "geometric", "max_verifications": 200, "max_seeds": 48}))

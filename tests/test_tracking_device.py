@@ -17,8 +17,8 @@ from firmware_model.pipeline.run import PipelineParams
 from firmware_model.pipeline.tracking_run import frame_time
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
-from ground.cli.end_to_end import pick_attitudes
 from ground.link.solve_report import METHODS, format_record, result_record
+from ground.sim.device_process import pick_attitudes
 from ground.sim.exposure import ExposureRenderer
 from ground.sim.sensor_sim import DetectorModel
 from ground.sim.smear import SmearPSF

@@ -8,9 +8,6 @@ the output folder it names; the device's state directory is a temporary folder.
 
 from __future__ import annotations
 
-import signal
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -19,54 +16,15 @@ import numpy as np
 
 from firmware_model.camera import CameraModel
 from firmware_model.catalog.image_io import catalog_to_image
-from firmware_model.reference_frames import attitude_from_radec_roll
 from ground.analysis.replay import LinkSolver, replay
 from ground.atomic_write import write_bytes
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
+from ground.sim.device_process import pick_attitudes, start_device, stop_device
 from ground.sim.frame_writer import write_rendered
 from ground.sim.sensor_sim import DetectorModel, render_frame
 from ground.sim.sky_model import sky_stars
 from protocol.commands import Slot
-
-#: A demo frame shows at least this many catalog stars (a "well-populated field").
-MIN_CATALOG_STARS = 8
-
-
-def pick_attitudes(catalog, camera: CameraModel, n: int, rng) -> list[np.ndarray]:
-    """``n`` random attitudes whose field holds at least MIN_CATALOG_STARS catalog stars."""
-    out: list[np.ndarray] = []
-    radius = np.arctan(np.hypot(camera.width, camera.height) / 2 / camera.f)
-    while len(out) < n:
-        ra, dec, roll = rng.uniform(0, 2 * np.pi), np.arcsin(rng.uniform(-1, 1)), rng.uniform(0, 2 * np.pi)
-        a = attitude_from_radec_roll(ra, dec, roll)
-        near = catalog.stars_within(a[2], radius)
-        x, y = camera.vector_to_pixel(catalog.vec[near] @ a.T)
-        if np.count_nonzero(camera.in_frame(x, y)) >= MIN_CATALOG_STARS:
-            out.append(a)
-    return out
-
-
-def start_device(state_dir: Path, *extra: str) -> tuple[subprocess.Popen[str], str]:
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "firmware_model.device.cli", "--pty", "--state", str(state_dir), *extra],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    assert proc.stdout is not None  # stdout=PIPE
-    line = proc.stdout.readline().strip()
-    if not line.startswith("listening on "):
-        proc.kill()
-        raise RuntimeError(f"device did not start: {line!r}")
-    return proc, line[len("listening on ") :]
-
-
-def stop_device(proc: subprocess.Popen[str]) -> int:
-    proc.send_signal(signal.SIGTERM)
-    rc = proc.wait(timeout=30)
-    if proc.stdout is not None:  # start_device's pipe
-        proc.stdout.close()
-    return rc
 
 
 def run_demo(out, n_frames: int = 6, seed: int = 2026, progress: bool = True) -> dict:

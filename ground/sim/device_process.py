@@ -1,0 +1,57 @@
+"""A device process for the ground's runs (the demo, the HIL loop, tests and benchmarks):
+``st16-device --pty`` started as a child and stopped; and attitudes worth rendering, whose field
+holds enough catalog stars."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from firmware_model.camera import CameraModel
+from firmware_model.reference_frames import attitude_from_radec_roll
+
+#: A rendered frame shows at least this many catalog stars (a "well-populated field").
+MIN_CATALOG_STARS = 8
+
+
+def pick_attitudes(catalog, camera: CameraModel, n: int, rng) -> list[np.ndarray]:
+    """``n`` random attitudes whose field holds at least MIN_CATALOG_STARS catalog stars."""
+    out: list[np.ndarray] = []
+    radius = np.arctan(np.hypot(camera.width, camera.height) / 2 / camera.f)
+    while len(out) < n:
+        ra, dec, roll = rng.uniform(0, 2 * np.pi), np.arcsin(rng.uniform(-1, 1)), rng.uniform(0, 2 * np.pi)
+        a = attitude_from_radec_roll(ra, dec, roll)
+        near = catalog.stars_within(a[2], radius)
+        x, y = camera.vector_to_pixel(catalog.vec[near] @ a.T)
+        if np.count_nonzero(camera.in_frame(x, y)) >= MIN_CATALOG_STARS:
+            out.append(a)
+    return out
+
+
+def start_device(state_dir: Path, *extra: str) -> tuple[subprocess.Popen[str], str]:
+    """``st16-device --pty --state STATE_DIR EXTRA...`` as a child: (the process, its pty) once it
+    says ``listening on``."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "firmware_model.device.cli", "--pty", "--state", str(state_dir), *extra],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None  # stdout=PIPE
+    line = proc.stdout.readline().strip()
+    if not line.startswith("listening on "):
+        proc.kill()
+        raise RuntimeError(f"device did not start: {line!r}")
+    return proc, line[len("listening on ") :]
+
+
+def stop_device(proc: subprocess.Popen[str]) -> int:
+    """SIGTERM, and its exit code."""
+    proc.send_signal(signal.SIGTERM)
+    rc = proc.wait(timeout=30)
+    if proc.stdout is not None:  # start_device's pipe
+        proc.stdout.close()
+    return rc
