@@ -307,7 +307,8 @@ def device_port(tmp_path):
     stop_all()
 
 
-def test_learned_colours_patch_the_device_catalog_verified_and_persisted(tmp_path, image, device_port, capsys):
+@pytest.mark.parametrize("as_json", [False, True], ids=["text", "json"])
+def test_learned_colours_patch_the_device_catalog_verified_and_persisted(tmp_path, image, device_port, capsys, as_json):
     from ground.cli.main import main
     from protocol.crc import crc32
 
@@ -316,10 +317,16 @@ def test_learned_colours_patch_the_device_catalog_verified_and_persisted(tmp_pat
     (tmp_path / "cat.st16cat").write_bytes(image)
     _write_log(tmp_path / "results.jsonl", image, 4)
     assert main(["--port", port, "catalog", "upload", str(tmp_path / "cat.st16cat")]) == 0
+    capsys.readouterr()
     out = tmp_path / "learned.st16cat"
     argv = ["--port", port, "catalog", "learn-colours", str(tmp_path), "--catalog", str(tmp_path / "cat.st16cat")]
-    assert main([*argv, "-o", str(out), "--upload"]) == 0
-    assert "verified" in capsys.readouterr().out
+    assert main(["--json"] * as_json + [*argv, "-o", str(out), "--upload"]) == 0
+    text = capsys.readouterr().out
+    if as_json:  # one document: the report, what was written and the patch sent
+        doc = json.loads(text)
+        assert doc["written"]["image"] == str(out) and doc["patch"]["verified"] and doc["stars_updated"] == 5
+    else:
+        assert "verified" in text
     new = out.read_bytes()
     assert device._objects[0].rg[0] == parse_image(new).stars["rg"][0]
     stop()
@@ -328,6 +335,8 @@ def test_learned_colours_patch_the_device_catalog_verified_and_persisted(tmp_pat
     # the same learning again: the device no longer holds the image it was learned for
     assert main([*argv, "-o", str(tmp_path / "again.st16cat"), "--upload"]) == 2
     assert "not " in capsys.readouterr().err
+    assert main(["--json", *argv, "-o", str(tmp_path / "again.st16cat"), "--upload"]) == 2
+    assert json.loads(capsys.readouterr().out)["exit_code"] == 2  # the error's document alone, not the report too
 
 
 def test_a_bad_or_interrupted_patch_leaves_the_old_catalog(tmp_path, image, device_port):
