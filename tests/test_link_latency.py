@@ -22,7 +22,10 @@ from ground.link.client import Client
 from protocol import result
 from protocol.commands import Slot
 
-BOUND_S = 0.5  #: the longest a PING or the COMMIT may take (the index build takes ~4 s here)
+BOUND_S = 0.5  #: the longest a PING may take
+#: the longest the COMMIT may take: it parses the 2.9 MB image (~10 ms) and writes it with an fsync;
+#: building the index here as well would take 2.6 s or more (~4 s of building, in another process)
+COMMIT_BOUND_S = 1.5
 CAMERA = CameraModel.from_focal(1024, 768, 35.0, 6.9)  # the tetra3 test camera's datasheet optics
 
 
@@ -65,7 +68,7 @@ def test_pings_are_answered_during_the_index_build_and_a_dense_frame_go(catalog_
             c.init()
             c.upload(Slot.CATALOG, catalog_image, progress=False, commit=False)
             reply, commit_s = timed(lambda: c.xfer_commit(Slot.CATALOG))
-            assert reply.active and commit_s < BOUND_S, commit_s
+            assert reply.active and commit_s < COMMIT_BOUND_S, commit_s
             during_build = []
             t_end = time.monotonic() + 2.0
             while time.monotonic() < t_end:
