@@ -176,7 +176,7 @@ def run(seed: int, rounds: int, recovery_s: float = RECOVERY_S, flood_recovery_s
     from firmware_model.catalog.image_io import catalog_to_image
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
-    from ground.cli.end_to_end import pick_attitudes
+    from ground.sim.device_process import pick_attitudes
 
     rng = random.Random(seed)
     tally, times = Tally(), {"single": list[float](), "flood": list[float]()}
