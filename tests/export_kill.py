@@ -263,7 +263,7 @@ def _summary(label: str, records: list[dict]) -> str:
         bool(r.get("next_rc", 0) or r.get("next_state", "new") != "new" or r.get("next_siblings")) for r in killed
     )
     return (
-        f"{label}: {len(killed)} killed: "
+        f"{label}: {len(killed)} of {len(records)} runs killed (the others had finished): "
         + ", ".join(f"{n} {s}" for s, n in states.items())
         + f"; {left} left a staging sibling; next run failed or left something in {bad_next}"
     )

@@ -249,3 +249,40 @@ def test_a_device_run_in_both_orders(field):
         assert np.allclose(order.to_wire(rec["ext"]["quaternion"]), rec["quaternion"], atol=1e-15)
         assert np.allclose(order.from_wire(rec["matching"][0]["quaternion"]), q, atol=1e-15)
         assert rec["statistics"]["good_rows"][0] == CAMERA.height
+
+
+# ------------------------------------------------------------------ the documented one-line upload
+
+
+def test_the_documented_quaternion_order_upload_sets_scalar_last(tmp_path, capsys):
+    """docs/ICD.md (top and section 10.2) and docs/ground_systems.md give COSMOS driver users one
+    line that sets the order; that line, run against a device, makes its results scalar last."""
+    import re
+    import shlex
+    from pathlib import Path
+
+    docs = Path(__file__).resolve().parents[1] / "docs"
+    lines = set()
+    for name in ("ICD.md", "ground_systems.md"):
+        found = re.findall(
+            r"echo '(\{[^']*\})' > ([\w.]+) && st16-ground --port URL params upload ([\w.]+)", (docs / name).read_text()
+        )
+        assert found, name
+        lines.update(found)
+    ((document, written, uploaded),) = lines  # the same line everywhere
+    assert written == uploaded
+    (tmp_path / written).write_text(document + "\n")  # what `echo` writes
+    from ground.fuzz.device_proc import DeviceProcess
+
+    with DeviceProcess("--pty", "--state", str(tmp_path / "state")) as device:
+        with Client(device.path, timeout=guards.REPLY_S) as c:
+            c.init()
+            before = hardware_record(c.go_and_wait(timeout=30))["quaternion_order"]
+        argv = shlex.split(f"--port {device.path} params upload {tmp_path / written}")
+        assert ground_main(argv) == 0
+        capsys.readouterr()
+        with Client(device.path, timeout=guards.REPLY_S) as c:
+            rec = c.go_and_wait(timeout=30)
+    assert before == QuaternionOrder.SCALAR_FIRST.value  # the default
+    assert hardware_record(rec)["quaternion_order"] == QuaternionOrder.SCALAR_LAST.value
+    assert int(rec["hardware"]["status"]) >> 8 & 1 == 1  # bit 8, as the docs say
