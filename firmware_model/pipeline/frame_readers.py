@@ -94,6 +94,10 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 #: refuses a header claiming more before it decodes or allocates anything (a damaged TIFF asked for
 #: 464 GiB; a 335-byte JPEG claiming 13 000 x 13 000 px used to be decoded, 790 MB and 88 s).
 MAX_FRAME_PIXELS = 1 << 27
+#: A TIFF's strips are read this many bytes at a time: tifffile's default reads a whole file in
+#: one buffer (198 MB for an 11 000**2 zlib frame), whose allocation and release held the GIL for
+#: ~25 ms at a time, stalling the device's link thread during a GO (bench/bench_link_during_go.py)
+TIFF_READ_BYTES = 8 << 20
 JPEG_SIGNATURE = b"\xff\xd8\xff"
 
 
@@ -225,7 +229,7 @@ def read_tiff(path) -> Frame:
         if page.dtype is None:  # tifffile has no numpy type for the sample format
             raise FrameReadError(f"{path}: TIFF sample format not supported ({page.bitspersample}-bit samples)")
         _check_size(path, page.shape, page.dtype.itemsize, compressed=page.compression != 1)
-        data = page.asarray()
+        data = page.asarray(buffersize=TIFF_READ_BYTES)
         exp_tag = page.tags.get(33434)
         exif = page.tags.get(34665)
         if exp_tag is None and exif is not None and isinstance(exif.value, dict):
