@@ -58,6 +58,9 @@ LONG_TESTS = {
     "tests/test_link_pty.py::test_ctrl_c_during_an_upload_keeps_what_was_sent_and_the_next_upload_resumes": "slow",
     "tests/test_e2e_field.py::test_colour_calibration_from_a_run_and_on_the_device": "slow",  # 9 + 2 s
     "tests/test_e2e_link.py::test_replay_survives_device_restart": "slow",  # 7 s
+    # kill -9 of export processes at every file event and at random moments (26 s together)
+    "tests/test_export_atomic.py::test_a_kill_at_any_file_event_leaves_no_target_or_a_whole_one": "slow",
+    "tests/test_export_atomic.py::test_kill_9_at_random_moments_leaves_no_target_or_a_whole_one": "slow",
     # asserts COSMOS's 1 s polling window: a timing, meaningful on a quiet machine only
     "tests/test_cosmos_polling.py::test_cosmos_polling_never_times_out_against_the_sky_source": "slow",  # 6 s
 }
