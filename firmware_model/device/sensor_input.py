@@ -347,11 +347,6 @@ def _builder_ready() -> bool:
     return True
 
 
-#: How much nicer than the device the index-building process runs: on a busy machine its imports
-#: and builds give way to the device's link thread (bench/bench_link_during_go.py)
-BUILDER_NICENESS = 10
-
-
 def _builder_init() -> None:
     """The index-building process ends with the device, however the device ends (a device killed
     outright would otherwise leave it waiting for work for ever): a thread waits for the parent's
@@ -409,13 +404,6 @@ class PipelineSolver:
                 max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_builder_init
             )
             self._pool.submit(_builder_ready)
-            # niced from here at once, before its imports (an initializer runs after them); the
-            # executor's own table of its processes: no public way to reach them
-            for pid in getattr(self._pool, "_processes", None) or {}:
-                try:
-                    os.setpriority(os.PRIO_PROCESS, pid, os.getpriority(os.PRIO_PROCESS, 0) + BUILDER_NICENESS)
-                except OSError:  # gone, or not allowed: the same priority as the device
-                    pass
         return self._pool
 
     def serving(self) -> None:
