@@ -11,8 +11,8 @@ from ground.fuzz.tally import Tally
 
 def test_the_base_state_starts_without_a_word(tmp_path):
     state_faults.base_state(tmp_path, state_faults.catalog_image(1))
-    device, text = state_faults.start_in_process(tmp_path)
-    assert text == "" and 0 in device._objects and SlotStore(tmp_path).transfer(0) is not None
+    with state_faults.in_process_device(tmp_path) as (device, text):
+        assert text == "" and 0 in device._objects and SlotStore(tmp_path).transfer(0) is not None
 
 
 def test_every_kind_of_damage_alone_and_combined_in_process():

@@ -413,9 +413,13 @@ class PipelineSolver:
         self._builder()
 
     def close(self) -> None:
-        """End the index-building process (a build under way is abandoned)."""
+        """End the index-building process now (a build under way, or its start-up imports, are
+        abandoned: ``shutdown`` alone lets a busy worker run to the end of its task)."""
         if self._pool is not None:
+            workers = list(getattr(self._pool, "_processes", {}).values())  # ProcessPoolExecutor's own
             self._pool.shutdown(wait=False, cancel_futures=True)
+            for worker in workers:
+                worker.terminate()
             self._pool = None
 
     def prepare(self, catalog: OnboardCatalog) -> None:

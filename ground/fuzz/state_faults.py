@@ -17,6 +17,7 @@ import random
 import shutil
 import struct
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -189,8 +190,11 @@ DAMAGE = {
 LAST = ("slot_dir_deleted",)
 
 
-def start_in_process(root: Path) -> tuple[Device, str]:
-    """Build the device ``st16-device --state root`` would build; (device, its stderr)."""
+@contextlib.contextmanager
+def in_process_device(root: Path) -> Iterator[tuple[Device, str]]:
+    """The device ``st16-device --state root`` would build, and what it wrote to stderr while
+    built; its index-building process is ended on leaving (a campaign of hundreds of devices
+    leaked one process each)."""
     from firmware_model.device.cli import build_device, build_parser
 
     err = io.StringIO()
@@ -203,7 +207,12 @@ def start_in_process(root: Path) -> tuple[Device, str]:
             device = build_device(build_parser().parse_args(["--pty", "--state", str(root)]))
     finally:
         logging.getLogger().removeHandler(handler)
-    return device, err.getvalue()
+    try:
+        yield device, err.getvalue()
+    finally:
+        close = getattr(device.solver, "close", None)
+        if close is not None:
+            close()
 
 
 def _check_messages(text: str, damaged: bool, tally: Tally, names: list[str]) -> None:
@@ -245,10 +254,13 @@ def trial(root: Path, rng: random.Random, catalog: bytes, names: list[str], tall
         _process_trial(root, catalog, names, touches_img, touches_partial, tally)
         return
     try:
-        device, text = start_in_process(root)
+        with in_process_device(root) as (device, text):
+            _check_in_process(device, text, catalog, names, touches_img, touches_partial, tally)
     except Exception as exc:  # noqa: BLE001 - this is what the trial looks for
         tally.fail("crashes", f"{names}: {type(exc).__name__}: {exc}")
-        return
+
+
+def _check_in_process(device: Device, text: str, catalog, names, touches_img, touches_partial, tally: Tally) -> None:
     _check_messages(text, True, tally, names)
     from protocol.commands import SlotImage, SlotRequest, XferStatus
 
