@@ -1,4 +1,4 @@
-"""Long run of the fuzz and fault suite (ground/fuzz); prints a table of counts per campaign.
+"""Long run of the fuzz and fault suite (ground/testing); prints a table of counts per campaign.
 
 Campaigns: NSP traffic (random and damaged frames, PING after each burst; on a pty, and paced
 on TCP), client against
@@ -19,8 +19,8 @@ import argparse
 import sys
 import time
 
-from ground.fuzz import commit_kill, feed_faults, nsp_fuzz, port_faults, state_faults, tcp_faults, upload_faults
-from ground.fuzz.tally import Tally, table
+from ground.testing import commit_kill, feed_faults, nsp_fuzz, port_faults, state_faults, tcp_faults, upload_faults
+from ground.testing.tally import Tally, table
 
 
 def campaigns(n: int, seed: int) -> dict:

@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ground.fuzz.device_proc import DeviceProcess
 from ground.link.client import Client
+from ground.testing.device_proc import DeviceProcess
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 PHASES = ("start", "commit", "go", "real", "big")

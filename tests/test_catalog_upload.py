@@ -12,9 +12,9 @@ from firmware_model.device.device import Device
 from firmware_model.device.link import PtyLink, serve
 from firmware_model.device.slots import SlotStore
 from ground.cli.main import main as cli_main
-from ground.fuzz.upload_faults import catalog_image as _image
-from ground.fuzz.upload_faults import wrong_version
 from ground.link.client import Client, Nack
+from ground.testing.upload_faults import catalog_image as _image
+from ground.testing.upload_faults import wrong_version
 from protocol.catalog_image import Reason
 from protocol.crc import crc32
 

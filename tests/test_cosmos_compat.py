@@ -272,7 +272,7 @@ def test_the_documented_quaternion_order_upload_sets_scalar_last(tmp_path, capsy
     ((document, written, uploaded),) = lines  # the same line everywhere
     assert written == uploaded
     (tmp_path / written).write_text(document + "\n")  # what `echo` writes
-    from ground.fuzz.device_proc import DeviceProcess
+    from ground.testing.device_proc import DeviceProcess
 
     with DeviceProcess("--pty", "--state", str(tmp_path / "state")) as device:
         with Client(device.path, timeout=guards.REPLY_S) as c:

@@ -20,8 +20,8 @@ import pytest
 from conftest import SHARED, require_shared, required
 
 from ground.cli.main import main
-from ground.fuzz.device_proc import DeviceProcess
 from ground.link.client import Client
+from ground.testing.device_proc import DeviceProcess
 from protocol import edac, result, telemetry_meta
 from protocol.command_table import TABLE
 from protocol.commands import GO_OPERATIONAL

@@ -3,8 +3,8 @@
 import numpy as np
 
 from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes
-from ground.fuzz.device_proc import DeviceProcess
 from ground.link.client import Client
+from ground.testing.device_proc import DeviceProcess
 from protocol.commands import Slot, XferState
 from protocol.crc import crc32
 

@@ -10,9 +10,9 @@ import pytest
 
 from firmware_model.device.link import PtyLink
 from ground.cli.main import main as cli_main
-from ground.fuzz import port_faults
-from ground.fuzz.port_faults import ANSWER_TIMEOUT, FakePort
 from ground.link.client import Client, Nack, ReplyTimeout
+from ground.testing import port_faults
+from ground.testing.port_faults import ANSWER_TIMEOUT, FakePort
 from protocol import nsp, slip
 from protocol.commands import Code, NackInfo, NackReason
 

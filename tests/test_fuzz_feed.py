@@ -1,7 +1,7 @@
-"""Attitude-feed faults against a device process (ground.fuzz.feed_faults): after each, the
+"""Attitude-feed faults against a device process (ground.testing.feed_faults): after each, the
 device keeps serving and the next valid samples give an OK, correct solve."""
 
-from ground.fuzz import feed_faults
+from ground.testing import feed_faults
 
 
 def test_every_feed_fault_kind_is_survived_and_the_feed_recovers():

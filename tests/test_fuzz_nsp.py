@@ -3,7 +3,7 @@ a PING answered after every burst, no crash, hang or traceback (long run: bench/
 
 import random
 
-from ground.fuzz import nsp_fuzz, traffic
+from ground.testing import nsp_fuzz, traffic
 from protocol import nsp, slip
 
 

@@ -5,8 +5,8 @@ none, never another one (fixed seeds; long run: bench/bench_fuzz.py)."""
 import logging
 
 from firmware_model.device.slots import SlotStore
-from ground.fuzz import state_faults
-from ground.fuzz.tally import Tally
+from ground.testing import state_faults
+from ground.testing.tally import Tally
 
 
 def test_the_base_state_starts_without_a_word(tmp_path):

@@ -10,10 +10,10 @@ import pytest
 
 from firmware_model.device.device import Device
 from firmware_model.device.link import TcpLink, serve
-from ground.fuzz import tcp_faults
-from ground.fuzz.device_proc import DeviceProcess
-from ground.fuzz.tally import Tally
 from ground.link.client import Client, LinkDown
+from ground.testing import tcp_faults
+from ground.testing.device_proc import DeviceProcess
+from ground.testing.tally import Tally
 
 
 @pytest.fixture

@@ -8,9 +8,9 @@ from firmware_model.device.catalog_slot import catalog_slot_handler
 from firmware_model.device.device import Device
 from firmware_model.device.link import PtyLink, serve
 from firmware_model.device.slots import SlotStore
-from ground.fuzz import upload_faults
-from ground.fuzz.tally import Tally
 from ground.link.client import Client
+from ground.testing import upload_faults
+from ground.testing.tally import Tally
 
 
 def test_every_transfer_fault_keeps_the_active_catalog_and_a_kill_loses_nothing():

@@ -29,7 +29,7 @@ STACKS = {
         ("ground.link", "ground.catalog", "ground.export"),
         ("ground.sim",),
         ("ground.calibration",),
-        ("ground.analysis", "ground.fuzz", "ground.hil"),
+        ("ground.analysis", "ground.testing", "ground.hil"),
         ("ground.api",),
         ("ground.cli",),
     ],

@@ -17,8 +17,8 @@ from firmware_model.catalog.image_io import catalog_to_image
 from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
-from ground.fuzz.device_proc import DeviceProcess
 from ground.link.client import Client
+from ground.testing.device_proc import DeviceProcess
 from protocol import result
 from protocol.commands import Slot
 

@@ -10,8 +10,8 @@ import guards
 import pytest
 from interrupt import default_sigint
 
-from ground.fuzz.device_proc import device_command as _device_command
 from ground.link.client import Client, Nack, ReplyTimeout
+from ground.testing.device_proc import device_command as _device_command
 from protocol import nsp, result, slip
 from protocol.commands import Code, NackReason, XferState
 from protocol.crc import crc32

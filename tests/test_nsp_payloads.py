@@ -171,7 +171,7 @@ def test_diagnostic_request_forms_and_length_text():
 def test_the_fuzz_generator_makes_every_request_type_of_the_command_table():
     import random
 
-    from ground.fuzz.traffic import _plausible_data
+    from ground.testing.traffic import _plausible_data
     from protocol.command_table import TABLE
 
     rng = random.Random(3)

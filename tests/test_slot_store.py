@@ -223,7 +223,7 @@ def test_a_patch_whose_commit_was_cut_after_it_installed_its_result_commits_agai
 
 
 def test_kills_during_patch_commits_leave_no_patch_stuck():
-    from ground.fuzz import commit_kill
+    from ground.testing import commit_kill
 
     tally, found = commit_kill.run(seed=5, kills=4)  # two catalog commits killed, two patch commits
     assert tally.failures == 0 and found["stuck"] == 0, (tally.notes, found)

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import time
 
-from ground.fuzz.device_proc import DeviceProcess
-from ground.fuzz.tally import Tally
 from ground.link.client import Client, LinkError
+from ground.testing.device_proc import DeviceProcess
+from ground.testing.tally import Tally
 from protocol import nsp, slip
 
 QUIET = 0.03  #: seconds without a byte that end a drain
@@ -69,7 +69,7 @@ def ping_check(client: Client, tally: Tally, device: DeviceProcess | None = None
 
 def stderr_check(device: DeviceProcess, tally: Tally) -> None:
     """Count the tracebacks the device printed (each is a bug, even if it kept serving)."""
-    from ground.fuzz.device_proc import tracebacks
+    from ground.testing.device_proc import tracebacks
 
     text = device.stderr()
     n = tracebacks(text)

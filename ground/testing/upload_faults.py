@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 
 from firmware_model.device.slots import unpack_image
-from ground.fuzz.checks import ping_check, stderr_check
-from ground.fuzz.device_proc import DeviceProcess
-from ground.fuzz.tally import Tally
 from ground.link.client import Client, LinkError, Nack
+from ground.testing.checks import ping_check, stderr_check
+from ground.testing.device_proc import DeviceProcess
+from ground.testing.tally import Tally
 from protocol.catalog_image import HEADER_SIZE, Reason
 from protocol.commands import Code, NackReason, XferBegin, XferData
 from protocol.crc import crc32

@@ -22,11 +22,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from firmware_model.device.slots import SlotStore, pack_image
-from ground.fuzz.checks import ping_check
-from ground.fuzz.device_proc import DeviceProcess, tracebacks
-from ground.fuzz.tally import Tally
-from ground.fuzz.upload_faults import catalog_image
 from ground.link.client import Client, LinkError
+from ground.testing.checks import ping_check
+from ground.testing.device_proc import DeviceProcess, tracebacks
+from ground.testing.tally import Tally
+from ground.testing.upload_faults import catalog_image
 from protocol import nsp
 from protocol.commands import Code, XferState
 from protocol.crc import crc32

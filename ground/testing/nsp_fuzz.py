@@ -11,11 +11,11 @@ from __future__ import annotations
 import random
 import tempfile
 
-from ground.fuzz.checks import drain, ping_check, stderr_check
-from ground.fuzz.device_proc import DeviceProcess
-from ground.fuzz.tally import Tally
-from ground.fuzz.traffic import burst, sweep
 from ground.link.client import Client, LinkError
+from ground.testing.checks import drain, ping_check, stderr_check
+from ground.testing.device_proc import DeviceProcess
+from ground.testing.tally import Tally
+from ground.testing.traffic import burst, sweep
 
 ERROR_COUNTERS = ("framing", "runt", "oversize", "bad_crc", "other_address")
 

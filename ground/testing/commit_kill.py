@@ -17,11 +17,11 @@ import time
 from pathlib import Path
 
 from firmware_model.device.slots import unpack_image
-from ground.fuzz.checks import ping_check, stderr_check
-from ground.fuzz.device_proc import DeviceProcess
-from ground.fuzz.tally import Tally
-from ground.fuzz.upload_faults import catalog_image
 from ground.link.client import Client, LinkError, Nack
+from ground.testing.checks import ping_check, stderr_check
+from ground.testing.device_proc import DeviceProcess
+from ground.testing.tally import Tally
+from ground.testing.upload_faults import catalog_image
 from protocol import nsp
 from protocol.catalog_image import parse_image, with_star_colours
 from protocol.catalog_patch import make_patch

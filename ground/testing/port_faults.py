@@ -21,8 +21,8 @@ import threading
 import time
 
 from firmware_model.device.link import PtyLink
-from ground.fuzz.tally import Tally
 from ground.link.client import Client, LinkError
+from ground.testing.tally import Tally
 from protocol import nsp, slip
 
 SLACK = 30.0  #: seconds allowed beyond the client's own bound: a hang guard

@@ -28,12 +28,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from firmware_model.reference_frames import matrix_to_quat, quat_to_matrix, rotation_angle
-from ground.fuzz.checks import ping_check, stderr_check
-from ground.fuzz.device_proc import DeviceProcess
-from ground.fuzz.tally import Tally
 from ground.link.client import Client, LinkError
 from ground.link.solve_report import solve_record
 from ground.sim.feed_wire import MAX_LINE, Sample, encode_json
+from ground.testing.checks import ping_check, stderr_check
+from ground.testing.device_proc import DeviceProcess
+from ground.testing.tally import Tally
 
 RECOVERY_S = 2.0  #: s: an OK solve must follow any single bad sample or bad peer within this long
 FLOOD_RECOVERY_S = 5.0  #: s: the same after a flood of 20 000 samples

@@ -14,10 +14,10 @@ import socket
 import threading
 import time
 
-from ground.fuzz.checks import ping_check, stderr_check
-from ground.fuzz.device_proc import DeviceProcess
-from ground.fuzz.tally import Tally
 from ground.link.client import Client, LinkError
+from ground.testing.checks import ping_check, stderr_check
+from ground.testing.device_proc import DeviceProcess
+from ground.testing.tally import Tally
 from protocol import nsp, slip
 from protocol.commands import GO_OPERATIONAL, Code, Combination
 
