@@ -2,7 +2,11 @@
 
 ``Lambda_rg = S_r / S_g`` and ``Lambda_bg = S_b / S_g`` with photon-counting integrals
 ``S_c = int chi_c(lambda) F_lambda(lambda) lambda dlambda`` over the detector band (wavelengths in
-nm). Spectra, best first (``ColourSource``):
+nm). The ``lambda`` factor is a deliberate deviation from the paper: its eqs 10-11 integrate
+``chi_c I(lambda) dlambda`` with no ``lambda``; a photon detector counts ``F_lambda lambda / (h c)``
+photons, so the factor is kept by default and ``photon_weighting=False`` gives the paper's form
+(its size on table 4: ``bench/bench_colour_models.py``, docs/catalog.md). Spectra, best first
+(``ColourSource``):
 
 1. ``PICKLES_MK``: the Pickles (1998) template nearest to the star's MK type (:func:`match_template`);
 2. ``BV_LOOKUP`` / ``VI_LOOKUP``: ln(ratio) as a quartic in B-V (or V-I, which keeps growing for M
@@ -45,6 +49,11 @@ EM2013_TABLE4 = {
     1903: ("epsilon-Ori", 0.674, 1.161),
     1948: ("zeta-Ori", 0.652, 1.232),
 }
+#: the BSC5 MK types of the table-4 stars (O9.5 II and O9.7 Ib take one template, B0 Ia another)
+EM2013_TABLE4_SPTYPE = {1852: "O9.5II", 1903: "B0Ia", 1948: "O9.7Ib"}
+#: table 4 held out one template at a time: (stars the gains are fitted on, stars predicted), BSC5 HR;
+#: delta and zeta share a template and the paper's ratios, so each split fits on one template
+EM2013_HELD_OUT = (((1852, 1948), (1903,)), ((1903,), (1852, 1948)))
 
 
 class ColourDataError(ValueError):
@@ -353,9 +362,13 @@ def pickles_templates(pickles_dir: str | Path) -> dict[str, MKType]:
 # --- colour integrals -------------------------------------------------------------------------------
 
 
-def photon_signals(qe: QETable, wavelength_nm, flux, band: tuple[float, float] | None = None) -> np.ndarray:
+def photon_signals(
+    qe: QETable, wavelength_nm, flux, band: tuple[float, float] | None = None, photon_weighting: bool = True
+) -> np.ndarray:
     """``S_c = int chi_c F_lambda lambda dlambda`` for c = r, g, b (trapezoid on the merged grid).
 
+    ``photon_weighting=False`` drops the ``lambda`` factor: ``int chi_c F_lambda dlambda``, the
+    paper's eqs 10-11 as printed (an energy integral; a photon detector counts ``F_lambda lambda``).
     ``flux`` may be (n,) or (k, n) for k spectra on one grid; returns (3,) or (k, 3).
     """
     lo, hi = band or qe.band
@@ -371,7 +384,7 @@ def photon_signals(qe: QETable, wavelength_nm, flux, band: tuple[float, float] |
     flux = np.asarray(flux, dtype=float)
     f = np.interp(grid, w, flux) if flux.ndim == 1 else np.stack([np.interp(grid, w, fk) for fk in flux])
     chi = qe.at(grid)  # (3, m)
-    integrand = f[..., None, :] * chi * grid  # (..., 3, m)
+    integrand = f[..., None, :] * chi * (grid if photon_weighting else 1.0)  # (..., 3, m)
     return np.trapezoid(integrand, grid, axis=-1)
 
 
@@ -382,16 +395,16 @@ def ratios_from_signals(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def blackbody_ratios(
-    qe: QETable, temperature, band: tuple[float, float] | None = None
+    qe: QETable, temperature, band: tuple[float, float] | None = None, photon_weighting: bool = True
 ) -> tuple[np.ndarray, np.ndarray] | tuple[float, float]:
     """Colour ratios of Planck spectra at ``temperature`` (K, scalar or array) on a 0.5 nm grid:
-    arrays for an array of temperatures, floats for a scalar."""
+    arrays for an array of temperatures, floats for a scalar (``photon_weighting``: :func:`photon_signals`)."""
     lo, hi = band or qe.band
     grid = np.arange(lo, hi + 0.25, 0.5)
     grid[-1] = min(grid[-1], hi)
     t = np.atleast_1d(np.asarray(temperature, dtype=float))
     flux = np.stack([planck_lambda(grid, tk) for tk in t])
-    rg, bg = ratios_from_signals(photon_signals(qe, grid, flux, (lo, hi)))
+    rg, bg = ratios_from_signals(photon_signals(qe, grid, flux, (lo, hi), photon_weighting))
     return (rg, bg) if np.ndim(temperature) else (float(rg[0]), float(bg[0]))
 
 
@@ -465,13 +478,16 @@ class ColourModel:
     """Colour ratios for one detector: Pickles templates by MK type, colour-index lookups, blackbody.
 
     Without ``pickles_dir`` on disk, only the shipped QE models can be used (their template ratios
-    are shipped); any other QE needs the spectra.
+    are shipped); any other QE needs the spectra. ``photon_weighting`` (default True, what every
+    shipped ratio and catalog image uses) weights the integrals by ``lambda``; False gives the
+    paper's eqs 10-11 as printed and needs the spectra (:func:`photon_signals`).
     """
 
     qe: QETable = field(default_factory=default_qe)
     pickles_dir: Path | None = DEFAULT_PICKLES_DIR
     band: tuple[float, float] | None = None
     lookup_degree: int = 4
+    photon_weighting: bool = True
 
     def __post_init__(self):
         lo, hi = self.band or self.qe.band
@@ -487,10 +503,12 @@ class ColourModel:
             f"rg_{self.qe.name}" in rows[0]
             and _same_qe(self.qe, shipped_qe(self.qe.name))
             and self.band == self.qe.band
+            and self.photon_weighting
         )
         if not self._have_spectra and not shipped_ok:
+            what = "" if self.photon_weighting else " without photon weighting"
             raise ColourDataError(
-                f"QE table {self.qe.name} needs the Pickles spectra, but {self.pickles_dir} is missing"
+                f"QE table {self.qe.name}{what} needs the Pickles spectra, but {self.pickles_dir} is missing"
             )
         self._templates = (
             pickles_templates(spectra)
@@ -514,7 +532,7 @@ class ColourModel:
             if self.pickles_dir is None:
                 raise ColourDataError(f"template {name}: its ratios are not shipped and there are no Pickles spectra")
             w, f = _sed_cached(str(Path(self.pickles_dir) / f"{name}.sed"))
-            rg, bg = ratios_from_signals(photon_signals(self.qe, w, f, self.band))
+            rg, bg = ratios_from_signals(photon_signals(self.qe, w, f, self.band, self.photon_weighting))
             self._cache[name] = (float(rg), float(bg))
         return self._cache[name]
 
@@ -576,5 +594,59 @@ class ColourModel:
         todo &= ~m
         m = todo & np.isfinite(bv) & (bv > BV_PHYSICAL_MIN)  # bluer than any star: no temperature
         if m.any():
-            take(m, ColourSource.BLACKBODY, blackbody_ratios(self.qe, ballesteros_temperature(bv[m]), self.band))
+            t = ballesteros_temperature(bv[m])
+            take(m, ColourSource.BLACKBODY, blackbody_ratios(self.qe, t, self.band, self.photon_weighting))
         return rg, bg, src, tmpl
+
+
+# --- seed 000 table 4: the em2013 gain fit and what it can show ---------------------------------------
+
+
+def table4_ratios(model: ColourModel, sptypes: dict[int, str] | None = None) -> dict[int, tuple[float, float]]:
+    """(Lambda_rg, Lambda_bg) of each table-4 star (BSC5 HR) from its Pickles template by MK type."""
+    out = {}
+    for hr, sp in (sptypes or EM2013_TABLE4_SPTYPE).items():
+        mk = parse_mk(sp)
+        name = match_template(mk, model.templates) if mk else None
+        if name is None:
+            raise ColourDataError(f"table 4 star HR {hr}: no Pickles template for MK type {sp!r}")
+        out[hr] = model.template_ratios(name)
+    return out
+
+
+def fit_channel_gains(model: dict[int, tuple[float, float]], stars=None) -> tuple[float, float]:
+    """Red and blue gains ``g`` with ``paper ~ g * model`` over ``stars`` (table-4 HRs, default all)
+    in least squares, closed form ``g = sum(t m) / sum(m^2)``: the fit behind ``em2013``
+    (``tools/fit_em2013_gains.py``). Scaling chi_r by g_r scales every Lambda_rg by g_r."""
+    hrs = list(stars or EM2013_TABLE4)
+    m = np.array([model[hr] for hr in hrs])
+    t = np.array([EM2013_TABLE4[hr][1:] for hr in hrs])
+    g = (t * m).sum(axis=0) / (m * m).sum(axis=0)
+    return float(g[0]), float(g[1])
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """One table-4 split: gains fitted on ``fit_on``, residuals (model - paper) on ``predicted``."""
+
+    fit_on: tuple[int, ...]
+    gains: tuple[float, float]
+    residuals: dict[int, tuple[float, float]]  # HR -> (d rg, d bg)
+
+    @property
+    def worst(self) -> float:
+        return max(abs(v) for r in self.residuals.values() for v in r)
+
+
+def table4_held_out(model: dict[int, tuple[float, float]]) -> list[HeldOut]:
+    """Leave one template out of the table-4 gain fit (``EM2013_HELD_OUT``): what the fit predicts
+    for the stars it did not see. ``model``: :func:`table4_ratios` of the base (ungained) model."""
+    out = []
+    for fit_on, predicted in EM2013_HELD_OUT:
+        g_r, g_b = fit_channel_gains(model, fit_on)
+        res = {
+            hr: (g_r * model[hr][0] - EM2013_TABLE4[hr][1], g_b * model[hr][1] - EM2013_TABLE4[hr][2])
+            for hr in predicted
+        }
+        out.append(HeldOut(tuple(fit_on), (g_r, g_b), res))
+    return out
