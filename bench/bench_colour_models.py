@@ -80,14 +80,14 @@ def print_held_out(ms: dict[str, ColourModel], sptypes: dict[int, str]) -> None:
     gains, so it gives mt9p031_like's figures and is left out)."""
     name = {hr: star.split("-")[0] for hr, (star, _, _) in EM2013_TABLE4.items()}
     print("\n== Table 4 held out: gains fitted on one template, residual (model - paper) rg/bg on the other ==")
-    print(f"{'base model':32s} {'fitted on':>12} {'g_r':>7} {'g_b':>7}  predicted: d rg/d bg{'':10s} max |d|")
+    print(f"{'base model':32s} {'fitted on':>12} {'g_r':>7} {'g_b':>7}  predicted: d rg/d bg{'':24s} max |d|")
     for label, model in ms.items():
         if model.qe.name == "em2013":
             continue
         for h in table4_held_out(table4_ratios(model, sptypes)):
             res = "  ".join(f"{name[hr]} {_cell(*r, sign=True)}" for hr, r in h.residuals.items())
             fit_on = "+".join(name[hr] for hr in h.fit_on)
-            print(f"{label:32s} {fit_on:>12} {h.gains[0]:7.4f} {h.gains[1]:7.4f}  {res:40s} {h.worst:.4f}")
+            print(f"{label:32s} {fit_on:>12} {h.gains[0]:7.4f} {h.gains[1]:7.4f}  {res:44s} {h.worst:.4f}")
         g = fit_channel_gains(table4_ratios(model, sptypes))
         print(f"{'':32s} {'all three':>12} {g[0]:7.4f} {g[1]:7.4f}")
     print("(delta and zeta share a template and the paper's ratios: each split fits 2 numbers with 2 gains;")
