@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 from dataclasses import asdict, dataclass
@@ -248,3 +249,148 @@ def plot_views(path: str | Path, views: np.ndarray, colour: ViewStats, mono: Vie
     fig.tight_layout()
     save_figure(fig, path, dpi=120)
     plt.close(fig)
+
+
+# --- Checks of the paper's table 1 against its own definition (issue 32) ---------------------------
+
+
+def _recoloured(cat: OnboardCatalog, rg: np.ndarray, bg: np.ndarray) -> OnboardCatalog:
+    """A shallow copy of ``cat`` with other colour ratios (same stars, same pairs)."""
+    out = copy.copy(cat)
+    out.rg, out.bg = np.asarray(rg, dtype=float), np.asarray(bg, dtype=float)
+    return out
+
+
+def template_floor(cat: OnboardCatalog, sigma_phi: float, delta_star: float) -> np.ndarray:
+    """Per pair: ambiguous with perfectly measured colours (a neighbour within the angle window whose
+    stars have exactly the pair's ratios). No detector response can lower it; it depends only on
+    which stars share a colour."""
+    return ambiguous_pairs(cat, sigma_phi, delta_star, 1e-12, 1e-12)
+
+
+def even_template_floor(
+    cat: OnboardCatalog, sigma_phi: float, delta_star: float, n_templates: int, seed: int = 0
+) -> np.ndarray:
+    """:func:`template_floor` with the stars spread as evenly as possible over ``n_templates``
+    distinct colours (a random balanced assignment), the most favourable case for that many spectra."""
+    rng = np.random.default_rng(seed)
+    label = rng.permutation(cat.n_stars) % n_templates
+    return template_floor(_recoloured(cat, label.astype(float), np.zeros(cat.n_stars)), sigma_phi, delta_star)
+
+
+def synthetic_colour_ambiguity(
+    cat: OnboardCatalog, sigma_phi: float, delta_star: float, spread_over_sigma: float, dims: int, seed: int = 0
+) -> float:
+    """Ambiguous pairs (%) when every star has its own random colour, colour noise sigma = 1.
+
+    ``dims`` 2: rg and bg independent, each uniform over a range of width ``spread_over_sigma``.
+    ``dims`` 1: one locus coordinate t uniform over that width, rg = bg = t. The result depends on the
+    spread only through spread / sigma and (fixed uniforms, scaled) is non-increasing in it."""
+    if dims not in (1, 2):
+        raise ValueError(f"dims must be 1 or 2, got {dims}")
+    z = np.random.default_rng(seed).random((2, cat.n_stars))
+    rg = spread_over_sigma * z[0]
+    bg = rg if dims == 1 else spread_over_sigma * z[1]
+    return 100.0 * ambiguous_pairs(_recoloured(cat, rg, bg), sigma_phi, delta_star, 1.0, 1.0).mean()
+
+
+def jittered_colour_ambiguity(
+    cat: OnboardCatalog, sigma_phi: float, delta_star: float, sigma_colour: float, jitter: float, seed: int = 0
+) -> float:
+    """Ambiguous pairs (%) after adding N(0, jitter) to every star's rg and bg (the catalog's own colours)."""
+    z = np.random.default_rng(seed).standard_normal((2, cat.n_stars))
+    rg = np.asarray(cat.rg, dtype=float) + jitter * z[0]
+    bg = np.asarray(cat.bg, dtype=float) + jitter * z[1]
+    return 100.0 * ambiguous_pairs(_recoloured(cat, rg, bg), sigma_phi, delta_star, sigma_colour, sigma_colour).mean()
+
+
+def solve_decreasing(f, target: float, lo: float, hi: float, iters: int = 30) -> float:
+    """``x`` in [lo, hi] where the non-increasing ``f`` crosses ``target`` (bisection in log x); ``hi``
+    when even f(hi) > target, ``lo`` when f(lo) <= target."""
+    if f(hi) > target:
+        return hi
+    if f(lo) <= target:
+        return lo
+    for _ in range(iters):
+        mid = math.sqrt(lo * hi)
+        lo, hi = (mid, hi) if f(mid) > target else (lo, mid)
+        if hi / lo < 1.001:
+            break
+    return math.sqrt(lo * hi)
+
+
+@dataclass
+class TwoStarViews:
+    exactly_two: int  # views holding exactly two catalog stars
+    ambiguous: int  # of them, views whose one pair is ambiguous or not in the catalog: unresolvable
+    mask: np.ndarray  # per view: exactly two stars and unresolvable
+
+
+def two_star_views(cat: OnboardCatalog, views: np.ndarray, theta_fov: float, ambiguous: np.ndarray) -> TwoStarViews:
+    """Views with exactly two stars, and those of them that are unresolvable by the paper's definition
+    (their only pair is ambiguous, or too close to be in the catalog): a lower bound on unresolvable views."""
+    m = _incidence(np.asarray(cat.vec, dtype=float), views, theta_fov).tocsr()
+    n_in = np.diff(m.indptr)
+    two = np.flatnonzero(n_in == 2)
+    stars = m.indices[m.indptr[two][:, None] + np.arange(2)]
+    a, b = stars.min(axis=1).astype(np.int64), stars.max(axis=1).astype(np.int64)
+    n = cat.n_stars
+    key = np.minimum(cat.pair_i, cat.pair_j).astype(np.int64) * n + np.maximum(cat.pair_i, cat.pair_j)
+    order = np.argsort(key)
+    want = a * n + b
+    pos = np.clip(np.searchsorted(key[order], want), 0, max(len(key) - 1, 0))
+    found = (key[order][pos] == want) if len(key) else np.zeros(len(want), bool)
+    amb = np.asarray(ambiguous, dtype=bool)[order][pos] if len(key) else np.zeros(len(want), bool)
+    unres = ~found | amb
+    mask = np.zeros(len(views), dtype=bool)
+    mask[two[unres]] = True
+    return TwoStarViews(int(len(two)), int(unres.sum()), mask)
+
+
+@dataclass
+class FieldNesting:
+    small_pairs: int  # pairs of the smaller-field catalog
+    contained: int  # of them, also in the wider-field catalog (same two stars)
+    window_ratio: float  # wider / smaller angle window (Delta* sigma_phi)
+    small_ambiguous: int  # ambiguous pairs of the smaller catalog
+    still_ambiguous: int  # of them, contained and ambiguous in the wider catalog too
+    big_pairs: int
+    big_ambiguous: int
+    added_pairs: int  # wider-catalog pairs not in the smaller one
+    added_ambiguous: int
+
+
+def field_nesting(
+    small: OnboardCatalog,
+    amb_small: np.ndarray,
+    big: OnboardCatalog,
+    amb_big: np.ndarray,
+    window_small: float,
+    window_big: float,
+) -> FieldNesting:
+    """How the pairs and ambiguity of a smaller-field catalog sit inside a wider-field one (stars
+    matched by ``star_id``)."""
+
+    def keys(c: OnboardCatalog) -> np.ndarray:
+        sid = np.asarray(c.star_id, dtype=np.int64)
+        a, b = sid[c.pair_i], sid[c.pair_j]
+        return np.minimum(a, b) * (1 << 31) + np.maximum(a, b)
+
+    ks, kb = keys(small), keys(big)
+    in_big = np.isin(ks, kb)
+    order = np.argsort(kb)
+    pos = np.clip(np.searchsorted(kb[order], ks), 0, len(kb) - 1)
+    amb_s, amb_b = np.asarray(amb_small, bool), np.asarray(amb_big, bool)
+    still = amb_s & in_big & amb_b[order][pos]
+    added = ~np.isin(kb, ks)
+    return FieldNesting(
+        small_pairs=len(ks),
+        contained=int(in_big.sum()),
+        window_ratio=window_big / window_small,
+        small_ambiguous=int(amb_s.sum()),
+        still_ambiguous=int(still.sum()),
+        big_pairs=len(kb),
+        big_ambiguous=int(amb_b.sum()),
+        added_pairs=int(added.sum()),
+        added_ambiguous=int((amb_b & added).sum()),
+    )
