@@ -274,3 +274,38 @@ def test_progress_bars_only_on_a_terminal_and_without_no_progress(tmp_path):
 
     for argv in (["--no-progress", "sim", "colour"], ["sim", "colour", "--no-progress"]):
         assert build_parser().parse_args(argv).no_progress is True
+
+
+def test_table3_bench_paper_matcher_and_the_papers_class_order(colour_catalog):
+    """bench/bench_table3.py: the paper's bare matcher solves the same scenes as the sim (most
+    poses high confidence and right), and its table 3 takes poor before incorrect: a wrong
+    two-star answer among many visible stars is poor, not incorrect (``colour_summary`` takes
+    incorrect first)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    from bench_table3 import interval, paper_classes, run_paper_poses
+
+    cfg = skysim.ColourSimConfig(n_boresights=60, n_roll=2, seed=3)
+    rows = run_paper_poses(colour_catalog, CAM, cfg, np.arange(120))
+    assert len(rows) == 120
+    high = rows["status"] == 2
+    assert high.sum() >= 110
+    assert np.mean(rows["err_deg"][high & (rows["n_wrong"] == 0)] < 0.05) == 1.0
+    again = run_paper_poses(colour_catalog, CAM, cfg, np.arange(120))
+    assert np.array_equal(np.nan_to_num(rows["err_deg"]), np.nan_to_num(again["err_deg"]))
+
+    fake = np.zeros(3, skysim.POSE_DTYPE)
+    fake["status"] = (1, 1, 0)
+    fake["n_visible"] = (6, 3, 1)
+    fake["n_matched"] = (2, 2, 0)
+    fake["n_wrong"] = (2, 2, 0)
+    fake["err_deg"] = (5.0, 5.0, np.nan)
+    c = paper_classes(fake)
+    assert (c["no_solution"], c["poor"], c["incorrect"], c["problem"]) == (1, 1, 1, 3)
+    assert c["poor_with_wrong_star"] == 1 and c["incorrect_breakdown"] == {"2 of 3": 1}
+    s = skysim.colour_summary(fake)
+    assert (s["no_solution"], s["poor_match"], s["incorrect"]) == (1, 0, 2)
+    lo, hi = interval(0, 1000)
+    assert lo == 0.0 and 0.003 < hi < 0.004
