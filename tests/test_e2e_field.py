@@ -181,3 +181,43 @@ def test_offline_replay_corrects_refraction(catalog, tmp_path):
     # rigorous match, or at best leaves the attitude off by about the refraction
     raw_score = score(raw, truth)
     assert raw_score["outcome"] == "no_match" or raw_score["attitude_error_deg"] * 3600 > 60
+
+
+def _bench_field():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    import bench_field
+
+    return bench_field
+
+
+def test_single_arc_correction_changes_the_delta_zeta_arc_only_by_its_error():
+    bf = _bench_field()
+    v = CAMERA.pixel_to_vector(np.array([400.0, 500.0, 600.0]), np.array([300.0, 310.0, 330.0]))
+    d, e, z = bf.correct_arc(*v, np.radians(2.5e-3))
+    assert np.degrees(bf.arc(v[0], v[2]) - bf.arc(d, z)) == pytest.approx(2.5e-3, abs=1e-9)
+    assert np.array_equal(e, v[1])
+    assert np.cross(v[0], v[2]) @ d == pytest.approx(0, abs=1e-12)  # delta stays on its great circle
+
+
+def test_the_papers_three_star_run_on_two_belt_frames(catalog, tmp_path):
+    """Two rendered belt frames: only the three belt detections go to the matcher, colours through
+    the exact inverse of the bench's atmosphere, the coverage test off as for the paper's cut field."""
+    from dataclasses import replace
+
+    from firmware_model.pipeline.run import PipelineParams
+
+    bf = _bench_field()
+    bf.render_orion(tmp_path, 2, CAMERA)
+    b_inv = np.linalg.inv(bf.ATMOSPHERE[0])
+    c = -b_inv @ bf.ATMOSPHERE[1]
+    beta = (*b_inv.ravel(), *c)
+    p = PipelineParams(colour_fallback=False)
+    p = replace(p, solve=replace(p.solve, verify=replace(p.solve.verify, min_coverage=0.0)))
+    t = bf.belt_table5(frame_files(tmp_path), CAMERA, catalog, beta, p)
+    assert (t["frames"], t["missing"]) == (2, 0)
+    assert t["table"]["basic"] == {"correct": 2, "incorrect": 0, "no_match": 0, "three_matched": 2}
+    assert set(t["stars"]) == {"delta", "epsilon", "zeta"}
+    assert abs(t["arc_error_deg"]) < 0.02
+    # the default pipeline refuses three stars where some 20 catalog stars are predicted
+    d = bf.belt_table5(frame_files(tmp_path), CAMERA, catalog, beta, PipelineParams())
+    assert d["table"]["basic"]["no_match"] == 2
