@@ -56,7 +56,9 @@ def test_chance_answers_count_the_search_s_other_catalog_pairs():
     assert chance_answers(1e-9, 50_000) < CHANCE_ANSWERS  # many stars beyond the pair decide
     e = np.empty(0, np.int64)
     both = PairCandidates(e, np.zeros(2, bool), np.array([3, 7]), np.array([7, 3]), np.zeros(2))
-    assert pair_hypotheses(both) == 1  # both assignments of one catalog pair: one hypothesis
+    assert pair_hypotheses([both]) == 1  # both assignments of one catalog pair: one hypothesis
+    graded = PairCandidates(e, np.zeros(3, bool), np.array([3, 5, 9]), np.array([7, 6, 2]), np.array([0.5, 1.0, 2.0]))
+    assert pair_hypotheses([graded], 1.0) == 2  # a pair that fits its seed worse than the answer's does not count
 
 
 @pytest.mark.parametrize("make", [hot_pixel_frame, blob_frame], ids=["500k hot pixels", "30k blobs"])

@@ -42,7 +42,13 @@ import numpy as np
 
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between
 from firmware_model.ident.budget import SearchBudget
-from firmware_model.ident.pair_match import PairNoise, consistency_tolerance, critical_distance, match_pair
+from firmware_model.ident.pair_match import (
+    PairCandidates,
+    PairNoise,
+    consistency_tolerance,
+    critical_distance,
+    match_pair,
+)
 from firmware_model.ident.verify import VerifiedMatch
 
 
@@ -315,7 +321,7 @@ def match_scene(
     verified: list = []
     small: list = []  # (seed Delta, det, cat, explored_all) of sets skipped as too small
     attempts = 0
-    coincidences = 0  # distinct catalog pairs the seed pairs matched (every one a hypothesis)
+    met: list[PairCandidates] = []  # every seed pair's catalog candidates (each one a hypothesis)
     seeded = False
     last_reason = _NO_PAIR
     best = None
@@ -337,7 +343,7 @@ def match_scene(
                 last_reason = "no seed pair matched the catalog within Delta*"
             continue
         seeded = True
-        coincidences += pair_hypotheses(cands)
+        met.append(cands)
         explored_all = len(cands) <= k_best and not cands.truncated
         good = False
         for m in range(min(k_best, len(cands))):
@@ -423,6 +429,7 @@ def match_scene(
         reason = last_reason
     if _is_high(best, verified, n, params):
         return ConsensusResult(Outcome.HIGH_CONFIDENCE, best, "", attempts, len(verified))
+    coincidences = pair_hypotheses(met, best.seed_delta)
     expected = chance_answers(best.chance, coincidences)
     if expected > CHANCE_ANSWERS:
         return ConsensusResult(Outcome.NO_MATCH, None, _chance_reason(best, coincidences, expected), attempts, 0)
@@ -437,19 +444,25 @@ CHANCE_ANSWERS = 1.0
 NOT_A_STAR_FIELD = "not a star field"
 
 
-def pair_hypotheses(cands) -> int:
-    """Distinct catalog pairs among a seed pair's candidates (both assignments of one catalog pair
-    are one hypothesis of where the pair lies; a truncated window counts what it holds)."""
-    if len(cands) == 0:
-        return 0
-    lo, hi = np.minimum(cands.cat_k, cands.cat_l), np.maximum(cands.cat_k, cands.cat_l)
-    return len(np.unique(lo * (int(hi.max()) + 1) + hi))
+def pair_hypotheses(met: list[PairCandidates], max_delta: float = np.inf) -> int:
+    """Distinct catalog pairs among the seed pairs' candidates ``met`` that matched their seed pair
+    at least as well as ``max_delta`` (Mahalanobis distance: a wrong hypothesis whose seed pair fits
+    worse than the answer's is not as well supported); both assignments of one catalog pair are
+    one hypothesis of where the pair lies; a truncated window counts what it holds."""
+    keys = [
+        np.minimum(c.cat_k, c.cat_l)[c.delta <= max_delta] * (1 << 32)
+        + np.maximum(c.cat_k, c.cat_l)[c.delta <= max_delta]
+        for c in met
+        if len(c)
+    ]
+    return len(np.unique(np.concatenate(keys))) if keys else 0
 
 
 def chance_answers(chance: float, coincidences: int) -> float:
     """Expected number of wrong hypotheses as well supported as an answer among those the search
-    met: each catalog pair a seed pair matched (``coincidences``, the answer's own excluded) is a
-    hypothesis, and a wrong one lines up as many stars beyond its two with probability ``chance``
+    met: each catalog pair a seed pair matched at least as well as the answer's
+    (``coincidences``, :func:`pair_hypotheses`, the answer's own excluded) is a hypothesis, and a
+    wrong one lines up as many stars beyond its two with probability ``chance``
     (``verify.chance_alignment``; 1 for a two-star answer: its seed pair is all its evidence)."""
     return max(coincidences - 1, 0) * float(chance)
 
@@ -457,7 +470,8 @@ def chance_answers(chance: float, coincidences: int) -> float:
 def _chance_reason(best, coincidences: int, expected: float) -> str:
     return (
         f"{NOT_A_STAR_FIELD}: {best.n}-star match expected {expected:.2g} times by chance "
-        f"({coincidences} catalog pairs matched the seed pairs; chance {best.chance:.2g} beyond the seed pair)"
+        f"({coincidences} catalog pairs matched the seed pairs as well as its own; chance {best.chance:.2g} "
+        "beyond the seed pair)"
     )
 
 
