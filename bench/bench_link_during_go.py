@@ -203,24 +203,15 @@ def real(args, env: dict[str, str], work: Path) -> None:
     if not frames.is_dir():
         print("real frames: ../shared/data/frames/tetra3-mono absent; skipped")
         return
-    from firmware_model.camera import CameraModel
     from firmware_model.catalog.image_io import catalog_to_image
     from ground.catalog.build import build_catalog
-    from ground.catalog.design import CatalogDesign
+    from ground.testing import tetra3 as tetra3_setup
     from protocol.commands import Slot
 
-    camera = CameraModel.from_focal(1024, 768, 35.0, 6.9)  # tests/test_real_frames.py's datasheet optics
+    camera = tetra3_setup.DATASHEET_CAMERA
     cam = work / "tetra3.json"
     cam.write_text(json.dumps(camera.to_dict()))
-    design = CatalogDesign(
-        theta_fov_deg=4.33,
-        sensor_width_px=1024,
-        sensor_height_px=768,
-        m_thresh=6.5,
-        phi_min_deg=0.05,
-        phi_max_deg=15.0,
-        epoch=2019.6,
-    )
+    design = tetra3_setup.catalog_design()
     image = catalog_to_image(build_catalog(design))
     paths = sorted(frames.glob("*.tiff"))[: args.real]
     dev, _ = start_device(work / "state-real", "--camera", str(cam), "--frames", str(frames), env=env)

@@ -12,12 +12,12 @@ import time
 import numpy as np
 import pytest
 
-from firmware_model.camera import CameraModel
 from firmware_model.catalog.image_io import catalog_to_image
 from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
 from ground.link.client import Client
+from ground.testing import tetra3 as tetra3_setup
 from ground.testing.device_proc import DeviceProcess
 from protocol import result
 from protocol.commands import Slot
@@ -26,7 +26,7 @@ BOUND_S = 0.5  #: the longest a PING may take
 #: the longest the COMMIT may take: it parses the 2.9 MB image (~10 ms) and writes it with an fsync;
 #: building the index here as well would take 2.6 s or more (~4 s of building, in another process)
 COMMIT_BOUND_S = 1.5
-CAMERA = CameraModel.from_focal(1024, 768, 35.0, 6.9)  # the tetra3 test camera's datasheet optics
+CAMERA = tetra3_setup.DATASHEET_CAMERA
 
 
 @pytest.fixture(scope="module")

@@ -17,12 +17,12 @@ from firmware_model.pipeline.frame_readers import read_frame
 from firmware_model.pipeline.run import run_pipeline
 from firmware_model.reference_frames import radec_to_vec
 from ground.catalog.build import build_catalog
-from ground.catalog.design import CatalogDesign
 from ground.link.solve_report import record_from_output
+from ground.testing import tetra3 as tetra3_setup
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 REFERENCE = json.loads((FIXTURES / "tetra3_cedar_reference.json").read_text())["frames"]
-DATASHEET = CameraModel.from_focal(1024, 768, 35.0, 6.9)  # 35 mm lens, 6.9 um binned pixels, no distortion
+DATASHEET = tetra3_setup.DATASHEET_CAMERA
 ARCSEC_PER_PX = 41.3
 WIDTH_PX = 1024  #: the tetra3 frames (2x2 binned IMX265)
 GROUND = [sys.executable, "-m", "ground.cli"]
@@ -33,17 +33,7 @@ def tetra3(shared_data, tmp_path_factory):
     frames = shared_data / "frames" / "tetra3-mono"
     if not frames.is_dir():
         pytest.skip("tetra3 frames absent")
-    catalog = build_catalog(
-        CatalogDesign(
-            theta_fov_deg=4.33,
-            sensor_width_px=1024,
-            sensor_height_px=768,
-            m_thresh=6.5,
-            phi_min_deg=0.05,
-            phi_max_deg=15.0,
-            epoch=2019.6,
-        )
-    )
+    catalog = build_catalog(tetra3_setup.catalog_design())
     work = tmp_path_factory.mktemp("tetra3")
     (work / "catalog.st16cat").write_bytes(catalog_to_image(catalog))
     (work / "datasheet.json").write_text(json.dumps(DATASHEET.to_dict()))

@@ -10,10 +10,11 @@ import pytest
 from firmware_model.camera import CameraModel
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, quat_to_matrix, radec_to_vec
 from ground.analysis.wcs import WcsError, frame_wcs, record_camera, write_wcs
+from ground.testing import tetra3 as tetra3_setup
 
 Q = matrix_to_quat(attitude_from_radec_roll(np.radians(83.8), np.radians(-5.4), np.radians(30.0)))
 CAMERAS = [
-    CameraModel.from_focal(1024, 768, 35.0, 6.9),
+    tetra3_setup.DATASHEET_CAMERA,
     CameraModel(1024, 768, 5100.0, 520.3, 380.1, k1=-0.3),
     CameraModel(2592, 1944, 7383.0, 1290.0, 980.0, k1=0.05, k2=-0.2, k3=0.5, p1=1e-3, p2=-5e-4),
     CameraModel(1000, 667, 1120.0, 499.5, 333.0, k1=-0.12),  # a 48 deg wide field
@@ -124,7 +125,7 @@ def tetra3_frame(tetra3_frames):
 
 @pytest.fixture(scope="module")
 def shared_data_module():
-    from tests.conftest import SHARED, require_shared
+    from conftest import SHARED, require_shared
 
     return require_shared(SHARED / "data")
 
