@@ -139,17 +139,20 @@ def _site_gcrs_km(site, t: Time) -> np.ndarray:
     return c2t.T @ itrs_m / 1000.0
 
 
-def astrometric_positions(epoch, bodies=BODIES, site=None) -> dict[str, np.ndarray]:
+def astrometric_positions(epoch, bodies=BODIES, site=None, observer_gcrs_km=None) -> dict[str, np.ndarray]:
     """Astrometric positions (km, ICRS axes) of ``bodies`` (names of the built-in
-    ephemeris, e.g. "jupiter", "moon", "sun") from the geocentre, or from ``site``
-    ``(lat_deg, lon_deg, height_m)``: ``p_body(t - tau) - p_observer(t)``, light time
-    ``tau`` included, no aberration. ``epoch``: ISO-8601 UTC string or astropy Time."""
+    ephemeris, e.g. "jupiter", "moon", "sun") from the geocentre, from ``site``
+    ``(lat_deg, lon_deg, height_m)``, or from a spacecraft at ``observer_gcrs_km`` (GCRS
+    position, km): ``p_body(t - tau) - p_observer(t)``, light time ``tau`` included, no
+    aberration. ``epoch``: ISO-8601 UTC string or astropy Time."""
     t = _as_time(epoch)
     out = {}
     with iers.conf.set_temp("auto_download", False):
         observer = get_body_barycentric("earth", t, ephemeris=_EPHEMERIS).xyz.to_value(u.km)
         if site is not None:
             observer = observer + _site_gcrs_km(site, t)
+        if observer_gcrs_km is not None:
+            observer = observer + np.asarray(observer_gcrs_km, dtype=float)
         for name in bodies:
             pos, vel = get_body_barycentric_posvel(name, t, ephemeris=_EPHEMERIS)
             p = pos.xyz.to_value(u.km)
