@@ -87,14 +87,16 @@ class CircularOrbit:
             raise ValueError(f"orbit {spec!r}: altitude and angles must be numbers") from None
         if not all(math.isfinite(v) for v in numbers):
             raise ValueError(f"orbit {spec!r}: altitude and angles must be finite")
-        kwargs: dict = {}
+        kwargs: dict[str, float | str] = dict(
+            zip(("altitude_km", "inclination_deg", "raan_deg", "arg_latitude_deg"), numbers, strict=False)
+        )
         if len(parts) == 5:
             try:
                 Time(parts[4], scale="utc")
             except ValueError:
                 raise ValueError(f"orbit {spec!r}: epoch {parts[4]!r} is not an ISO-8601 UTC time") from None
             kwargs["epoch_utc"] = parts[4]
-        return cls(*numbers, **kwargs)
+        return cls(**kwargs)  # type: ignore[arg-type]
 
 
 def in_earth_shadow(position_km: np.ndarray, sun_direction: np.ndarray) -> bool:
