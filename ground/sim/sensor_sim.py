@@ -69,10 +69,20 @@ class DetectorModel:
     bit_depth: int = 12
     black_level_dn: float = 64.0
     sensor_seed: int = 1
+    #: pixel pitch (um): the MT9P031's 2.2 um square pixels (its product brief; seed 000 section 2.1)
+    pixel_pitch_um: float = 2.2
 
     def __post_init__(self):
         object.__setattr__(self, "pattern", normalise_pattern(self.pattern))
-        for name in ("aperture_mm", "tau_optics", "qe_green", "band_green_A", "gain_e_per_dn", "full_well_e"):
+        for name in (
+            "aperture_mm",
+            "tau_optics",
+            "qe_green",
+            "band_green_A",
+            "gain_e_per_dn",
+            "full_well_e",
+            "pixel_pitch_um",
+        ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"detector {name} must be positive")
         if self.psf_sigma_px <= 0 and self.defocus_radius_px <= 0:
@@ -118,7 +128,10 @@ class Stars:
 @dataclass
 class FalseObject:
     """A non-catalog source: ``kind`` 'planet' (PSF source with its own flux and colour),
-    'satellite' (streak from (x, y) to (x2, y2)) or 'cosmic' (sharp hit of ``length_px``)."""
+    'satellite' (streak from (x, y) to (x2, y2)) or 'cosmic' (sharp hit from (x, y) to (x2, y2),
+    ``electrons_g`` e- in all, not filtered by the CFA). A cosmic hit with ``diffusion_px`` set is a
+    particle track (``ground.sim.detector_effects``): its charge shared by path length along the
+    segment and spread by a pixel-integrated Gaussian of that sigma (px; 0: no spread)."""
 
     kind: str
     x: float
@@ -128,6 +141,7 @@ class FalseObject:
     bg: float = 1.0
     x2: float | None = None
     y2: float | None = None
+    diffusion_px: float | None = None
 
 
 @dataclass
@@ -193,6 +207,40 @@ def _add_streak(img, chan_map, det, obj, mono, psf=None):
         _add_source(img, chan_map, det, obj.x + t * (obj.x2 - obj.x), obj.y + t * (obj.y2 - obj.y), s, mono, psf)
 
 
+_TRACK_STEP_PX = 0.1  #: spacing (px) of a track's charge samples
+_TRACK_CHUNK = 256  #: samples per stamp (25.6 px of track), so a grazing track never makes one huge stamp
+
+
+def _add_track(img: np.ndarray, obj: FalseObject) -> None:
+    """A particle track's charge (e-) added to ``img``: ``obj.electrons_g`` shared equally over
+    points every :data:`_TRACK_STEP_PX` along (x, y)-(x2, y2), each spread by a pixel-integrated
+    Gaussian of ``obj.diffusion_px`` (or into its own pixel when 0); charge off the array is lost."""
+    h, w = img.shape
+    x2 = obj.x if obj.x2 is None else obj.x2
+    y2 = obj.y if obj.y2 is None else obj.y2
+    n = max(int(np.ceil(np.hypot(x2 - obj.x, y2 - obj.y) / _TRACK_STEP_PX)), 1)
+    t = (np.arange(n) + 0.5) / n
+    xs, ys = obj.x + t * (x2 - obj.x), obj.y + t * (y2 - obj.y)
+    q = obj.electrons_g / n
+    sigma = float(obj.diffusion_px or 0.0)
+    if sigma <= 0:
+        ci, ri = np.floor(xs + 0.5).astype(int), np.floor(ys + 0.5).astype(int)
+        inside = (ci >= 0) & (ci < w) & (ri >= 0) & (ri < h)
+        np.add.at(img, (ri[inside], ci[inside]), q)
+        return
+    hw, s = int(np.ceil(4.0 * sigma)) + 1, np.sqrt(2.0) * sigma
+    for k in range(0, n, _TRACK_CHUNK):
+        cx, cy = xs[k : k + _TRACK_CHUNK], ys[k : k + _TRACK_CHUNK]
+        c0, c1 = max(int(np.floor(cx.min() + 0.5)) - hw, 0), min(int(np.floor(cx.max() + 0.5)) + hw + 1, w)
+        r0, r1 = max(int(np.floor(cy.min() + 0.5)) - hw, 0), min(int(np.floor(cy.max() + 0.5)) + hw + 1, h)
+        if c0 >= c1 or r0 >= r1:
+            continue
+        cols, rows = np.arange(c0, c1, dtype=float), np.arange(r0, r1, dtype=float)
+        ex = 0.5 * (erf((cols[None, :] + 0.5 - cx[:, None]) / s) - erf((cols[None, :] - 0.5 - cx[:, None]) / s))
+        ey = 0.5 * (erf((rows[None, :] + 0.5 - cy[:, None]) / s) - erf((rows[None, :] - 0.5 - cy[:, None]) / s))
+        img[r0:r1, c0:c1] += q * (ey.T @ ex)
+
+
 _FIXED_CACHE: dict = {}  #: last fixed-pattern maps (read-only arrays), keyed by what draws them
 
 
@@ -249,6 +297,7 @@ def render_frame(
     extra_e: np.ndarray | None = None,
     channel_gain: tuple[float, float, float] | None = None,
     noise=None,
+    background_e: np.ndarray | None = None,
 ) -> RenderResult:
     """Render one frame. ``attitude`` is A (v_sensor = A @ v_icrs). Returns the frame, the
     truth dict (JSON-serialisable) and the noise-free expected signal electrons.
@@ -266,7 +315,12 @@ def render_frame(
     * ``noise``: an object with ``electrons(signal, seed) -> array`` (e- per pixel before
       quantisation) that draws the detector noise instead of fresh full-frame draws
       (``ground.sim.noise_bank.NoiseBank``: the device's capture sources); the same
-      distributions, other values; not with ``extra_e`` or ``channel_gain``.
+      distributions, other values; not with ``extra_e`` or ``channel_gain``;
+    * ``background_e``: noise-free signal e- per pixel over the exposure (shape ``(height, width)``,
+      per CFA site: channel colours already applied) added to the star signal before the noise is
+      drawn, so its shot noise, PRNU and full-well clipping follow; unlike ``extra_e`` it works with
+      ``noise`` (``ground.sim.glare``: the Sun, the Moon and the Earth). The returned
+      ``electrons`` include it.
 
     ``camera`` may be any object with ``width``, ``height``, ``vector_to_pixel``, ``in_frame``
     and ``to_dict`` (``ground.sim.openloop.RadialMappedCamera`` renders non-Brown-Conrady optics)."""
@@ -320,6 +374,8 @@ def render_frame(
             if obj.x2 is None or obj.y2 is None:
                 raise ValueError("a satellite streak needs x2, y2")
             _add_streak(signal, chan_map, det, obj, mono, psf)
+        elif obj.kind == "cosmic" and obj.diffusion_px is not None:
+            _add_track(signal, obj)
         elif obj.kind == "cosmic":
             x2 = obj.x if obj.x2 is None else obj.x2
             y2 = obj.y if obj.y2 is None else obj.y2
@@ -329,8 +385,15 @@ def render_frame(
             signal[rr, cc] += obj.electrons_g / n
         else:
             raise ValueError(f"unknown false object kind {obj.kind!r}")
-        false_rows.append(asdict(obj))
+        row = asdict(obj)
+        if obj.diffusion_px is None:  # the rows of plain objects as before tracks existed
+            del row["diffusion_px"]
+        false_rows.append(row)
 
+    if background_e is not None:
+        if np.shape(background_e) != (h, w):
+            raise ValueError(f"background_e must have shape {(h, w)}, got {np.shape(background_e)}")
+        signal += np.asarray(background_e, dtype=float)
     hot = fixed_pattern(det, (h, w))[2]
     if noise is not None:
         if extra_e is not None or channel_gain is not None:
