@@ -2,7 +2,7 @@
 carries. The device dispatches through it (``firmware_model.device.dispatch``), the ground client
 takes its payload types and retry rule from it (``ground.link.client``), the ground's link
 subcommands and console take their one-line help from it (``ground.link.commands``), and the
-command rows of docs/ICD.md §6 and §9 are :meth:`Command.icd_row` of its entries (checked by
+command rows of docs/ICD.md §6, §9 and §13 are :meth:`Command.icd_row` of its entries (checked by
 ``tests/test_icd_tables.py``).
 """
 
@@ -19,6 +19,8 @@ from protocol.commands import (
     DarkWindow,
     DiagnosticRequest,
     Diagnostics,
+    FaultRequest,
+    FaultStatus,
     Go,
     Init,
     Peek,
@@ -48,7 +50,7 @@ class Command:
     None for an extension, whose NACKs the ICD states as rules); ``mark``, the ICD's marker after
     the name; ``idempotent``, a client may repeat it on a timeout; ``parts``, the reply may span
     several messages; ``decode_first``, the device decodes the data field before anything else
-    (IMAGE checks mode and subcommand first)."""
+    (IMAGE checks mode and subcommand first, FAULT whether fault injection is on)."""
 
     code: Code
     request: type[Layout] | None
@@ -68,7 +70,7 @@ class Command:
         return self.code.name.replace("_", " ")
 
     def icd_row(self) -> str:
-        """This command's row in docs/ICD.md (§6, or §9 for an extension)."""
+        """This command's row in docs/ICD.md (§6, or §9 and §13 for an extension)."""
         cells = [f"0x{self.code:02X}", self.name + self.mark, self.send, self.answer]
         if self.nacks is not None:
             cells.append(self.nacks)
@@ -271,6 +273,16 @@ TABLE: tuple[Command, ...] = (
         _STATUS + " (state 0)",
         None,
         idempotent=True,
+    ),
+    Command(
+        Code.FAULT,
+        FaultRequest,
+        FaultStatus,
+        "FAULT load FILE | clear | status: scripted device faults (st16-device --fault-injection)",
+        "u8 subcommand (0 load, 1 clear, 2 status); load: the fault script, UTF-8 lines (§13)",
+        "u8 subcommand, u32 faults armed, 9 × u32 fault counters (§13)",
+        None,
+        decode_first=False,
     ),
 )
 

@@ -43,10 +43,11 @@ class Code(IntEnum):
     XFER_COMMIT = 0x16
     SLOT_INFO = 0x17
     XFER_ABORT = 0x18
+    FAULT = 0x19  #: scripted faults, only with ``st16-device --fault-injection`` (docs/ICD.md section 13)
 
 
-#: Codes the research does not document, plus 0x1F; always NACKed (as are unused 0x19-0x1E).
-UNASSIGNED = (0x05, 0x0C, 0x0E, 0x0F, 0x11, 0x19, 0x1A, 0x1B, 0x1C, 0x1D, 0x1E, 0x1F)
+#: Codes the research does not document, plus 0x1F; always NACKed (as are unused 0x1A-0x1E).
+UNASSIGNED = (0x05, 0x0C, 0x0E, 0x0F, 0x11, 0x1A, 0x1B, 0x1C, 0x1D, 0x1E, 0x1F)
 
 APP_START_ADDRESS = 0x00002000  #: INIT address that starts the application (COSMOS)
 
@@ -481,3 +482,39 @@ class SlotImage(Layout):
     TAIL = "info"
     TAIL_MIN = 0
     NAME = "slot reply"
+
+
+class FaultAction(IntEnum):
+    """FAULT subcommands (ours, docs/ICD.md section 13)."""
+
+    LOAD = 0  #: arm the fault script that follows (UTF-8 lines), replacing the armed one
+    CLEAR = 1  #: disarm every fault
+    STATUS = 2  #: report only
+
+
+@dataclass(frozen=True)
+class FaultRequest(Layout):
+    """FAULT command data: u8 subcommand (:class:`FaultAction`), then for LOAD the script as UTF-8
+    text (the fault-file format; empty otherwise)."""
+
+    action: int
+    script: bytes = b""
+
+    HEAD = "<B"
+    TAIL = "script"
+    TAIL_MIN = 0
+    NAME = "FAULT"
+
+
+@dataclass(frozen=True)
+class FaultStatus(Layout):
+    """FAULT reply: u8 subcommand echo, u32 faults armed now, then the nine fault counters
+    (``protocol.edac.FAULT_COUNTERS`` order, u32 each, as at EDAC 0x009C)."""
+
+    action: int
+    armed: int
+    counters: tuple[int, ...] = (0,) * 9
+
+    HEAD = "<BI9I"
+    WRAP = True  #: counters are modulo 2**32
+    NAME = "FAULT reply"

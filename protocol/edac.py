@@ -22,6 +22,20 @@ COUNTERS = (
     "other_address",
     "replies",
 )
+#: The nine fault counters at 0x009C, in order (docs/ICD.md section 13, ours): what the emulator's
+#: scripted faults (``firmware_model.device.faults``) did; a scripted reset keeps them.
+FAULT_COUNTERS = (
+    "delayed_replies",
+    "dropped_replies",
+    "corrupted_crcs",
+    "stuck_results",
+    "resets",
+    "edac_corrected",
+    "edac_uncorrectable",
+    "frozen_frames",
+    "catalog_reloads",
+)
+FAULT_COUNTERS_AT = 0x009C  #: EDAC address of the first fault counter (u32 LE each)
 
 EDAC_DTYPE = np.dtype(
     {
@@ -37,6 +51,7 @@ EDAC_DTYPE = np.dtype(
             "busy",
             "spare",
             "banner",
+            *FAULT_COUNTERS,
             "scratch",
         ],
         "formats": [
@@ -51,9 +66,24 @@ EDAC_DTYPE = np.dtype(
             "u1",
             "u1",
             "S64",
+            *["<u4"] * len(FAULT_COUNTERS),
             f"{SCRATCH[1] - SCRATCH[0]}u1",
         ],
-        "offsets": [0x00, 0x04, *range(0x24, 0x4C, 4), 0x4C, 0x50, 0x54, 0x58, 0x59, 0x5A, 0x5B, 0x5C, SCRATCH[0]],
+        "offsets": [
+            0x00,
+            0x04,
+            *range(0x24, 0x4C, 4),
+            0x4C,
+            0x50,
+            0x54,
+            0x58,
+            0x59,
+            0x5A,
+            0x5B,
+            0x5C,
+            *range(FAULT_COUNTERS_AT, FAULT_COUNTERS_AT + 4 * len(FAULT_COUNTERS), 4),
+            SCRATCH[0],
+        ],
         "itemsize": SIZE,
     }
 )

@@ -25,6 +25,8 @@ class NackReason(IntEnum):
     STORAGE_ERROR = 0x000E
     TOO_LARGE = 0x000F
     CONFLICT = 0x0010  #: XFER DATA over received bytes with other bytes (received bytes are write-once)
+    #: a read of a memory word holding an (injected) double-bit upset: detected, not correctable
+    EDAC_UNCORRECTABLE = 0x0011
     INTERNAL = 0x00FF  #: unexpected device-side exception (a bug; the device keeps serving)
     #: 0x0100-0xFFFF: reasons raised by slot validators (:class:`SlotRejected` codes)
     VALIDATOR_BASE = 0x0100

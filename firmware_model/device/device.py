@@ -7,7 +7,9 @@
 * :mod:`~firmware_model.device.memory`: the 512-byte EDAC memory and the PEEK/POKE memory map;
 * :mod:`~firmware_model.device.transfers`: the slots and resumable transfers (XFER_*, SLOT INFO);
 * :mod:`~firmware_model.device.sequence`: GO, COMBINATION, READ RESULT and IMAGE, the worker
-  thread that runs the pluggable ``solver``, BUSY and result ready.
+  thread that runs the pluggable ``solver``, BUSY and result ready;
+* :mod:`~firmware_model.device.faults`: scripted faults (FAULT, ``st16-device --faults``) and
+  their counters.
 
 The device does no I/O of its own: a transport (``firmware_model.device.link``) feeds received
 bytes to :meth:`Device.receive` and writes back the frames it returns. A GO sequence runs in a
@@ -26,8 +28,9 @@ from typing import Any
 
 import protocol
 from firmware_model.device.dispatch import Counters, Dispatcher, Handler, Mode, Refused
+from firmware_model.device.faults import FaultInjector, FaultScriptError, parse_script
 from firmware_model.device.housekeeping import Housekeeping
-from firmware_model.device.memory import Memory, Supervisor
+from firmware_model.device.memory import WORDS, Memory, Supervisor
 from firmware_model.device.sequence import (
     COMBINATION_TIMEOUT,
     MAX_DARK_WINDOWS,
@@ -39,8 +42,18 @@ from firmware_model.device.sequence import (
 )
 from firmware_model.device.slots import SlotStore
 from firmware_model.device.transfers import SlotHandler, Transfers, default_slots
-from protocol import nsp, result, slip
-from protocol.commands import APP_START_ADDRESS, Code, DiagnosticRequest, Init, NackReason
+from protocol import edac, nsp, result, slip
+from protocol.commands import (
+    APP_START_ADDRESS,
+    Code,
+    DiagnosticRequest,
+    FaultAction,
+    FaultRequest,
+    FaultStatus,
+    Init,
+    NackReason,
+    Slot,
+)
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +80,9 @@ class Device:
     has none, raising :class:`FrameUnavailable` for one it cannot read); a frame committed to slot 1
     since the last GO takes precedence, and without a source the last committed frame is reused.
     ``quaternion_order`` orders the standard result structure's quaternions unless the slot-2
-    parameter set names an order (docs/ICD.md section 10.2)."""
+    parameter set names an order (docs/ICD.md section 10.2). ``fault_injection`` lets FAULT arm
+    scripted faults (docs/ICD.md section 13; off: FAULT is NACKed NOT_SUPPORTED); ``faults``
+    holds the armed ones and their counters."""
 
     def __init__(
         self,
@@ -80,6 +95,7 @@ class Device:
         sensor_shape: tuple[int, int] = (2464, 3280),
         clock: Callable[[], float] = time.time,
         quaternion_order: result.QuaternionOrder = result.QuaternionOrder.SCALAR_FIRST,
+        fault_injection: bool = False,
     ):
         if not 0 <= address <= 0xFF:
             raise ValueError("address must be 0..255")
@@ -89,6 +105,10 @@ class Device:
         self.sensor_shape = sensor_shape
         self.clock = clock
         self.quaternion_order = quaternion_order
+        self.fault_injection = fault_injection
+        self.faults = FaultInjector(self._words)
+        self.sleep: Callable[[float], None] = time.sleep  #: how a delayed reply waits (s)
+        self._reset_now = False  #: a loaded ``reset now``: reset once the FAULT reply is built
         self.counters = Counters()
         self._mode = Mode()
         self._lock = threading.RLock()
@@ -110,9 +130,13 @@ class Device:
                 counters=lambda: self.counters,
                 result=lambda: self.runner.result,
                 analog=self.housekeeping.analog_frame,
-            )
+                fault_counters=lambda: self.faults.counters,
+            ),
+            self.faults,
         )
-        self.dispatcher = Dispatcher(self._handlers(), self._lock, lambda: self.counters, lambda: self.late_reply)
+        self.dispatcher = Dispatcher(
+            self._handlers(), self._lock, lambda: self.counters, lambda: self.late_reply, self._frames
+        )
         self.transfers.activate_stored()
 
     def _handlers(self) -> dict[int, Handler]:
@@ -139,6 +163,7 @@ class Device:
             Code.XFER_COMMIT: tr.xfer_commit,
             Code.SLOT_INFO: tr.slot_info,
             Code.XFER_ABORT: tr.xfer_abort,
+            Code.FAULT: self._fault,
         }
 
     # ------------------------------------------------------------------ state
@@ -195,8 +220,24 @@ class Device:
             elif isinstance(event, slip.Oversize):
                 self.counters.oversize += 1
             else:
-                out.extend(m.frame() for m in self.receive_frame(event.data))
+                out.extend(self._frames(self.receive_frame(event.data)))
         return out
+
+    def _frames(self, replies: list[nsp.Message]) -> list[bytes]:
+        """The frames of one command's ``replies`` as the scripted reply faults leave them:
+        dropped, the last one's CRC corrupted, or sent after a delay (:attr:`sleep`)."""
+        if not replies:
+            return []
+        fault = self.faults.reply(replies[0].code)
+        if fault.drop:
+            return []
+        frames = [m.frame() for m in replies]
+        if fault.corrupt:
+            raw = replies[-1].encode()
+            frames[-1] = slip.encode(raw[:-2] + bytes([raw[-2] ^ 0xFF, raw[-1] ^ 0xFF]))
+        if fault.delay_s > 0:
+            self.sleep(fault.delay_s)
+        return frames
 
     def receive_frame(self, raw: bytes) -> list[nsp.Message]:
         """Handle one unescaped frame: count runts / bad CRCs addressed to us, ignore others."""
@@ -216,8 +257,63 @@ class Device:
         return self.handle(msg)
 
     def handle(self, msg: nsp.Message) -> list[nsp.Message]:
-        """Execute a command addressed to us; return its reply messages ([] when Poll = 0)."""
-        return self.dispatcher.handle(msg)
+        """Execute a command addressed to us; return its reply messages ([] when Poll = 0, or
+        when a scripted reset takes the device first)."""
+        if self.faults.reset_before(msg.code):
+            self.reset()
+            return []
+        replies = self.dispatcher.handle(msg)
+        if self.faults.reset_after(msg.code) or self._reset_now:
+            self._reset_now = False
+            self.reset()
+        return replies
+
+    # ------------------------------------------------------------------ scripted faults
+
+    def reset(self) -> None:
+        """A scripted reset: back to bootloader mode, the result cleared to NO_RESULT, the link
+        counters, scratch and RAM as after a restart; slots and the fault counters kept."""
+        with self._lock:
+            self._mode.app = False
+            self.counters = Counters()
+            self.runner.reset()
+            self.memory.reset()
+            self.faults.count("resets")
+        log.info("device: scripted reset")
+
+    def _words(self, region: str) -> int:
+        """4-byte words of ``region`` (an ``edac_upset`` picks among them)."""
+        if region == "catalog":
+            return len(self.store.active(Slot.CATALOG) or b"") // 4
+        return WORDS[region]
+
+    def load_faults(self, text: str, source: str) -> int:
+        """Arm the fault script ``text`` (``source`` names it in errors: FaultScriptError);
+        the number of faults armed. A ``reset now`` in it resets the device at once."""
+        if self.faults.load(parse_script(text, source)):
+            self.reset()
+        return self.faults.armed
+
+    def _fault(self, data: bytes) -> bytes:
+        if not self.fault_injection:
+            raise Refused(NackReason.NOT_SUPPORTED, "fault injection is off; start st16-device with --fault-injection")
+        req = FaultRequest.unpack(data)
+        if req.action == FaultAction.LOAD:
+            try:
+                faults = parse_script(req.script.decode("utf-8"), "fault script")
+            except UnicodeDecodeError as exc:
+                raise Refused(NackReason.BAD_PARAMETER, f"fault script is not UTF-8: {exc}") from None
+            except FaultScriptError as exc:
+                raise Refused(NackReason.BAD_PARAMETER, str(exc)) from None
+            self._reset_now = self.faults.load(faults)
+        elif req.action not in (FaultAction.CLEAR, FaultAction.STATUS):
+            raise Refused(NackReason.BAD_PARAMETER, f"unknown FAULT subcommand {req.action}: 0 load, 1 clear, 2 status")
+        elif req.script:
+            raise Refused(NackReason.BAD_LENGTH, f"FAULT {FaultAction(req.action).name.lower()} takes no script")
+        elif req.action == FaultAction.CLEAR:
+            self.faults.clear()
+        counters = tuple(self.faults.counters[name] for name in edac.FAULT_COUNTERS)
+        return FaultStatus(req.action, self.faults.armed, counters).pack()
 
     # ------------------------------------------------------------------ identity and counters
 

@@ -72,10 +72,15 @@ class Counters:
         return Diagnostics(**{**asdict(self), "per_code": tuple(self.per_code)})
 
 
+def _frames(replies: list[nsp.Message]) -> list[bytes]:
+    return [m.frame() for m in replies]
+
+
 class Dispatcher:
     """Runs commands through ``handlers`` (one per command-table code, checked at construction)
     under ``lock``; ``counters()`` gives the counters to update; ``late_reply()`` the transport's
-    callback for replies produced after :meth:`handle` returned (None: wait for them here)."""
+    callback for replies produced after :meth:`handle` returned (None: wait for them here), to
+    which ``frames(replies)`` hands their frames (the device's scripted reply faults act there)."""
 
     def __init__(
         self,
@@ -83,6 +88,7 @@ class Dispatcher:
         lock: threading.RLock,
         counters: Callable[[], Counters],
         late_reply: Callable[[], Callable[[list[bytes]], None] | None],
+        frames: Callable[[list[nsp.Message]], list[bytes]] = _frames,
     ):
         if set(handlers) != set(COMMANDS):
             raise ValueError(f"handlers for {sorted(handlers)} but the command table has {sorted(COMMANDS)}")
@@ -90,6 +96,7 @@ class Dispatcher:
         self._lock = lock
         self._counters = counters
         self._late_reply = late_reply
+        self._frames = frames
 
     def handle(self, msg: nsp.Message) -> list[nsp.Message]:
         """Execute a command addressed to us; return its reply messages ([] when Poll = 0)."""
@@ -148,5 +155,6 @@ class Dispatcher:
         ``late``, the transport's callback of the session that sent ``msg``."""
         with self._lock:
             replies = self._count_replies(msg, self._replies(msg, pending.wait))
-        if replies:
-            late([m.frame() for m in replies])
+        frames = self._frames(replies)
+        if frames:
+            late(frames)

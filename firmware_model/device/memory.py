@@ -4,12 +4,13 @@ that read and write them: PEEK, POKE, READ/WRITE EDAC, READ/WRITE FILE and CRC."
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
 from firmware_model.device.dispatch import Counters, Refused
+from firmware_model.device.faults import FaultInjector
 from protocol import edac, result
 from protocol.commands import (
     AddressedBytes,
@@ -52,17 +53,31 @@ class Supervisor:
     counters: Callable[[], Counters]
     result: Callable[[], bytes]  #: the result structure now
     analog: Callable[[], tuple[float, ...]]  #: the analog frame now (``housekeeping``)
+    fault_counters: Callable[[], Mapping[str, int]] = dict  #: the scripted faults' counters now
+
+
+#: 4-byte words of each region an ``edac_upset`` may strike, but the catalog (its image's)
+WORDS = {"scratch": (EDAC_SCRATCH[1] - EDAC_SCRATCH[0]) // 4, "ram": RAM_SIZE // 4, "result": result.TOTAL_LENGTH // 4}
 
 
 class Memory:
-    """EDAC memory and the memory map of one device."""
+    """EDAC memory and the memory map of one device; ``faults`` is told of every read and write
+    of the scratch, the RAM and the result (its EDAC upsets: corrected, or a NACK)."""
 
-    def __init__(self, state: Supervisor):
+    def __init__(self, state: Supervisor, faults: FaultInjector | None = None):
         self.state = state
+        self.faults = faults if faults is not None else FaultInjector()
         self._scratch = bytearray(EDAC_SCRATCH[1] - EDAC_SCRATCH[0])
         self._ram = bytearray(RAM_SIZE)
         self._rom = bytearray(ROM_SIZE)
         self._rom[: len(state.banner)] = state.banner.encode()
+
+    def reset(self) -> None:
+        """Scratch and RAM zeroed, as at start (a scripted reset)."""
+        self._scratch[:] = bytes(len(self._scratch))
+        self._ram[:] = bytes(len(self._ram))
+        self.faults.written("scratch")
+        self.faults.written("ram")
 
     # ------------------------------------------------------------------ EDAC
 
@@ -84,12 +99,22 @@ class Memory:
         rec["sequence"], rec["address"] = st.sequence(), st.address
         rec["app_mode"], rec["busy"] = int(app_mode), int(busy)
         rec["banner"] = st.banner.encode()[:64]
+        for name, value in st.fault_counters().items():
+            rec[name] = value
         rec["scratch"] = np.frombuffer(bytes(self._scratch), np.uint8)
         return rec.tobytes()
+
+    def _scratch_read(self, address: int, count: int) -> None:
+        """Tell the faults of a read of EDAC [address, address + count) where it covers scratch."""
+        lo, hi = EDAC_SCRATCH
+        start, end = max(address, lo), min(address + count, hi)
+        if start < end:
+            self.faults.read("scratch", start - lo, end - start)
 
     def _edac_read(self, address: int, count: int) -> bytes:
         if count < 1 or address + count > EDAC_SIZE:
             raise Refused(NackReason.BAD_ADDRESS, f"EDAC 0x{address:04X}+{count} outside 0x0000-0x01FF")
+        self._scratch_read(address, count)
         return self.edac_image()[address : address + count]
 
     def _edac_write(self, address: int, value: bytes) -> None:
@@ -99,6 +124,7 @@ class Memory:
         if address < lo:
             raise Refused(NackReason.READ_ONLY, f"EDAC 0x{address:04X} is read-only (scratch is 0x0100-0x01FF)")
         self._scratch[address - lo : address - lo + len(value)] = value
+        self.faults.written("scratch", address - lo, len(value))
 
     def read_edac(self, req: ReadRange) -> bytes:
         return AddressedBytes(req.address, self._edac_read(req.address, req.count)).pack()
@@ -125,14 +151,16 @@ class Memory:
 
     def _region(self, address: int, count: int, write: bool) -> tuple[bytearray | bytes, int]:
         regions = (
-            (ROM_BASE, self._rom, False),
-            (RAM_BASE, self._ram, True),
-            (RESULT_BASE, self.state.result(), False),
+            (ROM_BASE, self._rom, False, None),
+            (RAM_BASE, self._ram, True, "ram"),
+            (RESULT_BASE, self.state.result(), False, "result"),
         )
-        for base, buf, writable in regions:
+        for base, buf, writable, protected in regions:
             if base <= address and address + count <= base + len(buf):
                 if write and not writable:
                     raise Refused(NackReason.READ_ONLY, f"0x{address:08X} is read-only")
+                if protected is not None:
+                    (self.faults.written if write else self.faults.read)(protected, address - base, count)
                 return buf, address - base
         raise Refused(NackReason.BAD_ADDRESS, f"0x{address:08X}+{count} is outside the memory map")
 
@@ -165,5 +193,9 @@ class Memory:
             whole = self._space(req.space)
             if req.address + req.length > len(whole):
                 raise Refused(NackReason.BAD_ADDRESS, f"0x{req.address:X}+{req.length} beyond {len(whole)} bytes")
+            if req.space == MemorySpace.EDAC:
+                self._scratch_read(req.address, req.length)
+            else:
+                self.faults.read("result", req.address, req.length)
             span = whole[req.address : req.address + req.length]
         return CrcReply(req.space, req.address, req.length, crc16_mcrf4xx(span)).pack()

@@ -2,7 +2,8 @@
 solver on a snapshot of the slots (:class:`SolveContext`) while the device keeps answering, and
 its result structure is what READ RESULT and COMBINATION return; IMAGE's dark windows are inputs
 of the next sequences. The runner tells whether a sequence runs (BUSY) and whether a result is
-ready."""
+ready. Scripted faults (``faults``) may leave a sequence's result stuck, freeze the detector or
+upset the catalog; a scripted reset (:meth:`SequenceRunner.reset`) clears the result."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from typing import Any, Protocol
 
 from firmware_model.device.cosmos_compat import finish
 from firmware_model.device.dispatch import Mode, Pending, Refused
+from firmware_model.device.faults import FaultInjector
 from firmware_model.device.housekeeping import Housekeeping
 from firmware_model.device.transfers import Transfers
 from protocol import result
@@ -62,6 +64,7 @@ class Settings(Protocol):
     sensor_shape: tuple[int, int]
     quaternion_order: result.QuaternionOrder  #: unless the slot-2 parameter set names one
     housekeeping: Housekeeping  #: duty-cycle driven temperatures for the hardware section
+    faults: FaultInjector  #: scripted faults (stuck result, frozen detector, upsets)
 
 
 def _quaternion_order(params: Any, default: result.QuaternionOrder) -> result.QuaternionOrder:
@@ -81,17 +84,32 @@ class SequenceRunner:
         self.mode = mode
         self.transfers = transfers
         self.settings = settings
+        self.done = threading.Condition(lock)
+        self.hold_s = 0.0  #: a result is published no sooner than this long after its GO (--timing realistic)
+        self._epoch = 0  #: bumped by a reset: a sequence started before it publishes nothing
+        self._clear()
+
+    def _clear(self) -> None:
+        """The state at start: NO_RESULT, sequence 0, no dark windows, no frame captured."""
         no_result = {
-            **settings.housekeeping.result_fields(),
+            **self.settings.housekeeping.result_fields(),
             "return_code": result.make_return_code(result.Status.NO_RESULT),
         }
-        self.result = result.build(finish(no_result, settings.quaternion_order), 0)
+        self.result = result.build(finish(no_result, self.settings.quaternion_order), 0)
         self.result_ready = False
         self.sequence = 0
         self._busy: threading.Thread | None = None
-        self.done = threading.Condition(lock)
         self.dark: dict[int, list[DarkWindow]] = {0: [], 1: []}
-        self.hold_s = 0.0  #: a result is published no sooner than this long after its GO (--timing realistic)
+        self.last_capture: Any = None  #: the detector's last frame (a frozen detector returns it)
+
+    def reset(self) -> None:
+        """A scripted reset (with the lock held): the result cleared to NO_RESULT as at start; a
+        running sequence is abandoned."""
+        self._epoch += 1
+        self._clear()
+        self.settings.faults.written("result")
+        self.settings.housekeeping.set_busy(False)
+        self.done.notify_all()
 
     @property
     def busy(self) -> bool:
@@ -126,6 +144,7 @@ class SequenceRunner:
         return self._result_parts(req.address, req.count)
 
     def _result_parts(self, address: int, count: int) -> list[bytes]:
+        self.settings.faults.read("result", address, count)
         parts = []
         for start in range(address, address + count, RESULT_PART):
             n = min(RESULT_PART, address + count - start)
@@ -177,10 +196,16 @@ class SequenceRunner:
     # ------------------------------------------------------------------ the sequence
 
     def _start(self, code: int) -> None:
+        tr, st = self.transfers, self.settings
+        if st.faults.stuck():  # done at once: the last result and its sequence number stay
+            self.result_ready = True
+            return
+        stored = tr.store.active(Slot.CATALOG)
+        if st.faults.catalog_access() and stored is not None:  # reloaded from its stored image
+            tr.objects[Slot.CATALOG] = tr.slots[Slot.CATALOG].activate(stored)
         self.sequence += 1
         self.result_ready = False
-        self.settings.housekeeping.set_busy(True)
-        tr, st = self.transfers, self.settings
+        st.housekeeping.set_busy(True)
         params = tr.objects.get(Slot.PARAMS)
         ctx = SolveContext(
             go_code=code,
@@ -189,7 +214,7 @@ class SequenceRunner:
             catalog=tr.objects.get(Slot.CATALOG),
             frame=tr.objects.get(Slot.FRAME),
             params=params,
-            catalog_crc32=crc32(tr.store.active(0) or b""),
+            catalog_crc32=crc32(stored or b""),
             frame_crc32=crc32(tr.store.active(1) or b""),
             dark_windows=tuple(self.dark[0] + self.dark[1]),
             sensor_shape=st.sensor_shape,
@@ -197,7 +222,7 @@ class SequenceRunner:
         )
         uploaded, tr.frame_pending = tr.frame_pending, False
         self._busy = threading.Thread(
-            target=self._run, args=(ctx, uploaded), name=f"sequence-{ctx.sequence}", daemon=True
+            target=self._run, args=(ctx, uploaded, self._epoch), name=f"sequence-{ctx.sequence}", daemon=True
         )
         self._busy.start()
 
@@ -215,12 +240,15 @@ class SequenceRunner:
         if ctx.catalog is None:
             return status(result.Status.NO_CATALOG, "no catalog: upload one to slot 0")
         if capture is not None:
-            try:
-                frame = capture(ctx)
-            except FrameUnavailable as exc:
-                return status(result.Status.BAD_FRAME, str(exc))
-            if frame is None:
-                return status(result.Status.NO_FRAME, "the capture source has no more frames")
+            frame = self.last_capture
+            if frame is None or not self.settings.faults.frozen():
+                try:
+                    frame = capture(ctx)
+                except FrameUnavailable as exc:
+                    return status(result.Status.BAD_FRAME, str(exc))
+                if frame is None:
+                    return status(result.Status.NO_FRAME, "the capture source has no more frames")
+                self.last_capture = frame
             ctx = SolveContext(**{**ctx.__dict__, "frame": frame, "frame_crc32": 0})
         if ctx.frame is None:
             return status(result.Status.NO_FRAME, "no frame: no capture source and none uploaded to slot 1")
@@ -239,7 +267,7 @@ class SequenceRunner:
             fields["return_code"] = int(fields["return_code"]) | result.ReturnBits.DETECTOR_IMAGE
         return {**base, **fields}
 
-    def _run(self, ctx: SolveContext, uploaded: bool) -> None:
+    def _run(self, ctx: SolveContext, uploaded: bool, epoch: int) -> None:
         try:
             fields = {**self.settings.housekeeping.result_fields(), **self._fields(ctx, uploaded)}
             data = result.build(finish(fields, ctx.quaternion_order), ctx.sequence)
@@ -256,7 +284,10 @@ class SequenceRunner:
         if held > 0:
             time.sleep(held)
         with self._lock:
+            if epoch != self._epoch:  # a reset came first: the sequence never ends
+                return
             self.result = data
+            self.settings.faults.written("result")
             self.result_ready = True
             self._busy = None
             self.settings.housekeeping.set_busy(False)

@@ -1,0 +1,347 @@
+"""Scripted device faults for automated tests (docs/ICD.md section 13): the fault script, parsed
+from text lines, its deterministic triggers and the fault counters.
+
+A script has one fault per line, ``name key=value ...``, ``#`` starting a comment. Which replies,
+sequences or captures a fault hits is decided by counts ("the next N", "at the Nth GO", "after
+the Nth command") or by a fraction drawn from a :class:`random.Random` seeded with the line's
+``seed`` (default 0), never by the clock, so a script does the same thing to the same traffic
+on any machine. The only time a fault reads is its own effect: ``delay_reply``'s ``ms``.
+
+:class:`FaultInjector` holds the armed faults, the EDAC upsets they placed and the counters
+(``protocol.edac.FAULT_COUNTERS``, shown at EDAC 0x009C); the device shell asks it at each
+reply, command, sequence, capture and memory access.
+"""
+
+from __future__ import annotations
+
+import random
+import threading
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+from firmware_model.device.dispatch import Refused
+from protocol import edac
+from protocol.commands import Code, NackReason
+
+#: fault name -> the keys it takes besides ``seed`` (docs/ICD.md section 13)
+KEYS: dict[str, frozenset[str]] = {
+    "delay_reply": frozenset({"ms", "fraction", "count"}),
+    "drop_reply": frozenset({"fraction", "count"}),
+    "corrupt_crc": frozenset({"fraction", "count"}),
+    "stuck_result": frozenset({"count"}),
+    "reset": frozenset({"at_go", "after", "now"}),
+    "edac_upset": frozenset({"region", "bits", "count"}),
+    "frozen_detector": frozenset({"count"}),
+}
+REGIONS = ("scratch", "ram", "result", "catalog")  #: where ``edac_upset`` may strike
+MAX_COUNT = 1_000_000  #: largest count, at_go or after (ours: a bound on a typo, not a model)
+MAX_DELAY_MS = 60_000.0  #: largest ``delay_reply`` delay (ours; the client's longest wait is 60 s)
+WORD = 4  #: bytes per EDAC-protected memory word (ours: the 32-bit word READ FILE moves)
+REPLY_FAULTS = ("drop_reply", "corrupt_crc", "delay_reply")  #: in the order they are decided
+GO_CODES = (Code.GO, Code.COMBINATION)  #: the commands that start a sequence (``reset at_go``)
+
+
+class FaultScriptError(ValueError):
+    """A script that does not parse: the message names the source and the line number."""
+
+
+@dataclass(frozen=True)
+class Fault:
+    """One parsed line: ``name``, its ``keys`` (numbers already checked; ``now`` as True) and
+    its ``line`` number in the script."""
+
+    name: str
+    keys: Mapping[str, float | int | str | bool]
+    line: int
+
+    @property
+    def seed(self) -> int:
+        return int(self.keys.get("seed", 0))
+
+
+def _number(text: str, key: str, integer: bool, lo: float, hi: float) -> float | int:
+    try:
+        value: float | int = int(text, 0) if integer else float(text)
+    except ValueError:
+        raise ValueError(f"{key}={text!r} is not {'a whole number' if integer else 'a number'}") from None
+    if not lo <= value <= hi:  # also NaN
+        raise ValueError(f"{key}={text} outside {lo:g}..{hi:g}")
+    return value
+
+
+def _value(name: str, key: str, text: str) -> float | int | str:
+    if key == "fraction":
+        return _number(text, key, False, 0.0, 1.0)
+    if key == "ms":
+        return _number(text, key, False, 0.0, MAX_DELAY_MS)
+    if key in ("count", "seed"):
+        return _number(text, key, True, 0, MAX_COUNT if key == "count" else 2**63 - 1)
+    if key in ("at_go", "after"):
+        return _number(text, key, True, 1, MAX_COUNT)
+    if key == "bits":
+        if text not in ("1", "2"):
+            raise ValueError(f"bits={text!r}: 1 (corrected) or 2 (uncorrectable)")
+        return int(text)
+    if text not in REGIONS:  # region
+        raise ValueError(f"region={text!r}; known: {', '.join(REGIONS)}")
+    return text
+
+
+def _needs(name: str, keys: Mapping[str, object]) -> str | None:
+    """What ``name``'s line lacks or has too much of, or None."""
+    trigger = {"fraction", "count"} if name in REPLY_FAULTS else {"at_go", "after", "now"} if name == "reset" else None
+    if trigger is not None and len(trigger & set(keys)) != 1:
+        return f"{name} takes exactly one of {', '.join(sorted(trigger))}"
+    if name == "delay_reply" and "ms" not in keys:
+        return "delay_reply needs ms="
+    if name in ("stuck_result", "frozen_detector") and "count" not in keys:
+        return f"{name} needs count="
+    if name == "edac_upset" and not {"region", "bits"} <= set(keys):
+        return "edac_upset needs region= and bits="
+    return None
+
+
+def parse_line(text: str, line: int) -> Fault | None:
+    """The fault on one line (None for a blank or comment line); ValueError says what is wrong."""
+    words = text.split("#", 1)[0].split()
+    if not words:
+        return None
+    name, *rest = words
+    if name not in KEYS:
+        raise ValueError(f"unknown fault {name!r}; known: {', '.join(KEYS)}")
+    keys: dict[str, float | int | str | bool] = {}
+    for word in rest:
+        key, eq, text_value = word.partition("=")
+        if key not in KEYS[name] | {"seed"}:
+            raise ValueError(f"{name}: unknown key {key!r}; known: {', '.join(sorted(KEYS[name] | {'seed'}))}")
+        if key in keys:
+            raise ValueError(f"{name}: {key} given twice")
+        if key == "now":
+            if eq:
+                raise ValueError("reset now takes no value")
+            keys[key] = True
+            continue
+        if not eq:
+            raise ValueError(f"{name}: {key} needs a value ({key}=...)")
+        keys[key] = _value(name, key, text_value)
+    problem = _needs(name, keys)
+    if problem:
+        raise ValueError(problem)
+    return Fault(name, keys, line)
+
+
+def parse_script(text: str, source: str = "faults") -> tuple[Fault, ...]:
+    """Every fault of ``text``; :class:`FaultScriptError` (``SOURCE line N: what``) at the first
+    line that does not parse."""
+    faults = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        try:
+            fault = parse_line(line, number)
+        except ValueError as exc:
+            raise FaultScriptError(f"{source} line {number}: {exc}") from None
+        if fault is not None:
+            faults.append(fault)
+    return tuple(faults)
+
+
+@dataclass
+class _Armed:
+    """One armed fault: what is left of its count (None: a fraction, armed until cleared)."""
+
+    fault: Fault
+    left: int | None
+    rng: random.Random = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.rng = random.Random(self.fault.seed)
+
+    def fires(self) -> bool:
+        """Whether this event is hit (a count is spent; a fraction draws from the seeded stream)."""
+        if self.left is None:
+            return self.rng.random() < float(self.fault.keys["fraction"])
+        if self.left <= 0:
+            return False
+        self.left -= 1
+        return True
+
+    @property
+    def spent(self) -> bool:
+        return self.left is not None and self.left <= 0
+
+
+@dataclass(frozen=True)
+class ReplyFault:
+    """What happens to one command's reply: dropped, its CRC corrupted, sent ``delay_s`` late."""
+
+    drop: bool = False
+    corrupt: bool = False
+    delay_s: float = 0.0
+
+
+class FaultInjector:
+    """The armed faults of one device and its fault counters. ``words(region)`` gives the number
+    of 4-byte words of a region now (the catalog's: of its active image); it chooses where
+    ``edac_upset`` strikes. Thread-safe: the sequence worker asks too."""
+
+    def __init__(self, words: Callable[[str], int] = lambda region: 0):
+        self._words = words
+        self._lock = threading.Lock()
+        self._armed: list[_Armed] = []
+        self._commands = 0  #: commands (FAULT aside) since the script was loaded
+        self._gos = 0  #: GO / COMBINATION commands since then
+        self.upsets: dict[str, dict[int, int]] = {r: {} for r in REGIONS}  #: region -> word -> bits
+        self.counters: dict[str, int] = dict.fromkeys(edac.FAULT_COUNTERS, 0)
+
+    # ------------------------------------------------------------------ the script
+
+    def load(self, faults: tuple[Fault, ...]) -> bool:
+        """Arm ``faults`` in place of the armed ones (EDAC upsets are placed now); True when one
+        of them is ``reset now`` (the caller resets once its reply is out)."""
+        now = False
+        with self._lock:
+            self._armed, self._commands, self._gos = [], 0, 0
+            for fault in faults:
+                if fault.name == "edac_upset":
+                    self._place(fault)
+                elif fault.name == "reset" and fault.keys.get("now"):
+                    now = True
+                else:
+                    count = fault.keys.get("count", fault.keys.get("at_go", fault.keys.get("after")))
+                    self._armed.append(_Armed(fault, None if count is None else int(count)))
+        return now
+
+    def clear(self) -> None:
+        """Disarm every fault and forget every upset (the counters stay)."""
+        with self._lock:
+            self._armed = []
+            self.upsets = {r: {} for r in REGIONS}
+
+    @property
+    def armed(self) -> int:
+        """Faults still to act: armed lines not spent, plus words holding an upset."""
+        with self._lock:
+            return sum(not a.spent for a in self._armed) + sum(len(w) for w in self.upsets.values())
+
+    def count(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self.counters[name] += n
+
+    def _place(self, fault: Fault) -> None:
+        region, bits = str(fault.keys["region"]), int(fault.keys["bits"])
+        n_words = max(1, self._words(region))
+        count = min(int(fault.keys.get("count", 1)), n_words)
+        hit = self.upsets[region]
+        for word in random.Random(fault.seed).sample(range(n_words), count):
+            hit[word] = max(bits, hit.get(word, 0))
+
+    def _fire(self, name: str) -> bool:
+        """Whether an armed ``name`` fault fires now: its lines asked in script order until one
+        does (the lines after it are not asked, so their counts and draws wait)."""
+        with self._lock:
+            return any(a.fires() for a in self._armed if a.fault.name == name)
+
+    # ------------------------------------------------------------------ replies and commands
+
+    def reply(self, code: int) -> ReplyFault:
+        """The fault, if any, on the reply to a command of ``code`` (FAULT's own replies are
+        never hit); counted."""
+        if code == Code.FAULT:
+            return ReplyFault()
+        if self._fire("drop_reply"):
+            self.count("dropped_replies")
+            return ReplyFault(drop=True)
+        corrupt = self._fire("corrupt_crc")
+        if corrupt:
+            self.count("corrupted_crcs")
+        with self._lock:
+            delays = [float(a.fault.keys["ms"]) for a in self._armed if a.fault.name == "delay_reply" and a.fires()]
+        if delays:
+            self.count("delayed_replies")
+        return ReplyFault(corrupt=corrupt, delay_s=max(delays, default=0.0) / 1000.0)
+
+    def reset_before(self, code: int) -> bool:
+        """Whether the device resets on receiving this command, unanswered (``reset at_go``)."""
+        if code not in GO_CODES:
+            return False
+        with self._lock:
+            self._gos += 1
+            due = [a for a in self._armed if a.fault.name == "reset" and "at_go" in a.fault.keys and not a.spent]
+            hit = [a for a in due if int(a.fault.keys["at_go"]) == self._gos]
+            for a in hit:
+                a.left = 0
+        return bool(hit)
+
+    def reset_after(self, code: int) -> bool:
+        """Whether the device resets once this command is answered (``reset after``)."""
+        if code == Code.FAULT:
+            return False
+        with self._lock:
+            self._commands += 1
+            due = [a for a in self._armed if a.fault.name == "reset" and "after" in a.fault.keys and not a.spent]
+            hit = [a for a in due if int(a.fault.keys["after"]) == self._commands]
+            for a in hit:
+                a.left = 0
+        return bool(hit)
+
+    # ------------------------------------------------------------------ sequences and captures
+
+    def stuck(self) -> bool:
+        """Whether this sequence completes without a new result (``stuck_result``); counted."""
+        if self._fire("stuck_result"):
+            self.count("stuck_results")
+            return True
+        return False
+
+    def frozen(self) -> bool:
+        """Whether this capture returns the previous frame (``frozen_detector``); counted. Ask
+        only when there is a previous frame."""
+        if self._fire("frozen_detector"):
+            self.count("frozen_frames")
+            return True
+        return False
+
+    def catalog_access(self) -> bool:
+        """The catalog read by a solve: single-bit upsets corrected, double-bit ones detected;
+        True when the active catalog must be reloaded from its stored image (counted)."""
+        with self._lock:
+            words, self.upsets["catalog"] = self.upsets["catalog"], {}
+        single = sum(bits == 1 for bits in words.values())
+        double = len(words) - single
+        if single:
+            self.count("edac_corrected", single)
+        if double:
+            self.count("edac_uncorrectable", double)
+            self.count("catalog_reloads")
+        return bool(double)
+
+    # ------------------------------------------------------------------ memory
+
+    def read(self, region: str, offset: int, length: int) -> None:
+        """A read of bytes [offset, offset + length) of ``region``: single-bit upsets there are
+        corrected (the data reads right; counted, the word scrubbed); a double-bit upset is counted
+        and NACKs EDAC_UNCORRECTABLE, the word staying bad until it is written."""
+        with self._lock:
+            hit = self.upsets[region]
+            words = [w for w in hit if offset // WORD <= w <= (offset + length - 1) // WORD]
+            if not words:
+                return
+            single = [w for w in words if hit[w] == 1]
+            double = sorted(w for w in words if hit[w] == 2)
+            for w in single:
+                del hit[w]
+            self.counters["edac_corrected"] += len(single)
+            self.counters["edac_uncorrectable"] += len(double)
+        if double:
+            raise Refused(
+                NackReason.EDAC_UNCORRECTABLE,
+                f"uncorrectable double-bit EDAC error in {region} word at offset 0x{double[0] * WORD:X} "
+                f"({len(double)} word(s) bad until rewritten)",
+            )
+
+    def written(self, region: str, offset: int = 0, length: int | None = None) -> None:
+        """Bytes [offset, offset + length) of ``region`` rewritten (None: the whole region): the
+        upsets of the words they touch are gone."""
+        with self._lock:
+            hit = self.upsets[region]
+            for w in [w for w in hit if length is None or offset // WORD <= w <= (offset + length - 1) // WORD]:
+                del hit[w]
