@@ -52,6 +52,12 @@ SEED = ranged(int, 0, 2**63 - 1, "a seed")
 RA_DEG = ranged(float, 0.0, 360.0, "RA in degrees")
 DEC_DEG = ranged(float, -90.0, 90.0, "Dec in degrees")
 ANGLE_DEG = ranged(float, -360.0, 360.0, "an angle in degrees")
+#: Radiation on a simulated detector (``sim availability``): a particle flux (cm^-2 s^-1; 1e6 hits
+#: a full reference-design frame ~24 000 times in 100 ms, far beyond any orbit's), a mean number
+#: of hits per frame, a total ionising dose (krad(Si); 10 Mrad is beyond any CMOS sensor's life).
+FLUX_PER_CM2_S = ranged(float, 0.0, 1e6, "a particle flux per cm^2 per s")
+HITS_PER_FRAME = ranged(float, 0.0, 1e5, "a number of hits per frame")
+DOSE_KRAD = ranged(float, 0.0, 1e4, "a dose in krad")
 #: ``--fov-deg`` / ``--fov-range`` everywhere: a horizontal field of view, deg; the options' help
 #: states it, their checks read it (``firmware_model.pipeline.sky_search.FOV_LIMITS_DEG``, kept
 #: equal by a test): the whole-sky search covers it, and a field catalog's half-angle on the short

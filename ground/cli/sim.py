@@ -5,6 +5,9 @@ the table 3 breakdown next to the paper's figures and writes rows (.npy), summar
 error CDF (fig. 9) and the Mollweide map (fig. 10); ``--true-colours``, ``--gain-error`` and
 ``--scintillation`` observe colours the catalog did not predict (open loop). ``sim fourstar``: Dong et al.'s 5 deg grid at one or
 more tolerances. Both run on local cores (``--workers``) or a Dask cluster (``--scheduler``).
+``sim availability``: rendered frames at seeded random attitudes over the real sky with detector
+effects over a mission (radiation hits, the South Atlantic Anomaly, dose, temperature), solved by the
+pipeline; prints availability, correct, high-confidence wrong, low confidence and no solution.
 """
 
 from __future__ import annotations
@@ -13,7 +16,16 @@ import logging
 from pathlib import Path
 
 from ground import json_text
-from ground.arg_types import SEED, SENSOR_PX, InputError, progress_on, ranged
+from ground.arg_types import (
+    DOSE_KRAD,
+    FLUX_PER_CM2_S,
+    HITS_PER_FRAME,
+    SEED,
+    SENSOR_PX,
+    InputError,
+    progress_on,
+    ranged,
+)
 from ground.atomic_write import atomic_path, write_text
 from ground.optional import MissingExtra
 
@@ -22,6 +34,16 @@ log = logging.getLogger(__name__)
 #: Open-loop colour impairments (``ground.sim.true_colours`` bounds), refused before any work.
 GAIN_ERROR = ranged(float, 0.0, 0.5, "a gain error")
 SCINTILLATION = ranged(float, 0.0, 1.0, "a scintillation sigma")
+#: ``sim availability``: frames, exposure (ms) and the detector's duty cycle (fraction busy).
+ATTITUDES = ranged(int, 1, 1_000_000, "a number of attitudes")
+EXPOSURE_MS = ranged(float, 0.01, 60_000.0, "an exposure in ms")
+DUTY = ranged(float, 0.0, 1.0, "a duty cycle")
+
+
+#: ``--temperature-c`` (degC): ``detector_effects.TEMPERATURE_RANGE_C``, not imported here so that
+#: ``--help`` stays fast (scipy, astropy); a test keeps the two equal.
+TEMPERATURE_RANGE_C = (-40.0, 85.0)
+TEMPERATURE_C = ranged(float, *TEMPERATURE_RANGE_C, "a detector temperature in degC")
 
 #: Enright & McVittie section 5.2 (table 3, fig. 9) for 1e6 poses.
 PAPER_COLOUR = {
@@ -101,6 +123,48 @@ def register(subparsers) -> None:
     f.add_argument("--paper", action="store_true", help="the paper's procedure without the consistency check")
     _common(f)
     f.set_defaults(func=run_fourstar)
+    a = sub.add_parser(
+        "availability",
+        help="rendered frames at random attitudes with detector effects over a mission, solved by the pipeline",
+    )
+    a.add_argument("--attitudes", type=ATTITUDES, default=100, help="frames (seeded random attitudes), 1-1e6")
+    a.add_argument("--seed", type=SEED, default=0, help="random seed (each frame has its own stream)")
+    a.add_argument("--exposure-ms", type=EXPOSURE_MS, default=100.0, help="exposure, ms (0.01-60000)")
+    hits = a.add_mutually_exclusive_group()
+    hits.add_argument(
+        "--cosmic-rate",
+        type=FLUX_PER_CM2_S,
+        default=0.0,
+        help="radiation flux, particles per cm^2 per s on the array (0-1e6; hits per frame are Poisson)",
+    )
+    hits.add_argument("--hits-per-frame", type=HITS_PER_FRAME, help="mean radiation hits per frame instead (0-1e5)")
+    a.add_argument(
+        "--saa",
+        action="store_true",
+        help="raise the flux inside a coarse South Atlantic Anomaly of the sub-satellite point (frames spread "
+        "over one day of --orbit)",
+    )
+    a.add_argument(
+        "--orbit",
+        default="550",
+        help="circular orbit for --saa: ALT_KM[,INC_DEG[,RAAN_DEG[,ARG_LAT_DEG[,EPOCH_UTC]]]] (default: 550 km, 97.6 deg)",
+    )
+    a.add_argument(
+        "--dose-krad", type=DOSE_KRAD, default=0.0, help="total dose, krad(Si): hot pixels grow with it (0-1e4)"
+    )
+    temp = a.add_mutually_exclusive_group()
+    temp.add_argument(
+        "--temperature-c",
+        type=TEMPERATURE_C,
+        help=f"detector temperature, degC ({TEMPERATURE_RANGE_C[0]:g} to {TEMPERATURE_RANGE_C[1]:g}): dark current "
+        "doubles every 6.5 degC from the detector model's value at 20 degC",
+    )
+    temp.add_argument(
+        "--duty", type=DUTY, help="detector temperature from the housekeeping model at this duty cycle (0-1)"
+    )
+    a.add_argument("--workers", type=ranged(int, 1, 256, "a number of workers"), default=1, help="local processes")
+    a.add_argument("-o", "--output", "--out", dest="out", type=Path, help="directory for rows and summary (JSON)")
+    a.set_defaults(func=run_availability)
 
 
 def _emit(args, payload: dict, text: str) -> None:
@@ -270,4 +334,51 @@ def run_fourstar(args) -> int:
     if args.out:
         write_text(args.out / "fourstar_summary.json", json_text.dumps(results, indent=2))
     _emit(args, results, "\n".join(lines))
+    return 0
+
+
+def run_availability(args) -> int:
+    from ground.sim import availability as av
+    from ground.sim.detector_effects import CosmicRays, MissionEffects, SouthAtlanticAnomaly
+    from ground.sim.orbit import CircularOrbit
+
+    try:
+        orbit = CircularOrbit.parse(args.orbit) if args.saa else None
+    except ValueError as exc:
+        raise InputError(f"--orbit: {exc}") from None
+    flux, hits = args.cosmic_rate, args.hits_per_frame
+    cosmic = None
+    if flux > 0 or hits is not None or args.saa:
+        cosmic = CosmicRays(flux_cm2_s=flux, hits_per_frame=hits, saa=SouthAtlanticAnomaly() if args.saa else None)
+    effects = MissionEffects(
+        cosmic=cosmic, dose_krad=args.dose_krad, temperature_c=args.temperature_c, duty=args.duty, orbit=orbit
+    )
+    cfg = av.AvailabilityConfig(
+        n_attitudes=args.attitudes,
+        seed=args.seed,
+        exposure_s=args.exposure_ms / 1000.0,
+        start_posix=orbit.epoch_posix if orbit else None,
+        spacing_s=86400.0 / args.attitudes,
+    )
+    if args.out and args.out.exists() and not args.out.is_dir():
+        raise InputError(f"-o {args.out}: a file, not a directory")
+    rows = av.run_availability(cfg, [effects], workers=args.workers, progress=progress_on(args))
+    summary = av.summarise(rows)
+    summary["config"] = {
+        "attitudes": args.attitudes,
+        "seed": args.seed,
+        "exposure_ms": args.exposure_ms,
+        "cosmic_rate_per_cm2_s": flux,
+        "hits_per_frame": hits,
+        "saa": args.saa,
+        "orbit": args.orbit if args.saa else None,
+        "dose_krad": args.dose_krad,
+        "temperature_c": effects.temperature(),
+        "duty": args.duty,
+    }
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+        write_text(args.out / "availability_rows.json", json_text.dumps(rows, indent=1))
+        write_text(args.out / "availability_summary.json", json_text.dumps(summary, indent=2))
+    _emit(args, summary, av.summary_table(summary))
     return 0

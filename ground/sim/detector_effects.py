@@ -254,8 +254,9 @@ class MissionEffects:
     """A mission's detector effects for one frame: ``cosmic`` hits, total ``dose_krad``, and the
     detector at ``temperature_c`` or at the housekeeping temperature of a ``duty`` cycle (neither:
     the DetectorModel as given). With ``orbit`` and ``t_posix`` the frame carries its time and the
-    spacecraft's GCRS position (``metadata["sc_position_km"]``), and the SAA sees the sub-satellite
-    point."""
+    SAA sees the sub-satellite point; the spacecraft's GCRS position goes to the truth only, not to
+    the Frame's metadata (``sc_position_km`` there makes the pipeline exclude the Earth, which these
+    effects do not render: the glare effect's job)."""
 
     cosmic: CosmicRays | None = None
     dose_krad: float = 0.0
@@ -297,7 +298,6 @@ class MissionEffects:
         depend on where the sensor points); hits drawn from ``rng``."""
         det = self.detector_for(detector)
         truth: dict = {"temperature_c": self.temperature(), "dark_e_per_s": det.dark_e_per_s}
-        metadata: dict = {}
         timestamp, where = None, None
         if self.orbit is not None and self.t_posix is not None:
             from astropy.time import Time
@@ -306,7 +306,7 @@ class MissionEffects:
             lat, lon, _ = subsatellite_point(pos, self.t_posix)
             where = (lat, lon)
             timestamp = Time(self.t_posix, format="unix", scale="utc").isot + "Z"
-            metadata["sc_position_km"] = [float(v) for v in pos]
+            truth["sc_position_km"] = [float(v) for v in pos]
             truth["subsatellite_deg"] = [lat, lon]
         objs: list[FalseObject] = []
         if self.cosmic is not None:
@@ -321,4 +321,4 @@ class MissionEffects:
             extra = np.zeros(shape)
             extra.ravel()[hot] = det.hot_pixel_e_per_s * det.exposure_s
             truth["dose"] = {"dose_krad": self.dose_krad, "new_hot_pixels": int(len(hot))}
-        return RenderInputs(det, objs, extra, truth, timestamp, metadata)
+        return RenderInputs(det, objs, extra, truth, timestamp)

@@ -1,0 +1,229 @@
+"""A rendered whole-sky availability run: seeded random attitudes over the real sky, each frame
+rendered with ``sensor_sim.render_frame`` and a list of effects, solved with ``run_pipeline``, and
+scored.
+
+* Attitudes: frame ``k`` of seed ``s`` draws its boresight uniformly on the sphere and its roll
+  uniformly from ``default_rng([s, k])``; its effects draw from ``default_rng([s, k, 1])``; so a
+  frame is the same whatever the worker count or the order frames run in.
+* Rendering: the real sky to V 6.5 (``sky_model.sky_stars``) cut to the field, the reference-design
+  camera and a ``DetectorModel`` (RGGB, the run's exposure), as ``bench/bench_openloop.py``.
+  Each effect is an object with ``render_inputs(attitude, camera, detector, rng) ->
+  RenderInputs`` (``ground.sim.detector_effects``); effects apply in order, each to the detector
+  the one before returned; their false objects are joined, their extra e- summed, their truth kept
+  under ``truth["effects"]``, their metadata merged into the Frame's, the last timestamp wins. With
+  a start time, frame ``k`` is at ``start + k x spacing`` (POSIX UTC s) and an effect with an
+  ``at_time(t)`` method is moved there first.
+* Solving: ``run_pipeline(frame, camera, catalog)`` with the default catalog (V <= 5) and
+  ``PipelineParams()``, the frame carrying no camera, as the open-loop bench.
+* Scoring (as ``ground.analysis.replay.score``, which this layer may not import; a test keeps them
+  equal): ``correct`` when the attitude is within :data:`CORRECT_DEG` of the truth and no matched
+  star carries a wrong id (truth stars within :data:`MATCH_RADIUS_PX` of the detection, none with
+  its id); ``wrong`` for any other attitude; ``no_solution`` without one. Availability is the
+  fraction of frames with a high-confidence (status OK) attitude.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+CORRECT_DEG = 0.1  #: attitude error bound of a correct solve (deg), replay.CORRECT_DEG
+MATCH_RADIUS_PX = 2.0  #: detection <-> truth association radius (px), replay.MATCH_RADIUS_PX
+
+
+@dataclass(frozen=True)
+class AvailabilityConfig:
+    """``n_attitudes`` frames of ``seed``, ``exposure_s`` (s) each, ``pattern`` the CFA; frame
+    times from ``start_posix`` (POSIX UTC s, or None: no time) every ``spacing_s`` (s)."""
+
+    n_attitudes: int
+    seed: int = 0
+    exposure_s: float = 0.1
+    pattern: str = "RGGB"
+    start_posix: float | None = None
+    spacing_s: float = 60.0
+
+    def __post_init__(self):
+        if self.n_attitudes < 1:
+            raise ValueError(f"need at least 1 attitude, got {self.n_attitudes}")
+        if not self.exposure_s > 0:
+            raise ValueError(f"an exposure must be positive, got {self.exposure_s}")
+
+
+_CTX: tuple | None = None
+
+
+def _context():
+    """(catalog, camera, sky stars, catalog ids) of this process, built once."""
+    global _CTX
+    if _CTX is None:
+        from firmware_model.camera import CameraModel
+        from ground.catalog.build import build_catalog
+        from ground.catalog.design import CatalogDesign
+        from ground.sim.sky_model import sky_stars
+
+        cat = build_catalog(CatalogDesign())
+        _CTX = (cat, CameraModel.reference_design(), sky_stars(), np.asarray(cat.star_id, dtype=np.int64))
+    return _CTX
+
+
+def frame_attitude(seed: int, k: int) -> np.ndarray:
+    """Attitude matrix A of frame ``k``: boresight uniform on the sphere, roll uniform."""
+    from firmware_model.reference_frames import attitude_from_radec_roll
+
+    rng = np.random.default_rng([seed, k])
+    return attitude_from_radec_roll(rng.uniform(0, 2 * np.pi), np.arcsin(rng.uniform(-1, 1)), rng.uniform(0, 2 * np.pi))
+
+
+def render_with_effects(stars, attitude, camera, detector, effects, rng: np.random.Generator, seed: int):
+    """``render_frame`` with the joined inputs of ``effects`` (module docstring); returns the
+    RenderResult with the effects' metadata in its Frame and their truth in ``truth["effects"]``."""
+    from ground.sim.sensor_sim import render_frame
+
+    det, objs, extra, truths, meta, stamp = detector, [], None, [], {}, None
+    for effect in effects:
+        inp = effect.render_inputs(attitude, camera, det, rng)
+        det = inp.detector
+        objs.extend(inp.false_objects)
+        if inp.extra_e is not None:
+            extra = inp.extra_e if extra is None else extra + inp.extra_e
+        truths.append({"effect": type(effect).__name__, **inp.truth})
+        meta.update(inp.metadata)
+        stamp = inp.timestamp or stamp
+    r = render_frame(stars, attitude, camera, det, seed=seed, false_objects=objs, timestamp=stamp, extra_e=extra)
+    r.frame = dataclasses.replace(r.frame, metadata={**r.frame.metadata, **meta}, camera=None)
+    r.truth["effects"] = truths
+    return r
+
+
+def score(record: dict, attitude: np.ndarray, truth_stars: list[dict]) -> dict:
+    """Outcome (``correct``, ``wrong``, ``no_solution``), attitude error (deg) and wrong ids."""
+    from firmware_model.reference_frames import quat_to_matrix, rotation_angle
+    from ground.link.solve_report import matched_stars
+
+    if record.get("q_icrs_to_sensor") is None:
+        return {"outcome": "no_solution", "attitude_error_deg": None, "wrong_ids": 0}
+    err = float(np.degrees(rotation_angle(quat_to_matrix(record["q_icrs_to_sensor"]), attitude)))
+    tx = np.array([s["x"] for s in truth_stars])
+    ty = np.array([s["y"] for s in truth_stars])
+    ids = np.array([s["id"] for s in truth_stars], dtype=np.int64)
+    wrong = 0
+    for s in matched_stars(record):
+        near = set(ids[np.hypot(tx - s["x"], ty - s["y"]) <= MATCH_RADIUS_PX].tolist()) if len(ids) else set()
+        wrong += int(bool(near) and s["catalog_id"] not in near)
+    outcome = "correct" if err <= CORRECT_DEG and wrong == 0 else "wrong"
+    return {"outcome": outcome, "attitude_error_deg": err, "wrong_ids": wrong}
+
+
+def run_frame(cfg: AvailabilityConfig, effects: tuple, k: int) -> dict:
+    """Render, solve and score frame ``k``: one row (JSON-ready)."""
+    from firmware_model.pipeline.run import run_pipeline
+    from ground.link.solve_report import record_from_output
+    from ground.sim.openloop import stars_in_cone
+    from ground.sim.sensor_sim import DetectorModel
+
+    cat, camera, sky, cat_ids = _context()
+    a = frame_attitude(cfg.seed, k)
+    if cfg.start_posix is not None:
+        t = cfg.start_posix + k * cfg.spacing_s
+        effects = tuple(e.at_time(t) if hasattr(e, "at_time") else e for e in effects)
+    rng = np.random.default_rng([cfg.seed, k, 1])
+    det = DetectorModel(pattern=cfg.pattern, exposure_s=cfg.exposure_s)
+    stars = stars_in_cone(sky, a, camera.fov_half_angle_diagonal + np.radians(1.0))
+    r = render_with_effects(stars, a, camera, det, effects, rng, int(rng.integers(2**31)))
+    out = run_pipeline(r.frame, camera, cat)
+    rec = record_from_output(out)
+    tracks = [t for e in r.truth["effects"] for t in e.get("cosmic", {}).get("tracks", [])]
+    return {
+        "k": k,
+        "status": rec["status"],
+        "reason": out.reason or "",
+        "n_detected": rec["n_detected"],
+        "n_matched": rec["n_matched"],
+        "n_catalog_in_view": int(np.isin([s["id"] for s in r.truth["stars"]], cat_ids).sum()),
+        "n_hits": len(tracks),
+        "effects": [_without_tracks(e) for e in r.truth["effects"]],
+        "timestamp": r.frame.timestamp,
+        **score(rec, a, r.truth["stars"]),
+    }
+
+
+def _without_tracks(effect_truth: dict) -> dict:
+    """An effect's truth with its cosmic tracks counted instead of listed (rows stay small)."""
+    if "cosmic" not in effect_truth:
+        return effect_truth
+    cosmic = {k: v for k, v in effect_truth["cosmic"].items() if k != "tracks"}
+    return {**effect_truth, "cosmic": cosmic}
+
+
+def _chunk(args) -> list[dict]:
+    cfg, effects, ks = args
+    return [run_frame(cfg, effects, k) for k in ks]
+
+
+def run_availability(
+    cfg: AvailabilityConfig, effects=(), workers: int = 1, progress: bool = False, chunk: int = 4
+) -> list[dict]:
+    """Rows of frames ``0 .. n_attitudes - 1`` in order; ``workers`` processes (the rows do not
+    depend on it); a tqdm bar on stderr when ``progress``."""
+    from tqdm import tqdm
+
+    effects = tuple(effects)
+    ks = list(range(cfg.n_attitudes))
+    parts = [ks[i : i + chunk] for i in range(0, len(ks), chunk)]
+    rows: list[dict] = []
+    with tqdm(total=len(ks), unit="frame", desc="sim availability", disable=not progress, file=sys.stderr) as bar:
+        if workers <= 1:
+            for part in parts:
+                rows.extend(_chunk((cfg, effects, part)))
+                bar.update(len(part))
+        else:
+            os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+            with ProcessPoolExecutor(workers) as pool:
+                for got in pool.map(_chunk, [(cfg, effects, p) for p in parts]):
+                    rows.extend(got)
+                    bar.update(len(got))
+    return rows
+
+
+def summarise(rows: list[dict]) -> dict:
+    """Counts and fractions of a run: availability (high-confidence attitudes / frames), correct,
+    high-confidence wrong, low-confidence (and wrong), no solution, statuses, hits per frame."""
+    n = len(rows)
+    hc = [r for r in rows if r["status"] == "OK"]
+    lc = [r for r in rows if r["status"] == "LOW_CONFIDENCE"]
+    return {
+        "frames": n,
+        "availability": len(hc) / n if n else 0.0,
+        "high_confidence": len(hc),
+        "correct": sum(r["outcome"] == "correct" for r in rows),
+        "high_confidence_correct": sum(r["outcome"] == "correct" for r in hc),
+        "high_confidence_wrong": sum(r["outcome"] == "wrong" for r in hc),
+        "low_confidence": len(lc),
+        "low_confidence_wrong": sum(r["outcome"] == "wrong" for r in lc),
+        "no_solution": sum(r["outcome"] == "no_solution" for r in rows),
+        "status_counts": dict(sorted(Counter(r["status"] for r in rows).items())),
+        "mean_hits_per_frame": float(np.mean([r["n_hits"] for r in rows])) if n else 0.0,
+    }
+
+
+def summary_table(summary: dict) -> str:
+    """The summary as text lines (key: value) for a reader."""
+    s = summary
+    lines = [
+        f"frames: {s['frames']}",
+        f"availability (high-confidence attitude): {s['high_confidence']} ({s['availability'] * 100:.1f} %)",
+        f"correct (within {CORRECT_DEG:g} deg, no wrong id): {s['correct']}",
+        f"high-confidence wrong: {s['high_confidence_wrong']}",
+        f"low-confidence: {s['low_confidence']} (wrong {s['low_confidence_wrong']})",
+        f"no solution: {s['no_solution']}",
+        f"statuses: {', '.join(f'{k} {v}' for k, v in s['status_counts'].items())}",
+        f"radiation hits per frame (mean drawn): {s['mean_hits_per_frame']:.2f}",
+    ]
+    return "\n".join(lines)
