@@ -34,6 +34,7 @@ from firmware_model import user_cache_dir
 from firmware_model.camera import CameraModel
 from firmware_model.device.catalog_slot import catalog_slot_handler
 from firmware_model.device.device import Device, SlotHandler, SolveContext
+from firmware_model.device.faults import Fault, parse_script
 from firmware_model.device.link import DEFAULT_IDLE_TIMEOUT, Link, open_link, serve
 from firmware_model.device.sensor_input import (
     DeviceParams,
@@ -135,6 +136,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--params", help="default parameter set JSON (the slot-2 schema); an uploaded set wins")
     parser.add_argument(
+        "--faults",
+        metavar="FILE",
+        help="arm this fault script at start (docs/ICD.md section 13; implies --fault-injection)",
+    )
+    parser.add_argument(
+        "--fault-injection",
+        action="store_true",
+        help="accept the FAULT command (scripted faults for tests; off: FAULT is NACKed NOT_SUPPORTED)",
+    )
+    parser.add_argument(
         "--log-level",
         choices=("debug", "info", "warning", "error"),
         default="warning",
@@ -189,6 +200,7 @@ def build_device(args: argparse.Namespace) -> Device:
         frame_source=source,
         sensor_shape=(camera.height, camera.width),
         quaternion_order=device_params.quaternion_order or QuaternionOrder.SCALAR_FIRST,
+        fault_injection=bool(args.fault_injection or args.faults),
     )
     if args.timing == "realistic":
         exposure = DEFAULT_EXPOSURE_MS if args.exposure_ms is None else args.exposure_ms
@@ -201,6 +213,16 @@ def build_device(args: argparse.Namespace) -> Device:
     if ready is not None:  # a capture source's own start-up (a rendering source's noise), drawn meanwhile
         ready()
     return device
+
+
+def load_fault_file(path: str) -> tuple[Fault, ...]:
+    """The faults of the script at ``path``; ValueError (one line naming the line) if it does not
+    parse or cannot be read."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"fault file {path}: {exc}") from None
+    return parse_script(text, path)
 
 
 def build_link(args: argparse.Namespace) -> Link:
@@ -228,7 +250,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr, format="%(message)s")
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     try:
+        faults = load_fault_file(args.faults) if args.faults else ()  # before the slow start
         device = build_device(args)
+        device.arm(faults)
         link = build_link(args)
     except (ValueError, OSError) as exc:
         print(f"st16-device: {exc}", file=sys.stderr)

@@ -36,7 +36,7 @@ KEYS: dict[str, frozenset[str]] = {
 REGIONS = ("scratch", "ram", "result", "catalog")  #: where ``edac_upset`` may strike
 MAX_COUNT = 1_000_000  #: largest count, at_go or after (ours: a bound on a typo, not a model)
 MAX_DELAY_MS = 60_000.0  #: largest ``delay_reply`` delay (ours; the client's longest wait is 60 s)
-WORD = 4  #: bytes per EDAC-protected memory word (ours: the 32-bit word READ FILE moves)
+WORD = 4  #: bytes per EDAC-protected word: a 32-bit word under a (40,32) SEC-DED code (docs/ICD.md section 13)
 REPLY_FAULTS = ("drop_reply", "corrupt_crc", "delay_reply")  #: in the order they are decided
 GO_CODES = (Code.GO, Code.COMBINATION)  #: the commands that start a sequence (``reset at_go``)
 

@@ -40,6 +40,9 @@ from protocol.commands import (
     DarkWindow,
     DiagnosticRequest,
     Diagnostics,
+    FaultAction,
+    FaultRequest,
+    FaultStatus,
     Go,
     Init,
     NackInfo,
@@ -154,6 +157,7 @@ class Client:
         self._synced = False  #: the line has been drained once (before the first command)
         self.stale_replies = 0  #: replies discarded because their B bit belonged to an earlier command
         self.discarded = 0  #: bytes dropped by the drains before commands
+        self.bad_crcs = 0  #: frames addressed to us whose CRC did not check (read past, never accepted)
         self.last_exchange: tuple[bytes, bytes] = (b"", b"")  #: (sent frame, bytes received) of the last command
 
     def close(self) -> None:
@@ -289,6 +293,7 @@ class Client:
             reply = nsp.decode(event.data)
         except nsp.MessageError as exc:
             if event.data[:1] == bytes([self.host_address]):
+                self.bad_crcs += isinstance(exc, nsp.BadCrc)
                 if self.log:
                     self.log.record("rx", event.data)
             damage.append(str(exc))
@@ -514,6 +519,15 @@ class Client:
         if commit:
             self.xfer_commit(slot)
         return UploadReport(slot, len(data), crc, resumed, sent, time.monotonic() - t0)
+
+    # ------------------------------------------------------------------ scripted faults (extension)
+
+    def fault(self, action: FaultAction, script: str = "") -> FaultStatus:
+        """FAULT (docs/ICD.md section 13): ``load`` the fault ``script`` text (replacing the armed
+        one), ``clear`` or ``status``; the reply holds the faults armed and the fault counters.
+        The device NACKs it NOT_SUPPORTED unless started with ``--fault-injection``."""
+        idempotent = action == FaultAction.STATUS
+        return self._call(Code.FAULT, FaultRequest(action, script.encode("utf-8")), idempotent=idempotent)
 
     # ------------------------------------------------------------------ helpers
 

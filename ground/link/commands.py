@@ -171,6 +171,30 @@ def _run_slot_info(c, a):
     return out
 
 
+def _fault_file(path: str) -> str:
+    """The text of the fault script at ``path``, parsed here first: a file that does not parse is a
+    usage error naming its line (exit 2), before anything is sent."""
+    from firmware_model.device.faults import FaultScriptError, parse_script
+
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+        parse_script(text, path)
+    except (OSError, UnicodeDecodeError) as exc:
+        raise argparse.ArgumentTypeError(f"fault file {path}: {exc}") from None
+    except FaultScriptError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+def _run_fault(c, a):
+    from protocol.commands import FaultAction
+    from protocol.edac import FAULT_COUNTERS
+
+    action = FaultAction[a.action.upper()]
+    st = c.fault(action, a.file if action == FaultAction.LOAD else "")
+    return {"action": a.action, "armed": st.armed, "counters": dict(zip(FAULT_COUNTERS, st.counters))}
+
+
 def _run_send(c, a):
     parts = c.transact(a.code, a.data, poll=not a.silent)
     return {"replies": [{"mcf": p.mcf, "final": p.final, "ack": p.ack, "data": p.data.hex()} for p in parts]}
@@ -230,6 +254,14 @@ def _a_upload(p):
     p.add_argument("--no-commit", action="store_true", help="leave the transfer pending")
 
 
+def _a_fault(p):
+    sub = p.add_subparsers(dest="action", required=True, metavar="{load,clear,status}")
+    load = sub.add_parser("load", help="arm the fault script FILE, replacing the armed one")
+    load.add_argument("file", type=_fault_file, help="fault script (docs/ICD.md section 13), checked here first")
+    sub.add_parser("clear", help="disarm every fault (the counters stay)")
+    sub.add_parser("status", help="faults armed and the fault counters")
+
+
 def _a_send(p):
     p.add_argument("code", type=ranged(int, 0, 0x1F, "a command code (0x00-0x1F)"), help="command code 0x00-0x1F")
     p.add_argument("data", type=_hex, nargs="?", default=b"", help="data field as hex (default: empty)")
@@ -261,6 +293,7 @@ _SUBCOMMANDS: dict[str, tuple[Code | str, Callable, Run]] = {
     "slot-status": (Code.XFER_STATUS, _args_slot, _run_slot_status),
     "slot-abort": (Code.XFER_ABORT, _args_slot, _run_slot_abort),
     "slot-info": (Code.SLOT_INFO, _args_slot, _run_slot_info),
+    "fault": (Code.FAULT, _a_fault, _run_fault),
     "send": ("send any command code with a hex data field", _a_send, _run_send),
 }
 

@@ -3,6 +3,9 @@
 :func:`command_frame` makes a well-formed command of any code 0x00-0x1F, with or without Poll,
 with a plausible or a random data field; :func:`fault_frame` makes one damaged frame of a named
 kind (:data:`FAULTS`); :func:`burst` mixes both, with garbage between frames.
+
+FAULT (0x19) is generated like any code; it arms nothing on the devices the campaigns start,
+which run without ``--fault-injection`` and NACK it NOT_SUPPORTED (``tests/test_faults.py``).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from protocol.commands import (
     CrcRequest,
     DarkWindow,
     DiagnosticRequest,
+    FaultRequest,
     Go,
     Init,
     Peek,
@@ -73,6 +77,7 @@ def _plausible_data(rng: random.Random, code: int) -> bytes:
         Code.COMBINATION: lambda: Combination(rng.choice([0x02, 0x03, 0x0B, r(256)]), r(1 << 24)).pack(),
         Code.XFER_BEGIN: lambda: XferBegin(r(5), rng.choice([r(1, 5000), r(1 << 32)]), r(1 << 32)).pack(),
         Code.XFER_DATA: lambda: XferData(r(5), r(6000), rng.randbytes(r(1, 300))).pack(),
+        Code.FAULT: lambda: FaultRequest(r(4), rng.randbytes(r(0, 40))).pack(),
     }
     if code in makers:
         return makers[code]()
