@@ -43,11 +43,36 @@ HARDWARE = _struct(
     56,
 )
 
-#: ``hardware.status`` (ours in bits 0-8; the COSMOS agent names bit 19 memory over-temperature and
+#: ``hardware.status`` (ours in bits 0-11; the COSMOS agent names bit 19 memory over-temperature and
 #: bit 31 thermal shutdown, which the emulator never sets): bits 0-7 mirror the status
-#: (return-code bits 8-15), bit 8 says the standard structure's quaternions are scalar last.
+#: (return-code bits 8-15), bit 8 says the standard structure's quaternions are scalar last, bits
+#: 9-11 name the bright bodies inside their exclusion angles (:class:`ExclusionBits`).
 HW_STATUS_MIRROR = 0x00FF
 HW_QUATERNION_SCALAR_LAST = 0x0100
+
+
+class ExclusionBits(IntEnum):
+    """``hardware.status`` bits 9-11: a bright body inside its exclusion angle (device parameters
+    ``sun_exclusion_deg``, ``moon_exclusion_deg``, ``earth_exclusion_deg``), set whenever the
+    check finds it, whatever the status (docs/ICD.md section 10)."""
+
+    SUN_IN_FOV = 0x0200
+    MOON_IN_FOV = 0x0400
+    EARTH_IN_FOV = 0x0800
+
+
+#: The bodies the exclusion check knows, in the order it names them when several are inside.
+EXCLUDED_BODIES = ("sun", "earth", "moon")
+
+
+def exclusion_bit(body: str) -> ExclusionBits:
+    """The ``hardware.status`` bit of ``body`` (one of :data:`EXCLUDED_BODIES`)."""
+    return ExclusionBits[f"{body.upper()}_IN_FOV"]
+
+
+def bodies_in_fov(hardware_status: int) -> list[str]:
+    """The bodies ``hardware.status`` flags inside their exclusion angles, in :data:`EXCLUDED_BODIES` order."""
+    return [b for b in EXCLUDED_BODIES if int(hardware_status) & exclusion_bit(b)]
 
 
 def detector_temp_c(raw: int) -> float:
@@ -304,6 +329,10 @@ class Status(IntEnum):
     NO_RESULT = 7  #: no sequence has completed since the device started
     BAD_FRAME = 8  #: the frame is unreadable or does not fit the device's camera
     LOW_CONFIDENCE = 9  #: an attitude, but from a consensus below the eta threshold
+    SUN_IN_FOV = 10  #: the Sun inside its exclusion angle: no attitude
+    MOON_IN_FOV = 11  #: the Moon inside its exclusion angle: no attitude
+    EARTH_IN_FOV = 12  #: the Earth's bright limb inside its exclusion angle: no attitude
+    BLINDED = 13  #: the image is blinded (saturated or near full scale) and no attitude says by what
 
 
 def make_return_code(status: Status | int, bits: int = 0) -> int:

@@ -37,6 +37,7 @@ from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.device.device import FrameUnavailable, SlotHandler, SolveContext
 from firmware_model.ident.solver import Mode
 from firmware_model.pipeline import scale_free
+from firmware_model.pipeline.exclusion import ExclusionLimits, LastAttitude
 from firmware_model.pipeline.extract import PSF_SIGMA_RANGE_PX
 from firmware_model.pipeline.frame_readers import FrameReadError, frame_files, read_frame
 from firmware_model.pipeline.raw_frame import Frame, frame_from_bytes
@@ -44,7 +45,7 @@ from firmware_model.pipeline.result_fields import result_fields
 from firmware_model.pipeline.run import PipelineParams, run_pipeline, warm_up, with_psf_sigma
 from firmware_model.pipeline.tracking_run import Tracker, frame_time
 from protocol.commands import GoBits, SlotRejected
-from protocol.result import QuaternionOrder
+from protocol.result import QuaternionOrder, Status
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +95,17 @@ def frame_slot_handler(camera: CameraModel) -> SlotHandler:
     return SlotHandler(validate, load, info)
 
 
+#: The exclusion parameters (docs/ICD.md section 9): key -> (largest value, unit); the smallest is 0.
+EXCLUSION_KEYS = {
+    "sun_exclusion_deg": (90.0, "deg"),
+    "moon_exclusion_deg": (90.0, "deg"),
+    "earth_exclusion_deg": (90.0, "deg"),
+    "exclusion_memory_s": (3600.0, "s"),
+}
+#: The ``ExclusionLimits`` field each of :data:`EXCLUSION_KEYS` sets, in the same order.
+_LIMIT_FIELDS = ("sun_deg", "moon_deg", "earth_deg", "memory_s")
+
+
 @dataclass(frozen=True)
 class DeviceParams:
     """The slot-2 parameter set (JSON object; every key optional, unknown keys refused):
@@ -117,7 +129,12 @@ class DeviceParams:
     extension's scalar-first quaternion, accept and ignore it); ``tracking`` true | false (not set:
     the device's default, ``PipelineSolver.tracking``): after a high-confidence fix, track the next frames from the last attitude and rate
     (``pipeline.tracking_run``; a GO without bit 0x01 ON drops the track, docs/ICD.md section 7;
-    the offline paths ignore it).
+    the offline paths ignore it); ``sun_exclusion_deg``, ``moon_exclusion_deg``,
+    ``earth_exclusion_deg`` (deg, 0 to 90; 0 turns that check off; defaults 30, 25, 25:
+    ``pipeline.exclusion.ExclusionLimits``, cited there) the bright-body exclusion angles from the
+    boresight to the body's disc edge, and ``exclusion_memory_s`` (s, 0 to 3600, default 10; 0:
+    none) the age up to which the device's last reported attitude decides for a frame without
+    its own (the offline paths have no memory: they accept it and ignore it).
     The same file drives the offline paths (``--params``).
     """
 
@@ -135,6 +152,10 @@ class DeviceParams:
     noise_probe_px: float | None = None
     quaternion_order: QuaternionOrder | None = None
     tracking: bool | None = None
+    sun_exclusion_deg: float | None = None
+    moon_exclusion_deg: float | None = None
+    earth_exclusion_deg: float | None = None
+    exclusion_memory_s: float | None = None
 
     KEYS = (
         "mode",
@@ -151,6 +172,7 @@ class DeviceParams:
         "noise_probe_px",
         "quaternion_order",
         "tracking",
+        *EXCLUSION_KEYS,
     )
 
     @classmethod
@@ -201,6 +223,14 @@ class DeviceParams:
         def positive(key):
             return number(key)
 
+        def closed(key, hi, unit):
+            v = obj.get(key)
+            if v is None:
+                return None
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not 0 <= v <= hi:
+                raise SlotRejected(REJECT_PARAMS_VALUE, f"{key} must be a number in [0, {hi:g}] {unit}, got {v!r}")
+            return float(v)
+
         def count(key):
             v = obj.get(key)
             if v is None:
@@ -244,6 +274,7 @@ class DeviceParams:
             number("noise_probe_px", 0.0, 20.0, lo_open=False),
             _quaternion_order(obj.get("quaternion_order")),
             tracking,
+            *(closed(key, hi, unit) for key, (hi, unit) in EXCLUSION_KEYS.items()),
         )
 
     def apply(self, base: PipelineParams) -> PipelineParams:
@@ -267,9 +298,14 @@ class DeviceParams:
                 "max_verifications": self.max_frame_verifications,
             }
             base = replace(base, optics=replace(base.optics, **{k: v for k, v in optics.items() if v is not None}))
+        exclusion = base.exclusion
+        if any(getattr(self, key) is not None for key in EXCLUSION_KEYS):
+            given = {f: getattr(self, key) for f, key in zip(_LIMIT_FIELDS, EXCLUSION_KEYS)}
+            exclusion = replace(exclusion or ExclusionLimits(), **{f: v for f, v in given.items() if v is not None})
         return replace(
             base,
             solve=solve,
+            exclusion=exclusion,
             colour_beta=self.colour_beta if self.colour_beta is not None else base.colour_beta,
             fixed_sigma_px=self.centroid_sigma_px if self.centroid_sigma_px is not None else base.fixed_sigma_px,
         )
@@ -366,7 +402,9 @@ class PipelineSolver:
     """GO solver: runs :func:`~firmware_model.pipeline.run.run_pipeline` on the sequence's frame,
     or, with the parameter ``tracking`` (the slot-2 set's, else ``tracking`` here: ``--params``),
     the :class:`~firmware_model.pipeline.tracking_run.Tracker` that persists across sequences (a GO
-    without bit 0x01 ON drops its track).
+    without bit 0x01 ON drops its track). It remembers the last attitude it reported (status OK,
+    with the tracker's rate when tracked: :attr:`last`), which the bright-body exclusion check
+    uses for a frame without an attitude of its own while younger than ``exclusion_memory_s``.
 
     The catalog's pattern index (``scale_free.catalog_patterns``, 0.2-20 s once per catalog) is
     built by :meth:`prepare` when a catalog is activated: in this process while the device starts
@@ -388,6 +426,7 @@ class PipelineSolver:
         self.params = params
         self.tracking = tracking
         self.tracker = Tracker()
+        self.last: LastAttitude | None = None  #: the last attitude reported (OK), for the exclusion check
         self.build_index = build_index
         self._pool: ProcessPoolExecutor | None = None  # the index-building process
         self._serving = False
@@ -477,11 +516,15 @@ class PipelineSolver:
         tracking = self.tracking if device.tracking is None else device.tracking
         if not tracking or not ctx.go_code & GoBits.ON:
             self.tracker.state = None  # tracking off, or the GO asks to drop the track
+        t = frame_time(ctx.frame, ctx.started)
+        limits = params.exclusion
+        recall = self.last.recall(t, limits.memory_s) if self.last is not None and limits is not None else None
         if tracking:
-            t = frame_time(ctx.frame, ctx.started)
-            out = self.tracker.solve(ctx.frame, t, self.camera, ctx.catalog, params)
+            out = self.tracker.solve(ctx.frame, t, self.camera, ctx.catalog, params, recall)
         else:
-            out = run_pipeline(ctx.frame, self.camera, ctx.catalog, params)
+            out = run_pipeline(ctx.frame, self.camera, ctx.catalog, params, recall)
+        if out.status is Status.OK and out.solution is not None and out.solution.q_icrs_to_sensor is not None:
+            self.last = LastAttitude(np.asarray(out.solution.q_icrs_to_sensor, float), t, out.omega)
         fields = result_fields(out)
         fields["ext.reason"] = out.reason
         return fields

@@ -1,6 +1,6 @@
 """A pipeline output mapped onto the result structure (docs/ICD.md): the COSMOS sections
-(quaternion, return bits, good rows, centroid and matching telemetry for image 1) and our
-extension region (stars, stage times, method, the optics and search blocks).
+(quaternion, return bits, good rows, centroid and matching telemetry for image 1, the bright
+bodies inside their exclusion angles in ``hardware.status`` bits 9-11) and our extension region (stars, stage times, method, the optics and search blocks).
 
 ``result_fields(out) -> {dotted path: value}`` for ``protocol.result.build``.
 """
@@ -193,4 +193,6 @@ def result_fields(out: PipelineOutput) -> dict:
     if stars is not None and out.camera is not None:
         fields["statistics.good_rows"] = [out.camera.height, 0]  # every row of image 1 read; no image 2
     fields["return_code"] = result.make_return_code(out.status, return_bits(out))
+    if out.in_fov:
+        fields["hardware.status"] = sum(int(result.exclusion_bit(body)) for body in out.in_fov)
     return fields

@@ -45,6 +45,7 @@ from firmware_model.ident.verify import FieldOfView
 from firmware_model.ident.verify import warm_up as verify_warm_up
 from firmware_model.pipeline import scale_free
 from firmware_model.pipeline.camera_fit import StarObservations
+from firmware_model.pipeline.exclusion import ExclusionLimits, Recall, check_exclusion
 from firmware_model.pipeline.extract import ExtractParams, StarList, extract_stars
 from firmware_model.pipeline.extract import warm_up as extract_warm_up
 from firmware_model.pipeline.frame_fit import fit_frame
@@ -200,7 +201,10 @@ class PipelineParams:
     ``flight_deadline_s``: flight timing only (``st16-device --timing realistic``): seconds after
     the frame's extraction began past which every search stops (``budget.SearchBudget``) and the
     answer says the deadline was missed; None, the default: counted budgets alone, the same
-    answer on any machine."""
+    answer on any machine.
+
+    ``exclusion``: the bright-body exclusion angles (``exclusion.ExclusionLimits``; None: no
+    check, no BLINDED status)."""
 
     extract: ExtractParams = ExtractParams()
     solve: SolveParams = SolveParams()
@@ -213,6 +217,7 @@ class PipelineParams:
     optics: OpticsSearch | None = OpticsSearch()
     centroid_floor_px: float = CENTROID_SIGMA_FLOOR_PX
     flight_deadline_s: float | None = None
+    exclusion: ExclusionLimits | None = ExclusionLimits()
 
 
 @dataclass
@@ -230,6 +235,7 @@ class PipelineOutput:
     fallback_due: bool = False  #: the mono consensus fallback was deferred (``_identify``'s ``defer_fallback``)
     omega: np.ndarray | None = None  #: body rate (rad/s, sensor axes) of a tracked answer (``tracking_run``)
     omega_covariance: np.ndarray | None = None  #: its 3x3 covariance ((rad/s)^2)
+    in_fov: tuple = ()  #: bodies inside their exclusion angles (``exclusion.check_exclusion``)
 
     @property
     def ok(self) -> bool:
@@ -254,16 +260,23 @@ def apply_colour_correction(rg, bg, beta):
 
 
 def run_pipeline(
-    frame: Frame, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams = PipelineParams()
+    frame: Frame,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams = PipelineParams(),
+    recall: Recall | None = None,
 ) -> PipelineOutput:
-    """Frame -> stars -> identification -> attitude (module docstring), then planet labelling."""
+    """Frame -> stars -> identification -> attitude (module docstring), then planet labelling and
+    the bright-body exclusion check (``exclusion.check_exclusion``; ``recall``: the device's last
+    attitude at this frame's time, for a frame that gives none)."""
     t0 = time.perf_counter()
     stars = frame_stars(frame, camera, params)
     if isinstance(stars, PipelineOutput):
-        return stars
+        return stars  # a frame that does not fit the camera: nothing to check
     out = identify_stars(stars, camera, catalog, params)
     if frame.timestamp and out.solution is not None and out.solution.q_icrs_to_sensor is not None:
         out = label_planets_of(out, frame, catalog, params)
+    out = check_exclusion(out, frame, params.exclusion, recall)
     out.timings.total = time.perf_counter() - t0
     return out
 

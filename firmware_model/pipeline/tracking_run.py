@@ -23,6 +23,7 @@ from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.solver import Method, SolveResult
 from firmware_model.ident.tracking import TrackParams, TrackResult, TrackState, track
+from firmware_model.pipeline.exclusion import Recall, check_exclusion
 from firmware_model.pipeline.extract import StarList
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.pipeline.run import PipelineOutput, PipelineParams, frame_stars, identify_stars, run_pipeline
@@ -51,14 +52,23 @@ class Tracker:
     state: TrackState | None = None
 
     def solve(
-        self, frame: Frame, t: float, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams
+        self,
+        frame: Frame,
+        t: float,
+        camera: CameraModel,
+        catalog: OnboardCatalog,
+        params: PipelineParams,
+        recall: Recall | None = None,
     ) -> PipelineOutput:
         """``frame`` taken at mid-exposure time ``t`` (s), tracked when a track exists, else lost
-        in space; the track is then kept, restarted from a confident fix, or ended."""
+        in space, then checked for bright bodies (``recall``: the device's last attitude at ``t``);
+        the track is then kept, restarted from a confident fix, or ended."""
         if self.state is None:
-            out = run_pipeline(frame, camera, catalog, params)
+            out = run_pipeline(frame, camera, catalog, params, recall)
         else:
-            out = self._track(frame, t, camera, catalog, params, self.state)
+            out = check_exclusion(
+                self._track(frame, t, camera, catalog, params, self.state), frame, params.exclusion, recall
+            )
         sol = out.solution
         if sol is not None and sol.method is Method.TRACKING:
             return out  # self.state updated by _track

@@ -3,8 +3,9 @@
 ``solve_record(rec)`` returns the ``--json`` form of ``st16-ground solve``: status, the
 quaternion ``q_icrs_to_sensor`` [w, x, y, z], boresight RA/Dec/roll in degrees
 (docs/CONVENTIONS.md), detected and matched counts, the brightest detections the result holds
-(pixel position, colour ratios; catalog id and residual when matched), attitude 1-sigma per sensor axis (arcsec), and the time per
-pipeline stage. The same function serves offline runs through :func:`record_from_output`.
+(pixel position, colour ratios; catalog id and residual when matched), attitude 1-sigma per sensor axis (arcsec), the time per
+pipeline stage, and ``bodies_in_fov``: the bright bodies inside their exclusion angles
+(``hardware.status`` bits 9-11, whatever the status). The same function serves offline runs through :func:`record_from_output`.
 :func:`result_record` adds what READ RESULT carries besides (COSMOS bits, epoch, omega and its sigma, the
 hardware section), :func:`combination_record` decodes the sections a COMBINATION returned (the
 standard quaternion in the order the hardware section flags, docs/ICD.md section 10.2), and
@@ -121,6 +122,7 @@ def solve_record(rec: np.ndarray) -> dict:
         "optics": _optics(ext),
         "search": _search(ext),
         "n_planets": int(ext["n_planets"]),
+        "bodies_in_fov": result.bodies_in_fov(int(rec["hardware"]["status"])),
         "stars": stars,
     }
     q = np.asarray(ext["quaternion"], dtype=float)
@@ -227,7 +229,7 @@ _SECTION_KEYS = {
     0x028: ("omega_rad_s",),
     0x040: ("epoch", "epoch_utc"),
     0x440: ("omega_sigma_rad_s",),
-    0x048: ("hardware",),
+    0x048: ("hardware", "bodies_in_fov"),
     result.EXT_OFFSET: (
         "reason",
         "method",
@@ -320,6 +322,8 @@ def format_record(rec: dict) -> str:
                 + ([f"epoch {rec['epoch_utc'] or 'not set'} UTC"] if "epoch" in rec else [])
             )
         )
+    if rec.get("bodies_in_fov"):
+        lines.append(f"inside their exclusion angles: {', '.join(rec['bodies_in_fov'])}")
     if rec.get("q_icrs_to_sensor") is not None:
         q = rec["q_icrs_to_sensor"]
         lines.append(f"q_icrs_to_sensor [w x y z] = [{q[0]:+.9f} {q[1]:+.9f} {q[2]:+.9f} {q[3]:+.9f}]")
