@@ -28,7 +28,7 @@ from typing import Any
 
 import protocol
 from firmware_model.device.dispatch import Counters, Dispatcher, Handler, Mode, Refused
-from firmware_model.device.faults import FaultInjector, FaultScriptError, parse_script
+from firmware_model.device.faults import Fault, FaultInjector, FaultScriptError, parse_script
 from firmware_model.device.housekeeping import Housekeeping
 from firmware_model.device.memory import WORDS, Memory, Supervisor
 from firmware_model.device.sequence import (
@@ -230,6 +230,8 @@ class Device:
             return []
         fault = self.faults.reply(replies[0].code)
         if fault.drop:
+            with self._lock:  # the link counter counts what was sent
+                self.counters.replies -= len(replies)
             return []
         frames = [m.frame() for m in replies]
         if fault.corrupt:
@@ -287,10 +289,10 @@ class Device:
             return len(self.store.active(Slot.CATALOG) or b"") // 4
         return WORDS[region]
 
-    def load_faults(self, text: str, source: str) -> int:
-        """Arm the fault script ``text`` (``source`` names it in errors: FaultScriptError);
-        the number of faults armed. A ``reset now`` in it resets the device at once."""
-        if self.faults.load(parse_script(text, source)):
+    def arm(self, faults: tuple[Fault, ...]) -> int:
+        """Arm ``faults`` (``faults.parse_script``) in place of the armed ones; the number armed.
+        A ``reset now`` among them resets the device at once."""
+        if self.faults.load(faults):
             self.reset()
         return self.faults.armed
 

@@ -1,0 +1,367 @@
+"""Scripted device faults in process (docs/ICD.md section 13): the script parser and its one-line
+errors, the counted and seeded triggers, each fault's effect on a Device's replies and its
+counter in EDAC memory, and fuzz traffic that never arms one."""
+
+import random
+import struct
+
+import pytest
+
+from firmware_model.device.device import Device, SlotHandler
+from firmware_model.device.faults import FaultInjector, FaultScriptError, parse_script
+from firmware_model.device.memory import RAM_BASE, RESULT_BASE
+from protocol import edac, nsp, result, slip
+from protocol.commands import (
+    Code,
+    FaultAction,
+    FaultRequest,
+    FaultStatus,
+    Go,
+    NackInfo,
+    NackReason,
+    Peek,
+    Poke,
+    ReadRange,
+    Slot,
+    SlotImage,
+    SlotRequest,
+    WriteEdac,
+    XferBegin,
+    XferData,
+)
+from protocol.crc import crc32
+
+HOST = 0x11
+
+
+def frames(dev, code, data=b"", poll=True) -> list[bytes]:
+    return dev.receive(nsp.command(0x0E, HOST, code, data, poll=poll).frame())
+
+
+def decode(frame: bytes) -> nsp.Message:
+    (event,) = slip.Decoder(nsp.MAX_MESSAGE).feed(frame)
+    return nsp.decode(event.data)
+
+
+def reply(dev, code, data=b"") -> nsp.Message:
+    (msg,) = [decode(f) for f in frames(dev, code, data)]
+    return msg
+
+
+def ok(dev, code, data=b"") -> bytes:
+    msg = reply(dev, code, data)
+    assert msg.ack, NackInfo.unpack(msg.data)
+    return msg.data
+
+
+def nack(dev, code, data=b"") -> NackInfo:
+    msg = reply(dev, code, data)
+    assert not msg.ack
+    return NackInfo.unpack(msg.data)
+
+
+def fault(dev, action, script="") -> FaultStatus:
+    return FaultStatus.unpack(ok(dev, Code.FAULT, FaultRequest(action, script.encode()).pack()))
+
+
+def load(dev, script) -> FaultStatus:
+    return fault(dev, FaultAction.LOAD, script)
+
+
+def counter(dev, name: str) -> int:
+    """A fault counter as flight software reads it: EDAC memory at its declared address."""
+    return struct.unpack_from("<I", dev.edac_image(), edac.offset(name))[0]
+
+
+def app(**kw) -> Device:
+    dev = Device(fault_injection=True, **kw)
+    ok(dev, Code.INIT, struct.pack("<I", 0x2000))
+    return dev
+
+
+def go(dev) -> None:
+    ok(dev, Code.GO, Go(0x0B).pack())
+    assert dev.wait_idle(30)
+
+
+def sequence_of(dev) -> int:
+    return int(result.parse(dev.runner.result)["sequence"])
+
+
+# ------------------------------------------------------------------ the script
+
+
+def test_a_script_parses_with_comments_and_defaults():
+    faults = parse_script(
+        "# header\n\ndrop_reply count=2   # the next two\ncorrupt_crc fraction=0.25 seed=7\n"
+        "delay_reply ms=250 count=1\nreset at_go=3\nreset now\nedac_upset region=ram bits=2\n"
+        "stuck_result count=1\nfrozen_detector count=0\n"
+    )
+    assert [f.name for f in faults] == [
+        "drop_reply",
+        "corrupt_crc",
+        "delay_reply",
+        "reset",
+        "reset",
+        "edac_upset",
+        "stuck_result",
+        "frozen_detector",
+    ]
+    assert [f.line for f in faults] == [3, 4, 5, 6, 7, 8, 9, 10]
+    assert faults[1].keys == {"fraction": 0.25, "seed": 7} and faults[1].seed == 7 and faults[0].seed == 0
+    assert faults[4].keys == {"now": True} and faults[2].keys["ms"] == 250.0
+
+
+@pytest.mark.parametrize(
+    ("line", "says"),
+    [
+        ("drop_replies count=1", "unknown fault 'drop_replies'; known: delay_reply, drop_reply"),
+        ("drop_reply count=1 ms=3", "drop_reply: unknown key 'ms'"),
+        ("drop_reply fraction=1.5", "fraction=1.5 outside 0..1"),
+        ("drop_reply fraction=-0.1", "fraction=-0.1 outside 0..1"),
+        ("drop_reply fraction=nan", "fraction=nan outside 0..1"),
+        ("corrupt_crc count=-1", "count=-1 outside 0..1e+06"),
+        ("delay_reply ms=-5 count=1", "ms=-5 outside 0..60000"),
+        ("delay_reply count=1", "delay_reply needs ms="),
+        ("drop_reply", "drop_reply takes exactly one of count, fraction"),
+        ("drop_reply count=1 fraction=0.5", "drop_reply takes exactly one of count, fraction"),
+        ("drop_reply count=1 count=2", "count given twice"),
+        ("drop_reply count", "count needs a value"),
+        ("drop_reply count=two", "count='two' is not a whole number"),
+        ("reset at_go=0", "at_go=0 outside 1..1e+06"),
+        ("reset now=1", "reset now takes no value"),
+        ("reset", "reset takes exactly one of after, at_go, now"),
+        ("edac_upset region=rom bits=1", "region='rom'; known: scratch, ram, result, catalog"),
+        ("edac_upset region=ram bits=3", "bits='3': 1 (corrected) or 2 (uncorrectable)"),
+        ("edac_upset bits=1", "edac_upset needs region= and bits="),
+        ("stuck_result", "stuck_result needs count="),
+    ],
+)
+def test_a_bad_line_is_one_error_naming_its_line(line, says):
+    with pytest.raises(FaultScriptError) as exc:
+        parse_script(f"# ok\ndrop_reply count=1\n{line}\n", "faults.txt")
+    text = str(exc.value)
+    assert text.startswith("faults.txt line 3: ") and says in text and "\n" not in text
+
+
+def test_a_fraction_follows_its_seeded_stream_and_a_count_the_next_n():
+    def hits(script: str, n: int) -> list[bool]:
+        inj = FaultInjector()
+        inj.load(parse_script(script))
+        return [inj.reply(Code.PING).drop for _ in range(n)]
+
+    drawn = random.Random(11)
+    assert hits("drop_reply fraction=0.3 seed=11", 200) == [drawn.random() < 0.3 for _ in range(200)]
+    assert hits("drop_reply fraction=0.3 seed=11", 200) != hits("drop_reply fraction=0.3 seed=12", 200)
+    assert hits("drop_reply count=3", 6) == [True, True, True, False, False, False]
+    assert hits("drop_reply fraction=0", 50) == [False] * 50 and hits("drop_reply fraction=1", 50) == [True] * 50
+
+
+# ------------------------------------------------------------------ the command
+
+
+def test_fault_injection_is_off_unless_asked_for():
+    dev = Device()
+    for data in (b"", FaultRequest(FaultAction.LOAD, b"drop_reply count=1").pack(), b"\x02"):
+        info = nack(dev, Code.FAULT, data)
+        assert info.reason == NackReason.NOT_SUPPORTED
+        assert info.text == "fault injection is off; start st16-device with --fault-injection"
+    assert dev.faults.armed == 0 and len(ok(dev, Code.PING)) > 0  # the PING reply was not dropped
+
+
+def test_load_clear_status_and_their_refusals():
+    dev = Device(fault_injection=True)
+    st = load(dev, "drop_reply count=1\nedac_upset region=scratch bits=1 count=3\n")
+    assert (st.action, st.armed, st.counters) == (FaultAction.LOAD, 4, (0,) * 9)
+    bad = nack(dev, Code.FAULT, FaultRequest(FaultAction.LOAD, b"stuck_result count=1\nfrozen count=1").pack())
+    assert bad.reason == NackReason.BAD_PARAMETER and bad.text.startswith("fault script line 2: unknown fault 'frozen'")
+    assert nack(dev, Code.FAULT, b"\x00\xff\xfe").reason == NackReason.BAD_PARAMETER  # not UTF-8
+    assert nack(dev, Code.FAULT, b"\x07").reason == NackReason.BAD_PARAMETER
+    assert nack(dev, Code.FAULT, b"\x02x").reason == NackReason.BAD_LENGTH
+    assert nack(dev, Code.FAULT, b"").reason == NackReason.BAD_LENGTH
+    assert fault(dev, FaultAction.STATUS).armed == 4  # the refused loads armed nothing; FAULT replies are never dropped
+    assert fault(dev, FaultAction.CLEAR).armed == 0
+    assert len(frames(dev, Code.PING)) == 1 and counter(dev, "dropped_replies") == 0
+
+
+# ------------------------------------------------------------------ reply faults
+
+
+def test_drop_reply_sends_nothing_and_counts():
+    dev = Device(fault_injection=True)
+    load(dev, "drop_reply count=2")
+    assert frames(dev, Code.PING) == [] and frames(dev, Code.PING, b"x") == []  # a NACK is a reply too
+    assert len(frames(dev, Code.PING)) == 1
+    assert dev.counters.per_code[Code.PING] == 3 and dev.counters.nacked == 1  # executed all the same
+    assert dev.counters.replies == 1 + 1  # the messages sent: the FAULT reply and the last PING's
+    assert counter(dev, "dropped_replies") == 2 == fault(dev, FaultAction.STATUS).counters[1]
+
+
+def test_corrupt_crc_sends_a_frame_that_fails_its_crc():
+    dev = Device(fault_injection=True)
+    load(dev, "corrupt_crc count=1")
+    (bad,) = frames(dev, Code.PING)
+    (event,) = slip.Decoder(nsp.MAX_MESSAGE).feed(bad)
+    with pytest.raises(nsp.BadCrc):
+        nsp.decode(event.data)
+    assert "BOOTLOADER" in ok(dev, Code.PING).decode()
+    assert counter(dev, "corrupted_crcs") == 1
+
+
+def test_delay_reply_waits_its_ms_before_the_reply():
+    dev = Device(fault_injection=True)
+    waits: list[float] = []
+    dev.sleep = waits.append
+    load(dev, "delay_reply ms=250 count=1")
+    assert len(frames(dev, Code.PING)) == 1 and len(frames(dev, Code.PING)) == 1
+    assert waits == [0.25] and counter(dev, "delayed_replies") == 1
+
+
+# ------------------------------------------------------------------ sequences
+
+
+def test_stuck_result_repeats_the_sequence_number_and_the_result():
+    dev = app()
+    go(dev)
+    first = dev.runner.result
+    load(dev, "stuck_result count=1")
+    go(dev)
+    assert sequence_of(dev) == 1 and dev.runner.result == first and dev.runner.result_ready
+    assert struct.unpack_from("<I", dev.edac_image(), 0x54)[0] == 1  # the EDAC sequence number too
+    go(dev)
+    assert sequence_of(dev) == 2 and counter(dev, "stuck_results") == 1
+
+
+def test_frozen_detector_hands_the_solver_the_previous_frame():
+    seen = []
+    shots = iter(range(100, 200))
+
+    def solver(ctx):
+        seen.append(ctx.frame)
+        return {"return_code": result.make_return_code(result.Status.OK)}
+
+    dev = app(solver=solver, frame_source=lambda ctx: next(shots))
+    ok(dev, Code.XFER_BEGIN, XferBegin(Slot.CATALOG, 4, crc32(b"cat!")).pack())
+    ok(dev, Code.XFER_DATA, XferData(Slot.CATALOG, 0, b"cat!").pack())
+    ok(dev, Code.XFER_COMMIT, SlotRequest(Slot.CATALOG).pack())
+    go(dev)
+    load(dev, "frozen_detector count=2")
+    go(dev)
+    go(dev)
+    go(dev)
+    assert seen == [100, 100, 100, 101] and counter(dev, "frozen_frames") == 2
+
+
+# ------------------------------------------------------------------ resets
+
+
+def test_reset_after_n_commands_goes_back_to_the_bootloader_keeping_slots_and_fault_counters():
+    dev = app()
+    ok(dev, Code.XFER_BEGIN, XferBegin(Slot.PARAMS, 2, crc32(b"{}")).pack())
+    ok(dev, Code.XFER_DATA, XferData(Slot.PARAMS, 0, b"{}").pack())
+    ok(dev, Code.XFER_COMMIT, SlotRequest(Slot.PARAMS).pack())
+    go(dev)
+    load(dev, "drop_reply count=1\nreset after=3")
+    assert frames(dev, Code.PING) == []  # command 1, its reply dropped
+    ok(dev, Code.WRITE_EDAC, WriteEdac(0x100, b"\xaa\xbb").pack())  # command 2
+    assert "APPLICATION" in ok(dev, Code.PING).decode()  # command 3: answered, then the reset
+    assert "BOOTLOADER" in ok(dev, Code.PING).decode()
+    image = dev.edac_image()
+    assert image[0x100:0x102] == b"\0\0" and struct.unpack_from("<I", image, 0x54)[0] == 0  # scratch, sequence
+    assert dev.counters.accepted == 1  # the PING since the reset, as after a restart
+    assert result.status_of(int(result.parse(dev.runner.result)["return_code"])) == result.Status.NO_RESULT
+    assert SlotImage.unpack(ok(dev, Code.SLOT_INFO, SlotRequest(Slot.PARAMS).pack())).active
+    assert counter(dev, "resets") == 1 and counter(dev, "dropped_replies") == 1  # kept across the reset
+
+
+def test_reset_at_the_nth_go_leaves_it_unanswered():
+    dev = app()
+    load(dev, "reset at_go=2")
+    go(dev)
+    assert frames(dev, Code.GO, Go(0x0B).pack()) == []
+    assert "BOOTLOADER" in ok(dev, Code.PING).decode() and sequence_of(dev) == 0
+    assert counter(dev, "resets") == 1
+
+
+def test_reset_now_answers_the_fault_command_first():
+    dev = app()
+    assert load(dev, "reset now").action == FaultAction.LOAD
+    assert "BOOTLOADER" in ok(dev, Code.PING).decode() and counter(dev, "resets") == 1
+
+
+# ------------------------------------------------------------------ EDAC upsets
+
+
+def test_single_bit_upsets_are_corrected_on_the_next_read():
+    dev = Device(fault_injection=True)
+    pattern = bytes(range(256))
+    ok(dev, Code.WRITE_EDAC, WriteEdac(0x100, pattern).pack())
+    assert load(dev, "edac_upset region=scratch bits=1 count=64").armed == 64  # every word
+    assert ok(dev, Code.READ_EDAC, ReadRange(0x100, 256, long=True).pack())[2:] == pattern
+    assert counter(dev, "edac_corrected") == 64 and dev.faults.armed == 0
+    ok(dev, Code.READ_EDAC, ReadRange(0x100, 256, long=True).pack())
+    assert counter(dev, "edac_corrected") == 64  # scrubbed: counted once
+
+
+def test_a_double_bit_upset_nacks_every_read_until_the_word_is_written():
+    dev = Device(fault_injection=True)
+    load(dev, "edac_upset region=ram bits=2 seed=5")
+    ((word, bits),) = dev.faults.upsets["ram"].items()
+    assert bits == 2 and word == random.Random(5).sample(range(0x10000 // 4), 1)[0]
+    address = RAM_BASE + 4 * word
+    for _ in range(2):
+        info = nack(dev, Code.PEEK, Peek(address - 2, 4).pack())
+        assert info.reason == NackReason.EDAC_UNCORRECTABLE and f"0x{4 * word:X}" in info.text
+    assert ok(dev, Code.PEEK, Peek(address + 4, 4).pack())  # the next word reads
+    ok(dev, Code.POKE, Poke(address, b"\1\2\3\4").pack())
+    assert ok(dev, Code.PEEK, Peek(address, 4).pack())[4:] == b"\1\2\3\4"
+    assert counter(dev, "edac_uncorrectable") == 2
+
+
+def test_a_double_bit_upset_in_the_result_lasts_until_the_next_sequence():
+    dev = app()
+    load(dev, "edac_upset region=result bits=2 count=1030")  # every word
+    assert nack(dev, Code.READ_RESULT, ReadRange(0, 8).pack()).reason == NackReason.EDAC_UNCORRECTABLE
+    assert nack(dev, Code.PEEK, Peek(RESULT_BASE, 4).pack()).reason == NackReason.EDAC_UNCORRECTABLE
+    go(dev)
+    assert ok(dev, Code.READ_RESULT, ReadRange(0, 8).pack())
+    assert counter(dev, "edac_uncorrectable") == 2 + 1  # one per bad word read: READ RESULT 2, PEEK 1
+
+
+def test_a_double_bit_catalog_upset_reloads_the_catalog_before_the_solve():
+    loads = []
+
+    def activate(data: bytes) -> bytes:
+        loads.append(data)
+        return data
+
+    dev = app(slots={Slot.CATALOG: SlotHandler(lambda d: None, activate)})
+    image = b"catalog image"
+    ok(dev, Code.XFER_BEGIN, XferBegin(Slot.CATALOG, len(image), crc32(image)).pack())
+    ok(dev, Code.XFER_DATA, XferData(Slot.CATALOG, 0, image).pack())
+    ok(dev, Code.XFER_COMMIT, SlotRequest(Slot.CATALOG).pack())
+    load(dev, "edac_upset region=catalog bits=1\nedac_upset region=catalog bits=2 seed=1")
+    go(dev)
+    assert loads == [image, image]  # the commit, then the reload
+    assert [counter(dev, n) for n in ("edac_corrected", "edac_uncorrectable", "catalog_reloads")] == [1, 1, 1]
+    go(dev)
+    assert len(loads) == 2
+
+
+# ------------------------------------------------------------------ fuzz traffic
+
+
+def test_fuzz_traffic_never_arms_a_fault_on_a_default_device():
+    from ground.testing.traffic import burst, command_frame, sweep
+
+    rng = random.Random(33)
+    dev = Device()
+    answers = []
+    for frame in sweep(rng) + [command_frame(rng, Code.FAULT, poll=True) for _ in range(200)]:
+        answers += [decode(f) for f in dev.receive(frame)]
+    for _ in range(20):
+        dev.receive(burst(rng, 200)[0])
+    faults = [m for m in answers if m.code == Code.FAULT]
+    assert len(faults) > 100 and all(NackInfo.unpack(m.data).reason == NackReason.NOT_SUPPORTED for m in faults)
+    assert dev.faults.armed == 0 and set(dev.faults.counters.values()) == {0}
+    assert dev.edac_image()[edac.FAULT_COUNTERS_AT : edac.FAULT_COUNTERS_AT + 36] == bytes(36)
