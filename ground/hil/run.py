@@ -6,6 +6,9 @@ tracker's attitude with a minimal COMBINATION and feeds it back to an MRP feedba
 that slews the spacecraft from a few degrees off to a target attitude. Dynamics: Basilisk
 (``bsk``, the ``[hil]`` extra) or, without it, a numpy stand-in, labelled so in every output.
 Writes ``hil_log.jsonl`` (truth vs measured per update), ``summary.json`` and ``hil.png``.
+A scenario (``ground.hil.scenarios``: ``eclipse-exit``, ``moon-slew``) replaces the random target
+with a planned slew past a bright body, in orbit, and the plot with the scenario's
+(``ground.hil.scenario_report``); ``none`` is the plain demo.
 """
 
 from __future__ import annotations
@@ -41,10 +44,21 @@ def make_dynamics(kind: str, q0, w0, q_target, dt: float):
     return StandInDynamics(inertia, q0, w0, q_target, k, p), note
 
 
-def run_hil(out, duration_s: float, dynamics_kind: str = "auto", seed: int = 15, progress: bool = True) -> dict:
-    """The closed loop of the module docstring; returns the summary (also written to ``out``)."""
+def run_hil(
+    out,
+    duration_s: float | None,
+    dynamics_kind: str = "auto",
+    seed: int = 15,
+    progress: bool = True,
+    scenario: str = "none",
+    limits_deg: dict[str, float] | None = None,
+) -> dict:
+    """The closed loop of the module docstring; returns the summary (also written to ``out``).
+    ``duration_s`` None: 30 s, or the scenario's own length; ``limits_deg`` a scenario's exclusion
+    angles (default ``scenarios.LIMITS_DEG``)."""
     import json
     import tempfile
+    import time
     from pathlib import Path
 
     import numpy as np
@@ -56,18 +70,32 @@ def run_hil(out, duration_s: float, dynamics_kind: str = "auto", seed: int = 15,
     from ground.atomic_write import write_text
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
+    from ground.hil import scenario_report, scenarios
     from ground.link.client import Client
     from ground.sim.device_process import pick_attitudes, start_device, stop_device
     from ground.sim.hil_loop import MINIMAL_MASK, run_closed_loop
+    from protocol.commands import Slot
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     catalog = build_catalog(CatalogDesign())
-    (a_target,) = pick_attitudes(catalog, CameraModel.reference_design(), 1, rng)
-    axis = rng.normal(size=3)
-    a0 = Rotation.from_rotvec(np.radians(4.0) * axis / np.linalg.norm(axis)).as_matrix() @ a_target
-    q0, q_target, w0 = matrix_to_quat(a0), matrix_to_quat(a_target), np.radians([0.05, -0.05, 0.02])
+    plan = None
+    if scenario == "none":
+        (a_target,) = pick_attitudes(catalog, CameraModel.reference_design(), 1, rng)
+        axis = rng.normal(size=3)
+        a0 = Rotation.from_rotvec(np.radians(4.0) * axis / np.linalg.norm(axis)).as_matrix() @ a_target
+        q0, q_target, w0 = matrix_to_quat(a0), matrix_to_quat(a_target), np.radians([0.05, -0.05, 0.02])
+        duration_s = 30.0 if duration_s is None else duration_s
+    else:
+        try:
+            plan = scenarios.plan(scenario, time.time(), limits_deg)
+        except ValueError as exc:
+            raise InputError(f"--scenario {scenario}: {exc}") from None
+        q0, w0 = plan.slew.target(0.0), np.zeros(3)
+        duration_s = plan.duration_s if duration_s is None else duration_s
+        q_target = plan.slew.target(duration_s)
+        print(f"hil: scenario {scenario}, exclusion {plan.params()}", flush=True)
     dt = 0.02
     dynamics, note = make_dynamics(dynamics_kind, q0, w0, q_target, dt)
     print(f"hil: dynamics {dynamics.label}{note}", flush=True)
@@ -78,20 +106,39 @@ def run_hil(out, duration_s: float, dynamics_kind: str = "auto", seed: int = 15,
             with Client(pty, timeout=5.0) as c:
                 c.init()
                 c.upload(0, catalog_to_image(catalog), progress=progress)
+                if plan is not None:
+                    c.upload(Slot.PARAMS, json.dumps(plan.params()).encode(), progress=False)
         finally:
             stop_device(proc)
         proc, pty = start_device(Path(state), "--pace", "--baud", "115200", "--attitude-feed", url)
         try:
             with Client(pty, timeout=5.0) as c:
                 c.init()
-                log = run_closed_loop(dynamics, c, url, q0, w0, q_target, duration_s, dt=dt, progress=progress)
+                log = run_closed_loop(
+                    dynamics,
+                    c,
+                    url,
+                    q0,
+                    w0,
+                    q_target,
+                    duration_s,
+                    dt=dt,
+                    progress=progress,
+                    target_at=None if plan is None else plan.slew.target,
+                    position_at=None if plan is None else plan.position_km,
+                )
         finally:
             stop_device(proc)
     rows = log.rows()
     write_text(out / "hil_log.jsonl", "".join(json.dumps(r) + "\n" for r in rows))
     summary = summarise(log, rows, duration_s, MINIMAL_MASK)
+    if plan is None:
+        _plot(log, rows, out / "hil.png")
+    else:
+        tr = scenario_report.track(log)
+        summary |= scenario_report.summarise_scenario(plan, log, rows, tr)
+        scenario_report.plot_scenario(plan, log, rows, tr, out / "hil.png")
     write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
-    _plot(log, rows, out / "hil.png")
     return summary
 
 

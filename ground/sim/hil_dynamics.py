@@ -2,8 +2,9 @@
 spacecraft whose body frame is the tracker's sensor frame, held at a target attitude by an MRP
 feedback controller that sees the attitude the flight loop measures.
 
-Two back-ends with one interface (``set_measurement(q, w)``, ``step(dt) -> (q, w)`` truth,
-``label``); quaternions scalar-first ``q_icrs_to_body``, rates rad/s in body axes:
+Two back-ends with one interface (``set_measurement(q, w)``, ``set_target(q)`` (a target that
+moves: the scenarios' slews, docs/hil.md "Scenarios"; held between calls, no rate fed forward),
+``step(dt) -> (q, w)`` truth, ``label``); quaternions scalar-first ``q_icrs_to_body``, rates rad/s in body axes:
 
 * :class:`BasiliskDynamics`: Basilisk (``bsk``, the ``[hil]`` extra): ``spacecraft.Spacecraft``
   with an ``extForceTorque`` effector commanded by ``mrpFeedback`` through ``attTrackingError``
@@ -62,6 +63,9 @@ class StandInDynamics:
 
     def set_measurement(self, q, w) -> None:
         self._meas = (np.asarray(q, dtype=float), np.asarray(w, dtype=float))
+
+    def set_target(self, q) -> None:
+        self.a_target = quat_to_matrix(q)
 
     def torque(self) -> np.ndarray:
         q, w = self._meas
@@ -126,7 +130,7 @@ class BasiliskDynamics:
         ext.cmdTorqueInMsg.subscribeTo(ctl.cmdTorqueOutMsg)
         for model in (ref, err, ctl, ext, sc):  # flight software first, then the dynamics it commands
             self.sim.AddModelToTask("step", model)
-        self.sc, self._models = sc, (ref, err, ctl, ext)
+        self.sc, self._ref, self._models = sc, ref, (err, ctl, ext)
         self.t = 0.0
         self.set_measurement(q0, w0)
         self.sim.InitializeSimulation()
@@ -136,6 +140,9 @@ class BasiliskDynamics:
         nav.sigma_BN = quat_to_mrp(q).tolist()
         nav.omega_BN_B = [float(v) for v in w]
         self.nav.write(nav, self._macros.sec2nano(self.t))
+
+    def set_target(self, q) -> None:
+        self._ref.sigma_R0N = quat_to_mrp(q).tolist()
 
     def step(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
         self.t += dt

@@ -8,7 +8,12 @@ link and feeds it back as the controller's measurement.
 * Flight loop thread: COMBINATION (GO 0x0B with a minimal section mask: return code, quaternion,
   epoch) back to back; an OK attitude, valid at the exposure mid-time ``epoch + exposure / 2``,
   becomes the estimate, carried forward with the gyro (the truth rate) to the present; statuses
-  other than OK keep the previous estimate.
+  other than OK keep the previous estimate (the controller coasts on the gyro).
+
+A scenario (``ground.hil.scenarios``, docs/hil.md "Scenarios") adds a moving target
+(``target_at``: s since the start -> q, given to the dynamics every step) and an orbit
+(``position_at``: s -> GCRS km, sent as each sample's ``r`` so the device sees the bodies from the
+spacecraft); both are logged per step.
 
 The loop runs ``duration_s`` and on until the flight loop has ``min_ok_updates`` OK answers (0:
 no such wait), at most ``overrun_s`` past ``duration_s``; a test sets a count, so what it checks
@@ -47,8 +52,8 @@ class Update:
     sent: float
     received: float
     status: str
-    q: list[float] | None
-    t_mid: float | None  #: exposure mid-time (device clock = POSIX s)
+    q: list[float] | None  #: the attitude, OK answers only
+    t_mid: float | None  #: exposure mid-time (device clock = POSIX s), for every status
 
 
 @dataclass
@@ -59,35 +64,48 @@ class HilLog:
     q_target: list[float]
     truth_t: list[float] = field(default_factory=list)
     truth_q: list[list[float]] = field(default_factory=list)
+    target_q: list[list[float]] = field(default_factory=list)  #: per step, when the target moves
+    truth_r: list[list[float]] = field(default_factory=list)  #: GCRS km per step, when in orbit
     updates: list[Update] = field(default_factory=list)
 
     def ok_updates(self) -> int:
         """Updates that brought an OK attitude."""
         return sum(u.status == "OK" for u in list(self.updates))
 
-    def truth_at(self, t: float) -> np.ndarray:
-        """Truth quaternion at POSIX ``t`` (slerp between the logged steps)."""
+    def _at(self, qs: list[list[float]], t: float) -> np.ndarray:
         k = int(np.clip(np.searchsorted(self.truth_t, t), 1, len(self.truth_t) - 1))
         t0, t1 = self.truth_t[k - 1], self.truth_t[k]
         f = float(np.clip((t - t0) / (t1 - t0), 0.0, 1.0))
-        return slerp(np.array(self.truth_q[k - 1]), np.array(self.truth_q[k]), f)
+        return slerp(np.array(qs[k - 1]), np.array(qs[k]), f)
+
+    def truth_at(self, t: float) -> np.ndarray:
+        """Truth quaternion at POSIX ``t`` (slerp between the logged steps)."""
+        return self._at(self.truth_q, t)
+
+    def target_at(self, t: float) -> np.ndarray:
+        """Target quaternion at POSIX ``t`` (the fixed target, or slerp between the steps)."""
+        return self._at(self.target_q, t) if self.target_q else np.asarray(self.q_target, dtype=float)
 
     def rows(self) -> list[dict]:
-        """Per update: time since start, status, latency, measured vs truth (arcsec), truth vs target (deg)."""
-        t0, a_target = self.truth_t[0], quat_to_matrix(self.q_target)
+        """Per update: time since start, status; at the exposure mid-time the truth and its
+        angle to the target (deg); for an OK answer also latency and measured vs truth (arcsec)."""
+        t0 = self.truth_t[0]
         out = []
         for u in self.updates:
-            row = {"t": u.received - t0, "status": u.status, "sent": u.sent, "received": u.received}
-            if u.q is not None and u.t_mid is not None:
+            row: dict = {"t": u.received - t0, "status": u.status, "sent": u.sent, "received": u.received}
+            if u.t_mid is not None and u.t_mid > t0:
                 a_true = quat_to_matrix(self.truth_at(u.t_mid))
                 row |= {
                     "t_mid": u.t_mid - t0,
-                    "latency_s": u.received - u.t_mid,
-                    "q_measured": u.q,
                     "q_truth": [float(v) for v in matrix_to_quat(a_true)],
-                    "measured_error_arcsec": math.degrees(rotation_angle(quat_to_matrix(u.q), a_true)) * 3600,
-                    "pointing_error_deg": math.degrees(rotation_angle(a_true, a_target)),
+                    "pointing_error_deg": math.degrees(rotation_angle(a_true, quat_to_matrix(self.target_at(u.t_mid)))),
                 }
+                if u.q is not None:
+                    row |= {
+                        "latency_s": u.received - u.t_mid,
+                        "q_measured": u.q,
+                        "measured_error_arcsec": math.degrees(rotation_angle(quat_to_matrix(u.q), a_true)) * 3600,
+                    }
             out.append(row)
         return out
 
@@ -115,12 +133,13 @@ class Estimator:
 
 
 def _parse(parts: dict[int, bytes]) -> tuple[str, list[float] | None, float | None]:
+    """(status name, quaternion of an OK answer else None, epoch or None when not stamped)."""
     rc = struct.unpack("<I", parts[0x004])[0]
     status = result.status_of(rc)
     name = status.name if isinstance(status, result.Status) else f"status {status}"
-    if status != result.Status.OK:
-        return name, None, None
-    return name, list(struct.unpack("<4d", parts[0x008])), struct.unpack("<d", parts[0x040])[0]
+    epoch = struct.unpack("<d", parts[0x040])[0]
+    q = list(struct.unpack("<4d", parts[0x008])) if status == result.Status.OK else None
+    return name, q, (epoch if epoch > 0 else None)
 
 
 class FlightLoop(threading.Thread):
@@ -175,20 +194,36 @@ def run_closed_loop(
     combination_timeout: float = 5.0,
     clock: Callable[[], float] = time.time,
     sleep: Callable[[float], None] = time.sleep,
+    target_at: Callable[[float], np.ndarray] | None = None,
+    position_at: Callable[[float], np.ndarray] | None = None,
 ) -> HilLog:
     """Run the loop for ``duration_s`` of wall time and on until ``min_ok_updates`` OK answers,
     at most ``overrun_s`` more (module docstring); ``client`` is a connected
     ``ground.link.client.Client`` of a device serving ``--attitude-feed feed_url``; each
-    COMBINATION is answered within ``combination_timeout`` s."""
+    COMBINATION is answered within ``combination_timeout`` s; ``target_at`` and ``position_at``
+    (s since the start) a scenario's moving target and orbit."""
     log = HilLog(dynamics.label, [float(v) for v in q_target])
+
+    def send(t: float, q, w) -> None:
+        log.truth_t.append(t)
+        log.truth_q.append([float(v) for v in q])
+        if target_at is not None:
+            target = target_at(t - start)
+            dynamics.set_target(target)
+            log.target_q.append([float(v) for v in target])
+        if position_at is None:
+            sender.send(Sample(t, q, w))
+            return
+        r = position_at(t - start)
+        log.truth_r.append([float(v) for v in r])
+        sender.send(Sample(t, q, w, r=r))  # type: ignore[call-arg]  # the feed's r (docs/hil.md section 1)
+
     q, w = np.asarray(q0, dtype=float), np.asarray(w0, dtype=float)
     n = int(round(duration_s / dt))
     with Sender(feed_url) as sender:
         start = clock()
         estimator = Estimator(q0, w0, start)
-        sender.send(Sample(start, q, w))
-        log.truth_t.append(start)
-        log.truth_q.append([float(v) for v in q])
+        send(start, q, w)
         loop = FlightLoop(client, estimator, log, exposure_s, mask, combination_timeout, clock)
         loop.start()
         bar = tqdm(total=n, desc="closed loop", unit="step", disable=not progress)
@@ -202,9 +237,7 @@ def run_closed_loop(
                 sleep(max(0.0, t - clock()))
                 dynamics.set_measurement(*estimator.propagate(w, t))  # gyro: the truth rate
                 q, w = dynamics.step(dt)
-                sender.send(Sample(t, q, w))
-                log.truth_t.append(t)
-                log.truth_q.append([float(v) for v in q])
+                send(t, q, w)  # the target for the next step is set with this one's truth
                 if k <= n:
                     bar.update()
         finally:
