@@ -45,10 +45,11 @@ MIP_E_PER_UM = 80.0
 SENSITIVE_DEPTH_UM = 5.0
 #: Landau spread of the charge: full width at half maximum as a fraction of the most probable
 #: value; assumption (thin silicon's distribution is wider than 300 um's, Hall 1984).
-CHARGE_FWHM_FRACTION = 1.0
+CHARGE_FWHM_FRACTION = 0.5
 #: The charge of one track is capped at this many times its most probable value (the Landau tail
-#: has no mean; the full well clips any pixel long before).
-CHARGE_CAP = 20.0
+#: has no mean; the full well clips any pixel long before): 1.5 % of tracks reach it, and the mean
+#: charge is 1.62 times the most probable (130 e-/um, above the 108 e-/um mean: conservative).
+CHARGE_CAP = 10.0
 #: Lateral charge diffusion, Gaussian sigma (px): assumption for a 2.2 um pixel.
 DIFFUSION_PX = 0.5
 #: Mode and FWHM of scipy's standard Landau density (computed from ``scipy.stats.landau``; a test
