@@ -42,7 +42,7 @@ def test_eclipse_exit_sunrise_then_the_sun_crosses_its_limit(start):
     path = _along(sc)
     limit = sc.limits_deg
     sun = np.array([e["sun"] for _, e, _ in path])
-    assert sun[0] > limit["sun"] and sun[-1] > limit["sun"] and sun.min() < limit["sun"] - 5.0
+    assert sun[0] > limit["sun"] and sun[-1] > limit["sun"] and sun.min() < limit["sun"] - scenarios.DEPTH_DEG + 0.1
     sunlit = np.array([s for *_, s in path])
     t = np.array([t for t, *_ in path])
     assert not sunlit[0] and sunlit[-1] and np.all(np.diff(sunlit.astype(int)) >= 0)  # one exit, in the run

@@ -11,8 +11,11 @@ own clock, so the sky is the real one at the time of the run. Each declares
 * the exclusion angles the device is given (slot-2 ``*_exclusion_deg``).
 
 ``eclipse-exit``: a noon-midnight orbit phased so the spacecraft leaves the Earth's shadow
-(``in_earth_shadow``, searched over the orbit) a few seconds into a slew whose boresight passes
-the Sun at ``limit - 6`` deg, on the side away from the Earth, from and to ``limit + 6`` deg.
+(``in_earth_shadow``, searched over the orbit) during the first hold. At sunrise the Sun is at the
+Earth's limb, so a boresight within the Sun's limit would be inside the Earth's too; the slew waits
+until the Sun has risen far enough, then turns about the Earth's direction (a cone
+``limit_earth + 3`` deg outside the bright limb) so that the boresight passes the Sun ``DEPTH_DEG``
+inside its limit, from and to ``limit + 6`` deg.
 ``moon-slew``: the spacecraft above the sub-lunar point (the Earth behind it); a slew through
 the Moon's centre, across the Sun-Moon line, from and to ``limit + 6`` deg off the disc.
 The Moon's phase is the day's: the run cannot choose its date.
@@ -36,16 +39,18 @@ from ground.sim.orbit import CircularOrbit, in_earth_shadow
 
 NAMES = ("none", "eclipse-exit", "moon-slew")
 
-#: Exclusion angles the scenarios give the device, deg (edge of the disc to the boresight). Sun
-#: 30 and Moon 25: CryoSat's HE-5AS star tracker baffle (ESA EO portal, "Star Tracker" concept);
-#: Earth 20: an assumption (a bright limb is dimmer than the Sun, brighter than the Moon).
-LIMITS_DEG = {"sun": 30.0, "moon": 25.0, "earth": 20.0}
+#: Exclusion angles the scenarios give the device, deg (edge of the disc to the boresight): the
+#: device's defaults (``pipeline.exclusion.ExclusionLimits``: Sun 30 and Moon 25 from CryoSat's
+#: HE-5AS baffle, the Earth's 25 an assumption), written out so a run states them.
+LIMITS_DEG = {"sun": 30.0, "moon": 25.0, "earth": 25.0}
 ALTITUDE_KM = 550.0  #: assumption: a typical LEO small satellite
 INCLINATION_DEG = 97.6  #: sun-synchronous at 550 km (assumption: the orbit class, not a mission)
 SLEW_RATE_DEG_S = 1.5  #: target's turn rate (assumption: an agile small satellite)
 HOLD_S = 4.0  #: at the start attitude before the slew (the tracker's first fixes)
 SETTLE_S = 26.0  #: after the slew: the controller (omega_n 0.3 rad/s, zeta 0.9) settles
-MARGIN_DEG = 6.0  #: the path's ends are this far outside the limit; the Sun's closest approach this far inside
+MARGIN_DEG = 6.0  #: the path's ends are this far outside the body's limit
+DEPTH_DEG = 4.0  #: eclipse-exit: the Sun's closest approach this far inside its limit
+EARTH_CLEAR_DEG = 3.0  #: eclipse-exit: the boresight's cone this far outside the Earth's limit
 
 
 @dataclass(frozen=True)
@@ -117,11 +122,7 @@ def plan(name: str, start_posix: float, limits_deg: dict[str, float] | None = No
 def _checked(sc: Scenario, step_s: float = 1.0) -> Scenario:
     """``sc`` when, along its planned boresight (every ``step_s``), its body goes inside its limit
     and no other body comes within 1 deg of its own (a new Moon beside the Sun spoils both)."""
-    closest = {name: math.inf for name in sc.limits_deg}
-    for t in np.arange(0.0, sc.duration_s, step_s):
-        bodies = sky_bodies(_iso(sc.start_posix + t), sc.position_km(t))
-        for name, b in bodies.items():
-            closest[name] = min(closest[name], math.degrees(b.edge_angle(sc.slew.boresight(t))))
+    closest = _closest(sc.orbit, sc.start_posix, sc.slew, step_s)
     if not closest[sc.body] < sc.limits_deg[sc.body]:
         raise ValueError(f"{sc.name}: the {sc.body} stays {closest[sc.body]:.1f} deg from the boresight")
     for name, edge in closest.items():
@@ -142,13 +143,12 @@ def _unit(v) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-def _path(centre: np.ndarray, along: np.ndarray, half: float, t_start: float, rate: float) -> Slew:
-    """A slew along the great circle through ``centre`` heading ``along`` (unit, perpendicular),
-    from ``half`` rad before the centre to ``half`` after."""
-    axis = _unit(np.cross(centre, along))
-    b0 = Rotation.from_rotvec(-half * axis).apply(centre)
+def _path(centre: np.ndarray, axis: np.ndarray, before: float, after: float, t_start: float, rate: float) -> Slew:
+    """A slew about the unit ``axis`` whose boresight passes ``centre``, turning ``before`` rad
+    before it and ``after`` rad after."""
+    b0 = Rotation.from_rotvec(-before * axis).apply(centre)
     a0 = attitude_from_radec_roll(math.atan2(b0[1], b0[0]), math.asin(float(np.clip(b0[2], -1, 1))), 0.0)
-    return Slew(matrix_to_quat(a0), axis, 2.0 * half, t_start, rate)
+    return Slew(matrix_to_quat(a0), axis, before + after, t_start, rate)
 
 
 def sunrise_after(orbit: CircularOrbit, t0_posix: float, sun: np.ndarray) -> float:
@@ -169,22 +169,48 @@ def sunrise_after(orbit: CircularOrbit, t0_posix: float, sun: np.ndarray) -> flo
 
 def _eclipse_exit(start: float, limits: dict[str, float]) -> Scenario:
     s_lim, rate = math.radians(limits["sun"]), math.radians(SLEW_RATE_DEG_S)
-    closest, end = s_lim - math.radians(MARGIN_DEG), s_lim + math.radians(MARGIN_DEG)
     sun = sky_bodies(_iso(start))["sun"].direction
-    half = math.acos(math.cos(end) / math.cos(closest))
-    t_in = HOLD_S + (half - math.acos(math.cos(s_lim) / math.cos(closest))) / rate  # the Sun enters the limit
-    t_sunrise = 0.5 * (HOLD_S + t_in)  # leaving the shadow on the way in
     raan = math.degrees(math.atan2(sun[1], sun[0]))  # noon-midnight plane: the longest eclipse
     probe = CircularOrbit(ALTITUDE_KM, INCLINATION_DEG, raan, 0.0, _iso(start))
     t_exit = sunrise_after(probe, start, sun)
-    arg_lat = math.degrees(probe.mean_motion_rad_s * (t_exit - start - t_sunrise)) % 360.0
+    arg_lat = math.degrees(probe.mean_motion_rad_s * (t_exit - start - HOLD_S)) % 360.0  # sunrise at HOLD_S
     orbit = CircularOrbit(ALTITUDE_KM, INCLINATION_DEG, raan, arg_lat, _iso(start))
-    t_cross = HOLD_S + half / rate
-    earth = -_unit(orbit.position_gcrs_km(start + t_cross))
-    away = _unit(np.dot(earth, sun) * sun - earth)  # from the Sun, away from the Earth
-    centre = math.cos(closest) * sun + math.sin(closest) * away
-    slew = _path(centre, _unit(np.cross(sun, centre)), half, HOLD_S, rate)
+    earth = sky_bodies(_iso(start), orbit.position_gcrs_km(start))["earth"]
+    cone = earth.angular_radius + math.radians(limits["earth"] + EARTH_CLEAR_DEG)  # boresight to the Earth's centre
+    need = cone - (s_lim - math.radians(DEPTH_DEG)) - sky_bodies(_iso(start))["sun"].angular_radius
+    ends = s_lim + math.radians(MARGIN_DEG)
+
+    def sun_from_earth(t: float) -> float:  # rad, the Sun's angle from the Earth's direction at t s
+        return math.acos(float(np.clip(-np.dot(_unit(orbit.position_gcrs_km(start + t)), sun), -1.0, 1.0)))
+
+    t_cross = float(brentq(lambda t: sun_from_earth(t) - need, HOLD_S, HOLD_S + 0.25 * orbit.period_s, xtol=1e-3))
+    sigma = sun_from_earth(t_cross)
+    cos_half = (math.cos(ends) - math.cos(cone) * math.cos(sigma)) / (math.sin(cone) * math.sin(sigma))
+    half = math.acos(float(np.clip(cos_half, -1.0, 1.0)))  # turn about the Earth's direction to each end
+    t_cross = max(t_cross, HOLD_S + half / rate)
+    e = -_unit(orbit.position_gcrs_km(start + t_cross))
+    out = _unit(sun - np.dot(sun, e) * e)  # from the Earth's direction toward the Sun
+    centre = math.cos(cone) * e + math.sin(cone) * out
+    # from the hold on, the boresight rides the cone about the Earth's direction at the crossing
+    # (the Earth turns away from the Sun as the spacecraft climbs), in the sense that keeps the
+    # Earth and the Moon further outside their limits
+    slews = [_path(centre, sense * e, (t_cross - HOLD_S) * rate, half, HOLD_S, rate) for sense in (1.0, -1.0)]
+
+    def clearance(sl: Slew) -> float:
+        closest = _closest(orbit, start, sl)
+        return min(closest[b] - limits[b] for b in ("earth", "moon"))
+
+    slew = max(slews, key=clearance)
     return Scenario("eclipse-exit", "sun", orbit, slew, limits, slew.t_end + SETTLE_S, start)
+
+
+def _closest(orbit: CircularOrbit, start: float, slew: Slew, step_s: float = 1.0) -> dict[str, float]:
+    """Each body's closest edge angle (deg) to the planned boresight, every ``step_s`` of the slew."""
+    out = {name: math.inf for name in ("sun", "moon", "earth")}
+    for t in np.arange(0.0, slew.t_end + step_s, step_s):
+        for name, b in sky_bodies(_iso(start + t), orbit.position_gcrs_km(start + t)).items():
+            out[name] = min(out[name], math.degrees(b.edge_angle(slew.boresight(t))))
+    return out
 
 
 def _moon_slew(start: float, limits: dict[str, float]) -> Scenario:
@@ -198,5 +224,6 @@ def _moon_slew(start: float, limits: dict[str, float]) -> Scenario:
     half = m_lim + geo["moon"].angular_radius + math.radians(MARGIN_DEG)
     t_cross = HOLD_S + half / rate
     moon = sky_bodies(_iso(start + t_cross), orbit.position_gcrs_km(start + t_cross))["moon"]
-    slew = _path(moon.direction, _unit(np.cross(moon.direction, sun)), half, HOLD_S, rate)
+    across = _unit(np.cross(moon.direction, sun))  # the path heads across the Sun-Moon line
+    slew = _path(moon.direction, _unit(np.cross(moon.direction, across)), half, half, HOLD_S, rate)
     return Scenario("moon-slew", "moon", orbit, slew, limits, slew.t_end + SETTLE_S, start)

@@ -216,7 +216,7 @@ def run_closed_loop(
             return
         r = position_at(t - start)
         log.truth_r.append([float(v) for v in r])
-        sender.send(Sample(t, q, w, r=r))  # type: ignore[call-arg]  # the feed's r (docs/hil.md section 1)
+        sender.send(Sample(t, q, w, r=r))  # the feed sample's r (docs/hil.md section 1)
 
     q, w = np.asarray(q0, dtype=float), np.asarray(w0, dtype=float)
     n = int(round(duration_s / dt))
