@@ -17,6 +17,7 @@ from typing import Any
 from protocol.layout import Form, Layout, le_int
 from protocol.nack import NackReason as NackReason  # re-exported: shared by device and client
 from protocol.nack import PayloadError as PayloadError
+from protocol.nsp import MAX_DATA
 
 
 class Code(IntEnum):
@@ -492,10 +493,13 @@ class FaultAction(IntEnum):
     STATUS = 2  #: report only
 
 
+MAX_FAULT_SCRIPT = MAX_DATA - 1  #: bytes of script one FAULT load carries (one NSP data field)
+
+
 @dataclass(frozen=True)
 class FaultRequest(Layout):
     """FAULT command data: u8 subcommand (:class:`FaultAction`), then for LOAD the script as UTF-8
-    text (the fault-file format; empty otherwise)."""
+    text (the fault-file format, at most :data:`MAX_FAULT_SCRIPT` bytes; empty otherwise)."""
 
     action: int
     script: bytes = b""

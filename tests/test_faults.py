@@ -120,7 +120,7 @@ def test_a_script_parses_with_comments_and_defaults():
         ("drop_reply fraction=1.5", "fraction=1.5 outside 0..1"),
         ("drop_reply fraction=-0.1", "fraction=-0.1 outside 0..1"),
         ("drop_reply fraction=nan", "fraction=nan outside 0..1"),
-        ("corrupt_crc count=-1", "count=-1 outside 0..1e+06"),
+        ("corrupt_crc count=-1", "count=-1 outside 0..1000000"),
         ("delay_reply ms=-5 count=1", "ms=-5 outside 0..60000"),
         ("delay_reply count=1", "delay_reply needs ms="),
         ("drop_reply", "drop_reply takes exactly one of count, fraction"),
@@ -128,7 +128,7 @@ def test_a_script_parses_with_comments_and_defaults():
         ("drop_reply count=1 count=2", "count given twice"),
         ("drop_reply count", "count needs a value"),
         ("drop_reply count=two", "count='two' is not a whole number"),
-        ("reset at_go=0", "at_go=0 outside 1..1e+06"),
+        ("reset at_go=0", "at_go=0 outside 1..1000000"),
         ("reset now=1", "reset now takes no value"),
         ("reset", "reset takes exactly one of after, at_go, now"),
         ("edac_upset region=rom bits=1", "region='rom'; known: scratch, ram, result, catalog"),
@@ -365,3 +365,14 @@ def test_fuzz_traffic_never_arms_a_fault_on_a_default_device():
     assert len(faults) > 100 and all(NackInfo.unpack(m.data).reason == NackReason.NOT_SUPPORTED for m in faults)
     assert dev.faults.armed == 0 and set(dev.faults.counters.values()) == {0}
     assert dev.edac_image()[edac.FAULT_COUNTERS_AT : edac.FAULT_COUNTERS_AT + 36] == bytes(36)
+
+
+def test_st16_ground_refuses_a_script_too_long_for_one_fault_load(tmp_path, capsys):
+    from ground.cli.main import main
+
+    long = tmp_path / "long.txt"
+    long.write_text("# pad\n" * 1000)  # 6000 bytes, every line a comment: it parses
+    with pytest.raises(SystemExit) as exit_:  # argparse's refusal, before the port is opened
+        main(["--port", "loop://", "fault", "load", str(long)])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1 and "6000 bytes, one FAULT load carries at most 4159" in err

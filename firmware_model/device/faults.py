@@ -65,7 +65,7 @@ def _number(text: str, key: str, integer: bool, lo: float, hi: float) -> float |
     except ValueError:
         raise ValueError(f"{key}={text!r} is not {'a whole number' if integer else 'a number'}") from None
     if not lo <= value <= hi:  # also NaN
-        raise ValueError(f"{key}={text} outside {lo:g}..{hi:g}")
+        raise ValueError(f"{key}={text} outside {lo}..{hi}" if integer else f"{key}={text} outside {lo:g}..{hi:g}")
     return value
 
 

@@ -31,6 +31,7 @@ from protocol.command_table import COMMANDS
 from protocol.commands import (
     APP_START_ADDRESS,
     GO_OPERATIONAL,
+    MAX_FAULT_SCRIPT,
     UPLOAD_CHUNK,
     AddressedBytes,
     Code,
@@ -526,8 +527,11 @@ class Client:
         """FAULT (docs/ICD.md section 13): ``load`` the fault ``script`` text (replacing the armed
         one), ``clear`` or ``status``; the reply holds the faults armed and the fault counters.
         The device NACKs it NOT_SUPPORTED unless started with ``--fault-injection``."""
+        data = script.encode("utf-8")
+        if len(data) > MAX_FAULT_SCRIPT:
+            raise ValueError(f"fault script of {len(data)} bytes: one FAULT load carries at most {MAX_FAULT_SCRIPT}")
         idempotent = action == FaultAction.STATUS
-        return self._call(Code.FAULT, FaultRequest(action, script.encode("utf-8")), idempotent=idempotent)
+        return self._call(Code.FAULT, FaultRequest(action, data), idempotent=idempotent)
 
     # ------------------------------------------------------------------ helpers
 

@@ -175,6 +175,7 @@ def _fault_file(path: str) -> str:
     """The text of the fault script at ``path``, parsed here first: a file that does not parse is a
     usage error naming its line (exit 2), before anything is sent."""
     from firmware_model.device.faults import FaultScriptError, parse_script
+    from protocol.commands import MAX_FAULT_SCRIPT
 
     try:
         text = Path(path).read_text(encoding="utf-8")
@@ -183,6 +184,11 @@ def _fault_file(path: str) -> str:
         raise argparse.ArgumentTypeError(f"fault file {path}: {exc}") from None
     except FaultScriptError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+    size = len(text.encode("utf-8"))
+    if size > MAX_FAULT_SCRIPT:
+        raise argparse.ArgumentTypeError(
+            f"fault file {path}: {size} bytes, one FAULT load carries at most {MAX_FAULT_SCRIPT}"
+        )
     return text
 
 
