@@ -69,7 +69,7 @@ def _number(text: str, key: str, integer: bool, lo: float, hi: float) -> float |
     return value
 
 
-def _value(name: str, key: str, text: str) -> float | int | str:
+def _value(key: str, text: str) -> float | int | str:
     if key == "fraction":
         return _number(text, key, False, 0.0, 1.0)
     if key == "ms":
@@ -123,7 +123,7 @@ def parse_line(text: str, line: int) -> Fault | None:
             continue
         if not eq:
             raise ValueError(f"{name}: {key} needs a value ({key}=...)")
-        keys[key] = _value(name, key, text_value)
+        keys[key] = _value(key, text_value)
     problem = _needs(name, keys)
     if problem:
         raise ValueError(problem)
@@ -253,11 +253,13 @@ class FaultInjector:
         corrupt = self._fire("corrupt_crc")
         if corrupt:
             self.count("corrupted_crcs")
-        with self._lock:
-            delays = [float(a.fault.keys["ms"]) for a in self._armed if a.fault.name == "delay_reply" and a.fires()]
-        if delays:
+        with self._lock:  # the first delay line that fires, as _fire asks
+            ms = next(
+                (float(a.fault.keys["ms"]) for a in self._armed if a.fault.name == "delay_reply" and a.fires()), None
+            )
+        if ms is not None:
             self.count("delayed_replies")
-        return ReplyFault(corrupt=corrupt, delay_s=max(delays, default=0.0) / 1000.0)
+        return ReplyFault(corrupt=corrupt, delay_s=(ms or 0.0) / 1000.0)
 
     def reset_before(self, code: int) -> bool:
         """Whether the device resets on receiving this command, unanswered (``reset at_go``)."""

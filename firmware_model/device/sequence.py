@@ -201,7 +201,7 @@ class SequenceRunner:
             self.result_ready = True
             return
         stored = tr.store.active(Slot.CATALOG)
-        if st.faults.catalog_access() and stored is not None:  # reloaded from its stored image
+        if stored is not None and st.faults.catalog_access():  # reloaded from its stored image
             tr.objects[Slot.CATALOG] = tr.slots[Slot.CATALOG].activate(stored)
         self.sequence += 1
         self.result_ready = False
