@@ -78,6 +78,7 @@ class Detections:
     background: np.ndarray
     n_rejected_sharp: int = 0
     n_rejected_streak: int = 0
+    n_rejected_extended: int = 0  #: candidates on or beside an extended object (:func:`_near_extended`)
     n_dropped_cap: int = 0
     n_regions: int = 0  #: significant regions found
     n_regions_examined: int = 0  #: of them, the brightest examined (REGION_CAP_FACTOR)
@@ -226,6 +227,37 @@ def _background_grids(img: np.ndarray, black: np.ndarray, block: int, step: int)
 COLUMN_DEFECT_SIGMAS = 2.0
 
 
+#: The background grid's blocks shrink to this (raw px) where bilinear interpolation between block
+#: centres cannot follow the background (stray light near the Sun, the Moon or the Earth rises by
+#: orders of magnitude across the field): the background grid spans more than
+#: :data:`GRADIENT_RATIO` times its lowest value and :data:`GRADIENT_SPAN_SIGMAS` times the noise,
+#: and the interpolation's midpoint error (a second difference over 8) exceeds
+#: :data:`GRADIENT_TRIGGER` of the noise somewhere. Vignetting and skyglow on real frames span at
+#: most 4 times (the shared real frames: 1.1-4.0), so their detection is unchanged.
+GRADIENT_BLOCK_PX = 32
+GRADIENT_RATIO = 10.0
+GRADIENT_SPAN_SIGMAS = 20.0
+GRADIENT_TRIGGER = 0.1
+
+
+def _curved(bg: np.ndarray, sig: np.ndarray) -> bool:
+    """Whether the (2, 2, ny, nx) background grid ``bg`` (noise ``sig``) is a steep gradient that
+    bilinear interpolation misses (see :data:`GRADIENT_BLOCK_PX`)."""
+    total = _grid_sum(bg)
+    lo, hi = float(total.min()), float(total.max())
+    noise = float(np.median(np.sqrt(_grid_sum(sig**2))))
+    if not (hi > GRADIENT_RATIO * max(lo, 0.0) and hi - lo > GRADIENT_SPAN_SIGMAS * noise):
+        return False
+    worst = 0.0
+    if bg.shape[3] >= 3:
+        d2 = np.abs(bg[..., 2:] - 2.0 * bg[..., 1:-1] + bg[..., :-2]) / 8.0
+        worst = max(worst, float(np.max(d2 / sig[..., 1:-1])))
+    if bg.shape[2] >= 3:
+        d2 = np.abs(bg[:, :, 2:] - 2.0 * bg[:, :, 1:-1] + bg[:, :, :-2]) / 8.0
+        worst = max(worst, float(np.max(d2 / sig[:, :, 1:-1])))
+    return worst > GRADIENT_TRIGGER
+
+
 def _column_defects(pix: np.ndarray, black: np.ndarray, sig: np.ndarray, width: int):
     """Column defects per phase (``COLUMN_DEFECT_SIGMAS`` against the phase's median noise): the
     offsets (2, 2, w2) that shift them to their neighbours' level, so that detection does not see
@@ -252,9 +284,10 @@ def _grid_sum(g: np.ndarray) -> np.ndarray:
     return g[0, 0] + g[0, 1] + g[1, 0] + g[1, 1]
 
 
-def _interp_axis(n_blocks: int, block: int, size: int):
+def _interp_axis(n_blocks: int, block: int, size: int, extrapolate: bool = False):
     """Bilinear weights along one axis for grid values at block centres (the last block stretched
-    to the edge), constant beyond the outermost centres: lower index and weight of the upper one."""
+    to the edge), constant beyond the outermost centres (``extrapolate``: linear, for a background
+    with a strong gradient): lower index and weight of the upper one."""
     if n_blocks == 1:
         return np.zeros(size, np.int64), np.zeros(size, np.float32)
     reps = np.full(n_blocks, block)
@@ -262,8 +295,10 @@ def _interp_axis(n_blocks: int, block: int, size: int):
     centres = np.cumsum(reps) - reps / 2.0 - 0.5
     pos = np.arange(size, dtype=float)
     i0 = np.clip(np.searchsorted(centres, pos) - 1, 0, n_blocks - 2)
-    t = np.clip((pos - centres[i0]) / (centres[i0 + 1] - centres[i0]), 0.0, 1.0).astype(np.float32)
-    return i0.astype(np.int64), t
+    t = (pos - centres[i0]) / (centres[i0 + 1] - centres[i0])
+    if not extrapolate:
+        t = np.clip(t, 0.0, 1.0)
+    return i0.astype(np.int64), t.astype(np.float32)
 
 
 def _interp_cols(grid: np.ndarray, ix: np.ndarray, tx: np.ndarray) -> np.ndarray:
@@ -669,12 +704,16 @@ def prepare_detection(frame: Frame, params: DetectParams = DetectParams()) -> Pr
         pix = np.ascontiguousarray(pix)
     # per-phase clipped mean and noise grids (2, 2, ny, nx) from a 1-in-4 subsample
     bg_all, sig_all = _background_grids(pix, black, block, 2)
+    steep = block > GRADIENT_BLOCK_PX // 2 and _curved(bg_all, sig_all)
+    if steep:
+        block = GRADIENT_BLOCK_PX // 2
+        bg_all, sig_all = _background_grids(pix, black, block, 2)
     colex, bad = _column_defects(pix, black, sig_all, frame.width)
     thr = (bg_all + params.k_sigma * sig_all).astype(np.float32)
     bg_sum = _grid_sum(bg_all)
     var_sum = _grid_sum(sig_all.astype(np.float32) ** 2)
-    iy, ty = _interp_axis(bg_sum.shape[0], block, h2)
-    ix, tx = _interp_axis(bg_sum.shape[1], block, w2)
+    iy, ty = _interp_axis(bg_sum.shape[0], block, h2, steep)
+    ix, tx = _interp_axis(bg_sum.shape[1], block, w2, steep)
     gx = np.ascontiguousarray(_interp_cols(bg_sum.astype(np.float32), ix, tx))
     # one pass over the frame: column-corrected, background-subtracted super-pixel sums and the
     # pixels above the threshold
@@ -796,6 +835,9 @@ def detect_stars(
     is_streak = elongated[plabel]
     n_streak = int(np.count_nonzero(is_streak))
     pr, pc, plabel, psnr = pr[~is_streak], pc[~is_streak], plabel[~is_streak], psnr[~is_streak]
+    near_extended = _near_extended(filt, lab, mr_, mc_, nb, pr, pc, kernel, params.psf_sigma_px)
+    n_extended = int(np.count_nonzero(near_extended))
+    pr, pc, plabel, psnr = pr[~near_extended], pc[~near_extended], plabel[~near_extended], psnr[~near_extended]
     sharp = _peaked_candidates(
         (pix, black, colex, sharp_lin, sharp_val), bg_all, sig_all, block, pr, pc, params, frame.is_mono
     )
@@ -803,9 +845,11 @@ def detect_stars(
     pr, pc, plabel, psnr = pr[~sharp], pc[~sharp], plabel[~sharp], psnr[~sharp]
     if len(pr) == 0:
         return _empty(
-            f"no star-like candidate ({n_streak} streaks rejected, {n_sharp} sharp pixels cleaned)",
+            f"no star-like candidate ({n_streak} streaks rejected, {n_extended} on extended objects,"
+            f" {n_sharp} sharp pixels cleaned)",
             n_rejected_sharp=n_sharp,
             n_rejected_streak=n_streak,
+            n_rejected_extended=n_extended,
             bad_pixels=bad_pixels,
         )
 
@@ -834,6 +878,7 @@ def detect_stars(
         background=bgv,
         n_rejected_sharp=n_sharp,
         n_rejected_streak=n_streak,
+        n_rejected_extended=n_extended,
         n_dropped_cap=n_drop,
         n_regions=n_found,
         n_regions_examined=n_regions,
@@ -841,6 +886,47 @@ def detect_stars(
     )
     det.reason = "; ".join(bound_notes(det, n_drop, params.max_candidates))
     return det
+
+
+#: A region is an extended object (the Moon's disc, the Earth's limb, a glare patch) when the part
+#: of it above half its filtered peak covers more than this many times a point source's half-peak
+#: area (a star saturated 10^4 times over reaches ~15 times), and at least :data:`EXTENDED_MIN_SP`.
+EXTENDED_FACTOR = 40.0
+EXTENDED_MIN_SP = 64  #: super-pixels
+#: Candidates within this many detection-kernel widths of an extended object's box are refused too
+#: (the blurred limb and its scattered light).
+EXTENDED_MARGIN_KERNELS = 2
+
+
+def _near_extended(filt, lab, r, c, nb, pr, pc, kernel, psf_sigma_px: float) -> np.ndarray:
+    """True for the candidates ``(pr, pc)`` inside the box (plus a margin) of a region far larger
+    than the PSF: its pixels ``(r, c)`` (labels ``lab`` < ``nb``) above half its filtered peak
+    cover more than :data:`EXTENDED_FACTOR` times a point source's half-peak area (super-pixels).
+    A point source's filtered image has the Gaussian sigma ``sqrt((s/2)^2 + 1/12 + k^2)``
+    super-pixels (``s`` the PSF sigma in px, ``1/12`` the binning, ``k`` the kernel's sigma) and
+    half-peak area ``2 pi ln 2`` sigma^2."""
+    out = np.zeros(len(pr), bool)
+    if len(r) == 0 or len(pr) == 0:
+        return out
+    vals = filt[r, c]
+    peak = np.full(nb, -np.inf, np.float32)
+    np.maximum.at(peak, lab, vals)
+    upper = np.bincount(lab, vals > 0.5 * peak[lab], nb)
+    x = np.arange(len(kernel)) - len(kernel) // 2
+    k2 = float(np.sum(kernel * x**2) / np.sum(kernel))
+    point = 2.0 * np.pi * np.log(2.0) * ((psf_sigma_px / 2.0) ** 2 + 1.0 / 12.0 + k2)
+    ext = np.flatnonzero(upper > max(EXTENDED_FACTOR * point, EXTENDED_MIN_SP))
+    margin = EXTENDED_MARGIN_KERNELS * len(kernel)
+    for k in ext:
+        sel = lab == k
+        rr, cc = r[sel], c[sel]
+        out |= (
+            (pr >= rr.min() - margin)
+            & (pr <= rr.max() + margin)
+            & (pc >= cc.min() - margin)
+            & (pc <= cc.max() + margin)
+        )
+    return out
 
 
 def _axis_ratio(lab, r, c, wgt, nb) -> np.ndarray:
