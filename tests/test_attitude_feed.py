@@ -574,3 +574,78 @@ def test_device_cli_solves_along_a_fed_path(tmp_path):
     # rate); the solve's own error (roll sigma ~20") is what is left
     assert err < 0.015 and err < np.degrees(rotation_angle(a, truth(epoch)))
     assert flagged["status"] == "BAD_FRAME" and "quaternion norm" in flagged["reason"]
+
+
+# ---------------------------------------------------------------- issue 33: time and position
+
+
+def _feed_source(query: str = "") -> tuple[AttitudeFeedSource, ManualClock]:
+    clock = ManualClock()
+    port = _free_port(socket.SOCK_DGRAM)
+    renderer = ExposureRenderer(SMALL_CAM, stars=Stars([], np.zeros((0, 3)), [], [], []))
+    src = AttitudeFeedSource(f"udp://127.0.0.1:{port}?pattern=MONO{query}", SMALL_CAM, renderer, clock)
+    src.ready()
+    return src, clock
+
+
+def test_feed_frames_carry_the_mid_time_and_the_samples_position():
+    from types import SimpleNamespace
+
+    from ground.sim.sky_source import utc_iso
+
+    src, clock = _feed_source()
+    try:
+        now = clock.now
+        for k, t in enumerate(np.arange(now - 1, now + 1, 0.1)):
+            src.feed.offer(Sample(t, Q0, np.zeros(3), np.array([7000.0 + 10.0 * k, 0.0, 0.0])))
+        t_mid = now + 0.05
+        frame = src(SimpleNamespace(started=now, sequence=1))
+        assert frame.timestamp == utc_iso(t_mid)
+        # linear between the samples at now (k = 10) and now + 0.1 (k = 11)
+        assert frame.metadata["sc_position_km"] == pytest.approx([7105.0, 0.0, 0.0], abs=1e-3)
+        assert {"sun", "moon", "earth"} <= set(frame.metadata["glare"])
+    finally:
+        src.close()
+
+
+def test_feed_orbit_option_places_the_spacecraft_when_samples_carry_no_position():
+    from types import SimpleNamespace
+
+    from ground.sim.orbit import CircularOrbit
+
+    src, clock = _feed_source("&orbit=550,97.6,30,0,2026-06-01T00:00:00")
+    try:
+        now = clock.now
+        _path(src.feed, now - 1, now + 1, step=0.1)
+        frame = src(SimpleNamespace(started=now, sequence=2))
+        expect = CircularOrbit.parse("550,97.6,30,0,2026-06-01T00:00:00").position_gcrs_km(now + 0.05)
+        assert frame.metadata["sc_position_km"] == pytest.approx(list(expect), abs=1e-6)
+    finally:
+        src.close()
+    plain, clock = _feed_source()
+    try:
+        _path(plain.feed, clock.now - 1, clock.now + 1, step=0.1)
+        frame = plain(SimpleNamespace(started=clock.now, sequence=3))
+        assert "sc_position_km" not in frame.metadata and frame.timestamp is not None
+        assert "earth" not in frame.metadata["glare"]
+    finally:
+        plain.close()
+
+
+@pytest.mark.parametrize(
+    "query, msg",
+    [("&orbit=50", "orbit altitude 50 km is outside"), ("&orbit=550,x", "altitude and angles must be numbers")],
+)
+def test_bad_orbit_option_is_a_one_line_error(query, msg):
+    with pytest.raises(ValueError, match=msg) as info:
+        _feed_source(query)
+    assert "\n" not in str(info.value)
+
+
+def test_a_sample_with_a_bad_position_is_a_fault():
+    feed, _, now = _feed()
+    _path(feed, now - 1, now)
+    feed.offer(Sample(now, Q0, np.zeros(3), np.array([6000.0, 0.0, 0.0])))
+    feed.offer(Sample(now + 0.01, Q0, np.zeros(3), np.array([np.nan, 0.0, 0.0])))
+    reasons = [r for _, r in feed.faults()]
+    assert any("inside the atmosphere" in r for r in reasons) and any("NaN" in r for r in reasons)

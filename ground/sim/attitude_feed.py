@@ -18,7 +18,15 @@ before the exposure, a gap over ``max_gap`` s around it, or a fault recorded fro
 before the mid-time on (the feed is suspect that long after a fault). Registered as the ``attitude_feed`` entry point of
 ``st16.frame_sources``. URL query options: ``format``, ``exposure`` (s, default the detector's
 0.1), ``timeout`` (s, 0.25), ``max_gap`` (s, 0.5), ``pattern`` (RGGB), ``idle`` (s, 60: over TCP a
-peer silent that long is closed, and a new connection takes over at once, as on the NSP TCP link).
+peer silent that long is closed, and a new connection takes over at once, as on the NSP TCP link),
+``orbit`` (``ALT_KM[,INC_DEG[,RAAN_DEG[,ARG_LAT_DEG[,EPOCH_UTC]]]]``, ``ground.sim.orbit``: the
+spacecraft's position at the mid-time when the samples carry none).
+
+Every frame is stamped with the exposure's mid-time (``timestamp``, ISO-8601 UTC) and rendered
+with the Sun's and the Moon's light (``ground.sim.glare``); the spacecraft's position (the samples'
+``r`` interpolated linearly to the mid-time when both samples around it carry one, else the
+``orbit`` option's) adds the Earth's and goes to ``metadata["sc_position_km"]``. A sample whose
+``r`` is not finite or lies inside the atmosphere is dropped as a fault, like a bad attitude.
 
 Every time here (arrival of a fault, the capture's wait) is read from one ``clock`` (POSIX s,
 ``time.time`` unless given), the clock the device stamps its GO with: a test passes a manual clock
@@ -40,7 +48,9 @@ from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.reference_frames import quat_to_matrix
 from ground.sim.exposure import ExposureRenderer
 from ground.sim.feed_wire import IDLE_S, FeedUrl, Listener, Sample
+from ground.sim.orbit import CircularOrbit
 from ground.sim.sensor_sim import DetectorModel
+from ground.sim.sky_source import check_position, utc_iso
 from ground.sim.smear import SmearPSF, TooFast
 
 NORM_TOL = 1e-6  #: | |q| - 1 | above this is an unnormalised quaternion
@@ -85,6 +95,10 @@ def check(sample: Sample, prev: Sample | None, now: float | None = None) -> str 
         return "sample holds NaN or infinite values"
     if now is not None and sample.t > now + MAX_AHEAD_S:
         return f"sample time is {sample.t - now:.3g} s ahead of the device clock (more than {MAX_AHEAD_S:g} s)"
+    if sample.r is not None:
+        why = check_position(sample.r)
+        if why:
+            return f"sample {why}"
     norm = float(np.linalg.norm(sample.q))
     if abs(norm - 1.0) > NORM_TOL:
         return f"quaternion norm {norm:.9f} is not 1"
@@ -174,6 +188,19 @@ class AttitudeFeed:
         f = 0.0 if b.t == a.t else (t - a.t) / (b.t - a.t)
         return slerp(a.q, b.q, f), a.w + f * (b.w - a.w)
 
+    def position_at(self, t: float) -> np.ndarray | None:
+        """The samples' GCRS position (km) at ``t``, linear between the two around it; None unless
+        both carry one (call after :meth:`at` has accepted ``t``)."""
+        with self._cond:
+            k = next((i for i, s in enumerate(self._ring) if s.t >= t), None)
+            if k is None:
+                return None
+            a, b = self._ring[max(k - 1, 0)], self._ring[k]
+        if a.r is None or b.r is None:
+            return None
+        f = 0.0 if b.t == a.t else (t - a.t) / (b.t - a.t)
+        return a.r + f * (b.r - a.r)
+
 
 class AttitudeFeedSource:
     """Capture source: the exposure at each GO rendered along the fed attitude path. ``clock``
@@ -190,6 +217,7 @@ class AttitudeFeedSource:
             self.timeout = float(opts.pop("timeout", 0.25))
             self.max_gap = float(opts.pop("max_gap", 0.5))
             self.idle = float(opts.pop("idle", IDLE_S))
+            self.orbit = CircularOrbit.parse(opts.pop("orbit")) if "orbit" in opts else None
         except ValueError as exc:
             raise ValueError(f"attitude feed {spec!r}: {exc}") from None
         if opts:
@@ -211,13 +239,22 @@ class AttitudeFeedSource:
         self.listener.close()
 
     def __call__(self, ctx) -> Frame:
-        q, w = self.feed.at(ctx.started + self.exposure_s / 2.0, self.timeout, self.max_gap)
+        t_mid = ctx.started + self.exposure_s / 2.0
+        q, w = self.feed.at(t_mid, self.timeout, self.max_gap)
         try:
             psf = SmearPSF(self.camera, self.det, w, self.exposure_s)
         except TooFast as exc:  # BAD_FRAME at once: the render's work would grow without bound
             raise FrameUnavailable(f"attitude feed: {exc}") from None
+        position = self.feed.position_at(t_mid)
+        if position is None and self.orbit is not None:
+            position = self.orbit.position_gcrs_km(t_mid)
         frame = self.renderer.render(
-            quat_to_matrix(q), self.det, seed=ctx.sequence, psf=psf if psf.max_track_px >= MIN_SMEAR_PX else None
+            quat_to_matrix(q),
+            self.det,
+            seed=ctx.sequence,
+            psf=psf if psf.max_track_px >= MIN_SMEAR_PX else None,
+            epoch_utc=utc_iso(t_mid),
+            sc_position_km=position,
         )
         frame.metadata["attitude_feed"] = {"q_mid": [float(v) for v in q], "w_mid": [float(v) for v in w]}
         return frame

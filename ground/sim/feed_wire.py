@@ -5,8 +5,11 @@ A sample is the sensor's attitude at a time: ``t`` POSIX UTC seconds, ``q`` the 
 ``q_icrs_to_sensor`` (docs/CONVENTIONS.md), ``w`` the angular velocity of the sensor frame with
 respect to ICRS in sensor axes (rad/s). Two encodings:
 
-* JSON lines: ``{"t": 1790000000.25, "q": [w, x, y, z], "w": [wx, wy, wz]}`` + ``\\n``;
-* binary: one little-endian record ``<d4d3d`` (64 bytes: t, qw, qx, qy, qz, wx, wy, wz).
+* JSON lines: ``{"t": 1790000000.25, "q": [w, x, y, z], "w": [wx, wy, wz]}`` + ``\\n``, with an
+  optional ``"r": [x, y, z]``: the spacecraft's GCRS position (km) at ``t``;
+* binary: one little-endian record ``<d4d3d`` (64 bytes: t, qw, qx, qy, qz, wx, wy, wz); it has
+  no position (the record stays as it was: a simulator that sends positions uses JSON, or the
+  source's ``orbit`` option places the spacecraft).
 
 Transports on loopback: ``tcp://HOST:PORT`` (the device listens; one simulator connection at a
 time, samples back to back) or ``udp://HOST:PORT`` (the device binds; one or more samples per
@@ -40,11 +43,13 @@ IDLE_S = 60.0  #: a TCP feed peer silent this long is closed (the NSP TCP link's
 
 @dataclass(frozen=True)
 class Sample:
-    """One attitude sample: ``t`` POSIX s, ``q`` scalar-first q_icrs_to_sensor, ``w`` rad/s (sensor axes)."""
+    """One attitude sample: ``t`` POSIX s, ``q`` scalar-first q_icrs_to_sensor, ``w`` rad/s (sensor
+    axes), ``r`` the spacecraft's GCRS position (km) or None."""
 
     t: float
     q: np.ndarray
     w: np.ndarray
+    r: np.ndarray | None = None
 
 
 class MalformedSample(ValueError):
@@ -52,7 +57,10 @@ class MalformedSample(ValueError):
 
 
 def encode_json(s: Sample) -> bytes:
-    return (json.dumps({"t": float(s.t), "q": [float(v) for v in s.q], "w": [float(v) for v in s.w]}) + "\n").encode()
+    obj = {"t": float(s.t), "q": [float(v) for v in s.q], "w": [float(v) for v in s.w]}
+    if s.r is not None:
+        obj["r"] = [float(v) for v in s.r]
+    return (json.dumps(obj) + "\n").encode()
 
 
 def encode_binary(s: Sample) -> bytes:
@@ -64,13 +72,14 @@ def decode_json(line: bytes) -> Sample:
     try:
         obj = json.loads(line)
         t, q, w = float(obj["t"]), np.array(obj["q"], dtype=float), np.array(obj["w"], dtype=float)
+        r = None if obj.get("r") is None else np.array(obj["r"], dtype=float)
     except Exception as exc:  # noqa: BLE001 - whatever a line holds (3000 nested brackets: RecursionError;
         # a 400-digit time: OverflowError) is a malformed sample, counted and dropped, never the listener's end
         why = " ".join(str(exc).split())[:80] or type(exc).__name__
         raise MalformedSample(f"not a JSON sample ({why}): {line[:80]!r}") from None
-    if q.shape != (4,) or w.shape != (3,):
-        raise MalformedSample(f"q needs 4 numbers and w 3: {line[:80]!r}")
-    return Sample(t, q, w)
+    if q.shape != (4,) or w.shape != (3,) or (r is not None and r.shape != (3,)):
+        raise MalformedSample(f"q needs 4 numbers, w and r 3: {line[:80]!r}")
+    return Sample(t, q, w, r)
 
 
 def decode_binary(record: bytes) -> Sample:

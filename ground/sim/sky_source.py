@@ -1,13 +1,19 @@
 """``st16-device --sky SCHEDULE``: the emulated sensor renders each exposure from the real sky.
 
 The schedule is a CSV file with a header; columns ``qw, qx, qy, qz`` (scalar-first
-``q_icrs_to_sensor``) are required, ``pattern`` (RGGB/BGGR/GRBG/GBRG/MONO, default RGGB) and
-``seed`` (noise seed, default the row number) are optional; ``#`` starts a comment line.
-Each GO captures the next row, wrapping around at the end, so a HIL harness that knows the
-schedule knows the truth of every solve. Registered as the ``sky`` entry point of
-``st16.frame_sources`` (the device never imports ``ground``; the entry point plugs it in).
-Exposures render only the stars in view with the noise from a bank drawn at start-up
-(``ground.sim.exposure``), so GO -> result stays within the device's budget (docs/hil.md).
+``q_icrs_to_sensor``) are required, ``pattern`` (RGGB/BGGR/GRBG/GBRG/MONO, default RGGB),
+``seed`` (noise seed, default the row number), ``time`` (the exposure's mid-time, ISO-8601 UTC)
+and ``x_km, y_km, z_km`` (the spacecraft's GCRS position, km; all three or none) are optional;
+``#`` starts a comment line, and a comment line ``# orbit: ALT_KM[,INC_DEG[,RAAN_DEG[,ARG_LAT_DEG
+[,EPOCH_UTC]]]]`` gives a circular orbit (``ground.sim.orbit``) that places the spacecraft at the
+exposure's time when a row carries no position. Each GO captures the next row, wrapping around at
+the end, so a HIL harness that knows the schedule knows the truth of every solve. The exposure's
+mid-time is the row's ``time``, else the GO time plus half the exposure; every frame carries it as
+``timestamp`` and is rendered with the Sun's and the Moon's light, and the Earth's when the
+position is known (``ground.sim.glare``; ``metadata["sc_position_km"]``). Registered as the
+``sky`` entry point of ``st16.frame_sources`` (the device never imports ``ground``; the entry
+point plugs it in). Exposures render only the stars in view with the noise from a bank drawn at
+start-up (``ground.sim.exposure``), so GO -> result stays within the device's budget (docs/hil.md).
 """
 
 from __future__ import annotations
@@ -18,11 +24,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from astropy.time import Time
 
 from firmware_model.camera import CameraModel
+from firmware_model.pipeline.sky_bodies import ATMOSPHERE_KM, EARTH_RADIUS_KM
 from firmware_model.reference_frames import quat_to_matrix
 from ground.sim.exposure import ExposureRenderer
+from ground.sim.orbit import CircularOrbit
 from ground.sim.sensor_sim import DetectorModel
+
+ORBIT_HEADER = "orbit:"  #: the comment line that gives the schedule's orbit: ``# orbit: ALT,...``
+POSITION_COLUMNS = ("x_km", "y_km", "z_km")
 
 
 @dataclass(frozen=True)
@@ -30,6 +42,64 @@ class Exposure:
     q_icrs_to_sensor: np.ndarray
     pattern: str
     seed: int
+    time_utc: str | None = None  #: the exposure's mid-time, ISO-8601 UTC (None: the GO time)
+    position_km: np.ndarray | None = None  #: GCRS position (km)
+
+
+def utc_iso(t_posix: float) -> str:
+    """ISO-8601 UTC string (ms) of POSIX time ``t_posix`` (s)."""
+    return Time(t_posix, format="unix", scale="utc").isot
+
+
+def check_position(r: np.ndarray) -> str | None:
+    """Why a GCRS position (km) cannot be the spacecraft's, or None."""
+    if not np.all(np.isfinite(r)):
+        return "position holds NaN or infinite values"
+    if float(np.linalg.norm(r)) <= EARTH_RADIUS_KM + ATMOSPHERE_KM:
+        return f"position {np.linalg.norm(r):.0f} km from the geocentre is inside the atmosphere"
+    return None
+
+
+def _row_position(path: Path, k: int, row: dict) -> np.ndarray | None:
+    given = [bool((row.get(c) or "").strip()) for c in POSITION_COLUMNS]
+    if not any(given):
+        return None
+    if not all(given):
+        raise ValueError(f"{path}: row {k + 1}: position needs all of {', '.join(POSITION_COLUMNS)}")
+    try:
+        r = np.array([float(row[c]) for c in POSITION_COLUMNS])
+    except ValueError:
+        raise ValueError(f"{path}: row {k + 1}: position is not numeric") from None
+    why = check_position(r)
+    if why:
+        raise ValueError(f"{path}: row {k + 1}: {why}")
+    return r
+
+
+def _row_time(path: Path, k: int, row: dict) -> str | None:
+    text = (row.get("time") or "").strip()
+    if not text:
+        return None
+    try:
+        return Time(text, scale="utc").isot
+    except ValueError:
+        raise ValueError(f"{path}: row {k + 1}: time {text!r} is not ISO-8601 UTC (YYYY-MM-DDThh:mm:ss)") from None
+
+
+def read_orbit(path) -> CircularOrbit | None:
+    """The schedule's ``# orbit: ...`` line as an orbit, None without one; ValueError naming the line."""
+    path = Path(path)
+    found = None
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        body = line.strip().lstrip("#").strip() if line.lstrip().startswith("#") else ""
+        if body.lower().startswith(ORBIT_HEADER):
+            if found is not None:
+                raise ValueError(f"{path}: line {n}: a second orbit line")
+            try:
+                found = CircularOrbit.parse(body[len(ORBIT_HEADER) :].strip())
+            except ValueError as exc:
+                raise ValueError(f"{path}: line {n}: {exc}") from None
+    return found
 
 
 def read_schedule(path) -> list[Exposure]:
@@ -51,7 +121,15 @@ def read_schedule(path) -> list[Exposure]:
         norm = np.linalg.norm(q)
         if not np.isfinite(norm) or abs(norm - 1.0) > 1e-6:
             raise ValueError(f"{path}: row {k + 1}: quaternion norm {norm:.9f} is not 1")
-        out.append(Exposure(q / norm, (row.get("pattern") or "RGGB").upper(), int(row.get("seed") or k)))
+        out.append(
+            Exposure(
+                q / norm,
+                (row.get("pattern") or "RGGB").upper(),
+                int(row.get("seed") or k),
+                _row_time(path, k, row),
+                _row_position(path, k, row),
+            )
+        )
     return out
 
 
@@ -60,6 +138,7 @@ class SkySource:
 
     def __init__(self, spec: str, camera: CameraModel):
         self.schedule = read_schedule(spec)
+        self.orbit = read_orbit(spec)
         self.renderer = ExposureRenderer(camera)
         self._drawing = self.renderer.draw_bank(DetectorModel())  # at start-up, not inside the first GO
         self._next = 0
@@ -73,4 +152,17 @@ class SkySource:
         with self._lock:
             exp = self.schedule[self._next % len(self.schedule)]
             self._next += 1
-        return self.renderer.render(quat_to_matrix(exp.q_icrs_to_sensor), DetectorModel(pattern=exp.pattern), exp.seed)
+        det = DetectorModel(pattern=exp.pattern)
+        started = getattr(ctx, "started", None)
+        epoch, t_posix = exp.time_utc, None
+        if epoch is not None:
+            t_posix = float(Time(epoch, scale="utc").unix)
+        elif started is not None:
+            t_posix = started + det.exposure_s / 2.0
+            epoch = utc_iso(t_posix)
+        position = exp.position_km
+        if position is None and self.orbit is not None and t_posix is not None:
+            position = self.orbit.position_gcrs_km(t_posix)
+        return self.renderer.render(
+            quat_to_matrix(exp.q_icrs_to_sensor), det, exp.seed, epoch_utc=epoch, sc_position_km=position
+        )
