@@ -155,7 +155,7 @@ def test_both_dynamics_follow_a_moving_target_alike():
         ours.set_measurement(qo, wo)
         worst = max(worst, rotation_angle(quat_to_matrix(qb), quat_to_matrix(qo)))
     turned = rotation_angle(quat_to_matrix(q0), quat_to_matrix(qo))
-    assert math.radians(5.0) < turned < sc.slew.turned(15.0)  # it follows, lagging (no rate fed forward)
+    assert 0.3 * sc.slew.turned(15.0) < turned < sc.slew.turned(15.0)  # it follows, lagging (no rate fed forward)
     assert math.degrees(worst) < 0.02  # of a 10 deg turn: the same law, Basilisk's step order
 
 

@@ -168,10 +168,12 @@ def plot_scenario(scenario, log, rows: list[dict], tr: dict, path) -> None:
     ]
     ax2.semilogy([r["t_mid"] for r in ok], measured, ".", ms=3, color="tab:green", label="tracker to target")
     ax2.set_ylabel("pointing error (deg)")
-    for b, colour in BODY_COLOURS.items():
+    for (b, colour), dashes in zip(BODY_COLOURS.items(), ((6, 2), (1, 2), (4, 2, 1, 2)), strict=True):
         ax3.plot(tr["t"], tr[b], "-", color=colour, label=f"{b} edge")
-        ax3.axhline(scenario.limits_deg[b], ls="--", lw=0.8, color=colour)
-    ax3.set_ylim(bottom=-5.0, top=max(90.0, 1.2 * max(scenario.limits_deg.values())))
+        limit = scenario.limits_deg[b]
+        ax3.axhline(limit, lw=1.2, color=colour, dashes=dashes, label=f"{b} limit {limit:g}")
+    ax3.set_ylim(-5.0, 180.0)
+    ax3.set_yticks(range(0, 181, 30))
     ax3.set_ylabel("angle from boresight (deg)")
     ax3.set_xlabel("exposure mid-time since start (s)")
     for k, (lo, hi) in enumerate(_intervals(tr["t"], ~tr["sunlit"])):
@@ -183,7 +185,7 @@ def plot_scenario(scenario, log, rows: list[dict], tr: dict, path) -> None:
         ):
             ax.axvspan(lo, hi, color="0.9", zorder=0)  # no attitude
     for ax in (ax2, ax3):
-        ax.legend(fontsize=7, loc="upper right")
+        ax.legend(fontsize=7, loc="upper right", ncol=2 if ax is ax3 else 1)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
