@@ -5,7 +5,10 @@ Poisson with that mean; docs/pipeline.md "Detector effects over a mission"), sol
 wrong answers must stay 0; the bench exits 1 when one does not, after printing it.
 
     .venv/bin/python bench/bench_radiation.py [--attitudes 200] [--seed 33] [--workers 2]
-        [--rates 0,5,50] [--json]
+        [--rates 0,5,50] [--diffusion-px 0.5] [--json]
+
+``--diffusion-px`` sets the tracks' lateral charge diffusion (px; the model's default is an
+assumption, and the detector's sharpness test sees it: docs/pipeline.md says how much it decides).
 """
 
 from __future__ import annotations
@@ -31,23 +34,26 @@ def _cpu() -> str:
     return platform.processor() or "unknown cpu"
 
 
-def run(attitudes: int, seed: int, workers: int, rates: list[float]) -> dict:
+def run(attitudes: int, seed: int, workers: int, rates: list[float], diffusion_px: float | None = None) -> dict:
     """Summary per rate (hits per frame) over frames ``0 .. attitudes - 1`` of ``seed``."""
     from ground.sim import availability as av
-    from ground.sim.detector_effects import CosmicRays, MissionEffects
+    from ground.sim.detector_effects import DIFFUSION_PX, CosmicRays, MissionEffects
+
+    diffusion = DIFFUSION_PX if diffusion_px is None else diffusion_px
 
     cfg = av.AvailabilityConfig(attitudes, seed=seed)
-    out = {
+    out: dict = {
         "attitudes": attitudes,
         "seed": seed,
         "workers": workers,
+        "diffusion_px": diffusion,
         "machine": f"{os.cpu_count()} cores, {_cpu()}",
         "load_start": list(os.getloadavg()),
         "rates": {},
     }
     all_rows = {}
     for rate in rates:
-        effects = [MissionEffects(cosmic=CosmicRays(hits_per_frame=rate))] if rate > 0 else []
+        effects = [MissionEffects(cosmic=CosmicRays(hits_per_frame=rate, diffusion_px=diffusion))] if rate > 0 else []
         t0 = time.perf_counter()
         rows = av.run_availability(cfg, effects, workers=workers)
         s = av.summarise(rows)
@@ -72,7 +78,8 @@ def run(attitudes: int, seed: int, workers: int, rates: list[float]) -> dict:
 
 def table(res: dict) -> str:
     lines = [
-        f"{res['attitudes']} attitudes (seed {res['seed']}), {res['workers']} workers; machine: {res['machine']}; "
+        f"{res['attitudes']} attitudes (seed {res['seed']}), track diffusion {res['diffusion_px']:g} px, "
+        f"{res['workers']} workers; machine: {res['machine']}; "
         f"load {res['load_start'][0]:.2f} at start, {res['load_end'][0]:.2f} at end",
         f"{'hits/frame':>10}{'drawn':>8}{'available':>11}{'correct':>9}{'HC wrong':>10}{'low conf':>10}"
         f"{'no sol':>8}{'lost vs 0':>11}{'wall s':>8}",
@@ -97,12 +104,13 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=33)
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--rates", default="0,5,50", help="mean hits per frame, comma-separated")
+    p.add_argument("--diffusion-px", type=float, default=None, help="track diffusion sigma, px (default: the model's)")
     p.add_argument("--json", action="store_true", help="the results as one JSON document")
     args = p.parse_args(argv)
     rates = [float(r) for r in args.rates.split(",")]
-    if any(not r >= 0 for r in rates) or args.attitudes < 1:
-        p.error("rates must be at least 0 and --attitudes at least 1")
-    res = run(args.attitudes, args.seed, args.workers, rates)
+    if any(not r >= 0 for r in rates) or args.attitudes < 1 or not (args.diffusion_px or 0) >= 0:
+        p.error("rates and --diffusion-px must be at least 0 and --attitudes at least 1")
+    res = run(args.attitudes, args.seed, args.workers, rates, args.diffusion_px)
     print(json.dumps(res, indent=2) if args.json else table(res))
     return 1 if any(s["high_confidence_wrong"] for s in res["rates"].values()) else 0
 
