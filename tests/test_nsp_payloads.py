@@ -118,6 +118,8 @@ def test_every_payload_type_of_the_command_table_round_trips():
         CrcReply,
         CrcRequest,
         DiagnosticRequest,
+        FaultRequest,
+        FaultStatus,
         Go,
         Init,
         Peek,
@@ -151,6 +153,8 @@ def test_every_payload_type_of_the_command_table_round_trips():
         SlotRequest: SlotRequest(2),
         XferStatus: XferStatus(2, 1, 1000, 0xDEADBEEF, 100, 300, 1, ((100, 700),)),
         SlotImage: SlotImage(2, True, 10, 0x1234, b'{"keys": []}'),
+        FaultRequest: FaultRequest(0, b"drop_reply count=1\n"),
+        FaultStatus: FaultStatus(2, 3, tuple(range(9))),
     }
     types = {t for c in TABLE for t in (c.request, c.reply) if t is not None}
     assert types <= set(samples)
