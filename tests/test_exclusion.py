@@ -299,3 +299,15 @@ def test_an_out_of_range_angle_is_one_line_and_exit_2_on_the_command_line(tmp_pa
     assert ground_main(["solve-file", str(frame), "--fov-deg", "10", "--params", str(bad)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "earth_exclusion_deg" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize(
+    "timestamp, metadata",
+    [("not a time", {}), (EPOCH, {"sc_position_km": [7000.0, 0.0]}), (EPOCH, {"sc_position_km": "far"})],
+)
+def test_an_unreadable_time_or_position_leaves_the_answer_and_says_so(scene, unchecked, timestamp, metadata):
+    _, frame, _ = scene
+    odd = Frame(frame.pixels, timestamp=timestamp, metadata=metadata)
+    out = check_exclusion(copy.deepcopy(unchecked), odd, ExclusionLimits())
+    assert out.status is Status.OK and out.solution is not None
+    assert out.reason.startswith("bright bodies not checked: ") and "\n" not in out.reason
