@@ -311,3 +311,17 @@ def test_an_unreadable_time_or_position_leaves_the_answer_and_says_so(scene, unc
     out = check_exclusion(copy.deepcopy(unchecked), odd, ExclusionLimits())
     assert out.status is Status.OK and out.solution is not None
     assert out.reason.startswith("bright bodies not checked: ") and "\n" not in out.reason
+
+
+def test_the_bench_places_the_sun_at_the_asked_edge_angle():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    import bench_exclusion
+
+    sun = sky_bodies(bench_exclusion.EPOCH)["sun"]
+    rng = np.random.default_rng(1)
+    for edge in (15.0, 27.0, 90.0):
+        a = bench_exclusion.attitude_near_sun(rng, sun, edge)
+        assert np.degrees(sun.edge_angle(a[2])) == pytest.approx(edge, abs=1e-9)
