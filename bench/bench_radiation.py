@@ -2,7 +2,9 @@
 rendered at 0 (the baseline), 5 and 50 cosmic-ray hits per frame (``ground.sim.detector_effects``,
 Poisson with that mean; docs/pipeline.md "Detector effects over a mission"), solved by
 ``run_pipeline`` with the default catalog, scored by ``ground.sim.availability``. High-confidence
-wrong answers must stay 0; the bench exits 1 when one does not, after printing it.
+wrong answers must stay 0; the bench exits 1 when one does not, after printing it. Each frame has
+the same noise seed at every rate, so 'lost vs 0' counts the frames the baseline solved with high
+confidence that the hits took away ('-' without a baseline in the run).
 
     .venv/bin/python bench/bench_radiation.py [--attitudes 200] [--seed 33] [--workers 2]
         [--rates 0,5,50] [--diffusion-px 0.5] [--json]
@@ -67,11 +69,15 @@ def run(attitudes: int, seed: int, workers: int, rates: list[float], diffusion_p
         all_rows[f"{rate:g}"] = rows
     base = all_rows.get("0")
     for key, rows in all_rows.items():  # frames the baseline solved confidently and this rate did not
-        out["rates"][key]["lost_to_hits"] = [
-            {"k": r["k"], "status": r["status"], "reason": r["reason"][:120]}
-            for r, b in zip(rows, base or rows)
-            if b["status"] == "OK" and r["status"] != "OK"
-        ]
+        out["rates"][key]["lost_to_hits"] = (
+            None
+            if base is None
+            else [
+                {"k": r["k"], "status": r["status"], "reason": r["reason"][:120]}
+                for r, b in zip(rows, base)
+                if b["status"] == "OK" and r["status"] != "OK"
+            ]
+        )
     out["load_end"] = list(os.getloadavg())
     return out
 
@@ -89,7 +95,7 @@ def table(res: dict) -> str:
         lines.append(
             f"{key:>10}{s['mean_hits_per_frame']:>8.1f}{s['availability'] * 100:>10.1f}%{s['correct']:>9}"
             f"{s['high_confidence_wrong']:>10}{s['low_confidence']:>10}{s['no_solution']:>8}"
-            f"{len(s['lost_to_hits']):>11}{s['wall_s']:>8.0f}"
+            f"{'-' if s['lost_to_hits'] is None else len(s['lost_to_hits']):>11}{s['wall_s']:>8.0f}"
         )
         lines.append(f"{'':>10}statuses: {', '.join(f'{k} {v}' for k, v in s['status_counts'].items())} (of {n})")
     for key, s in res["rates"].items():

@@ -3,8 +3,9 @@ rendered with ``sensor_sim.render_frame`` and a list of effects, solved with ``r
 scored.
 
 * Attitudes: frame ``k`` of seed ``s`` draws its boresight uniformly on the sphere and its roll
-  uniformly from ``default_rng([s, k])``; its effects draw from ``default_rng([s, k, 1])``; so a
-  frame is the same whatever the worker count or the order frames run in.
+  uniformly from ``default_rng([s, k])``; ``default_rng([s, k, 1])`` gives first its noise seed
+  (the same with or without effects), then the effects' draws; so a frame is the same whatever the
+  worker count or the order frames run in.
 * Rendering: the real sky to V 6.5 (``sky_model.sky_stars``) cut to the field, the reference-design
   camera and a ``DetectorModel`` (RGGB, the run's exposure), as ``bench/bench_openloop.py``.
   Each effect is an object with ``render_inputs(attitude, camera, detector, rng) ->
@@ -134,9 +135,10 @@ def run_frame(cfg: AvailabilityConfig, effects: tuple, k: int) -> dict:
         t = cfg.start_posix + k * cfg.spacing_s
         effects = tuple(e.at_time(t) if hasattr(e, "at_time") else e for e in effects)
     rng = np.random.default_rng([cfg.seed, k, 1])
+    noise_seed = int(rng.integers(2**31))  # first: a frame's noise is the same with or without effects
     det = DetectorModel(pattern=cfg.pattern, exposure_s=cfg.exposure_s)
     stars = stars_in_cone(sky, a, camera.fov_half_angle_diagonal + np.radians(1.0))
-    r = render_with_effects(stars, a, camera, det, effects, rng, int(rng.integers(2**31)))
+    r = render_with_effects(stars, a, camera, det, effects, rng, noise_seed)
     out = run_pipeline(r.frame, camera, cat)
     rec = record_from_output(out)
     tracks = [t for e in r.truth["effects"] for t in e.get("cosmic", {}).get("tracks", [])]
