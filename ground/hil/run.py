@@ -91,7 +91,7 @@ def run_hil(
         try:
             plan = scenarios.plan(scenario, time.time(), limits_deg)
         except ValueError as exc:
-            raise InputError(f"--scenario {scenario}: {exc}") from None
+            raise InputError(f"--scenario {exc}") from None  # the reason starts with the name
         q0, w0 = plan.slew.target(0.0), np.zeros(3)
         duration_s = plan.duration_s if duration_s is None else duration_s
         q_target = plan.slew.target(duration_s)

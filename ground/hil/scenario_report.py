@@ -172,9 +172,8 @@ def plot_scenario(scenario, log, rows: list[dict], tr: dict, path) -> None:
         ax3.plot(tr["t"], tr[b], "-", color=colour, label=f"{b} edge")
         limit = scenario.limits_deg[b]
         ax3.axhline(limit, lw=1.2, color=colour, dashes=dashes, label=f"{b} limit {limit:g}")
-    ax3.set_ylim(-5.0, 180.0)
-    ax3.set_yticks(range(0, 181, 30))
-    ax3.set_ylabel("angle from boresight (deg)")
+    ax3.set_ylim(-5.0, 95.0)  # the crossing's detail; a body further than 95 deg is off the panel
+    ax3.set_ylabel("edge from boresight (deg, to 95)")
     ax3.set_xlabel("exposure mid-time since start (s)")
     for k, (lo, hi) in enumerate(_intervals(tr["t"], ~tr["sunlit"])):
         ax3.axvspan(lo, hi, color="0.85", zorder=0, label="eclipse" if k == 0 else None)
