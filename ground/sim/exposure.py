@@ -13,7 +13,7 @@ With the exposure's mid-time (``epoch_utc``) the Sun's and the Moon's light is r
 the frame carries ``timestamp`` = the mid-time and ``metadata["sc_position_km"]`` (the device's
 bright-body check reads them) and ``metadata["glare"]`` (each body's angle from the boresight, in
 view or not, its peak e-). A glare map with nothing above ``glare.FLOOR_E`` leaves the frame as
-without it.
+without it; otherwise its shot noise is drawn by :class:`GlareNoise`.
 """
 
 from __future__ import annotations
@@ -31,6 +31,40 @@ from ground.sim.openloop import stars_in_cone as stars_in_view
 from ground.sim.sensor_sim import DetectorModel, Stars, render_frame, stamp_half_width
 from ground.sim.sky_model import sky_stars
 
+#: The glare's shot noise is drawn only inside the box of pixels where its mean exceeds this
+#: fraction of the bank's own noise variance (sky, dark, read): below it, it adds under 0.5 % to
+#: the noise's standard deviation, and its mean alone is added.
+NOISE_FRACTION = 0.01
+
+
+class GlareNoise:
+    """A noise bank's exposure with the glare on it: ``background`` (e- per pixel, noise-free) times
+    the PRNU (``prnu32``, float32) as its mean and its shot noise drawn as a Gaussian of the same
+    variance (float32), clipped to full well. Poisson draws over every pixel of the reference
+    design took ~0.4 s of the device's 300 ms budget (docs/hil.md); the mean and variance are
+    Poisson's, the shape differs only below a few e- per pixel, where the bank's own noise
+    dominates."""
+
+    def __init__(self, bank: NoiseBank, background: np.ndarray, prnu32: np.ndarray):
+        self.bank = bank
+        self.mean = background.astype(np.float32, copy=False) * prnu32
+        det = bank.det
+        floor = NOISE_FRACTION * ((det.sky_e_per_s + det.dark_e_per_s) * det.exposure_s + det.read_noise_e**2)
+        rows = np.flatnonzero(self.mean.max(axis=1) > floor)
+        cols = np.flatnonzero(self.mean.max(axis=0) > floor) if len(rows) else rows
+        self.box = (rows[0], rows[-1] + 1, cols[0], cols[-1] + 1) if len(rows) else None
+
+    def electrons(self, signal: np.ndarray, seed: int) -> np.ndarray:
+        """As ``NoiseBank.electrons``, plus the glare (its noise from ``seed`` too)."""
+        out = self.bank.electrons(signal, seed)
+        out += self.mean
+        if self.box is not None:
+            r0, r1, c0, c1 = self.box
+            noise = np.random.default_rng([seed, 33]).standard_normal((r1 - r0, c1 - c0), dtype=np.float32)
+            noise *= np.sqrt(self.mean[r0:r1, c0:c1])
+            out[r0:r1, c0:c1] += noise
+        return np.minimum(out, np.float32(self.bank.det.full_well_e), out=out)
+
 
 class ExposureRenderer:
     """Renders exposures of ``camera`` from ``stars`` (default: the real sky to V 6.5)."""
@@ -39,6 +73,7 @@ class ExposureRenderer:
         self.camera = camera
         self.stars = sky_stars() if stars is None else stars
         self._banks: dict[DetectorModel, NoiseBank] = {}
+        self._prnu: dict[int, np.ndarray] = {}
         self._lock = threading.Lock()
 
     def draw_bank(self, det: DetectorModel) -> threading.Thread:
@@ -57,6 +92,13 @@ class ExposureRenderer:
             if key not in self._banks:
                 self._banks[key] = NoiseBank(det, (self.camera.height, self.camera.width))
             return self._banks[key]
+
+    def _prnu32(self, bank: NoiseBank) -> np.ndarray:
+        """The bank's PRNU map as float32 (kept: the glare's mean is scaled by it every frame)."""
+        with self._lock:
+            if id(bank) not in self._prnu:
+                self._prnu[id(bank)] = bank.prnu.astype(np.float32)
+            return self._prnu[id(bank)]
 
     def render(
         self,
@@ -80,9 +122,9 @@ class ExposureRenderer:
             truth = glare.truth(attitude, self.camera, det)
             if not background.any():
                 background = None
-        frame = render_frame(
-            near, attitude, self.camera, det, seed=seed, psf=psf, noise=self.bank(det), background_e=background
-        ).frame
+        bank = self.bank(det)
+        noise = bank if background is None else GlareNoise(bank, background, self._prnu32(bank))
+        frame = render_frame(near, attitude, self.camera, det, seed=seed, psf=psf, noise=noise).frame
         if epoch_utc is not None:
             frame.timestamp = epoch_utc
             frame.metadata["glare"] = truth

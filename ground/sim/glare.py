@@ -50,7 +50,8 @@ EARTH_ALBEDO = 0.30  #: the Earth's Bond albedo, 0.306 (NASA Earth fact sheet), 
 GRID_PX = 64  #: spacing (px) of the grid the stray light is evaluated on
 SUBSAMPLES = 4  #: sub-samples per pixel axis of a disc in the field
 FLOOR_E = 0.01  #: e- per pixel below which the stray light is left out (assumption: < 1 % of a DN)
-EARTH_RINGS, EARTH_SECTORS = 24, 48  #: the Earth's disc as rings x sectors of samples for its stray light
+EARTH_RINGS, EARTH_SECTORS = 16, 32  #: the Earth's disc as rings (denser toward the limb) x sectors for its stray light
+EARTH_STEP_PX = 4  #: the Earth in the field is evaluated every this many pixels (its limb saturates anyway)
 
 
 @dataclass(frozen=True)
@@ -92,14 +93,20 @@ def _colours(bv: float) -> tuple[float, float]:
     return float(rg[0]), float(bg[0])
 
 
-def channel_factor(det: DetectorModel, colour: tuple[float, float], shape) -> np.ndarray:
-    """Per-pixel multiplier turning green-channel e- of light of ``colour`` (rg, bg) into the e- a
-    site of ``det``'s CFA collects (a mono sensor: ``mono_response (rg + 1 + bg)``)."""
-    h, w = shape
+def colour_in_place(img: np.ndarray, det: DetectorModel, colour: tuple[float, float], r0: int = 0, c0: int = 0):
+    """Scale ``img`` (green-channel e- of light of ``colour`` (rg, bg), its top-left pixel at row
+    ``r0``, column ``c0`` of the frame) in place to the e- each site of ``det``'s CFA collects (a
+    mono sensor: ``mono_response (rg + 1 + bg)``)."""
     if det.pattern == "MONO":
-        return np.full(shape, det.mono_response * (colour[0] + 1.0 + colour[1]))
-    codes = np.tile(pattern_codes(det.pattern), (h // 2 + 1, w // 2 + 1))[:h, :w]
-    return np.array([colour[0], 1.0, colour[1]])[codes]
+        img *= np.float32(det.mono_response * (colour[0] + 1.0 + colour[1]))
+        return
+    factor = (colour[0], 1.0, colour[1])
+    codes = pattern_codes(det.pattern)
+    for py in (0, 1):
+        for px in (0, 1):
+            f = factor[int(codes[(r0 + py) % 2, (c0 + px) % 2])]
+            if f != 1.0:
+                img[py::2, px::2] *= np.float32(f)
 
 
 @lru_cache(maxsize=4)
@@ -129,6 +136,12 @@ def _upsample_log(values: np.ndarray, cols, rows, shape) -> np.ndarray:
     along = lg[:, ix] * (1 - tx) + lg[:, ix + 1] * tx
     out = along[iy] * (1 - ty)[:, None] + along[iy + 1] * ty[:, None]
     return np.exp(out, out=out)
+
+
+def _times(v: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """``v @ m`` for rows of 3-vectors ``v`` (..., 3) and a (3, 3) matrix or a 3-vector ``m``, by
+    einsum: matmul with a last axis of 3 goes through BLAS, ~7 times slower on 10^5 rows here."""
+    return np.einsum("...j,jk->...k" if m.ndim == 2 else "...j,j->...", v, m)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -203,7 +216,7 @@ class Glare:
         e = earth.direction
         u = _unit(np.cross(e, [0.0, 0.0, 1.0] if abs(e[2]) < 0.9 else [1.0, 0.0, 0.0]))
         v = np.cross(e, u)
-        edges = np.linspace(0.0, rho, EARTH_RINGS + 1)
+        edges = rho * (1.0 - (1.0 - np.linspace(0.0, 1.0, EARTH_RINGS + 1)) ** 2)  # rings thin toward the limb
         t = 0.5 * (edges[1:] + edges[:-1])
         phi = (np.arange(EARTH_SECTORS) + 0.5) * 2.0 * np.pi / EARTH_SECTORS
         tt, pp = np.meshgrid(t, phi, indexing="ij")
@@ -221,12 +234,12 @@ class Glare:
         earth = self.bodies["earth"]
         radius = earth.distance_km * math.sin(earth.angular_radius)
         centre = earth.direction * earth.distance_km  # from the spacecraft
-        b = d @ centre
+        b = _times(d, centre)
         disc = b * b - earth.distance_km**2 + radius**2
         hit = disc > 0
         s = b - np.sqrt(np.where(hit, disc, 0.0))
         normal = (s[:, None] * d - centre) / radius
-        cos_i = np.clip(normal @ self._sun_from(earth), 0.0, None) * hit
+        cos_i = np.clip(_times(normal, self._sun_from(earth)), 0.0, None) * hit
         return self._irradiance_e(det)["sun"] * self.earth_albedo * cos_i / math.pi
 
     # ------------------------------------------------------------------ rendering
@@ -254,7 +267,7 @@ class Glare:
         irr = self._irradiance_e(det)
         ratio = (det.pixel_pitch_um * 1e-3) ** 2 / (math.pi * (det.aperture_mm / 2.0) ** 2)  # pixel / aperture area
         cols, rows, grid_sensor = _grid(camera, GRID_PX)
-        grid_icrs = grid_sensor @ a  # v_icrs = A^T v_sensor
+        grid_icrs = _times(grid_sensor, a)  # v_icrs = A^T v_sensor
         boresight = a[2]
         colour = {"sun": _colours(BV_SUN), "moon": _colours(BV_MOON), "earth": _colours(BV_SUN)}
         stray: dict[str, np.ndarray] = {}
@@ -268,17 +281,19 @@ class Glare:
             ang = np.arccos(np.clip(grid_icrs.reshape(-1, 3) @ d[lit].T, -1.0, 1.0))
             stray["earth"] = (ratio * self.pst(ang) @ e_sample[lit]).reshape(grid_icrs.shape[:2])
         total = np.sum(list(stray.values()), axis=0)
-        out = np.zeros(shape, np.float32)
+        out: np.ndarray | None = None
         truth: dict = {}
         if float(total.max()) >= FLOOR_E:
-            full = _upsample_log(np.maximum(total, 1e-30), cols, rows, shape)
-            full[full < FLOOR_E] = 0.0
+            out = _upsample_log(np.maximum(total, 1e-30), cols, rows, shape)
+            out[out < FLOOR_E] = 0.0
             # the stray light's colour: the mix of the bodies' colours at the boresight's grid point
             ci = int(np.argmin(np.linalg.norm(grid_icrs - boresight, axis=2)))
             w_ = {n: float(s.ravel()[ci]) for n, s in stray.items()}
             wsum = sum(w_.values()) or 1.0
             mix = (sum(w_[n] * colour[n][0] for n in w_) / wsum, sum(w_[n] * colour[n][1] for n in w_) / wsum)
-            out += full * channel_factor(det, mix, shape).astype(np.float32)
+            colour_in_place(out, det, mix)
+        if out is None:
+            out = np.zeros(shape, np.float32)
         for name, body in self.bodies.items():
             row = {
                 "angle_deg": math.degrees(math.acos(float(np.clip(boresight @ body.direction, -1.0, 1.0)))),
@@ -293,13 +308,16 @@ class Glare:
             stamp = self._disc(body, irr[name], a, camera, det, lit_only=name == "moon")
             if stamp is not None:
                 (r0, r1, c0, c1), img = stamp
-                out[r0:r1, c0:c1] += img * channel_factor(det, colour[name], shape)[r0:r1, c0:c1]
+                img = img.astype(np.float32)
+                colour_in_place(img, det, colour[name], r0, c0)
+                out[r0:r1, c0:c1] += img
                 truth[name]["in_field"] = True
                 truth[name]["disc_peak_e"] = float(img.max())
         if "earth" in self.bodies:
             limb = self._earth_in_field(a, camera, det)
             if limb is not None:
-                out += limb * channel_factor(det, colour["earth"], shape).astype(np.float32)
+                colour_in_place(limb, det, colour["earth"])
+                out += limb
                 truth["earth"]["in_field"] = True
                 truth["earth"]["disc_peak_e"] = float(limb.max())
         alpha = self.moon_phase_angle()
@@ -328,16 +346,16 @@ class Glare:
         xs = (np.arange(c0, c1)[:, None] + sub[None, :]).ravel()
         ys = (np.arange(r0, r1)[:, None] + sub[None, :]).ravel()
         xx, yy = np.meshgrid(xs, ys)
-        d = camera.pixel_to_vector(xx.ravel(), yy.ravel()) @ a
+        d = _times(camera.pixel_to_vector(xx.ravel(), yy.ravel()), a)
         centre = body.direction * body.distance_km
         radius = body.distance_km * math.sin(body.angular_radius)
-        b = d @ centre
+        b = _times(d, centre)
         disc = b * b - body.distance_km**2 + radius**2
         inside = disc > 0
         if lit_only:
             s = b - np.sqrt(np.where(inside, disc, 0.0))
             normal = (s[:, None] * d - centre) / radius
-            inside &= normal @ self._sun_from(body) > 0
+            inside &= _times(normal, self._sun_from(body)) > 0
         frac = inside.reshape(r1 - r0, n, c1 - c0, n).mean(axis=(1, 3))
         if not frac.any():
             return None
@@ -349,17 +367,26 @@ class Glare:
         return (r0, r1, c0, c1), img
 
     def _earth_in_field(self, a, camera: CameraModel, det: DetectorModel) -> np.ndarray | None:
-        """The Earth's daylit disc where it falls in the field (green e- per pixel, per pixel
-        centre, blurred by the PSF), None when the field misses it."""
+        """The Earth's daylit disc where it falls in the field (green e- per pixel, evaluated every
+        :data:`EARTH_STEP_PX` pixels and interpolated bilinearly, blurred by the PSF), None when the
+        field misses it."""
         earth = self.bodies["earth"]
         diag = camera.fov_half_angle_diagonal
         if math.acos(float(np.clip(a[2] @ earth.direction, -1.0, 1.0))) > earth.angular_radius + diag:
             return None
-        yy, xx = np.mgrid[0 : camera.height, 0 : camera.width]
-        d = camera.pixel_to_vector(xx.ravel(), yy.ravel()) @ a
-        per_pixel = self._earth_radiance(d, det).reshape(camera.height, camera.width) / camera.f**2
-        if not per_pixel.any():
+        step = EARTH_STEP_PX
+        cols = np.unique(np.append(np.arange(0, camera.width, step), camera.width - 1)).astype(float)
+        rows = np.unique(np.append(np.arange(0, camera.height, step), camera.height - 1)).astype(float)
+        xx, yy = np.meshgrid(cols, rows)
+        d = _times(camera.pixel_to_vector(xx.ravel(), yy.ravel()), a)
+        coarse = self._earth_radiance(d, det).reshape(len(rows), len(cols)) / camera.f**2
+        if not coarse.any():
             return None
+        ix, tx = _axis_weights(tuple(cols), camera.width)
+        iy, ty = _axis_weights(tuple(rows), camera.height)
+        c32 = coarse.astype(np.float32)
+        along = c32[:, ix] * (1 - tx) + c32[:, ix + 1] * tx
+        per_pixel = along[iy] * (1 - ty)[:, None] + along[iy + 1] * ty[:, None]
         if det.psf_sigma_px > 0:
             per_pixel = gaussian_filter(per_pixel, det.psf_sigma_px, mode="nearest")
-        return per_pixel.astype(np.float32)
+        return per_pixel
