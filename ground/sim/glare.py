@@ -18,10 +18,12 @@ Models (docs/pipeline.md, "Bright bodies: glare and stray light", has the number
 * **A body in the field**: its disc, pixel-integrated (:data:`SUBSAMPLES` per axis), lit where
   the surface faces the Sun (the Moon's terminator from the Sun's direction; the Sun all lit),
   its light spread uniformly over the lit part, blurred by the detector's Gaussian PSF; the
-  Earth's bright limb is its daylit surface out to ``sky_bodies.ATMOSPHERE_KM``, per pixel centre.
+  Earth's bright limb is its daylit surface out to ``sky_bodies.ATMOSPHERE_KM``, evaluated every
+  :data:`EARTH_STEP_PX` pixels. Eclipses are not modelled.
 
 Everything here depends on the geometry only (epoch, position, attitude, camera, detector): a
-:class:`Glare` keeps the last few maps it made.
+:class:`Glare` keeps the last two maps it made, and the grid's directions per camera. Written by
+hand: no library among the dependencies renders bodies' discs or a baffle's stray light.
 """
 
 from __future__ import annotations
@@ -245,7 +247,7 @@ class Glare:
     # ------------------------------------------------------------------ rendering
     def background_e(self, attitude: np.ndarray, camera: CameraModel, det: DetectorModel) -> np.ndarray:
         """Noise-free e- per pixel (float32, ``(height, width)``) the bodies put on the detector
-        at ``attitude`` (A, ``v_sensor = A v_icrs``) over one exposure."""
+        at ``attitude`` (A, ``v_sensor = A v_icrs``) over one exposure; kept, so read-only."""
         return self._render(attitude, camera, det)[0]
 
     def truth(self, attitude: np.ndarray, camera: CameraModel, det: DetectorModel) -> dict:
