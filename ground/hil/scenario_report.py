@@ -114,7 +114,9 @@ def summarise_scenario(scenario, log, rows: list[dict], tr: dict) -> dict:
 
 
 def _moon_illuminated(t_posix: float) -> float:
-    """Illuminated fraction of the Moon's disc seen from the geocentre at ``t_posix``."""
+    """Illuminated fraction of the Moon's disc seen from the geocentre at ``t_posix``: the phase
+    angle from the elongation and the distances, ``k = (1 + cos i) / 2`` (Meeus, Astronomical
+    Algorithms, 2nd ed., eqs. 48.1 and 48.3)."""
     b = sky_bodies(_iso(t_posix))
     elongation = math.acos(float(np.clip(np.dot(b["sun"].direction, b["moon"].direction), -1.0, 1.0)))
     phase = math.atan2(
