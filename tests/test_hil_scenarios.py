@@ -159,7 +159,6 @@ def test_both_dynamics_follow_a_moving_target_alike():
     assert math.degrees(worst) < 0.02  # of a 10 deg turn: the same law, Basilisk's step order
 
 
-@pytest.mark.hil
 def test_short_moon_slew_through_the_paced_device(tmp_path, monkeypatch):
     """A small Moon limit (5 deg) keeps the slew short; the run ends 8 s after the slew."""
     from ground.hil.run import run_hil
