@@ -325,3 +325,18 @@ def test_the_bench_places_the_sun_at_the_asked_edge_angle():
     for edge in (15.0, 27.0, 90.0):
         a = bench_exclusion.attitude_near_sun(rng, sun, edge)
         assert np.degrees(sun.edge_angle(a[2])) == pytest.approx(edge, abs=1e-9)
+
+
+def test_a_negative_centroid_variance_is_not_used(scene):
+    """A glare frame's degenerate fit reported -8e17 px^2 with no flag (bench_exclusion, limit 30,
+    x0.5, frame 75): the solver's noise became NaN and run_pipeline raised. Such a row is unusable."""
+    from dataclasses import replace
+
+    from firmware_model.pipeline.extract import extract_stars
+    from firmware_model.pipeline.run import _usable
+
+    stars = extract_stars(scene[1], NOMINAL)
+    assert len(_usable(stars)) == len(stars)
+    cov = stars.cov_xy.copy()
+    cov[0, 0, 0] = -8e17
+    assert 0 not in _usable(replace(stars, cov_xy=cov)) and len(_usable(replace(stars, cov_xy=cov))) == len(stars) - 1

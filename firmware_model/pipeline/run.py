@@ -766,11 +766,13 @@ def geometric_fallback(
 
 def _usable(stars: StarList) -> np.ndarray:
     """Rows with a direction and a centroid known to better than :data:`MAX_CENTROID_SIGMA_PX` (a
-    degenerate fit can report a finite centre with a covariance of tens of px^2)."""
+    degenerate fit can report a finite centre with a covariance of tens of px^2, or a negative
+    variance: on a steep stray-light gradient, -8e17 px^2 with no flag)."""
     if not len(stars):
         return np.empty(0, np.int64)
-    var = 0.5 * (stars.cov_xy[:, 0, 0] + stars.cov_xy[:, 1, 1])
-    known = ~(var > MAX_CENTROID_SIGMA_PX**2)  # NaN (no covariance) stays: the pipeline gives it 1 px
+    diag = stars.cov_xy[:, [0, 1], [0, 1]]
+    var = 0.5 * diag.sum(axis=1)
+    known = ~(var > MAX_CENTROID_SIGMA_PX**2) & ~(diag < 0).any(axis=1)  # NaN (no covariance) stays: 1 px
     assert stars.vectors is not None  # extracted with a camera
     return np.flatnonzero(np.isfinite(stars.vectors).all(axis=1) & known)
 
