@@ -73,7 +73,13 @@ def run(attitudes: int, seed: int, workers: int, rates: list[float], diffusion_p
             None
             if base is None
             else [
-                {"k": r["k"], "status": r["status"], "reason": r["reason"][:120]}
+                {
+                    "k": r["k"],
+                    "status": r["status"],
+                    "reason": r["reason"][:120],
+                    **{f: r[f] for f in ("n_detections", "n_detections_on_tracks", "n_detections_on_stars")},
+                    "n_catalog_in_view": r["n_catalog_in_view"],
+                }
                 for r, b in zip(rows, base)
                 if b["status"] == "OK" and r["status"] != "OK"
             ]
@@ -99,6 +105,15 @@ def table(res: dict) -> str:
         )
         lines.append(f"{'':>10}statuses: {', '.join(f'{k} {v}' for k, v in s['status_counts'].items())} (of {n})")
     for key, s in res["rates"].items():
+        lost = s["lost_to_hits"] or []
+        if lost:
+            lines.append(
+                f"lost at {key} hits/frame: detections on tracks / on stars / all, per frame: "
+                + ", ".join(
+                    f"{f['n_detections_on_tracks']}/{f['n_detections_on_stars']}/{f['n_detections']}" for f in lost
+                )
+                + f"; catalog stars in view: {', '.join(str(f['n_catalog_in_view']) for f in lost)}"
+            )
         for f in s["high_confidence_wrong_frames"]:
             lines.append(f"HIGH-CONFIDENCE WRONG at {key} hits/frame: {f}")
     return "\n".join(lines)

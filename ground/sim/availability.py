@@ -122,6 +122,16 @@ def score(record: dict, attitude: np.ndarray, truth_stars: list[dict]) -> dict:
     return {"outcome": outcome, "attitude_error_deg": err, "wrong_ids": wrong}
 
 
+def near_tracks(x: np.ndarray, y: np.ndarray, tracks: list[dict], radius_px: float = 3.0) -> np.ndarray:
+    """Whether each point (px) lies within ``radius_px`` of a track's segment (truth rows)."""
+    near = np.zeros(len(x), bool)
+    for t in tracks:
+        dx, dy = t["x2"] - t["x"], t["y2"] - t["y"]
+        u = np.clip(((x - t["x"]) * dx + (y - t["y"]) * dy) / max(dx * dx + dy * dy, 1e-12), 0.0, 1.0)
+        near |= np.hypot(x - t["x"] - u * dx, y - t["y"] - u * dy) <= radius_px
+    return near
+
+
 def run_frame(cfg: AvailabilityConfig, effects: tuple, k: int) -> dict:
     """Render, solve and score frame ``k``: one row (JSON-ready)."""
     from firmware_model.pipeline.run import run_pipeline
@@ -142,6 +152,10 @@ def run_frame(cfg: AvailabilityConfig, effects: tuple, k: int) -> dict:
     out = run_pipeline(r.frame, camera, cat)
     rec = record_from_output(out)
     tracks = [t for e in r.truth["effects"] for t in e.get("cosmic", {}).get("tracks", [])]
+    dx = np.asarray(out.stars.x if out.stars is not None else [], dtype=float)
+    dy = np.asarray(out.stars.y if out.stars is not None else [], dtype=float)
+    tx, ty = np.array([s["x"] for s in r.truth["stars"]]), np.array([s["y"] for s in r.truth["stars"]])
+    on_stars = [bool(len(tx)) and float(np.min(np.hypot(tx - x, ty - y))) <= MATCH_RADIUS_PX for x, y in zip(dx, dy)]
     return {
         "k": k,
         "status": rec["status"],
@@ -150,6 +164,9 @@ def run_frame(cfg: AvailabilityConfig, effects: tuple, k: int) -> dict:
         "n_matched": rec["n_matched"],
         "n_catalog_in_view": int(np.isin([s["id"] for s in r.truth["stars"]], cat_ids).sum()),
         "n_hits": len(tracks),
+        "n_detections": len(dx),
+        "n_detections_on_tracks": int(near_tracks(dx, dy, tracks).sum()),
+        "n_detections_on_stars": int(sum(on_stars)),
         "effects": [_without_tracks(e) for e in r.truth["effects"]],
         "timestamp": r.frame.timestamp,
         **score(rec, a, r.truth["stars"]),
