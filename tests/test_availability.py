@@ -108,3 +108,12 @@ def test_cli_run_prints_json_and_writes_rows(tmp_path, capsys):
     rows = json.loads((out / "availability_rows.json").read_text())
     assert [r["k"] for r in rows] == [0, 1] and all(r["n_hits"] >= 0 for r in rows)
     assert json.loads((out / "availability_summary.json").read_text()) == summary
+
+
+def test_near_tracks_measures_the_distance_to_the_segment():
+    track = [{"x": 10.0, "y": 10.0, "x2": 20.0, "y2": 10.0}]
+    x = np.array([15.0, 15.0, 23.0, 24.0, 10.0])
+    y = np.array([12.9, 13.1, 10.0, 10.0, 10.0])
+    assert av.near_tracks(x, y, track).tolist() == [True, False, True, False, True]
+    point = [{"x": 5.0, "y": 5.0, "x2": 5.0, "y2": 5.0}]  # a normal-incidence hit
+    assert av.near_tracks(np.array([5.0, 9.0]), np.array([7.0, 5.0]), point).tolist() == [True, False]
