@@ -103,7 +103,7 @@ def test_cli_run_prints_json_and_writes_rows(tmp_path, capsys):
     code = main(["sim", "availability", "--attitudes", "2", "--hits-per-frame", "5", "--json", "-o", str(out)])
     assert code == 0
     summary = json.loads(capsys.readouterr().out)
-    assert summary["frames"] == 2 and summary["high_confidence_wrong"] == 0
+    assert summary["frames"] == 2 and summary["high_confidence_wrong"] == 0 and summary["frames_in_saa"] == 0
     assert summary["config"]["hits_per_frame"] == 5.0
     rows = json.loads((out / "availability_rows.json").read_text())
     assert [r["k"] for r in rows] == [0, 1] and all(r["n_hits"] >= 0 for r in rows)
@@ -117,3 +117,18 @@ def test_near_tracks_measures_the_distance_to_the_segment():
     assert av.near_tracks(x, y, track).tolist() == [True, False, True, False, True]
     point = [{"x": 5.0, "y": 5.0, "x2": 5.0, "y2": 5.0}]  # a normal-incidence hit
     assert av.near_tracks(np.array([5.0, 9.0]), np.array([7.0, 5.0]), point).tolist() == [True, False]
+
+
+def test_cli_saa_run_spreads_the_frames_over_one_day_of_the_orbit(tmp_path, capsys):
+    from astropy.time import Time
+
+    out = tmp_path / "saa"
+    code = main(["sim", "availability", "--attitudes", "2", "--cosmic-rate", "4", "--saa", "--json", "-o", str(out)])
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["config"]["saa"] is True and summary["config"]["orbit"] == "550"
+    rows = json.loads((out / "availability_rows.json").read_text())
+    t0, t1 = (Time(r["timestamp"].rstrip("Z"), scale="utc").unix for r in rows)
+    assert t1 - t0 == pytest.approx(43200.0, abs=1e-3)  # 86400 s / 2 frames
+    in_saa = [r["effects"][0]["cosmic"]["in_saa"] for r in rows]
+    assert summary["frames_in_saa"] == sum(in_saa)

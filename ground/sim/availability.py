@@ -213,7 +213,8 @@ def run_availability(
 
 def summarise(rows: list[dict]) -> dict:
     """Counts and fractions of a run: availability (high-confidence attitudes / frames), correct,
-    high-confidence wrong, low-confidence (and wrong), no solution, statuses, hits per frame."""
+    high-confidence wrong, low-confidence (and wrong), no solution, statuses, hits per frame,
+    frames inside the SAA."""
     n = len(rows)
     hc = [r for r in rows if r["status"] == "OK"]
     lc = [r for r in rows if r["status"] == "LOW_CONFIDENCE"]
@@ -229,6 +230,7 @@ def summarise(rows: list[dict]) -> dict:
         "no_solution": sum(r["outcome"] == "no_solution" for r in rows),
         "status_counts": dict(sorted(Counter(r["status"] for r in rows).items())),
         "mean_hits_per_frame": float(np.mean([r["n_hits"] for r in rows])) if n else 0.0,
+        "frames_in_saa": sum(any(e.get("cosmic", {}).get("in_saa", False) for e in r["effects"]) for r in rows),
     }
 
 
@@ -244,5 +246,6 @@ def summary_table(summary: dict) -> str:
         f"no solution: {s['no_solution']}",
         f"statuses: {', '.join(f'{k} {v}' for k, v in s['status_counts'].items())}",
         f"radiation hits per frame (mean drawn): {s['mean_hits_per_frame']:.2f}",
+        f"frames in the South Atlantic Anomaly: {s['frames_in_saa']}",
     ]
     return "\n".join(lines)
