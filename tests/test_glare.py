@@ -20,7 +20,7 @@ from firmware_model.reference_frames import attitude_from_radec_roll, rotation_a
 from ground.sim import glare as glare_mod
 from ground.sim.exposure import ExposureRenderer
 from ground.sim.feed_wire import Sample, decode_json, encode_json
-from ground.sim.glare import PST, Glare
+from ground.sim.glare import PST, Glare, exposure_start
 from ground.sim.noise_bank import NoiseBank
 from ground.sim.orbit import CircularOrbit
 from ground.sim.sensor_sim import DetectorModel, random_star_field, render_frame
@@ -197,7 +197,8 @@ def test_nothing_near_leaves_frames_byte_identical():
     with_glare = renderer.render(a, DET, 7, epoch_utc=MOON_PHASES[0.5])
     without = renderer.render(a, DET, 7)
     assert np.array_equal(with_glare.pixels, without.pixels)
-    assert with_glare.timestamp == MOON_PHASES[0.5] and without.timestamp is None
+    # the timestamp is the exposure's start, the epoch its mid-time (docs/CONVENTIONS.md)
+    assert with_glare.timestamp == exposure_start(MOON_PHASES[0.5], DET.exposure_s) and without.timestamp is None
 
 
 def test_sky_schedule_stamps_time_and_position(tmp_path):
@@ -220,11 +221,11 @@ def test_sky_schedule_stamps_time_and_position(tmp_path):
     assert [f.timestamp for f in frames] == [
         "2026-03-25T18:00:00.000",
         "2026-03-25T18:10:00.000",
-        "2026-03-25T19:00:00.050",
+        "2026-03-25T19:00:00.000",
     ]
     assert frames[0].metadata["sc_position_km"] == [7000.0, 0.0, 0.0]
     orbit = CircularOrbit.parse("550,97.6,10,0,2026-03-25T18:00:00")
-    for f, t in ((frames[1], "2026-03-25T18:10:00"), (frames[2], "2026-03-25T19:00:00.05")):
+    for f, t in ((frames[1], "2026-03-25T18:10:00.05"), (frames[2], "2026-03-25T19:00:00.05")):
         expect = orbit.position_gcrs_km(float(Time(t, scale="utc").unix))
         assert f.metadata["sc_position_km"] == pytest.approx(list(expect), abs=1e-6)
         assert set(f.metadata["glare"]) >= {"sun", "moon", "earth"}
@@ -270,7 +271,8 @@ def test_glare_is_an_effect_of_the_availability_run():
     assert list(g.sc_position_km) == pytest.approx(list(orbit.position_gcrs_km(t)))
     a = _off_axis(g.bodies["sun"].direction, 28.0)
     inp = g.render_inputs(a, CAMERA, DET, np.random.default_rng(0))
-    assert inp.timestamp == g.epoch_utc and inp.metadata["sc_position_km"] == pytest.approx(list(g.sc_position_km))
+    start = exposure_start(g.epoch_utc, DET.exposure_s)  # the glare's epoch is the mid-time
+    assert inp.timestamp == start and inp.metadata["sc_position_km"] == pytest.approx(list(g.sc_position_km))
     assert inp.extra_e is not None and inp.extra_e.max() > 100.0
     r = render_with_effects(random_star_field(CAMERA, a, 5, seed=1), a, CAMERA, DET, [g], np.random.default_rng(0), 3)
-    assert r.frame.timestamp == g.epoch_utc and "glare" in r.truth["effects"][0]
+    assert r.frame.timestamp == start and "glare" in r.truth["effects"][0]

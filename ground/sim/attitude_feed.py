@@ -22,11 +22,14 @@ peer silent that long is closed, and a new connection takes over at once, as on 
 ``orbit`` (``ALT_KM[,INC_DEG[,RAAN_DEG[,ARG_LAT_DEG[,EPOCH_UTC]]]]``, ``ground.sim.orbit``: the
 spacecraft's position at the mid-time when the samples carry none).
 
-Every frame is stamped with the exposure's mid-time (``timestamp``, ISO-8601 UTC) and rendered
-with the Sun's and the Moon's light (``ground.sim.glare``); the spacecraft's position (the samples'
-``r`` interpolated linearly to the mid-time when both samples around it carry one, else the
-``orbit`` option's) adds the Earth's and goes to ``metadata["sc_position_km"]``. A sample whose
-``r`` is not finite or lies inside the atmosphere is dropped as a fault, like a bad attitude.
+When the feed knows where the spacecraft is (the samples' ``r`` interpolated linearly to the
+mid-time when both samples around it carry one, else the ``orbit`` option's), every frame is
+rendered with the Sun's, the Moon's and the Earth's light at the mid-time (``ground.sim.glare``;
+no sunlight in the Earth's shadow), stamped with the exposure's start (``timestamp``, ISO-8601 UTC,
+docs/CONVENTIONS.md) and the position (``metadata["sc_position_km"]``) for the device's bright-body
+check. Without a position the frame holds the stars alone and no timestamp, as before (tracking
+takes the GO time): the answers of a run do not depend on the date it runs. A sample whose ``r``
+is not finite or lies inside the atmosphere is dropped as a fault, like a bad attitude.
 
 Every time here (arrival of a fault, the capture's wait) is read from one ``clock`` (POSIX s,
 ``time.time`` unless given), the clock the device stamps its GO with: a test passes a manual clock
@@ -253,7 +256,7 @@ class AttitudeFeedSource:
             self.det,
             seed=ctx.sequence,
             psf=psf if psf.max_track_px >= MIN_SMEAR_PX else None,
-            epoch_utc=utc_iso(t_mid),
+            epoch_utc=None if position is None else utc_iso(t_mid),
             sc_position_km=position,
         )
         frame.metadata["attitude_feed"] = {"q_mid": [float(v) for v in q], "w_mid": [float(v) for v in w]}

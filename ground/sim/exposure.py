@@ -10,7 +10,8 @@ content (docs/hil.md has the timings):
 
 With the exposure's mid-time (``epoch_utc``) the Sun's and the Moon's light is rendered too
 (``ground.sim.glare``), and the Earth's with the spacecraft's GCRS position (``sc_position_km``);
-the frame carries ``timestamp`` = the mid-time and ``metadata["sc_position_km"]`` (the device's
+the frame carries ``timestamp`` = the exposure's start (the mid-time less half the exposure,
+docs/CONVENTIONS.md) and ``metadata["sc_position_km"]`` (the device's
 bright-body check reads them) and ``metadata["glare"]`` (each body's angle from the boresight, in
 view or not, its peak e-). A glare map with nothing above ``glare.FLOOR_E`` leaves the frame as
 without it; otherwise its shot noise is drawn by :class:`GlareNoise`.
@@ -25,7 +26,7 @@ import numpy as np
 
 from firmware_model.camera import CameraModel
 from firmware_model.pipeline.raw_frame import Frame
-from ground.sim.glare import Glare
+from ground.sim.glare import Glare, exposure_start
 from ground.sim.noise_bank import NoiseBank
 from ground.sim.openloop import stars_in_cone as stars_in_view
 from ground.sim.sensor_sim import DetectorModel, Stars, render_frame, stamp_half_width
@@ -126,7 +127,7 @@ class ExposureRenderer:
         noise = bank if background is None else GlareNoise(bank, background, self._prnu32(bank))
         frame = render_frame(near, attitude, self.camera, det, seed=seed, psf=psf, noise=noise).frame
         if epoch_utc is not None:
-            frame.timestamp = epoch_utc
+            frame.timestamp = exposure_start(epoch_utc, det.exposure_s)
             frame.metadata["glare"] = truth
         if sc_position_km is not None:
             frame.metadata["sc_position_km"] = [float(v) for v in sc_position_km]

@@ -19,7 +19,9 @@ Models (docs/pipeline.md, "Bright bodies: glare and stray light", has the number
   the surface faces the Sun (the Moon's terminator from the Sun's direction; the Sun all lit),
   its light spread uniformly over the lit part, blurred by the detector's Gaussian PSF; the
   Earth's bright limb is its daylit surface out to ``sky_bodies.ATMOSPHERE_KM``, evaluated every
-  :data:`EARTH_STEP_PX` pixels. Eclipses are not modelled.
+  :data:`EARTH_STEP_PX` pixels.
+* **Eclipse**: with the spacecraft's position known and inside the Earth's cylindrical shadow
+  (``orbit.in_earth_shadow``, umbra only), the Sun adds no light; a lunar eclipse is not modelled.
 
 Everything here depends on the geometry only (epoch, position, attitude, camera, detector): a
 :class:`Glare` keeps the last two maps it made, and the grid's directions per camera. Written by
@@ -39,7 +41,7 @@ from firmware_model.camera import CameraModel
 from firmware_model.pipeline.raw_frame import pattern_codes
 from firmware_model.pipeline.sky_bodies import SkyBody, sky_bodies
 from ground.sim.detector_effects import RenderInputs
-from ground.sim.orbit import CircularOrbit
+from ground.sim.orbit import CircularOrbit, in_earth_shadow
 from ground.sim.sensor_sim import DetectorModel
 
 V_SUN = -26.74  #: the Sun's apparent V magnitude at 1 au (Allen's Astrophysical Quantities)
@@ -150,6 +152,15 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
+def exposure_start(mid_utc: str, exposure_s: float) -> str:
+    """A frame's ``timestamp`` (the exposure's start, ISO-8601 UTC) for an exposure of ``exposure_s``
+    seconds whose mid-time is ``mid_utc`` (docs/CONVENTIONS.md, frame time)."""
+    from astropy import units as u
+    from astropy.time import Time
+
+    return (Time(mid_utc, scale="utc") - exposure_s / 2.0 * u.s).isot
+
+
 @dataclass
 class Glare:
     """The Sun, the Moon and (with ``sc_position_km``, GCRS km) the Earth at ``epoch_utc``
@@ -178,8 +189,9 @@ class Glare:
 
     def render_inputs(self, attitude, camera: CameraModel, detector: DetectorModel, rng) -> RenderInputs:
         """The effect interface of ``ground.sim.detector_effects``: the glare as ``extra_e`` (None
-        when nothing reaches ``FLOOR_E``), the epoch as the timestamp, the position in the
-        metadata when known (``rng`` unused: the glare is noise-free)."""
+        when nothing reaches ``FLOOR_E``), the exposure's start (the epoch, its mid-time, less half
+        the exposure: docs/CONVENTIONS.md) as the timestamp, the position in the metadata when known
+        (``rng`` unused: the glare is noise-free)."""
         background = self.background_e(attitude, camera, detector)
         meta = {} if self.sc_position_km is None else {"sc_position_km": [float(v) for v in self.sc_position_km]}
         return RenderInputs(
@@ -187,7 +199,7 @@ class Glare:
             [],
             background if background.any() else None,
             {"glare": self.truth(attitude, camera, detector)},
-            self.epoch_utc,
+            exposure_start(self.epoch_utc, detector.exposure_s),
             meta,
         )
 
@@ -196,6 +208,12 @@ class Glare:
         """Unit vector from ``body``'s centre to the Sun."""
         sun = self.bodies["sun"]
         return _unit(sun.direction * sun.distance_km - body.direction * body.distance_km)
+
+    @property
+    def eclipsed(self) -> bool:
+        """The spacecraft is in the Earth's shadow (known only with its position): no sunlight
+        reaches the baffle (``orbit.in_earth_shadow``, umbra only)."""
+        return self.sc_position_km is not None and in_earth_shadow(self.sc_position_km, self.bodies["sun"].direction)
 
     def moon_phase_angle(self) -> float:
         """The Moon's phase angle (rad): Sun-Moon-observer."""
@@ -273,10 +291,11 @@ class Glare:
         boresight = a[2]
         colour = {"sun": _colours(BV_SUN), "moon": _colours(BV_MOON), "earth": _colours(BV_SUN)}
         stray: dict[str, np.ndarray] = {}
+        eclipsed = self.eclipsed
         for name in ("sun", "moon"):
             body = self.bodies[name]
             ang = np.arccos(np.clip(grid_icrs @ body.direction, -1.0, 1.0))
-            stray[name] = irr[name] * ratio * self.pst(ang)
+            stray[name] = (0.0 if name == "sun" and eclipsed else irr[name]) * ratio * self.pst(ang)
         if "earth" in self.bodies:
             d, e_sample = self._earth_samples(det)
             lit = e_sample > 0
@@ -307,6 +326,9 @@ class Glare:
             truth[name] = row
         for name in ("sun", "moon"):
             body = self.bodies[name]
+            if name == "sun" and eclipsed:
+                truth[name]["eclipsed"] = True
+                continue
             stamp = self._disc(body, irr[name], a, camera, det, lit_only=name == "moon")
             if stamp is not None:
                 (r0, r1, c0, c1), img = stamp

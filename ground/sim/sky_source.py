@@ -2,18 +2,24 @@
 
 The schedule is a CSV file with a header; columns ``qw, qx, qy, qz`` (scalar-first
 ``q_icrs_to_sensor``) are required, ``pattern`` (RGGB/BGGR/GRBG/GBRG/MONO, default RGGB),
-``seed`` (noise seed, default the row number), ``time`` (the exposure's mid-time, ISO-8601 UTC)
-and ``x_km, y_km, z_km`` (the spacecraft's GCRS position, km; all three or none) are optional;
-``#`` starts a comment line, and a comment line ``# orbit: ALT_KM[,INC_DEG[,RAAN_DEG[,ARG_LAT_DEG
-[,EPOCH_UTC]]]]`` gives a circular orbit (``ground.sim.orbit``) that places the spacecraft at the
-exposure's time when a row carries no position. Each GO captures the next row, wrapping around at
-the end, so a HIL harness that knows the schedule knows the truth of every solve. The exposure's
-mid-time is the row's ``time``, else the GO time plus half the exposure; every frame carries it as
-``timestamp`` and is rendered with the Sun's and the Moon's light, and the Earth's when the
-position is known (``ground.sim.glare``; ``metadata["sc_position_km"]``). Registered as the
-``sky`` entry point of ``st16.frame_sources`` (the device never imports ``ground``; the entry
-point plugs it in). Exposures render only the stars in view with the noise from a bank drawn at
-start-up (``ground.sim.exposure``), so GO -> result stays within the device's budget (docs/hil.md).
+``seed`` (noise seed, default the row number), ``time`` (the exposure's start, ISO-8601 UTC: the
+frame's ``timestamp``) and ``x_km, y_km, z_km`` (the spacecraft's GCRS position, km; all three or
+none) are optional; ``#`` starts a comment line, and a comment line ``# orbit: ALT_KM[,INC_DEG
+[,RAAN_DEG[,ARG_LAT_DEG[,EPOCH_UTC]]]]`` gives a circular orbit (``ground.sim.orbit``) that places
+the spacecraft at the exposure's time when a row carries no position. Each GO captures the next
+row, wrapping around at the end, so a HIL harness that knows the schedule knows the truth of every
+solve.
+
+**Bright bodies** (``ground.sim.glare``) are rendered when the row says when or where the exposure
+is: a ``time`` (the Sun and the Moon at its mid-time, ``time`` + exposure / 2), or a position or
+orbit (then at the GO time + exposure / 2 when the row has no ``time``), the Earth too when the
+position is known; such a frame carries ``timestamp`` and ``metadata["sc_position_km"]`` for the
+device's bright-body check. A row with neither renders the stars alone with no timestamp, as
+before: the same frame whatever the date (the device's check then has no time either, and tracking
+takes the GO time). Registered as the ``sky`` entry point of ``st16.frame_sources`` (the device
+never imports ``ground``; the entry point plugs it in). Exposures render only the stars in view
+with the noise from a bank drawn at start-up (``ground.sim.exposure``), so GO -> result stays
+within the device's budget (docs/hil.md).
 """
 
 from __future__ import annotations
@@ -42,7 +48,7 @@ class Exposure:
     q_icrs_to_sensor: np.ndarray
     pattern: str
     seed: int
-    time_utc: str | None = None  #: the exposure's mid-time, ISO-8601 UTC (None: the GO time)
+    time_utc: str | None = None  #: the exposure's start, ISO-8601 UTC (None: not given)
     position_km: np.ndarray | None = None  #: GCRS position (km)
 
 
@@ -154,12 +160,13 @@ class SkySource:
             self._next += 1
         det = DetectorModel(pattern=exp.pattern)
         started = getattr(ctx, "started", None)
-        epoch, t_posix = exp.time_utc, None
-        if epoch is not None:
-            t_posix = float(Time(epoch, scale="utc").unix)
-        elif started is not None:
+        epoch, t_posix = None, None
+        if exp.time_utc is not None:
+            t_posix = float(Time(exp.time_utc, scale="utc").unix) + det.exposure_s / 2.0
+        elif started is not None and (exp.position_km is not None or self.orbit is not None):
             t_posix = started + det.exposure_s / 2.0
-            epoch = utc_iso(t_posix)
+        if t_posix is not None:
+            epoch = utc_iso(t_posix)  # the mid-time: the bodies' epoch
         position = exp.position_km
         if position is None and self.orbit is not None and t_posix is not None:
             position = self.orbit.position_gcrs_km(t_posix)
