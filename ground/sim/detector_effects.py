@@ -289,7 +289,7 @@ class MissionEffects:
         temp = self.temperature()
         if temp is None:
             return detector
-        scale = dark_e_per_s(temp, 1.0) / dark_e_per_s(REFERENCE_C, 1.0)
+        scale = dark_e_per_s(temp, 1.0)  # the factor from the reference temperature
         return dataclasses.replace(
             detector, dark_e_per_s=detector.dark_e_per_s * scale, hot_pixel_e_per_s=detector.hot_pixel_e_per_s * scale
         )
