@@ -26,7 +26,6 @@ scored.
 from __future__ import annotations
 
 import dataclasses
-import os
 import sys
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
@@ -203,7 +202,6 @@ def run_availability(
                 rows.extend(_chunk((cfg, effects, part)))
                 bar.update(len(part))
         else:
-            os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
             with ProcessPoolExecutor(workers) as pool:
                 for got in pool.map(_chunk, [(cfg, effects, p) for p in parts]):
                     rows.extend(got)
