@@ -78,8 +78,8 @@ def _flags(enum: type[IntEnum]) -> tuple[BitField, ...]:
 
 _QUATERNION_ORDER_BIT = result.HW_QUATERNION_SCALAR_LAST.bit_length() - 1
 
-#: Bit fields of result fields: the return bits and our status (bits 8-15), the status mirror and
-#: quaternion order in ``hardware.status``, the optics flags, and each star's flags (bit 0
+#: Bit fields of result fields: the return bits and our status (bits 8-15), the status mirror,
+#: quaternion order and bright bodies inside their exclusion angles in ``hardware.status``, the optics flags, and each star's flags (bit 0
 #: matched, 1 saturated, 2 on a body, 8-11 which body).
 RESULT_BITS: Mapping[str, tuple[BitField, ...]] = {
     "return_code": (
@@ -94,6 +94,7 @@ RESULT_BITS: Mapping[str, tuple[BitField, ...]] = {
             1,
             {result.QuaternionOrder.of_hardware_status(v << _QUATERNION_ORDER_BIT).name: v for v in (0, 1)},
         ),
+        *_flags(result.ExclusionBits),
     ),
     "ext.optics_flags": (
         BitField("optics_fitted", result.OPTICS_FITTED.bit_length() - 1),
