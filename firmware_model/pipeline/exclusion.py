@@ -125,14 +125,24 @@ def _sc_position(frame: Frame):
     return None if pos is None else np.asarray(pos, dtype=float).reshape(3)
 
 
+def _mid_time(frame: Frame):
+    """The frame's time: its ``timestamp`` (the exposure's start) plus half the exposure
+    (docs/CONVENTIONS.md), as astropy Time."""
+    from astropy import units as u
+
+    from firmware_model.pipeline.planets import _as_time
+
+    return _as_time(frame.timestamp) + 0.5 * (frame.exposure_s or 0.0) * u.s
+
+
 def bodies_inside(q, frame: Frame, limits: ExclusionLimits) -> list[tuple[str, float, float]]:
     """``(body, edge angle deg, limit deg)`` of every body inside its limit for the attitude ``q``
-    at the frame's time, in :data:`protocol.result.EXCLUDED_BODIES` order; ValueError when the
+    at the frame's (mid-exposure) time, in :data:`protocol.result.EXCLUDED_BODIES` order; ValueError when the
     frame's time or position cannot be read."""
     from firmware_model.pipeline.sky_bodies import sky_bodies
 
     try:
-        bodies = sky_bodies(frame.timestamp, _sc_position(frame))
+        bodies = sky_bodies(_mid_time(frame), _sc_position(frame))
     except (TypeError, ValueError) as exc:
         raise ValueError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
     boresight = quat_to_matrix(q)[2]  # sensor +z in ICRS axes

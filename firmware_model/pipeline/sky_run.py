@@ -31,6 +31,7 @@ from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.ident.attitude import quat_matrix
 from firmware_model.ident.solver import Mode
+from firmware_model.pipeline.exclusion import check_exclusion
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.pipeline.run import (
     PipelineOutput,
@@ -155,6 +156,7 @@ def run_pipeline_sky(
         if frame.timestamp and out.solution is not None and out.solution.q_icrs_to_sensor is not None:
             assert out.camera is not None
             out = label_planets_of(out, frame, catalog(out.camera), params)
+    out = check_exclusion(out, frame, params.exclusion)  # as run_pipeline's answers (docs/ICD.md section 7)
     out.timings.identify += search_s  # the sky search (and any earlier candidate) is identification
     out.timings.catalog = catalog_s
     out.timings.total = time.perf_counter() - t0  # the whole call, the catalogs' set-up included
