@@ -156,9 +156,10 @@ def exposure_start(mid_utc: str, exposure_s: float) -> str:
     """A frame's ``timestamp`` (the exposure's start, ISO-8601 UTC) for an exposure of ``exposure_s``
     seconds whose mid-time is ``mid_utc`` (docs/CONVENTIONS.md, frame time)."""
     from astropy import units as u
-    from astropy.time import Time
 
-    return (Time(mid_utc, scale="utc") - exposure_s / 2.0 * u.s).isot
+    from firmware_model.pipeline.planets import _as_time
+
+    return (_as_time(mid_utc) - exposure_s / 2.0 * u.s).isot
 
 
 @dataclass
