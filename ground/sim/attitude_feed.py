@@ -20,7 +20,10 @@ before the mid-time on (the feed is suspect that long after a fault). Registered
 0.1), ``timeout`` (s, 0.25), ``max_gap`` (s, 0.5), ``pattern`` (RGGB), ``idle`` (s, 60: over TCP a
 peer silent that long is closed, and a new connection takes over at once, as on the NSP TCP link),
 ``orbit`` (``ALT_KM[,INC_DEG[,RAAN_DEG[,ARG_LAT_DEG[,EPOCH_UTC]]]]``, ``ground.sim.orbit``: the
-spacecraft's position at the mid-time when the samples carry none).
+spacecraft's position at the mid-time when the samples carry none), and the detector effects over
+a mission (``ground.sim.detector_effects.SOURCE_OPTIONS``: ``cosmic_rate``, ``hits_per_frame``,
+``saa`` (with ``orbit``), ``dose_krad``, ``temperature_c`` or ``duty``; drawn from the GO's
+sequence number).
 
 When the feed knows where the spacecraft is (the samples' ``r`` interpolated linearly to the
 mid-time when both samples around it carry one, else the ``orbit`` option's), every frame is
@@ -49,6 +52,7 @@ import numpy as np
 from firmware_model.device.device import FrameUnavailable
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.reference_frames import quat_to_matrix
+from ground.sim.detector_effects import SOURCE_OPTIONS, effects_from_options
 from ground.sim.exposure import ExposureRenderer
 from ground.sim.feed_wire import IDLE_S, FeedUrl, Listener, Sample
 from ground.sim.orbit import CircularOrbit
@@ -221,6 +225,8 @@ class AttitudeFeedSource:
             self.max_gap = float(opts.pop("max_gap", 0.5))
             self.idle = float(opts.pop("idle", IDLE_S))
             self.orbit = CircularOrbit.parse(opts.pop("orbit")) if "orbit" in opts else None
+            asked = {k: opts.pop(k) for k in list(opts) if k in SOURCE_OPTIONS}
+            self.effects = effects_from_options(asked, self.orbit)
         except ValueError as exc:
             raise ValueError(f"attitude feed {spec!r}: {exc}") from None
         if opts:
@@ -230,7 +236,8 @@ class AttitudeFeedSource:
         self.det = DetectorModel(pattern=self.det.pattern, exposure_s=self.exposure_s)
         self.camera = camera
         self.renderer = renderer or ExposureRenderer(camera)
-        self._drawing = self.renderer.draw_bank(self.det)  # at start-up, not inside the first GO
+        # at start-up, not inside the first GO
+        self._drawing = self.renderer.draw_bank(self.renderer.effective_detector(self.det, self.effects))
         self.feed = AttitudeFeed(clock)
         self.listener = Listener(url, self.feed.offer, self.feed.fault, self.feed.new_peer, idle_s=self.idle)
 
@@ -258,6 +265,7 @@ class AttitudeFeedSource:
             psf=psf if psf.max_track_px >= MIN_SMEAR_PX else None,
             epoch_utc=None if position is None else utc_iso(t_mid),
             sc_position_km=position,
+            effects=None if self.effects is None else self.effects.at_time(t_mid),
         )
         frame.metadata["attitude_feed"] = {"q_mid": [float(v) for v in q], "w_mid": [float(v) for v in w]}
         return frame

@@ -26,7 +26,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.stats import landau
@@ -323,3 +325,47 @@ class MissionEffects:
             extra.ravel()[hot] = det.hot_pixel_e_per_s * det.exposure_s
             truth["dose"] = {"dose_krad": self.dose_krad, "new_hot_pixels": int(len(hot))}
         return RenderInputs(det, objs, extra, truth, timestamp)
+
+
+#: The device sources' effect options (``--attitude-feed URL?cosmic_rate=4&saa=1``, a schedule's
+#: ``# effects: cosmic_rate=4 dose_krad=10``): name -> (converter, meaning).
+SOURCE_OPTIONS: dict[str, tuple[Callable[[str], Any], str]] = {
+    "cosmic_rate": (float, "cosmic-ray flux, particles per cm^2 per s"),
+    "hits_per_frame": (float, "a fixed mean of hits per frame instead of the flux"),
+    "saa": (lambda v: v.lower() in ("1", "true", "yes", "on"), "the South Atlantic Anomaly (needs an orbit)"),
+    "dose_krad": (float, "total dose, krad: hot pixels grow with it"),
+    "temperature_c": (float, "detector temperature, degC: dark current"),
+    "duty": (float, "the housekeeping model's duty cycle 0-1 sets the detector temperature"),
+}
+
+
+def effects_from_options(options: dict[str, str], orbit=None) -> MissionEffects | None:
+    """The :class:`MissionEffects` a device source's options ask for (:data:`SOURCE_OPTIONS`), with
+    the source's ``orbit`` for the SAA; None when none is given; ValueError with a one-line reason
+    for an unknown key, a value that is not a number, or one out of range."""
+    unknown = sorted(set(options) - set(SOURCE_OPTIONS))
+    if unknown:
+        raise ValueError(f"unknown effect option(s) {unknown}; known: {sorted(SOURCE_OPTIONS)}")
+    if not options:
+        return None
+    values: dict = {}
+    for key, text in options.items():
+        try:
+            values[key] = SOURCE_OPTIONS[key][0](text)
+        except ValueError:
+            raise ValueError(f"effect option {key}={text!r} is not a number") from None
+    if values.get("saa") and orbit is None:
+        raise ValueError("effect option saa needs an orbit to know when the spacecraft is in the anomaly")
+    cosmic = None
+    if values.get("cosmic_rate", 0.0) or values.get("hits_per_frame") is not None or values.get("saa"):
+        cosmic = CosmicRays(
+            flux_cm2_s=values.get("cosmic_rate", 0.0),
+            hits_per_frame=values.get("hits_per_frame"),
+            saa=SouthAtlanticAnomaly() if values.get("saa") else None,
+        )
+    dose = values.get("dose_krad", 0.0)
+    if not dose >= 0:
+        raise ValueError(f"effect option dose_krad must be at least 0, got {dose}")
+    return MissionEffects(
+        cosmic=cosmic, dose_krad=dose, temperature_c=values.get("temperature_c"), duty=values.get("duty"), orbit=orbit
+    )

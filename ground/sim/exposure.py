@@ -109,10 +109,20 @@ class ExposureRenderer:
         psf=None,
         epoch_utc: str | None = None,
         sc_position_km: np.ndarray | None = None,
+        effects=None,
     ) -> Frame:
         """The raw frame at ``attitude`` (A), noise from ``seed``; ``psf`` as ``render_frame``'s;
         with ``epoch_utc`` (ISO-8601 UTC, the exposure's mid-time) the bright bodies' light, the
-        Earth's too with ``sc_position_km`` (GCRS, km) (module docstring)."""
+        Earth's too with ``sc_position_km`` (GCRS, km) (module docstring); ``effects`` a
+        ``detector_effects.MissionEffects`` (radiation tracks, dose hot pixels, the detector at its
+        temperature: the noise bank of :meth:`effective_detector`, drawn by the source at start-up),
+        its draws seeded by ``seed``."""
+        objs: list = []
+        extra = None
+        effects_truth = None
+        if effects is not None:
+            inputs = effects.render_inputs(attitude, self.camera, det, np.random.default_rng([seed, 35]))
+            det, objs, extra, effects_truth = inputs.detector, inputs.false_objects, inputs.extra_e, inputs.truth
         margin_px = stamp_half_width(det) if psf is None else psf.max_half_width
         radius = self.camera.fov_half_angle_diagonal + (margin_px + 2.0) / self.camera.f
         near = stars_in_view(self.stars, attitude, radius)
@@ -123,12 +133,24 @@ class ExposureRenderer:
             truth = glare.truth(attitude, self.camera, det)
             if not background.any():
                 background = None
+        if extra is not None:  # the dose's new hot pixels: their dark charge, shot noise drawn as the glare's
+            background = extra.astype(np.float32) if background is None else background + extra.astype(np.float32)
         bank = self.bank(det)
         noise = bank if background is None else GlareNoise(bank, background, self._prnu32(bank))
-        frame = render_frame(near, attitude, self.camera, det, seed=seed, psf=psf, noise=noise).frame
+        frame = render_frame(
+            near, attitude, self.camera, det, seed=seed, psf=psf, noise=noise, false_objects=objs
+        ).frame
         if epoch_utc is not None:
             frame.timestamp = exposure_start(epoch_utc, det.exposure_s)
             frame.metadata["glare"] = truth
         if sc_position_km is not None:
             frame.metadata["sc_position_km"] = [float(v) for v in sc_position_km]
+        if effects_truth is not None:
+            frame.metadata["effects"] = effects_truth
         return frame
+
+    @staticmethod
+    def effective_detector(det: DetectorModel, effects=None) -> DetectorModel:
+        """The detector an exposure with ``effects`` renders with (its dark current at the
+        effects' temperature): the noise bank a source draws at start-up."""
+        return det if effects is None else effects.detector_for(det)

@@ -16,7 +16,10 @@ orbit (then at the GO time + exposure / 2 when the row has no ``time``), the Ear
 position is known; such a frame carries ``timestamp`` and ``metadata["sc_position_km"]`` for the
 device's bright-body check. A row with neither renders the stars alone with no timestamp, as
 before: the same frame whatever the date (the device's check then has no time either, and tracking
-takes the GO time). Registered as the ``sky`` entry point of ``st16.frame_sources`` (the device
+takes the GO time). A comment line ``# effects: KEY=VALUE ...`` adds the detector effects over a
+mission (``ground.sim.detector_effects.SOURCE_OPTIONS``: ``cosmic_rate``, ``hits_per_frame``,
+``saa`` (with the orbit), ``dose_krad``, ``temperature_c`` or ``duty``), drawn from the row's seed.
+Registered as the ``sky`` entry point of ``st16.frame_sources`` (the device
 never imports ``ground``; the entry point plugs it in). Exposures render only the stars in view
 with the noise from a bank drawn at start-up (``ground.sim.exposure``), so GO -> result stays
 within the device's budget (docs/hil.md).
@@ -35,11 +38,13 @@ from astropy.time import Time
 from firmware_model.camera import CameraModel
 from firmware_model.pipeline.sky_bodies import ATMOSPHERE_KM, EARTH_RADIUS_KM
 from firmware_model.reference_frames import quat_to_matrix
+from ground.sim.detector_effects import effects_from_options
 from ground.sim.exposure import ExposureRenderer
 from ground.sim.orbit import CircularOrbit
 from ground.sim.sensor_sim import DetectorModel
 
 ORBIT_HEADER = "orbit:"  #: the comment line that gives the schedule's orbit: ``# orbit: ALT,...``
+EFFECTS_HEADER = "effects:"  #: the comment line of the detector effects: ``# effects: cosmic_rate=4 ...``
 POSITION_COLUMNS = ("x_km", "y_km", "z_km")
 
 
@@ -92,20 +97,45 @@ def _row_time(path: Path, k: int, row: dict) -> str | None:
         raise ValueError(f"{path}: row {k + 1}: time {text!r} is not ISO-8601 UTC (YYYY-MM-DDThh:mm:ss)") from None
 
 
-def read_orbit(path) -> CircularOrbit | None:
-    """The schedule's ``# orbit: ...`` line as an orbit, None without one; ValueError naming the line."""
-    path = Path(path)
+def _header(path: Path, name: str) -> tuple[int, str] | None:
+    """The schedule's comment line ``# NAME: VALUE`` as (line number, VALUE), None without one;
+    ValueError naming the line of a second one."""
     found = None
     for n, line in enumerate(path.read_text().splitlines(), 1):
         body = line.strip().lstrip("#").strip() if line.lstrip().startswith("#") else ""
-        if body.lower().startswith(ORBIT_HEADER):
+        if body.lower().startswith(name):
             if found is not None:
-                raise ValueError(f"{path}: line {n}: a second orbit line")
-            try:
-                found = CircularOrbit.parse(body[len(ORBIT_HEADER) :].strip())
-            except ValueError as exc:
-                raise ValueError(f"{path}: line {n}: {exc}") from None
+                raise ValueError(f"{path}: line {n}: a second {name[:-1]} line")
+            found = (n, body[len(name) :].strip())
     return found
+
+
+def read_orbit(path) -> CircularOrbit | None:
+    """The schedule's ``# orbit: ...`` line as an orbit, None without one; ValueError naming the line."""
+    path = Path(path)
+    found = _header(path, ORBIT_HEADER)
+    if found is None:
+        return None
+    try:
+        return CircularOrbit.parse(found[1])
+    except ValueError as exc:
+        raise ValueError(f"{path}: line {found[0]}: {exc}") from None
+
+
+def read_effects(path, orbit: CircularOrbit | None):
+    """The schedule's ``# effects: KEY=VALUE ...`` line (``detector_effects.SOURCE_OPTIONS``) as
+    ``MissionEffects`` on ``orbit``, None without one; ValueError naming the line."""
+    path = Path(path)
+    found = _header(path, EFFECTS_HEADER)
+    if found is None:
+        return None
+    try:
+        pairs = [item.split("=", 1) for item in found[1].replace(",", " ").split()]
+        if any(len(p) != 2 for p in pairs):
+            raise ValueError("expected KEY=VALUE items")
+        return effects_from_options({k.strip(): v.strip() for k, v in pairs}, orbit)
+    except ValueError as exc:
+        raise ValueError(f"{path}: line {found[0]}: {exc}") from None
 
 
 def read_schedule(path) -> list[Exposure]:
@@ -145,8 +175,10 @@ class SkySource:
     def __init__(self, spec: str, camera: CameraModel):
         self.schedule = read_schedule(spec)
         self.orbit = read_orbit(spec)
+        self.effects = read_effects(spec, self.orbit)
         self.renderer = ExposureRenderer(camera)
-        self._drawing = self.renderer.draw_bank(DetectorModel())  # at start-up, not inside the first GO
+        # at start-up, not inside the first GO
+        self._drawing = self.renderer.draw_bank(self.renderer.effective_detector(DetectorModel(), self.effects))
         self._next = 0
         self._lock = threading.Lock()
 
@@ -170,6 +202,14 @@ class SkySource:
         position = exp.position_km
         if position is None and self.orbit is not None and t_posix is not None:
             position = self.orbit.position_gcrs_km(t_posix)
+        effects = self.effects
+        if effects is not None and t_posix is not None:
+            effects = effects.at_time(t_posix)  # the SAA under the spacecraft at the exposure
         return self.renderer.render(
-            quat_to_matrix(exp.q_icrs_to_sensor), det, exp.seed, epoch_utc=epoch, sc_position_km=position
+            quat_to_matrix(exp.q_icrs_to_sensor),
+            det,
+            exp.seed,
+            epoch_utc=epoch,
+            sc_position_km=position,
+            effects=effects,
         )
