@@ -133,12 +133,12 @@ class ExposureRenderer:
             truth = glare.truth(attitude, self.camera, det)
             if not background.any():
                 background = None
-        if extra is not None:  # the dose's new hot pixels: their dark charge, shot noise drawn as the glare's
-            background = extra.astype(np.float32) if background is None else background + extra.astype(np.float32)
         bank = self.bank(det)
         noise = bank if background is None else GlareNoise(bank, background, self._prnu32(bank))
+        # the dose's new hot pixels go in with the star signal: a few thousand pixels, whose Poisson
+        # draw the bank makes at the lit pixels only (the glare's dense map has its own path)
         frame = render_frame(
-            near, attitude, self.camera, det, seed=seed, psf=psf, noise=noise, false_objects=objs
+            near, attitude, self.camera, det, seed=seed, psf=psf, noise=noise, false_objects=objs, background_e=extra
         ).frame
         if epoch_utc is not None:
             frame.timestamp = exposure_start(epoch_utc, det.exposure_s)
