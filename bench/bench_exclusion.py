@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from collections import Counter
@@ -31,6 +30,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.machine import cpu_name  # noqa: E402
 
 EPOCH = "2026-03-20T12:00:00+00:00"  #: the exposure mid-time of every frame (UTC)
 FACTORS = (0.5, 0.9, 1.1, 1.5, 3.0)  #: the Sun's edge angle from the boresight over the limit
@@ -115,16 +116,6 @@ def _summary(rows: list[dict], key: str) -> dict:
     }
 
 
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown cpu"
-
-
 def run(n: int, limits: list[float], seed: int, workers: int) -> dict:
     jobs = [(seed, li, lim, fi, k) for li, lim in enumerate(limits) for fi in range(len(FACTORS)) for k in range(n)]
     load0, t0 = list(os.getloadavg()), time.perf_counter()
@@ -153,7 +144,7 @@ def run(n: int, limits: list[float], seed: int, workers: int) -> dict:
         "seed": seed,
         "workers": workers,
         "epoch": EPOCH,
-        "machine": f"{os.cpu_count()} cores, {_cpu()}",
+        "machine": f"{os.cpu_count()} cores, {cpu_name()}",
         "load_start": load0,
         "load_end": list(os.getloadavg()),
         "wall_s": time.perf_counter() - t0,

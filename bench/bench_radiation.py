@@ -18,22 +18,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown cpu"
+from bench.machine import cpu_name  # noqa: E402
 
 
 def run(attitudes: int, seed: int, workers: int, rates: list[float], diffusion_px: float | None = None) -> dict:
@@ -49,7 +40,7 @@ def run(attitudes: int, seed: int, workers: int, rates: list[float], diffusion_p
         "seed": seed,
         "workers": workers,
         "diffusion_px": diffusion,
-        "machine": f"{os.cpu_count()} cores, {_cpu()}",
+        "machine": f"{os.cpu_count()} cores, {cpu_name()}",
         "load_start": list(os.getloadavg()),
         "rates": {},
     }
