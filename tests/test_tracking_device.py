@@ -106,7 +106,9 @@ def test_tracking_follows_a_slew_then_falls_back_to_lost_in_space(device):
 
     dropped = _go(dev, slew, 0x0A)  # without ON: the track is dropped
     # an uploaded frame has no time: the bright-body check says it did not run, nothing else
-    assert _method(dropped) != "tracking" and _reason(dropped) == "bright bodies not checked: the frame has no timestamp"
+    assert (
+        _method(dropped) != "tracking" and _reason(dropped) == "bright bodies not checked: the frame has no timestamp"
+    )
     assert result.status_of(int(dropped["return_code"])) is result.Status.OK
     assert _method(_go(dev, slew)) == "tracking"  # a confident fix starts a track again
 
