@@ -2,7 +2,9 @@
 
 A. GO -> result ready for each capture source, each its own ``st16-device --pty`` process:
    ``--frames`` (full-size DNG files read per GO), ``--sky`` (a schedule rendered per GO) and
-   ``--attitude-feed`` (a loopback UDP feed at 50 Hz turning at 0.2 deg/s, rendered with smear).
+   ``--attitude-feed`` (a loopback UDP feed at 50 Hz turning at 0.2 deg/s, rendered with smear),
+   and ``sky_bodies`` (the same schedule with an orbit: the Sun, the Moon and the Earth rendered at
+   the GO time, wherever they fall, and the exclusion check; issue 33).
    The host sends GO and polls EDAC 0x004C (every 2 ms; COSMOS polls at 1 s) until the result
    length reads non-zero. GO cycles go round-robin over the sources, one at a time, so machine load
    (2 shared cores) falls on every source alike; ``frames`` is the baseline the others are read
@@ -67,6 +69,15 @@ def _sky_args(atts, work: Path) -> list[str]:
     return ["--sky", str(path)]
 
 
+def _sky_bodies_args(atts, work: Path) -> list[str]:
+    """The ``sky`` schedule with an orbit (550 km, 97.6 deg): every exposure renders the Sun's, the
+    Moon's and the Earth's light at the GO time, and the device checks its exclusion angles."""
+    args = _sky_args(atts, work)
+    path = Path(args[1])
+    path.write_text("# orbit: 550,97.6\n" + path.read_text())
+    return args
+
+
 class _Feeder:
     """Streams a constant-rate turn from attitude ``a0`` to the device's feed at ``hz`` (a stand-in simulator)."""
 
@@ -126,6 +137,7 @@ def part_a(n: int, sources: list[str], n_frames: int) -> None:
     builders = {
         "frames": _frames_args,
         "sky": _sky_args,
+        "sky_bodies": _sky_bodies_args,
         "feed": _feed_args,
         "realistic": lambda atts, work: [*_sky_args(atts, work), "--timing", "realistic"],
     }
@@ -191,8 +203,9 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=20, help="distinct attitudes (frame files, schedule rows)")
     ap.add_argument(
         "--sources",
-        default="frames,sky,feed,realistic",
-        help="comma-separated: frames, sky, feed, realistic (--sky held to 100 + 100 ms by --timing realistic)",
+        default="frames,sky,sky_bodies,feed,realistic",
+        help="comma-separated: frames, sky, sky_bodies (sky with an orbit: glare and exclusion), feed, realistic "
+        "(--sky held to 100 + 100 ms by --timing realistic)",
     )
     ap.add_argument("--hil-duration", type=float, default=30.0, help="seconds of closed loop (part B)")
     ap.add_argument("--dynamics", default="auto", choices=("auto", "basilisk", "standin"), help="part B dynamics")
