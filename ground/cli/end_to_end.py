@@ -26,6 +26,8 @@ from ground.sim.sensor_sim import DetectorModel, render_frame
 from ground.sim.sky_model import sky_stars
 from protocol.commands import Slot
 
+DEMO_EPOCH = "2026-01-01T00:00:00Z"  #: the demo frames' timestamp
+
 
 def run_demo(out, n_frames: int = 6, seed: int = 2026, progress: bool = True) -> dict:
     """Run the demo, its steps said on stdout as they end; the results (:func:`print_demo` prints
@@ -53,11 +55,10 @@ def run_demo(out, n_frames: int = 6, seed: int = 2026, progress: bool = True) ->
     rng = np.random.default_rng(seed)
     stars = sky_stars()
     n_mono = max(1, n_frames // 3) if n_frames >= 2 else 0
-    for k, a in enumerate(pick_attitudes(catalog, camera, n_frames, rng)):
+    # the frames' time: the device checks the Sun and the Moon at it, so the attitudes keep clear of them
+    for k, a in enumerate(pick_attitudes(catalog, camera, n_frames, rng, epoch=DEMO_EPOCH)):
         pattern = "MONO" if k >= n_frames - n_mono else "RGGB"
-        rendered = render_frame(
-            stars, a, camera, DetectorModel(pattern=pattern), seed=seed + k, timestamp="2026-01-01T00:00:00Z"
-        )
+        rendered = render_frame(stars, a, camera, DetectorModel(pattern=pattern), seed=seed + k, timestamp=DEMO_EPOCH)
         write_rendered(rendered, frames_dir / f"frame_{k:02d}_{pattern.lower()}.dng")
     print(
         f"frames: {n_frames} rendered at known attitudes ({n_frames - n_mono} colour RGGB, {n_mono} mono), "

@@ -16,15 +16,30 @@ from firmware_model.reference_frames import attitude_from_radec_roll
 
 #: A rendered frame shows at least this many catalog stars (a "well-populated field").
 MIN_CATALOG_STARS = 8
+#: Degrees beyond a body's exclusion angle that :func:`pick_attitudes` keeps a boresight clear by.
+EXCLUSION_MARGIN_DEG = 5.0
 
 
-def pick_attitudes(catalog, camera: CameraModel, n: int, rng) -> list[np.ndarray]:
-    """``n`` random attitudes whose field holds at least MIN_CATALOG_STARS catalog stars."""
+def pick_attitudes(catalog, camera: CameraModel, n: int, rng, epoch: str | None = None) -> list[np.ndarray]:
+    """``n`` random attitudes whose field holds at least MIN_CATALOG_STARS catalog stars; with
+    ``epoch`` (ISO-8601 UTC, the frames' time), only those whose boresight is clear of the Sun and
+    the Moon by their default exclusion angles plus :data:`EXCLUSION_MARGIN_DEG` (geocentric), so
+    that a run of frames stamped with that time is not refused for a body a tracker would not be
+    pointed at."""
     out: list[np.ndarray] = []
     radius = np.arctan(np.hypot(camera.width, camera.height) / 2 / camera.f)
+    bodies = {}
+    if epoch is not None:
+        from firmware_model.pipeline.exclusion import ExclusionLimits
+        from firmware_model.pipeline.sky_bodies import sky_bodies
+
+        limits = ExclusionLimits()
+        bodies = {name: (b, limits.limit_deg(name) + EXCLUSION_MARGIN_DEG) for name, b in sky_bodies(epoch).items()}
     while len(out) < n:
         ra, dec, roll = rng.uniform(0, 2 * np.pi), np.arcsin(rng.uniform(-1, 1)), rng.uniform(0, 2 * np.pi)
         a = attitude_from_radec_roll(ra, dec, roll)
+        if any(np.degrees(b.edge_angle(a[2])) < clear_deg for b, clear_deg in bodies.values()):
+            continue
         near = catalog.stars_within(a[2], radius)
         x, y = camera.vector_to_pixel(catalog.vec[near] @ a.T)
         if np.count_nonzero(camera.in_frame(x, y)) >= MIN_CATALOG_STARS:
