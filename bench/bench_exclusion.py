@@ -158,7 +158,7 @@ def table(res: dict) -> str:
         f"machine: {res['machine']}; load {res['load_start'][0]:.2f} at start, {res['load_end'][0]:.2f} at end",
         "with the check: frames with an attitude (correct of them), high- and low-confidence wrong; the same"
         " frames without it; the statuses with it",
-        f"{'limit':>6}{'Sun edge':>10}{'attitude':>14}{'HC wrong':>10}{'LC wrong':>10}{'| no check':>14}"
+        f"{'limit':>6}{'Sun edge':>10}{'attitude':>17}{'HC wrong':>10}{'LC wrong':>10}  |{'no check':>17}"
         f"{'HC wrong':>10}{'LC wrong':>10}  statuses",
     ]
     for c in res["cells"]:
@@ -166,9 +166,9 @@ def table(res: dict) -> str:
         cells = []
         for s in (on, off):
             got = f"{s['with_attitude']}/{s['frames']} ({s['correct']})"
-            cells.append(f"{got:>14}{s['high_confidence_wrong']:>10}{s['low_confidence_wrong']:>10}")
+            cells.append(f"{got:>17}{s['high_confidence_wrong']:>10}{s['low_confidence_wrong']:>10}")
         lines.append(
-            f"{c['limit_deg']:>6g}{c['sun_edge_deg']:>9.1f}d{cells[0]}{cells[1]}  "
+            f"{c['limit_deg']:>6g}{c['sun_edge_deg']:>8.1f} deg{cells[0]}  |{cells[1]}  "
             + ", ".join(f"{k} {v}" for k, v in on["statuses"].items())
         )
     for c in res["cells"]:
