@@ -113,8 +113,10 @@ def star_entries(out: PipelineOutput, first: int, count: int) -> np.ndarray:
     n = len(rows)
     for name in ("x", "y", "flux", "rg", "bg"):
         entries[name][:n] = getattr(stars, name)[rows]
-    entries["rg_sigma"][:n] = np.sqrt(stars.cov_colour[rows, 0, 0])
-    entries["bg_sigma"][:n] = np.sqrt(stars.cov_colour[rows, 1, 1])
+    for k, name in enumerate(("rg_sigma", "bg_sigma")):
+        var = stars.cov_colour[rows, k, k]
+        # a degenerate colour fit (a negative variance: a star on glare) has no sigma: NaN, as unmeasured
+        entries[name][:n] = np.sqrt(np.where(var >= 0, var, np.nan))
     entries["flags"][:n] = ((stars.flags[rows] & int(StarFlag.SATURATED)) != 0).astype(np.uint32) << 1
     if sol is not None and sol.q_icrs_to_sensor is not None:
         for k, row in enumerate(out.used[sol.matched_det]):
