@@ -162,7 +162,7 @@ def part_a(n: int, sources: list[str], n_frames: int) -> None:
                 for name, (_, client) in devices.items():
                     times[name].append(_ready_ms(client))
                     rec = solve_record(client.read_result_record())
-                    st = rec["status"] if rec["status"] == "OK" else f"{rec['status']}: {rec.get('reason', '')}"
+                    st = rec["status"]
                     status[name][st] = status[name].get(st, 0) + 1
         finally:
             for proc, client in devices.values():

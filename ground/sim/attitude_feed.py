@@ -237,7 +237,8 @@ class AttitudeFeedSource:
         self.camera = camera
         self.renderer = renderer or ExposureRenderer(camera)
         # at start-up, not inside the first GO
-        self._drawing = self.renderer.draw_bank(self.renderer.effective_detector(self.det, self.effects))
+        # glare: samples may carry a position, which renders the bright bodies
+        self._drawing = self.renderer.draw_bank(self.renderer.effective_detector(self.det, self.effects), glare=True)
         self.feed = AttitudeFeed(clock)
         self.listener = Listener(url, self.feed.offer, self.feed.fault, self.feed.new_peer, idle_s=self.idle)
 

@@ -27,7 +27,7 @@ import numpy as np
 from firmware_model.camera import CameraModel
 from firmware_model.pipeline.raw_frame import Frame
 from ground.sim.glare import Glare, exposure_start
-from ground.sim.noise_bank import NoiseBank
+from ground.sim.noise_bank import PAD_PX, NoiseBank
 from ground.sim.openloop import stars_in_cone as stars_in_view
 from ground.sim.sensor_sim import DetectorModel, Stars, render_frame, stamp_half_width
 from ground.sim.sky_model import sky_stars
@@ -36,34 +36,60 @@ from ground.sim.sky_model import sky_stars
 #: fraction of the bank's own noise variance (sky, dark, read): below it, it adds under 0.5 % to
 #: the noise's standard deviation, and its mean alone is added.
 NOISE_FRACTION = 0.01
+#: A pixel whose glare mean exceeds full well by this many of its own sigmas is full whatever its
+#: noise; when fewer than :data:`SPARSE_FRACTION` of the box's pixels need a draw, only they get one.
+SATURATED_SIGMAS = 5.0
+SPARSE_FRACTION = 0.5
 
 
 class GlareNoise:
     """A noise bank's exposure with the glare on it: ``background`` (e- per pixel, noise-free) times
-    the PRNU (``prnu32``, float32) as its mean and its shot noise drawn as a Gaussian of the same
-    variance (float32), clipped to full well. Poisson draws over every pixel of the reference
-    design took ~0.4 s of the device's 300 ms budget (docs/hil.md); the mean and variance are
-    Poisson's, the shape differs only below a few e- per pixel, where the bank's own noise
-    dominates."""
+    the PRNU (``prnu32``, float32) as its mean and its shot noise a Gaussian of the same variance:
+    a window of ``unit`` (unit-normal draws made once, as the NoiseBank makes its noise) scaled by
+    the mean's square root, only where the glare matters and the pixel is not full whatever its
+    noise; clipped to full well. Poisson draws over every pixel of the reference design took
+    ~0.4 s of the device's 300 ms budget (docs/hil.md), a fresh Gaussian 60-125 ms; the mean and
+    variance are Poisson's, the shape differs only below a few e- per pixel, where the bank's own
+    noise dominates."""
 
-    def __init__(self, bank: NoiseBank, background: np.ndarray, prnu32: np.ndarray):
+    def __init__(self, bank: NoiseBank, background: np.ndarray, prnu32: np.ndarray, unit: np.ndarray):
         self.bank = bank
+        self.unit = unit  #: unit-normal float32 draws of (rows + PAD_PX, cols + PAD_PX), drawn once
         self.mean = background.astype(np.float32, copy=False) * prnu32
         det = bank.det
         floor = NOISE_FRACTION * ((det.sky_e_per_s + det.dark_e_per_s) * det.exposure_s + det.read_noise_e**2)
         rows = np.flatnonzero(self.mean.max(axis=1) > floor)
         cols = np.flatnonzero(self.mean.max(axis=0) > floor) if len(rows) else rows
         self.box = (rows[0], rows[-1] + 1, cols[0], cols[-1] + 1) if len(rows) else None
+        self.at: np.ndarray | None = None  #: flat indices to draw at instead of the box
+        if self.box is not None:
+            # pixels whose mean is SATURATED_SIGMAS above full well clip to it whatever the noise: a
+            # glare that fills the frame (the Sun, the Earth) needs the noise only where it is not
+            r0, r1, c0, c1 = self.box
+            cap = det.full_well_e + SATURATED_SIGMAS * np.sqrt(det.full_well_e)
+            box = self.mean[r0:r1, c0:c1]
+            need = (box > floor) & (box < cap)
+            n_need = int(np.count_nonzero(need))
+            if n_need < SPARSE_FRACTION * need.size:
+                rr, cc = np.nonzero(need)
+                self.at = np.stack((rr + r0, cc + c0))
 
     def electrons(self, signal: np.ndarray, seed: int) -> np.ndarray:
         """As ``NoiseBank.electrons``, plus the glare (its noise from ``seed`` too)."""
         out = self.bank.electrons(signal, seed)
         out += self.mean
         if self.box is not None:
-            r0, r1, c0, c1 = self.box
-            noise = np.random.default_rng([seed, 33]).standard_normal((r1 - r0, c1 - c0), dtype=np.float32)
-            noise *= np.sqrt(self.mean[r0:r1, c0:c1])
-            out[r0:r1, c0:c1] += noise
+            # the shot noise: a window of the unit-normal bank at an offset drawn from ``seed`` (the
+            # NoiseBank's way: the same distribution, other values per frame, no full-frame draw)
+            h, w = self.mean.shape
+            r, c = (int(v) for v in np.random.default_rng([seed, 33]).integers(0, PAD_PX + 1, size=2))
+            window = self.unit[r : r + h, c : c + w]
+            if self.at is not None:
+                rr, cc = self.at
+                out[rr, cc] += window[rr, cc] * np.sqrt(self.mean[rr, cc])
+            else:
+                r0, r1, c0, c1 = self.box
+                out[r0:r1, c0:c1] += window[r0:r1, c0:c1] * np.sqrt(self.mean[r0:r1, c0:c1])
         return np.minimum(out, np.float32(self.bank.det.full_well_e), out=out)
 
 
@@ -75,14 +101,23 @@ class ExposureRenderer:
         self.stars = sky_stars() if stars is None else stars
         self._banks: dict[DetectorModel, NoiseBank] = {}
         self._prnu: dict[int, np.ndarray] = {}
+        self._unit: np.ndarray | None = None
         self._lock = threading.Lock()
 
-    def draw_bank(self, det: DetectorModel) -> threading.Thread:
+    def draw_bank(self, det: DetectorModel, glare: bool = False) -> threading.Thread:
         """Start drawing the noise bank of ``det`` in a thread (numpy draws large arrays without the
         GIL, so a device's kernel loading goes on beside it) and return the thread; a render that
         comes first waits for it (:meth:`bank`'s lock). Capture sources call it at start-up and
-        join it in ``ready`` before the device says it is listening."""
-        thread = threading.Thread(target=self.bank, args=(det,), name="noise-bank", daemon=True)
+        join it in ``ready`` before the device says it is listening; with ``glare`` (a source that
+        may render bright bodies) one glare map is made too, so the first GO pays no first-use cost."""
+
+        def draw() -> None:
+            self.bank(det)
+            self._unit_normal()
+            if glare:  # the ephemerides' and the camera's first-use costs (~0.35 s), not in a GO
+                Glare("2026-01-01T00:00:00", np.array([7000.0, 0.0, 0.0])).background_e(np.eye(3), self.camera, det)
+
+        thread = threading.Thread(target=draw, name="noise-bank", daemon=True)
         thread.start()
         return thread
 
@@ -93,6 +128,15 @@ class ExposureRenderer:
             if key not in self._banks:
                 self._banks[key] = NoiseBank(det, (self.camera.height, self.camera.width))
             return self._banks[key]
+
+    def _unit_normal(self) -> np.ndarray:
+        """Unit-normal float32 draws of the frame plus the bank's margin (:class:`GlareNoise`'s),
+        drawn once (with the first noise bank, at start-up)."""
+        with self._lock:
+            if self._unit is None:
+                shape = (self.camera.height + PAD_PX, self.camera.width + PAD_PX)
+                self._unit = np.random.default_rng(33).standard_normal(shape, dtype=np.float32)
+            return self._unit
 
     def _prnu32(self, bank: NoiseBank) -> np.ndarray:
         """The bank's PRNU map as float32 (kept: the glare's mean is scaled by it every frame)."""
@@ -134,7 +178,7 @@ class ExposureRenderer:
             if not background.any():
                 background = None
         bank = self.bank(det)
-        noise = bank if background is None else GlareNoise(bank, background, self._prnu32(bank))
+        noise = bank if background is None else GlareNoise(bank, background, self._prnu32(bank), self._unit_normal())
         # the dose's new hot pixels go in with the star signal: a few thousand pixels, whose Poisson
         # draw the bank makes at the lit pixels only (the glare's dense map has its own path)
         frame = render_frame(

@@ -178,7 +178,10 @@ class SkySource:
         self.effects = read_effects(spec, self.orbit)
         self.renderer = ExposureRenderer(camera)
         # at start-up, not inside the first GO
-        self._drawing = self.renderer.draw_bank(self.renderer.effective_detector(DetectorModel(), self.effects))
+        bodies = self.orbit is not None or any(e.time_utc or e.position_km is not None for e in self.schedule)
+        self._drawing = self.renderer.draw_bank(
+            self.renderer.effective_detector(DetectorModel(), self.effects), glare=bodies
+        )
         self._next = 0
         self._lock = threading.Lock()
 
