@@ -217,9 +217,10 @@ def _one(job):
     from ground.analysis.replay import MATCH_RADIUS_PX, Truth, score
     from ground.link.solve_report import record_from_output
     from ground.sim import openloop as ol
+    from ground.sim.availability import reference_scene
     from ground.sim.sensor_sim import DetectorModel, render_frame
 
-    cat, nominal, sky, cat_ids = _context()
+    cat, nominal, sky, cat_ids = reference_scene()
     cat_row = {int(i): n for n, i in enumerate(cat_ids)}
     pattern = "RGGB" if k % 2 == 0 else "MONO"
     cell_index = list(CELLS).index(cell)
@@ -319,21 +320,7 @@ def best_nominal_attitude(camera, nominal, a_true) -> np.ndarray:
     return rot @ a_true
 
 
-_CTX = None
 _BB = None
-
-
-def _context():
-    global _CTX
-    if _CTX is None:
-        from firmware_model.camera import CameraModel
-        from ground.catalog.build import build_catalog
-        from ground.catalog.design import CatalogDesign
-        from ground.sim.sky_model import sky_stars
-
-        cat = build_catalog(CatalogDesign())
-        _CTX = (cat, CameraModel.reference_design(), sky_stars(), np.asarray(cat.star_id, dtype=np.int64))
-    return _CTX
 
 
 def _blackbody_sky():

@@ -34,7 +34,7 @@ def test_rows_do_not_depend_on_the_worker_count_or_the_chunking():
 
 
 def test_score_is_replays_score():
-    cat, camera, sky, _ = av._context()
+    cat, camera, sky, _ = av.reference_scene()
     from ground.sim.openloop import stars_in_cone
 
     for k in range(2):
@@ -66,7 +66,7 @@ def test_effects_apply_in_order_and_join():
     warm = de.MissionEffects(temperature_c=20.0 + 6.5)
     hits = de.MissionEffects(cosmic=de.CosmicRays(hits_per_frame=10.0), dose_krad=1.0)
     a = av.frame_attitude(1, 0)
-    _, camera, sky, _ = av._context()
+    _, camera, sky, _ = av.reference_scene()
     from ground.sim.openloop import stars_in_cone
 
     stars = stars_in_cone(sky, a, camera.fov_half_angle_diagonal + 0.02)

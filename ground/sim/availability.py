@@ -59,8 +59,10 @@ class AvailabilityConfig:
 _CTX: tuple | None = None
 
 
-def _context():
-    """(catalog, camera, sky stars, catalog ids) of this process, built once."""
+def reference_scene():
+    """(the default catalog, the reference-design camera, the real sky to V 6.5, the catalog's ids)
+    of this process, built once: what the rendered availability run and the open-loop bench
+    (``bench/bench_openloop.py``) render and solve with."""
     global _CTX
     if _CTX is None:
         from firmware_model.camera import CameraModel
@@ -138,7 +140,7 @@ def run_frame(cfg: AvailabilityConfig, effects: tuple, k: int) -> dict:
     from ground.sim.openloop import stars_in_cone
     from ground.sim.sensor_sim import DetectorModel
 
-    cat, camera, sky, cat_ids = _context()
+    cat, camera, sky, cat_ids = reference_scene()
     a = frame_attitude(cfg.seed, k)
     if cfg.start_posix is not None:
         t = cfg.start_posix + k * cfg.spacing_s
