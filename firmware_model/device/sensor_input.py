@@ -95,15 +95,14 @@ def frame_slot_handler(camera: CameraModel) -> SlotHandler:
     return SlotHandler(validate, load, info)
 
 
-#: The exclusion parameters (docs/ICD.md section 9): key -> (largest value, unit); the smallest is 0.
+#: The exclusion parameters (docs/ICD.md section 9): key -> (the ``ExclusionLimits`` field it sets,
+#: largest value, unit); the smallest is 0.
 EXCLUSION_KEYS = {
-    "sun_exclusion_deg": (90.0, "deg"),
-    "moon_exclusion_deg": (90.0, "deg"),
-    "earth_exclusion_deg": (90.0, "deg"),
-    "exclusion_memory_s": (3600.0, "s"),
+    "sun_exclusion_deg": ("sun_deg", 90.0, "deg"),
+    "moon_exclusion_deg": ("moon_deg", 90.0, "deg"),
+    "earth_exclusion_deg": ("earth_deg", 90.0, "deg"),
+    "exclusion_memory_s": ("memory_s", 3600.0, "s"),
 }
-#: The ``ExclusionLimits`` field each of :data:`EXCLUSION_KEYS` sets, in the same order.
-_LIMIT_FIELDS = ("sun_deg", "moon_deg", "earth_deg", "memory_s")
 
 
 @dataclass(frozen=True)
@@ -274,7 +273,7 @@ class DeviceParams:
             number("noise_probe_px", 0.0, 20.0, lo_open=False),
             _quaternion_order(obj.get("quaternion_order")),
             tracking,
-            *(closed(key, hi, unit) for key, (hi, unit) in EXCLUSION_KEYS.items()),
+            *(closed(key, hi, unit) for key, (_, hi, unit) in EXCLUSION_KEYS.items()),
         )
 
     def apply(self, base: PipelineParams) -> PipelineParams:
@@ -300,7 +299,7 @@ class DeviceParams:
             base = replace(base, optics=replace(base.optics, **{k: v for k, v in optics.items() if v is not None}))
         exclusion = base.exclusion
         if any(getattr(self, key) is not None for key in EXCLUSION_KEYS):
-            given = {f: getattr(self, key) for f, key in zip(_LIMIT_FIELDS, EXCLUSION_KEYS)}
+            given = {field: getattr(self, key) for key, (field, _, _) in EXCLUSION_KEYS.items()}
             exclusion = replace(exclusion or ExclusionLimits(), **{f: v for f, v in given.items() if v is not None})
         return replace(
             base,
