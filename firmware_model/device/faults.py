@@ -234,11 +234,27 @@ class FaultInjector:
         for word in random.Random(fault.seed).sample(range(n_words), count):
             hit[word] = max(bits, hit.get(word, 0))
 
-    def _fire(self, name: str) -> bool:
-        """Whether an armed ``name`` fault fires now: its lines asked in script order until one
-        does (the lines after it are not asked, so their counts and draws wait)."""
+    def _firing(self, name: str) -> Fault | None:
+        """The armed ``name`` fault that fires now, or None: its lines asked in script order until
+        one does (the lines after it are not asked, so their counts and draws wait)."""
         with self._lock:
-            return any(a.fires() for a in self._armed if a.fault.name == name)
+            return next((a.fault for a in self._armed if a.fault.name == name and a.fires()), None)
+
+    def _fire(self, name: str) -> bool:
+        """Whether an armed ``name`` fault fires now (:meth:`_firing`)."""
+        return self._firing(name) is not None
+
+    def _reset_due(self, trigger: str, n: int) -> bool:
+        """Whether an armed ``reset`` whose ``trigger`` (``at_go`` or ``after``) is ``n`` is due;
+        it is then spent. Call under the lock."""
+        hit = [
+            a
+            for a in self._armed
+            if a.fault.name == "reset" and not a.spent and int(a.fault.keys.get(trigger, -1)) == n
+        ]
+        for a in hit:
+            a.left = 0
+        return bool(hit)
 
     # ------------------------------------------------------------------ replies and commands
 
@@ -253,13 +269,10 @@ class FaultInjector:
         corrupt = self._fire("corrupt_crc")
         if corrupt:
             self.count("corrupted_crcs")
-        with self._lock:  # the first delay line that fires, as _fire asks
-            ms = next(
-                (float(a.fault.keys["ms"]) for a in self._armed if a.fault.name == "delay_reply" and a.fires()), None
-            )
-        if ms is not None:
+        delay = self._firing("delay_reply")
+        if delay is not None:
             self.count("delayed_replies")
-        return ReplyFault(corrupt=corrupt, delay_s=(ms or 0.0) / 1000.0)
+        return ReplyFault(corrupt=corrupt, delay_s=0.0 if delay is None else float(delay.keys["ms"]) / 1000.0)
 
     def reset_before(self, code: int) -> bool:
         """Whether the device resets on receiving this command, unanswered (``reset at_go``)."""
@@ -267,11 +280,7 @@ class FaultInjector:
             return False
         with self._lock:
             self._gos += 1
-            due = [a for a in self._armed if a.fault.name == "reset" and "at_go" in a.fault.keys and not a.spent]
-            hit = [a for a in due if int(a.fault.keys["at_go"]) == self._gos]
-            for a in hit:
-                a.left = 0
-        return bool(hit)
+            return self._reset_due("at_go", self._gos)
 
     def reset_after(self, code: int) -> bool:
         """Whether the device resets once this command is answered (``reset after``)."""
@@ -279,11 +288,7 @@ class FaultInjector:
             return False
         with self._lock:
             self._commands += 1
-            due = [a for a in self._armed if a.fault.name == "reset" and "after" in a.fault.keys and not a.spent]
-            hit = [a for a in due if int(a.fault.keys["after"]) == self._commands]
-            for a in hit:
-                a.left = 0
-        return bool(hit)
+            return self._reset_due("after", self._commands)
 
     # ------------------------------------------------------------------ sequences and captures
 
