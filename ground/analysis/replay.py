@@ -25,7 +25,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -38,7 +38,7 @@ from firmware_model.pipeline.extract import StarList, extract_stars
 from firmware_model.pipeline.frame_readers import frame_files, read_frame
 from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes
 from firmware_model.pipeline.run import PipelineParams, identify_stars, run_pipeline, warm_up
-from firmware_model.reference_frames import quat_to_matrix, rotation_angle
+from firmware_model.reference_frames import quat_to_matrix
 from ground.analysis.results_log import ResultsLog, plot_summary, summarize
 from ground.arg_types import InputError
 from ground.atomic_write import write_text
@@ -47,80 +47,13 @@ from ground.link.solve_report import add_setup_stages, matched_stars, record_fro
 if TYPE_CHECKING:
     from ground.link.client import Client
 from ground.optional import MissingExtra
-from ground.sim.frame_writer import truth_path_for
+from ground.sim.truth import CORRECT_DEG, MATCH_RADIUS_PX, Truth, score  # noqa: F401 (replay's own names)
 from protocol.commands import Slot
 from protocol.result import Status
 
 _log = logging.getLogger(__name__)  # (``log`` is the exchange log and the results log here)
 
-CORRECT_DEG = 0.1  #: attitude error bound of a correct solve (peer_solvers.md section 5)
-MATCH_RADIUS_PX = 2.0  #: detection <-> truth association radius
 LOOSE_SIGMA_PX = 3.0  #: centroid noise assumed for the approximate attitude before refraction correction
-
-
-@dataclass(frozen=True)
-class Truth:
-    q_icrs_to_sensor: np.ndarray
-    star_id: np.ndarray
-    x: np.ndarray
-    y: np.ndarray
-
-    @classmethod
-    def for_frame(cls, frame_path, frame: Frame | None = None, warn=None) -> Truth | None:
-        """The truth beside a rendered frame (``NAME.truth.json``), or None: absent, unreadable, or
-        (with ``frame``) written for another frame (its camera size or render seed differ). The
-        last two are said through ``warn`` (default: one line on stderr): the frame is then not
-        scored, and nothing else is lost."""
-        path = truth_path_for(frame_path)
-        if not path.is_file():
-            return None
-        say = warn or (lambda msg: _log.warning("st16-ground: %s", msg))
-        try:
-            data = json.loads(path.read_text())
-            stars = data.get("stars", [])
-            truth = cls(
-                np.asarray(data["attitude_quaternion"], dtype=float).reshape(4),
-                np.array([s["id"] for s in stars], dtype=np.int64),
-                np.array([s["x"] for s in stars], dtype=float),
-                np.array([s["y"] for s in stars], dtype=float),
-            )
-            camera, seed = data.get("camera") or {}, data.get("seed")
-        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
-            say(f"{path.name} is not a readable truth file ({type(exc).__name__}: {exc}); frame not scored")
-            return None
-        if frame is not None:
-            size = (camera.get("width"), camera.get("height"))
-            frame_seed = (frame.metadata or {}).get("seed")
-            if (None not in size and size != (frame.width, frame.height)) or (
-                seed is not None and frame_seed is not None and int(seed) != int(frame_seed)
-            ):
-                say(
-                    f"{path.name} describes another frame ({size[0]} x {size[1]}, seed {seed}; the frame is "
-                    f"{frame.width} x {frame.height}, seed {frame_seed}); frame not scored"
-                )
-                return None
-        return truth
-
-    def stars_near(self, x: float, y: float) -> set[int]:
-        """Ids of truth stars within MATCH_RADIUS_PX (a blend may hold several)."""
-        if not len(self.x):
-            return set()
-        return {int(i) for i in self.star_id[np.hypot(self.x - x, self.y - y) <= MATCH_RADIUS_PX]}
-
-
-def score(record: dict, truth: Truth | None) -> dict:
-    """Outcome, attitude error (deg) and wrong-id count of a solve record."""
-    if record.get("q_icrs_to_sensor") is None:
-        return {"outcome": "no_match"}
-    if truth is None:
-        return {"outcome": "unscored"}
-    err = np.degrees(rotation_angle(quat_to_matrix(record["q_icrs_to_sensor"]), quat_to_matrix(truth.q_icrs_to_sensor)))
-    wrong = 0
-    for s in matched_stars(record):
-        near = truth.stars_near(s["x"], s["y"])
-        wrong += int(bool(near) and s["catalog_id"] not in near)
-    outcome = "correct" if err <= CORRECT_DEG and wrong == 0 else "wrong"
-    return {"outcome": outcome, "attitude_error_deg": float(err), "wrong_ids": wrong}
 
 
 _kernels_lock = threading.Lock()

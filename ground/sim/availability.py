@@ -16,8 +16,7 @@ scored.
   ``at_time(t)`` method is moved there first.
 * Solving: ``run_pipeline(frame, camera, catalog)`` with the default catalog (V <= 5) and
   ``PipelineParams()``, the frame carrying no camera, as the open-loop bench.
-* Scoring (as ``ground.analysis.replay.score``, which this layer may not import; a test keeps them
-  equal): ``correct`` when the attitude is within :data:`CORRECT_DEG` of the truth and no matched
+* Scoring (``ground.sim.truth.score``, as ``replay`` scores): ``correct`` when the attitude is within :data:`CORRECT_DEG` of the truth and no matched
   star carries a wrong id (truth stars within :data:`MATCH_RADIUS_PX` of the detection, none with
   its id); ``wrong`` for any other attitude; ``no_solution`` without one. Availability is the
   fraction of frames with a high-confidence (status OK) attitude.
@@ -33,8 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-CORRECT_DEG = 0.1  #: attitude error bound of a correct solve (deg), replay.CORRECT_DEG
-MATCH_RADIUS_PX = 2.0  #: detection <-> truth association radius (px), replay.MATCH_RADIUS_PX
+from ground.sim.truth import CORRECT_DEG, MATCH_RADIUS_PX, Truth
+from ground.sim.truth import score as truth_score
 
 
 @dataclass(frozen=True)
@@ -105,22 +104,20 @@ def render_with_effects(stars, attitude, camera, detector, effects, rng: np.rand
 
 
 def score(record: dict, attitude: np.ndarray, truth_stars: list[dict]) -> dict:
-    """Outcome (``correct``, ``wrong``, ``no_solution``), attitude error (deg) and wrong ids."""
-    from firmware_model.reference_frames import quat_to_matrix, rotation_angle
-    from ground.link.solve_report import matched_stars
+    """Outcome (``correct``, ``wrong``, ``no_solution``), attitude error (deg) and wrong ids:
+    ``truth.score`` against the rendered attitude and stars (its ``no_match`` named ``no_solution``)."""
+    from firmware_model.reference_frames import matrix_to_quat
 
-    if record.get("q_icrs_to_sensor") is None:
+    truth = Truth(
+        matrix_to_quat(attitude),
+        np.array([s["id"] for s in truth_stars], dtype=np.int64),
+        np.array([s["x"] for s in truth_stars], dtype=float),
+        np.array([s["y"] for s in truth_stars], dtype=float),
+    )
+    scored = truth_score(record, truth)
+    if scored["outcome"] == "no_match":
         return {"outcome": "no_solution", "attitude_error_deg": None, "wrong_ids": 0}
-    err = float(np.degrees(rotation_angle(quat_to_matrix(record["q_icrs_to_sensor"]), attitude)))
-    tx = np.array([s["x"] for s in truth_stars])
-    ty = np.array([s["y"] for s in truth_stars])
-    ids = np.array([s["id"] for s in truth_stars], dtype=np.int64)
-    wrong = 0
-    for s in matched_stars(record):
-        near = set(ids[np.hypot(tx - s["x"], ty - s["y"]) <= MATCH_RADIUS_PX].tolist()) if len(ids) else set()
-        wrong += int(bool(near) and s["catalog_id"] not in near)
-    outcome = "correct" if err <= CORRECT_DEG and wrong == 0 else "wrong"
-    return {"outcome": outcome, "attitude_error_deg": err, "wrong_ids": wrong}
+    return scored
 
 
 def near_tracks(x: np.ndarray, y: np.ndarray, tracks: list[dict], radius_px: float = 3.0) -> np.ndarray:
