@@ -266,7 +266,7 @@ class MissionEffects:
     temperature_c: float | None = None
     duty: float | None = None
     orbit: CircularOrbit | None = None
-    t_posix: float | None = None
+    t_posix: float | None = None  #: the exposure's mid-time (POSIX UTC s)
 
     def __post_init__(self):
         hot_pixel_fraction(self.dose_krad)  # refuses a negative dose
@@ -308,7 +308,8 @@ class MissionEffects:
             pos = self.orbit.position_gcrs_km(self.t_posix)
             lat, lon, _ = subsatellite_point(pos, self.t_posix)
             where = (lat, lon)
-            timestamp = Time(self.t_posix, format="unix", scale="utc").isot + "Z"
+            # ``t_posix`` is the exposure's mid-time; the frame's timestamp its start (docs/CONVENTIONS.md)
+            timestamp = Time(self.t_posix - det.exposure_s / 2.0, format="unix", scale="utc").isot + "Z"
             truth["sc_position_km"] = [float(v) for v in pos]
             truth["subsatellite_deg"] = [lat, lon]
         objs: list[FalseObject] = []
