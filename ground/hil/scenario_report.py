@@ -11,11 +11,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from astropy.time import Time
 
 from firmware_model.pipeline.sky_bodies import sky_bodies
 from firmware_model.reference_frames import quat_to_matrix, rotation_angle
-from ground.sim.orbit import in_earth_shadow
+from ground.sim.orbit import in_earth_shadow, utc_iso
 
 #: statuses that say a body is inside its exclusion angle or the image is blinded: no attitude
 EXCLUSION = ("SUN_IN_FOV", "MOON_IN_FOV", "EARTH_IN_FOV", "BLINDED")
@@ -31,14 +30,10 @@ STATUS_COLOURS = {
 BODY_COLOURS = {"sun": "tab:orange", "moon": "tab:blue", "earth": "tab:brown"}
 
 
-def _iso(t_posix: float) -> str:
-    return str(Time(t_posix, format="unix", scale="utc").isot)
-
-
 def geometry_at(log, t_posix: float) -> tuple[dict[str, float], bool]:
     """(edge angle in deg of each body from the truth boresight, sunlit) at POSIX ``t_posix``."""
     r = np.array([np.interp(t_posix, log.truth_t, [p[k] for p in log.truth_r]) for k in range(3)])
-    bodies = sky_bodies(_iso(t_posix), r)
+    bodies = sky_bodies(utc_iso(t_posix), r)
     boresight = quat_to_matrix(log.truth_at(t_posix))[2]
     edges = {name: math.degrees(b.edge_angle(boresight)) for name, b in bodies.items()}
     return edges, not in_earth_shadow(r, bodies["sun"].direction)
@@ -77,7 +72,7 @@ def summarise_scenario(scenario, log, rows: list[dict], tr: dict) -> dict:
     from ground.sim.orbit import CircularOrbit
 
     o = scenario.orbit
-    orbit = CircularOrbit(o.altitude_km, o.inclination_deg, o.raan_deg, o.arg_latitude_deg, _iso(log.truth_t[0]))
+    orbit = CircularOrbit(o.altitude_km, o.inclination_deg, o.raan_deg, o.arg_latitude_deg, utc_iso(log.truth_t[0]))
     limits = scenario.limits_deg
     stamped = [r for r in rows if "t_mid" in r]
     t_up = np.array([r["t_mid"] for r in stamped])
@@ -117,7 +112,7 @@ def _moon_illuminated(t_posix: float) -> float:
     """Illuminated fraction of the Moon's disc seen from the geocentre at ``t_posix``: the phase
     angle from the elongation and the distances, ``k = (1 + cos i) / 2`` (Meeus, Astronomical
     Algorithms, 2nd ed., eqs. 48.1 and 48.3)."""
-    b = sky_bodies(_iso(t_posix))
+    b = sky_bodies(utc_iso(t_posix))
     elongation = math.acos(float(np.clip(np.dot(b["sun"].direction, b["moon"].direction), -1.0, 1.0)))
     phase = math.atan2(
         b["sun"].distance_km * math.sin(elongation), b["moon"].distance_km - b["sun"].distance_km * math.cos(elongation)

@@ -29,13 +29,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from astropy.time import Time
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
 from firmware_model.pipeline.sky_bodies import sky_bodies
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, quat_to_matrix
-from ground.sim.orbit import CircularOrbit, in_earth_shadow
+from ground.sim.orbit import CircularOrbit, in_earth_shadow, utc_iso
 
 NAMES = ("none", "eclipse-exit", "moon-slew")
 
@@ -137,10 +136,6 @@ def _checked(sc: Scenario, step_s: float = 1.0) -> Scenario:
     return sc
 
 
-def _iso(t_posix: float) -> str:
-    return str(Time(t_posix, format="unix", scale="utc").isot)
-
-
 def _unit(v) -> np.ndarray:
     v = np.asarray(v, dtype=float)
     return v / np.linalg.norm(v)
@@ -172,15 +167,15 @@ def sunrise_after(orbit: CircularOrbit, t0_posix: float, sun: np.ndarray) -> flo
 
 def _eclipse_exit(start: float, limits: dict[str, float]) -> Scenario:
     s_lim, rate = math.radians(limits["sun"]), math.radians(SLEW_RATE_DEG_S)
-    sun = sky_bodies(_iso(start))["sun"].direction
+    sun = sky_bodies(utc_iso(start))["sun"].direction
     raan = math.degrees(math.atan2(sun[1], sun[0]))  # noon-midnight plane: the longest eclipse
-    probe = CircularOrbit(ALTITUDE_KM, INCLINATION_DEG, raan, 0.0, _iso(start))
+    probe = CircularOrbit(ALTITUDE_KM, INCLINATION_DEG, raan, 0.0, utc_iso(start))
     t_exit = sunrise_after(probe, start, sun)
     arg_lat = math.degrees(probe.mean_motion_rad_s * (t_exit - start - HOLD_S)) % 360.0  # sunrise at HOLD_S
-    orbit = CircularOrbit(ALTITUDE_KM, INCLINATION_DEG, raan, arg_lat, _iso(start))
-    earth = sky_bodies(_iso(start), orbit.position_gcrs_km(start))["earth"]
+    orbit = CircularOrbit(ALTITUDE_KM, INCLINATION_DEG, raan, arg_lat, utc_iso(start))
+    earth = sky_bodies(utc_iso(start), orbit.position_gcrs_km(start))["earth"]
     cone = earth.angular_radius + math.radians(limits["earth"] + EARTH_CLEAR_DEG)  # boresight to the Earth's centre
-    need = cone - (s_lim - math.radians(DEPTH_DEG)) - sky_bodies(_iso(start))["sun"].angular_radius
+    need = cone - (s_lim - math.radians(DEPTH_DEG)) - sky_bodies(utc_iso(start))["sun"].angular_radius
     ends = s_lim + math.radians(MARGIN_DEG)
 
     def sun_from_earth(t: float) -> float:  # rad, the Sun's angle from the Earth's direction at t s
@@ -211,22 +206,22 @@ def _closest(orbit: CircularOrbit, start: float, slew: Slew, step_s: float = 1.0
     """Each body's closest edge angle (deg) to the planned boresight, every ``step_s`` of the slew."""
     out = {name: math.inf for name in ("sun", "moon", "earth")}
     for t in np.arange(0.0, slew.t_end + step_s, step_s):
-        for name, b in sky_bodies(_iso(start + t), orbit.position_gcrs_km(start + t)).items():
+        for name, b in sky_bodies(utc_iso(start + t), orbit.position_gcrs_km(start + t)).items():
             out[name] = min(out[name], math.degrees(b.edge_angle(slew.boresight(t))))
     return out
 
 
 def _moon_slew(start: float, limits: dict[str, float]) -> Scenario:
     m_lim, rate = math.radians(limits["moon"]), math.radians(SLEW_RATE_DEG_S)
-    geo = sky_bodies(_iso(start))
+    geo = sky_bodies(utc_iso(start))
     m, sun = geo["moon"].direction, geo["sun"].direction
     inc = math.radians(INCLINATION_DEG)
     u = math.asin(float(np.clip(m[2] / math.sin(inc), -1.0, 1.0)))  # the orbit passes over the sub-lunar point
     raan = math.atan2(m[1], m[0]) - math.atan2(math.sin(u) * math.cos(inc), math.cos(u))
-    orbit = CircularOrbit(ALTITUDE_KM, INCLINATION_DEG, math.degrees(raan) % 360.0, math.degrees(u), _iso(start))
+    orbit = CircularOrbit(ALTITUDE_KM, INCLINATION_DEG, math.degrees(raan) % 360.0, math.degrees(u), utc_iso(start))
     half = m_lim + geo["moon"].angular_radius + math.radians(MARGIN_DEG)
     t_cross = HOLD_S + half / rate
-    moon = sky_bodies(_iso(start + t_cross), orbit.position_gcrs_km(start + t_cross))["moon"]
+    moon = sky_bodies(utc_iso(start + t_cross), orbit.position_gcrs_km(start + t_cross))["moon"]
     across = _unit(np.cross(moon.direction, sun))  # the path heads across the Sun-Moon line
     slew = _path(moon.direction, _unit(np.cross(moon.direction, across)), half, half, HOLD_S, rate)
     return Scenario("moon-slew", "moon", orbit, slew, limits, slew.t_end + SETTLE_S, start)

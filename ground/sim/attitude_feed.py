@@ -55,9 +55,9 @@ from firmware_model.reference_frames import quat_to_matrix
 from ground.sim.detector_effects import SOURCE_OPTIONS, effects_from_options
 from ground.sim.exposure import ExposureRenderer
 from ground.sim.feed_wire import IDLE_S, FeedUrl, Listener, Sample
-from ground.sim.orbit import CircularOrbit
+from ground.sim.orbit import CircularOrbit, utc_iso
 from ground.sim.sensor_sim import DetectorModel
-from ground.sim.sky_source import check_position, utc_iso
+from ground.sim.sky_source import check_position
 from ground.sim.smear import SmearPSF, TooFast
 
 NORM_TOL = 1e-6  #: | |q| - 1 | above this is an unnormalised quaternion

@@ -41,7 +41,7 @@ from firmware_model.camera import CameraModel
 from firmware_model.pipeline.raw_frame import pattern_codes
 from firmware_model.pipeline.sky_bodies import SkyBody, sky_bodies
 from ground.sim.detector_effects import RenderInputs
-from ground.sim.orbit import CircularOrbit, in_earth_shadow
+from ground.sim.orbit import CircularOrbit, in_earth_shadow, utc_iso
 from ground.sim.sensor_sim import DetectorModel
 
 V_SUN = -26.74  #: the Sun's apparent V magnitude at 1 au (Allen's Astrophysical Quantities)
@@ -183,8 +183,6 @@ class Glare:
 
     def at_time(self, t_posix: float) -> Glare:
         """The same glare at POSIX UTC ``t_posix`` (s), the spacecraft on ``orbit`` when given."""
-        from ground.sim.sky_source import utc_iso
-
         pos = self.orbit.position_gcrs_km(t_posix) if self.orbit is not None else self.sc_position_km
         return Glare(utc_iso(t_posix), pos, self.pst, self.earth_albedo, self.orbit)
 

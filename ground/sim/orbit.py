@@ -99,6 +99,11 @@ class CircularOrbit:
         return cls(**kwargs)  # type: ignore[arg-type]
 
 
+def utc_iso(t_posix: float) -> str:
+    """ISO-8601 UTC string (ms) of POSIX time ``t_posix`` (s), as astropy writes it."""
+    return str(Time(t_posix, format="unix", scale="utc").isot)
+
+
 def in_earth_shadow(position_km: np.ndarray, sun_direction: np.ndarray) -> bool:
     """Whether a spacecraft at ``position_km`` (GCRS) is in the Earth's cylindrical shadow, the Sun
     along the unit vector ``sun_direction`` (penumbra ignored: it lasts about 8 s in LEO)."""

@@ -40,7 +40,7 @@ from firmware_model.pipeline.sky_bodies import ATMOSPHERE_KM, EARTH_RADIUS_KM
 from firmware_model.reference_frames import quat_to_matrix
 from ground.sim.detector_effects import effects_from_options
 from ground.sim.exposure import ExposureRenderer
-from ground.sim.orbit import CircularOrbit
+from ground.sim.orbit import CircularOrbit, utc_iso
 from ground.sim.sensor_sim import DetectorModel
 
 ORBIT_HEADER = "orbit:"  #: the comment line that gives the schedule's orbit: ``# orbit: ALT,...``
@@ -55,11 +55,6 @@ class Exposure:
     seed: int
     time_utc: str | None = None  #: the exposure's start, ISO-8601 UTC (None: not given)
     position_km: np.ndarray | None = None  #: GCRS position (km)
-
-
-def utc_iso(t_posix: float) -> str:
-    """ISO-8601 UTC string (ms) of POSIX time ``t_posix`` (s)."""
-    return Time(t_posix, format="unix", scale="utc").isot
 
 
 def check_position(r: np.ndarray) -> str | None:
