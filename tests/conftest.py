@@ -1,15 +1,51 @@
 """Shared fixtures: the read-only data in ../shared (skipped cleanly when absent, a failure under
 CI=true, where CI lays ../shared beside the clone); the [test] extra's packages (a failure when one
-cannot be imported: a broken install, never a skip); the long tests' markers (:data:`LONG_TESTS`)."""
+cannot be imported: a broken install, never a skip); the long tests' markers (:data:`LONG_TESTS`);
+the run's own caches (:data:`PRIVATE_HOME`).
 
+The suite runs on caches of its own, as a new user's first run does: before any test module is
+imported, ``HOME`` and the ``XDG_*_HOME`` folders point into a fresh temporary folder (removed at
+the end of the run), so the sky database, the field catalogs, the device's pattern indexes and
+the console history are built there, never read from or written to the user's ``~/.cache``;
+device and command-line subprocesses inherit it. The compiled kernels stay shared (numba's cache
+beside the package, or ``NUMBA_CACHE_DIR``: settled by importing ``firmware_model`` before the
+switch, which exports ``NUMBA_CACHE_DIR`` when it is the user cache's), so a run does not
+compile them again; ``tests/test_ready.py`` compiles its own where it needs a cold start."""
+
+import atexit
 import importlib
 import os
+import shutil
+import tempfile
 import threading
 import warnings
 from pathlib import Path
 
 import pytest
 from hypothesis import settings
+
+import firmware_model  # noqa: F401 - settles where the kernels are cached, with the user's own HOME
+
+
+def _private_home() -> Path:
+    """A fresh HOME with its own cache, config, data and state folders, exported for this process
+    and every process it starts; removed when the run ends."""
+    home = Path(tempfile.mkdtemp(prefix="st16-tests-home-"))
+    atexit.register(shutil.rmtree, home, True)
+    os.environ["HOME"] = str(home)
+    for name, sub in (
+        ("XDG_CACHE_HOME", ".cache"),
+        ("XDG_CONFIG_HOME", ".config"),
+        ("XDG_DATA_HOME", ".local/share"),
+        ("XDG_STATE_HOME", ".local/state"),
+    ):
+        (home / sub).mkdir(parents=True)  # made: astropy ignores (with a warning) an XDG folder that is absent
+        os.environ[name] = str(home / sub)
+    return home
+
+
+#: The run's own HOME (its caches under ``.cache``): :func:`_private_home`.
+PRIVATE_HOME = _private_home()
 
 # Property tests check behaviour, not speed: no per-example deadline (the machine is shared).
 settings.register_profile("project", deadline=None)

@@ -64,11 +64,31 @@ def test_the_kernel_cache_goes_where_it_can_be_written(tmp_path):
 
 
 def test_warm_up_command_says_the_kernels_and_the_sky_database_are_ready():
+    """Into the run's own cache (tests/conftest.py), never the user's ~/.cache."""
+    from conftest import PRIVATE_HOME
+
+    from ground.catalog.sky_database import default_path
+
     run = _run("from ground.cli.main import main; raise SystemExit(main(['warm-up']))")
     assert run.returncode == 0, run.stderr
     kernels, database = run.stdout.strip().splitlines()
     assert kernels.startswith("kernels: ready in ") and database.startswith("sky database ")
     assert "patterns of" in database and "fields 5-60 deg" in database
+    assert default_path().is_relative_to(PRIVATE_HOME) and default_path().is_file()
+
+
+def test_the_suite_runs_on_its_own_caches():
+    """tests/conftest.py: a private HOME and XDG cache for this process and the processes it
+    starts; the compiled kernels stay where the user's install keeps them."""
+    from conftest import PRIVATE_HOME
+
+    from firmware_model import user_cache_dir
+
+    assert user_cache_dir().is_relative_to(PRIVATE_HOME)
+    run = _run("from firmware_model import user_cache_dir; print(user_cache_dir())")
+    assert run.returncode == 0, run.stderr
+    assert Path(run.stdout.strip()).is_relative_to(PRIVATE_HOME)
+    assert not os.environ.get("NUMBA_CACHE_DIR", "").startswith(str(PRIVATE_HOME))  # kernels: shared
 
 
 # ------------------------------------------------------------------ the device
