@@ -14,6 +14,7 @@ from protocol.commands import (
     AddressedBytes,
     Code,
     Combination,
+    CombinationFailure,
     CrcReply,
     CrcRequest,
     DarkWindow,
@@ -29,6 +30,7 @@ from protocol.commands import (
     ReadRange,
     SlotImage,
     SlotRequest,
+    TimeReply,
     WriteAck,
     WriteEdac,
     WriteFile,
@@ -50,7 +52,9 @@ class Command:
     None for an extension, whose NACKs the ICD states as rules); ``mark``, the ICD's marker after
     the name; ``idempotent``, a client may repeat it on a timeout; ``parts``, the reply may span
     several messages; ``decode_first``, the device decodes the data field before anything else
-    (IMAGE checks mode and subcommand first, FAULT whether fault injection is on)."""
+    (IMAGE checks mode and subcommand first, FAULT whether fault injection is on); ``failure``, the
+    layout of a refusal when the ICD gives the command its own (COMBINATION's failure reply; None:
+    our NACK, :class:`~protocol.commands.NackInfo`)."""
 
     code: Code
     request: type[Layout] | None
@@ -63,6 +67,7 @@ class Command:
     idempotent: bool = False
     parts: bool = False
     decode_first: bool = True
+    failure: type[CombinationFailure] | None = None
 
     @property
     def name(self) -> str:
@@ -199,10 +204,10 @@ TABLE: tuple[Command, ...] = (
         Code.IMAGE,
         DarkWindow,
         DarkWindow,
-        "IMAGE dark window BUFFER ROW COL ROWS COLS [VALUES]",
-        "u8 subcommand; 0 = Dark Window (26 bytes, below)",
-        "echo of the 26 bytes",
-        "WRONG_MODE, BAD_LENGTH, BAD_PARAMETER, OUT_OF_RANGE, NOT_SUPPORTED (subcommand 1), TOO_LARGE",
+        "IMAGE dark window BUFFER ROW COL ROWS COLS [VALUES] | poke BUFFER ROW COL FILE.npy",
+        "u8 subcommand; 0 = Dark Window (26 bytes), 1 = Rectangular Poke (10 bytes + pixels), below",
+        "echo of the 26 bytes; of the poke's 10-byte head",
+        "WRONG_MODE, BAD_LENGTH, BAD_PARAMETER, OUT_OF_RANGE, TOO_LARGE",
         decode_first=False,
     ),
     Command(
@@ -212,17 +217,18 @@ TABLE: tuple[Command, ...] = (
         "COMBINATION GO_CODE MASK: sequence + selected result sections",
         "u8 go code, section mask: 3 bytes (4-byte field, as COSMOS sends) or 4 bytes (5-byte field) **[ours: both]**",
         "parts: u16 address, bytes",
-        "§7, NOT_SUPPORTED (0x0800), BAD_PARAMETER (unknown bits)",
+        "failure reply (§7): u8 sequence state + text, for every refusal",
         parts=True,
+        failure=CombinationFailure,
     ),
     Command(
-        Code.XFER_BEGIN,
-        XferBegin,
-        XferStatus,
-        "XFER BEGIN: open or resume a transfer into a slot (st16-ground upload)",
-        "u8 slot, u32 length, u32 CRC-32 of the whole image",
-        _STATUS,
+        Code.TIME,
         None,
+        TimeReply,
+        "TIME: the device clock (u48 microseconds, latched at the command's last FEND)",
+        "none",
+        "u48 microseconds, least significant bit 0",
+        "BAD_LENGTH if data (an old XFER BEGIN: now 0x1A)",
         idempotent=True,
     ),
     Command(
@@ -283,6 +289,16 @@ TABLE: tuple[Command, ...] = (
         "u8 subcommand, u32 faults armed, 9 × u32 fault counters (§13)",
         None,
         decode_first=False,
+    ),
+    Command(
+        Code.XFER_BEGIN,
+        XferBegin,
+        XferStatus,
+        "XFER BEGIN: open or resume a transfer into a slot (st16-ground upload)",
+        "u8 slot, u32 length, u32 CRC-32 of the whole image",
+        _STATUS,
+        None,
+        idempotent=True,
     ),
 )
 

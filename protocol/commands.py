@@ -10,6 +10,7 @@ data field it cannot accept. ``protocol.command_table`` says which payloads each
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any
@@ -21,7 +22,8 @@ from protocol.nsp import MAX_DATA
 
 
 class Code(IntEnum):
-    """NSP command codes (0x00-0x12 ST-16; 0x13-0x19 our extensions)."""
+    """NSP command codes (0x00-0x13 the ICD's; 0x14-0x1A our extensions, on codes the ICD leaves
+    unassigned: docs/ICD.md section 6)."""
 
     PING = 0x00
     INIT = 0x01
@@ -37,18 +39,20 @@ class Code(IntEnum):
     READ_RESULT = 0x0D
     IMAGE = 0x10
     COMBINATION = 0x12
+    TIME = 0x13  #: the supervisor's clock (ICD page 1-35918)
     # --- extensions (ours) ---
-    XFER_BEGIN = 0x13
     XFER_DATA = 0x14
     XFER_STATUS = 0x15
     XFER_COMMIT = 0x16
     SLOT_INFO = 0x17
     XFER_ABORT = 0x18
     FAULT = 0x19  #: scripted faults, only with ``st16-device --fault-injection`` (docs/ICD.md section 13)
+    XFER_BEGIN = 0x1A  #: was 0x13 before TIME took that code (docs/ICD.md section 9)
 
 
-#: Codes the research does not document, plus 0x1F; always NACKed (as are unused 0x1A-0x1E).
-UNASSIGNED = (0x05, 0x0C, 0x0E, 0x0F, 0x11, 0x1A, 0x1B, 0x1C, 0x1D, 0x1E, 0x1F)
+#: Codes the emulator does not implement; always NACKed UNKNOWN_COMMAND.
+UNASSIGNED = (0x05, 0x0C, 0x0E, 0x0F, 0x11, 0x1B, 0x1C, 0x1D, 0x1E, 0x1F)
+
 
 APP_START_ADDRESS = 0x00002000  #: INIT address that starts the application (COSMOS)
 
@@ -193,22 +197,26 @@ class CrcReply(Layout):
     NAME = "CRC reply"
 
 
+_FILE_INDEX = (lambda a: a // 4, lambda i: i * 4)  #: file index = EDAC address / 4 (ICD page 1-35916)
+
+
 @dataclass(frozen=True)
 class ReadFile(Layout):
-    """READ FILE: short form u8 file index (EDAC address = 4 * index, ours), long form u16 EDAC
-    address (multiple of 4). Reply: the same index/address field + the 4 bytes."""
+    """READ FILE: short form u8 file index, long form u16 file index; either is the EDAC address
+    divided by 4 (ICD page 1-35916). ``address`` is the EDAC byte address. Reply: the same index
+    field + the 4 bytes."""
 
     address: int
     long: bool = False
 
-    FORMS = {False: Form("<B", {"address": (lambda a: a // 4, lambda i: i * 4)}), True: Form("<H")}
+    FORMS = {False: Form("<B", {"address": _FILE_INDEX}), True: Form("<H", {"address": _FILE_INDEX})}
     SELECT = "long"
     NAME = "READ FILE"
 
 
 @dataclass(frozen=True)
 class WriteFile(Layout):
-    """WRITE FILE: short form u8 index + 4 bytes, long form u16 address + 4 bytes; reply echoes it.
+    """WRITE FILE: short form u8 index + 4 bytes, long form u16 index + 4 bytes; reply echoes it.
     The READ FILE reply has this layout too: the request's index/address field + the 4 bytes."""
 
     address: int
@@ -254,14 +262,18 @@ class WriteEdac(Layout):
 
 
 class GoBits(IntEnum):
-    """GO code bits (COSMOS names)."""
+    """GO code bits (COSMOS names; INJECTED is ours)."""
 
     ON = 0x01
-    LOAD_NAND = 0x02
-    NOT_OFF = 0x04
-    COMMAND = 0x08
+    LOAD_NAND = 0x02  #: boot the functional processor from NAND when it is not running (ICD page 1-35916)
+    NOT_OFF = 0x04  #: with NO_RESET: use the cached triangle table (ICD page 1-35924)
+    COMMAND = 0x08  #: start a sequence; a GO without it terminates a running one
     TEST = 0x10
     NO_RESET = 0x20
+    INJECTED = 0x40  #: process image buffer 0 (IMAGE Rectangular Poke) instead of exposing (ours)
+
+
+CACHED_TABLE_BITS = GoBits.NOT_OFF | GoBits.NO_RESET  #: both set: the triangle table may be cached
 
 
 GO_OPERATIONAL = 0x0B  #: ON | LOAD_NAND | COMMAND, COSMOS routine attitude read
@@ -293,6 +305,35 @@ class DarkWindow(Layout):
     NAME = "IMAGE dark window"
 
 
+@dataclass(frozen=True)
+class RectangularPoke(Layout):
+    """IMAGE subcommand 1 (ours: the ICD page shows no layout): buffer (0 or 1), first row and
+    column, rows, columns, then rows x columns u16 pixel values, row by row (``pixels``, raw
+    little-endian bytes). The reply echoes the 10-byte head (``pixels`` empty)."""
+
+    buffer: int
+    row: int
+    col: int
+    rows: int
+    cols: int
+    pixels: bytes = b""
+
+    SUBCOMMAND = 1
+
+    HEAD = "<BBHHHH"
+    FIELDS = ("SUBCOMMAND", "buffer", "row", "col", "rows", "cols")
+    TAIL = "pixels"
+    TAIL_MIN = 0
+    NAME = "IMAGE rectangular poke"
+
+    def head(self) -> bytes:
+        """The reply: this poke's 10-byte head."""
+        return RectangularPoke(self.buffer, self.row, self.col, self.rows, self.cols).pack()
+
+
+MAX_POKE_PIXELS = (MAX_DATA - struct.calcsize(RectangularPoke.HEAD)) // 2  #: pixels one poke carries
+
+
 class _MaskForms(dict[int, Form]):
     """COMBINATION forms by mask width: u8 go code + the mask in ``n`` bytes (any ``n`` packs)."""
 
@@ -316,6 +357,59 @@ class Combination(Layout):
     FORMS = _MaskForms({n: _MaskForms.form(n) for n in (3, 4)})  #: the two the device accepts
     SELECT = "mask_bytes"
     NAME = "COMBINATION"
+
+
+class SequenceState(IntEnum):
+    """Byte 0 of a COMBINATION failure reply (ICD page 1-35918 names the field; its table is not
+    public, so these values are ours)."""
+
+    IDLE = 0  #: no sequence has run since power-on or the last reset
+    RUNNING = 1  #: a sequence is running (or the functional processor is booting)
+    DONE = 2  #: the last sequence completed
+    TERMINATED = 3  #: the last sequence was terminated by a GO, or abandoned by a reset
+
+
+@dataclass(frozen=True)
+class CombinationFailure(Layout):
+    """COMBINATION failure reply (ICD page 1-35918): ACK 0, one message with Final set; u8
+    sequence state (:class:`SequenceState`), then the error text, ASCII, truncated to fit."""
+
+    state: int
+    text: str = ""
+
+    HEAD = "<B"
+    TAIL = "text"
+    TAIL_MIN = 0
+    TAIL_CODEC = (
+        lambda text: text.encode("ascii", "replace")[: MAX_DATA - 1],
+        lambda raw: raw.decode("ascii", "replace"),
+    )
+    NAME = "COMBINATION failure"
+
+    @property
+    def state_name(self) -> str:
+        try:
+            return SequenceState(self.state).name
+        except ValueError:
+            return f"state {self.state}"
+
+
+# ----------------------------------------------------------------------------- TIME
+
+TIME_BITS = 48  #: width of the supervisor clock (ICD page 1-35918)
+
+
+@dataclass(frozen=True)
+class TimeReply(Layout):
+    """TIME reply (ICD page 1-35918): the supervisor clock, an unsigned 48-bit count of
+    microseconds whose least significant bit is 0, latched when the command's final FEND arrived.
+    Little-endian, as every field of the link (ours: the page shows no byte order). TIME takes
+    no data field."""
+
+    micros: int
+
+    FORMS = {None: Form("<6s", {"micros": le_int(6)})}
+    NAME = "TIME reply"
 
 
 # ----------------------------------------------------------------------------- DIAGNOSTIC

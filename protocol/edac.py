@@ -36,6 +36,9 @@ FAULT_COUNTERS = (
     "catalog_reloads",
 )
 FAULT_COUNTERS_AT = 0x009C  #: EDAC address of the first fault counter (u32 LE each)
+#: EDAC address of the functional processor's boot message (ASCII, NUL padded, 64 bytes): the ASIC
+#: ID message a GO with LOAD_NAND leaves (ICD page 1-35916; the place and text are ours)
+BOOT_MESSAGE_AT = 0x00C0
 
 EDAC_DTYPE = np.dtype(
     {
@@ -52,6 +55,7 @@ EDAC_DTYPE = np.dtype(
             "spare",
             "banner",
             *FAULT_COUNTERS,
+            "boot_message",
             "scratch",
         ],
         "formats": [
@@ -67,6 +71,7 @@ EDAC_DTYPE = np.dtype(
             "u1",
             "S64",
             *["<u4"] * len(FAULT_COUNTERS),
+            "S64",
             f"{SCRATCH[1] - SCRATCH[0]}u1",
         ],
         "offsets": [
@@ -82,6 +87,7 @@ EDAC_DTYPE = np.dtype(
             0x5B,
             0x5C,
             *range(FAULT_COUNTERS_AT, FAULT_COUNTERS_AT + 4 * len(FAULT_COUNTERS), 4),
+            BOOT_MESSAGE_AT,
             SCRATCH[0],
         ],
         "itemsize": SIZE,

@@ -9,7 +9,8 @@ length is reported at EDAC 0x0050 as the total :data:`TOTAL_LENGTH`.
 Our choices (docs/ICD.md): quaternions are scalar first ``[w, x, y, z]``, ICRS -> sensor
 (docs/CONVENTIONS.md), unless the device parameter ``quaternion_order`` makes those of the
 standard structure scalar last (:class:`QuaternionOrder`, flagged in ``hardware.status``);
-``epoch`` is POSIX UTC seconds; ``return_code`` keeps the COSMOS bits in bits 0-6, bit 7 set
+``epoch`` is the exposure's mid-time on the device clock (seconds of the TIME count; the same
+instant in POSIX UTC is ``ext.utc_epoch``); the hardware section begins with flash error counts; ``return_code`` keeps the COSMOS bits in bits 0-6, bit 7 set
 when our status (:class:`Status`, bits 8-15) is not OK, and the status is mirrored into the low
 byte of ``hardware.status`` for readers that keep only the return code's low byte (docs/ICD.md
 section 10.2, COSMOS compatibility).
@@ -31,7 +32,7 @@ def _struct(fields: list[tuple[str, str | np.dtype[Any], int]], itemsize: int) -
 
 HARDWARE = _struct(
     [
-        ("unused", "12u1", 0x00),
+        ("flash_errors", "<3u4", 0x00),
         ("detector_temp_raw", "<i2", 0x0C),
         ("processor_temp_raw", "<u2", 0x0E),
         ("status", "<u4", 0x10),
@@ -117,7 +118,7 @@ ERS = _struct(
         ("return_code", "<i4", 4),
         ("star_mapping", "<10i4", 8),
         ("fit_residual", "<f8", 48),
-        ("omega_covariance", "<6f8", 56),
+        ("spare", "48u1", 56),
     ],
     104,
 )
@@ -146,12 +147,12 @@ MATCHING = _struct(
         ("consensus_rms", "<f8", 48),
         ("matched_stars", "<10i4", 56),
         ("quaternion", "<4f8", 96),
-        ("omega_covariance", "<6f8", 128),
+        ("attitude_covariance", "<6f8", 128),
     ],
     176,
 )
 
-EXT_MAX_STARS = 31
+EXT_MAX_STARS = 29
 
 #: Solar-system bodies a star's flags can name (bits 8-11: 1 + index here; 0 none).
 BODIES = ("mercury", "venus", "mars", "jupiter", "saturn", "uranus", "neptune", "moon")
@@ -177,7 +178,9 @@ EXT_STAR = _struct(
 )
 
 EXT_MAGIC = 0x31545343  # b"CST1"
-EXT_VERSION = 3  #: 2: optics block added, EXT_MAX_STARS 32 -> 31 (same total length); 3: search block
+#: 2: optics block added, EXT_MAX_STARS 32 -> 31 (same total length); 3: search block; 4: time and
+#: rate block (the rate covariance moved here from ``ers`` and ``matching``), EXT_MAX_STARS 31 -> 29
+EXT_VERSION = 4
 EXT_REASON_BYTES = 96  #: UTF-8 reason text (NUL padded) when the status is not OK
 
 #: Optics flags (``ext.optics_flags``).
@@ -189,7 +192,7 @@ PSF_MEASURED = 0x04  #: ``psf_sigma`` was measured on this frame (else: the sett
 SEARCH_BUDGET_REACHED = 0x01  #: a counted search budget ran out (the same on every machine)
 DEADLINE_MISSED = 0x02  #: flight timing only: the deadline stopped a search (the answer is what it had by then)
 
-#: Extension header (ours), 168 bytes, then EXT_MAX_STARS stars. ``quaternion`` is the solved
+#: Extension header (ours), 248 bytes, then EXT_MAX_STARS stars. ``quaternion`` is the solved
 #: attitude (scalar first, ICRS -> sensor); ``sigma`` its 1-sigma errors about sensor x, y, z (rad);
 #: ``solve_time`` seconds spent in the solver; CRC-32s identify the catalog and frame used;
 #: ``colour_rms`` RMS of (rg, bg) minus the catalog's over the matched stars, after the device's
@@ -203,7 +206,10 @@ DEADLINE_MISSED = 0x02  #: flight timing only: the deadline stopped a search (th
 #: (px) over ``optics_stars`` stars, ``optics_flags`` (OPTICS_*, PSF_MEASURED), ``n_planets``
 #: detections labelled as planets or the moon, ``focal_scale`` the search step that solved. Search
 #: block: ``search_flags`` (SEARCH_BUDGET_REACHED, DEADLINE_MISSED), the counted work of the frame:
-#: ``seeds`` pattern seeds refined and ``verifications`` hypotheses verified.
+#: ``seeds`` pattern seeds refined and ``verifications`` hypotheses verified. Time and rate block:
+#: ``omega_covariance`` the covariance of the result's ``omega`` (xx, yy, zz, xy, xz, yz,
+#: (rad/s)^2; a tracked answer's, else 0) and ``utc_epoch``, the exposure's mid-time in POSIX UTC
+#: seconds (the standard ``epoch`` is the same instant on the device clock).
 EXTENSION = _struct(
     [
         ("magic", "<u4", 0),
@@ -235,10 +241,13 @@ EXTENSION = _struct(
         ("n_planets", "u1", 155),
         ("focal_scale", "<f4", 156),
         ("spare2", "8u1", 160),
-        ("stars", np.dtype((EXT_STAR, (EXT_MAX_STARS,))), 168),
-        ("reason", f"S{EXT_REASON_BYTES}", 168 + 40 * EXT_MAX_STARS),
+        ("omega_covariance", "<6f8", 168),
+        ("utc_epoch", "<f8", 216),
+        ("spare3", "24u1", 224),
+        ("stars", np.dtype((EXT_STAR, (EXT_MAX_STARS,))), 248),
+        ("reason", f"S{EXT_REASON_BYTES}", 248 + 40 * EXT_MAX_STARS),
     ],
-    168 + 40 * EXT_MAX_STARS + EXT_REASON_BYTES,
+    248 + 40 * EXT_MAX_STARS + EXT_REASON_BYTES,
 )
 
 STANDARD_LENGTH = 2616  #: 0x0A38, the length COSMOS waits for at EDAC 0x004C
@@ -333,6 +342,7 @@ class Status(IntEnum):
     MOON_IN_FOV = 11  #: the Moon inside its exclusion angle: no attitude
     EARTH_IN_FOV = 12  #: the Earth's bright limb inside its exclusion angle: no attitude
     BLINDED = 13  #: the image is blinded (saturated or near full scale) and no attitude says by what
+    TERMINATED = 14  #: the sequence was terminated by a GO without COMMAND: no attitude
 
 
 def make_return_code(status: Status | int, bits: int = 0) -> int:

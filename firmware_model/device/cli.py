@@ -33,6 +33,7 @@ import protocol
 from firmware_model import user_cache_dir
 from firmware_model.camera import CameraModel
 from firmware_model.device.catalog_slot import catalog_slot_handler
+from firmware_model.device.clock import ClockModel
 from firmware_model.device.device import Device, SlotHandler, SolveContext
 from firmware_model.device.faults import Fault, parse_script
 from firmware_model.device.link import DEFAULT_IDLE_TIMEOUT, Link, open_link, serve
@@ -44,6 +45,7 @@ from firmware_model.device.sensor_input import (
     load_frame_source,
     params_slot_handler,
 )
+from firmware_model.device.sequence import Timing
 from firmware_model.device.slots import SlotStore
 from firmware_model.pipeline import scale_free
 from firmware_model.pipeline.run import PipelineParams
@@ -52,8 +54,7 @@ from protocol.commands import Slot
 from protocol.result import QuaternionOrder
 
 DEFAULT_PACED_TURNAROUND_MS = 1.0  #: ours; the research documents no turnaround
-DEFAULT_EXPOSURE_MS = 100.0  #: the simulated detector's exposure (ground.sim.sensor_sim.DetectorModel)
-DEFAULT_PROCESSING_MS = 100.0  #: ours; the research documents no processing time
+DEFAULT_TIMING = Timing()  #: --timing realistic's defaults: about 2 Hz, the real unit's cadence
 DEFAULT_DEADLINE_MS = 1500.0  #: ours: flight timing's search deadline, inside the 2 s GO-to-result budget
 #: The interpreter's thread switch interval in the device (Python's default is 5 ms): the link
 #: thread waits up to this long for the GIL each time it wakes (select, read, write) while a GO
@@ -119,13 +120,28 @@ def build_parser() -> argparse.ArgumentParser:
         "--timing",
         choices=("fast", "realistic"),
         default="fast",
-        help="fast: a result as soon as it is computed (default); realistic: held until "
-        "--exposure-ms + --processing-ms after GO, the cadence of a real sensor",
+        help="fast: a result as soon as it is computed, an emulator convenience (default); realistic: "
+        "held until --exposure-ms + --processing-ms after GO, the real unit's cadence of about 2 Hz, "
+        "and the functional processor's boot takes --boot-ms",
     )
-    parser.add_argument("--exposure-ms", type=float, help=f"with --timing realistic (default {DEFAULT_EXPOSURE_MS:g})")
     parser.add_argument(
-        "--processing-ms", type=float, help=f"with --timing realistic (default {DEFAULT_PROCESSING_MS:g})"
+        "--exposure-ms", type=float, help=f"with --timing realistic (default {DEFAULT_TIMING.exposure_s * 1e3:g})"
     )
+    parser.add_argument(
+        "--processing-ms", type=float, help=f"with --timing realistic (default {DEFAULT_TIMING.processing_s * 1e3:g})"
+    )
+    parser.add_argument(
+        "--boot-ms",
+        type=float,
+        help=f"with --timing realistic: a GO with LOAD_NAND's boot (default {DEFAULT_TIMING.boot_s * 1e3:g})",
+    )
+    clock = parser.add_argument_group("device clock (TIME; docs/ICD.md section 6; also the --params keys clock_*)")
+    clock.add_argument(
+        "--clock-epoch-s", type=float, help="the TIME count at power-on and after a reset, s (default 0)"
+    )
+    clock.add_argument("--clock-drift-ppm", type=float, help="rate error, ppm, -1000..1000 (default 0)")
+    clock.add_argument("--clock-jitter-us", type=float, help="1-sigma jitter of a TIME latch, us, 0..1000 (default 0)")
+    clock.add_argument("--clock-seed", type=int, default=0, help="seed of the jitter (default 0)")
     parser.add_argument(
         "--deadline-ms",
         type=float,
@@ -180,6 +196,7 @@ def build_device(args: argparse.Namespace) -> Device:
         source = load_frame_source("attitude_feed", args.attitude_feed, camera)
     store = SlotStore(args.state, volatile={Slot.FRAME}) if args.state else None
     device_params = DeviceParams.load(args.params) if args.params else DeviceParams()
+    clock = clock_model(args, device_params)
     solver = PipelineSolver(
         camera,
         device_params.apply(PipelineParams()),
@@ -201,11 +218,11 @@ def build_device(args: argparse.Namespace) -> Device:
         sensor_shape=(camera.height, camera.width),
         quaternion_order=device_params.quaternion_order or QuaternionOrder.SCALAR_FIRST,
         fault_injection=bool(args.fault_injection or args.faults),
+        clock_model=clock,
     )
     if args.timing == "realistic":
-        exposure = DEFAULT_EXPOSURE_MS if args.exposure_ms is None else args.exposure_ms
-        processing = DEFAULT_PROCESSING_MS if args.processing_ms is None else args.processing_ms
-        device.runner.hold_s = (exposure + processing) / 1000.0
+        ms = {"exposure_s": args.exposure_ms, "processing_s": args.processing_ms, "boot_s": args.boot_ms}
+        device.runner.timing = replace(DEFAULT_TIMING, **{k: v / 1000.0 for k, v in ms.items() if v is not None})
         deadline = DEFAULT_DEADLINE_MS if args.deadline_ms is None else args.deadline_ms
         solver.params = replace(solver.params, flight_deadline_s=deadline / 1000.0)
     solver.serving()  # the stored catalog's index is built; a COMMIT's is built in another process
@@ -213,6 +230,18 @@ def build_device(args: argparse.Namespace) -> Device:
     if ready is not None:  # a capture source's own start-up (a rendering source's noise), drawn meanwhile
         ready()
     return device
+
+
+def clock_model(args: argparse.Namespace, params: DeviceParams) -> ClockModel:
+    """The device clock's model: the options over the ``--params`` file's clock keys over the
+    defaults; ValueError (one line) for a value out of range."""
+    model = params.clock_model(ClockModel(seed=args.clock_seed))
+    given = {"epoch_s": args.clock_epoch_s, "drift_ppm": args.clock_drift_ppm, "jitter_us": args.clock_jitter_us}
+    model = replace(model, **{k: v for k, v in given.items() if v is not None})
+    problems = model.problems()
+    if problems:
+        raise ValueError("; ".join(problems))
+    return model
 
 
 def load_fault_file(path: str) -> tuple[Fault, ...]:
@@ -242,11 +271,15 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--turnaround-ms must be >= 0")
     if not args.tcp_idle > 0:
         parser.error("--tcp-idle must be > 0")
-    timed = (args.exposure_ms, args.processing_ms, args.deadline_ms)
+    timed = (args.exposure_ms, args.processing_ms, args.deadline_ms, args.boot_ms)
     if args.timing != "realistic" and any(v is not None for v in timed):
-        parser.error("--exposure-ms, --processing-ms and --deadline-ms need --timing realistic")
+        parser.error("--exposure-ms, --processing-ms, --deadline-ms and --boot-ms need --timing realistic")
     if any(v is not None and not 0 <= v <= 60_000 for v in timed):
-        parser.error("--exposure-ms, --processing-ms and --deadline-ms must be 0..60000")
+        parser.error("--exposure-ms, --processing-ms, --deadline-ms and --boot-ms must be 0..60000")
+    try:
+        clock_model(args, DeviceParams())  # the options alone, before the slow start (the --params file's later)
+    except ValueError as exc:
+        parser.error(str(exc))
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr, format="%(message)s")
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     try:

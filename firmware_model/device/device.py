@@ -9,7 +9,8 @@
 * :mod:`~firmware_model.device.sequence`: GO, COMBINATION, READ RESULT and IMAGE, the worker
   thread that runs the pluggable ``solver``, BUSY and result ready;
 * :mod:`~firmware_model.device.faults`: scripted faults (FAULT, ``st16-device --faults``) and
-  their counters.
+  their counters;
+* :mod:`~firmware_model.device.clock`: the device clock TIME reads and every reported time is on.
 
 The device does no I/O of its own: a transport (``firmware_model.device.link``) feeds received
 bytes to :meth:`Device.receive` and writes back the frames it returns. A GO sequence runs in a
@@ -27,6 +28,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import protocol
+from firmware_model.device.clock import ClockModel, DeviceClock
 from firmware_model.device.dispatch import Counters, Dispatcher, Handler, Mode, Refused
 from firmware_model.device.faults import Fault, FaultInjector, FaultScriptError, parse_script
 from firmware_model.device.housekeeping import Housekeeping
@@ -36,12 +38,14 @@ from firmware_model.device.sequence import (
     MAX_DARK_WINDOWS,
     RESULT_PART,
     FrameUnavailable,
+    InjectedFormat,
     SequenceRunner,
     SolveContext,
     Solver,
 )
 from firmware_model.device.slots import SlotStore
 from firmware_model.device.transfers import SlotHandler, Transfers, default_slots
+from firmware_model.pipeline.raw_frame import Frame
 from protocol import edac, nsp, result, slip
 from protocol.commands import (
     APP_START_ADDRESS,
@@ -53,6 +57,7 @@ from protocol.commands import (
     Init,
     NackReason,
     Slot,
+    TimeReply,
 )
 
 log = logging.getLogger(__name__)
@@ -82,7 +87,9 @@ class Device:
     ``quaternion_order`` orders the standard result structure's quaternions unless the slot-2
     parameter set names an order (docs/ICD.md section 10.2). ``fault_injection`` lets FAULT arm
     scripted faults (docs/ICD.md section 13; off: FAULT is NACKed NOT_SUPPORTED); ``faults``
-    holds the armed ones and their counters."""
+    holds the armed ones and their counters. ``clock_model`` says how the device clock (TIME) is
+    wrong; ``clock_source`` is what it counts (monotonic s); ``clock`` gives POSIX UTC seconds
+    (the sky's time, ``ext.utc_epoch``). ``injected`` reads the image buffers (GO bit INJECTED)."""
 
     def __init__(
         self,
@@ -96,6 +103,9 @@ class Device:
         clock: Callable[[], float] = time.time,
         quaternion_order: result.QuaternionOrder = result.QuaternionOrder.SCALAR_FIRST,
         fault_injection: bool = False,
+        clock_model: ClockModel = ClockModel(),
+        clock_source: Callable[[], float] = time.monotonic,
+        injected: InjectedFormat = InjectedFormat(),
     ):
         if not 0 <= address <= 0xFF:
             raise ValueError("address must be 0..255")
@@ -106,6 +116,9 @@ class Device:
         self.clock = clock
         self.quaternion_order = quaternion_order
         self.fault_injection = fault_injection
+        self.device_clock = DeviceClock(clock_model, clock_source)
+        self.injected_format = injected
+        self._rx_at: float | None = None  #: clock-source time the frame being handled ended (its last FEND)
         self.faults = FaultInjector(self._words)
         self.sleep: Callable[[float], None] = time.sleep  #: how a delayed reply waits (s)
         self._reset_now = False  #: a loaded ``reset now``: reset once the FAULT reply is built
@@ -117,7 +130,7 @@ class Device:
         #: returned (a COMBINATION's, once its sequence is done); None answers synchronously
         self.late_reply: Callable[[list[bytes]], None] | None = None
         self.transfers = Transfers(store, slots)
-        self.housekeeping = Housekeeping()
+        self.housekeeping = Housekeeping(self.device_clock.seconds)
         self.runner = SequenceRunner(self._lock, self._mode, self.transfers, self)
         self.memory = Memory(
             Supervisor(
@@ -131,11 +144,17 @@ class Device:
                 result=lambda: self.runner.result,
                 analog=self.housekeeping.analog_frame,
                 fault_counters=lambda: self.faults.counters,
+                boot_message=lambda: self.runner.boot_message,
             ),
             self.faults,
         )
         self.dispatcher = Dispatcher(
-            self._handlers(), self._lock, lambda: self.counters, lambda: self.late_reply, self._frames
+            self._handlers(),
+            self._lock,
+            lambda: self.counters,
+            lambda: self.late_reply,
+            self._frames,
+            failure_state=lambda: int(self.runner.state),
         )
         self.transfers.activate_stored()
 
@@ -157,6 +176,7 @@ class Device:
             Code.READ_RESULT: seq.read_result,
             Code.IMAGE: seq.image,
             Code.COMBINATION: seq.combination,
+            Code.TIME: self._time,
             Code.XFER_BEGIN: tr.xfer_begin,
             Code.XFER_DATA: tr.xfer_data,
             Code.XFER_STATUS: tr.xfer_status,
@@ -211,8 +231,10 @@ class Device:
 
     # ------------------------------------------------------------------ byte level
 
-    def receive(self, chunk: bytes) -> list[bytes]:
-        """Feed received bytes; return the SLIP frames to transmit, in order."""
+    def receive(self, chunk: bytes, arrived: float | None = None) -> list[bytes]:
+        """Feed received bytes; return the SLIP frames to transmit, in order. ``arrived`` is when
+        the chunk's last byte arrived on the line (the clock source's time: a paced link's UART
+        time); None: now."""
         out: list[bytes] = []
         for event in self._decoder.feed(chunk):
             if isinstance(event, slip.FramingError):
@@ -220,6 +242,7 @@ class Device:
             elif isinstance(event, slip.Oversize):
                 self.counters.oversize += 1
             else:
+                self._rx_at = self.device_clock.source() if arrived is None else arrived
                 out.extend(self._frames(self.receive_frame(event.data)))
         return out
 
@@ -280,6 +303,7 @@ class Device:
             self.counters = Counters()
             self.runner.reset()
             self.memory.reset()
+            self.device_clock.power_on()
             self.faults.count("resets")
         log.info("device: scripted reset")
 
@@ -318,6 +342,20 @@ class Device:
         return FaultStatus(req.action, self.faults.armed, counters).pack()
 
     # ------------------------------------------------------------------ identity and counters
+
+    def injected(self, pixels: Any) -> Frame:
+        """The frame of an image buffer (GO bit INJECTED), in :attr:`injected_format`."""
+        f = self.injected_format
+        return Frame(pixels, pattern=f.pattern, black_level=f.black_level, white_level=f.white_level)
+
+    def _time(self, data: bytes) -> bytes:
+        """TIME: the device clock latched when this command's final FEND arrived."""
+        if data:
+            raise Refused(
+                NackReason.BAD_LENGTH,
+                f"TIME takes no data field, got {len(data)} bytes (XFER BEGIN, once 0x13, is 0x{Code.XFER_BEGIN:02X})",
+            )
+        return TimeReply(self.device_clock.latch(self._rx_at)).pack()
 
     def _ping(self, data: bytes) -> bytes:
         if data:

@@ -80,7 +80,8 @@ class Dispatcher:
     """Runs commands through ``handlers`` (one per command-table code, checked at construction)
     under ``lock``; ``counters()`` gives the counters to update; ``late_reply()`` the transport's
     callback for replies produced after :meth:`handle` returned (None: wait for them here), to
-    which ``frames(replies)`` hands their frames (the device's scripted reply faults act there)."""
+    which ``frames(replies)`` hands their frames (the device's scripted reply faults act there);
+    ``failure_state()`` the sequence state a COMBINATION failure reply carries."""
 
     def __init__(
         self,
@@ -89,6 +90,7 @@ class Dispatcher:
         counters: Callable[[], Counters],
         late_reply: Callable[[], Callable[[list[bytes]], None] | None],
         frames: Callable[[list[nsp.Message]], list[bytes]] = _frames,
+        failure_state: Callable[[], int] = int,
     ):
         if set(handlers) != set(COMMANDS):
             raise ValueError(f"handlers for {sorted(handlers)} but the command table has {sorted(COMMANDS)}")
@@ -97,6 +99,7 @@ class Dispatcher:
         self._counters = counters
         self._late_reply = late_reply
         self._frames = frames
+        self._failure_state = failure_state
 
     def handle(self, msg: nsp.Message) -> list[nsp.Message]:
         """Execute a command addressed to us; return its reply messages ([] when Poll = 0)."""
@@ -137,6 +140,9 @@ class Dispatcher:
         except (Refused, PayloadError) as exc:
             self._counters().nacked += 1
             text = exc.text if isinstance(exc, Refused) else exc.message
+            spec = COMMANDS.get(msg.code)
+            if spec is not None and spec.failure is not None:  # the ICD's own failure reply
+                return [nsp.reply_to(msg, spec.failure(self._failure_state(), text).pack(), ack=False)]
             return [nsp.reply_to(msg, NackInfo(exc.reason, text).pack(), ack=False)]
         except Exception as exc:  # never crash the link on a bug: NACK and report
             log.exception("device: bug while handling a command or sequence")

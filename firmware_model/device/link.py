@@ -366,7 +366,7 @@ def serve(
             for piece in _pieces(chunk):
                 done = pacer.arrived(len(piece))
                 _sleep_until(done)
-                send(device.receive(piece), done + pacer.turnaround, session)
+                send(device.receive(piece, done), done + pacer.turnaround, session)
     finally:
         serving = False
         device.late_reply = None

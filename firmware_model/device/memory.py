@@ -54,6 +54,7 @@ class Supervisor:
     result: Callable[[], bytes]  #: the result structure now
     analog: Callable[[], tuple[float, ...]]  #: the analog frame now (``housekeeping``)
     fault_counters: Callable[[], Mapping[str, int]] = dict  #: the scripted faults' counters now
+    boot_message: Callable[[], str] = str  #: the functional processor's last boot message (ASCII)
 
 
 #: 4-byte words of each region an ``edac_upset`` may strike, but the catalog (its image's)
@@ -101,6 +102,7 @@ class Memory:
         rec["banner"] = st.banner.encode()[:64]
         for name, value in st.fault_counters().items():
             rec[name] = value
+        rec["boot_message"] = st.boot_message().encode("ascii", "replace")[:64]
         rec["scratch"] = np.frombuffer(bytes(self._scratch), np.uint8)
         return rec.tobytes()
 

@@ -34,6 +34,7 @@ import numpy as np
 
 from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog
+from firmware_model.device.clock import MAX_DRIFT_PPM, MAX_JITTER_US, ROLLOVER_US, ClockModel
 from firmware_model.device.device import FrameUnavailable, SlotHandler, SolveContext
 from firmware_model.ident.solver import Mode
 from firmware_model.pipeline import scale_free
@@ -133,7 +134,13 @@ class DeviceParams:
     ``pipeline.exclusion.ExclusionLimits``, cited there) the bright-body exclusion angles from the
     boresight to the body's disc edge, and ``exclusion_memory_s`` (s, 0 to 3600, default 10; 0:
     none) the age up to which the device's last reported attitude decides for a frame without
-    its own (the offline paths have no memory: they accept it and ignore it).
+    its own (the offline paths have no memory: they accept it and ignore it);
+    ``cache_triangle_table`` true | false (default false: the control structure's bit, ICD page
+    1-35924): a GO with bits 2 and 5 caches the triangle table, the first such GO slower and later
+    ones faster under ``--timing realistic`` (``sequence.Timing``); ``clock_epoch_s`` (s, >= 0),
+    ``clock_drift_ppm`` (+-1000) and ``clock_jitter_us`` (0 to 1000): the device clock's model
+    (``clock.ClockModel``), read from ``st16-device --params`` at start (the clock is hardware: an
+    uploaded set's clock keys are checked and take effect at the next start).
     The same file drives the offline paths (``--params``).
     """
 
@@ -155,6 +162,10 @@ class DeviceParams:
     moon_exclusion_deg: float | None = None
     earth_exclusion_deg: float | None = None
     exclusion_memory_s: float | None = None
+    cache_triangle_table: bool | None = None
+    clock_epoch_s: float | None = None
+    clock_drift_ppm: float | None = None
+    clock_jitter_us: float | None = None
 
     KEYS = (
         "mode",
@@ -172,6 +183,10 @@ class DeviceParams:
         "quaternion_order",
         "tracking",
         *EXCLUSION_KEYS,
+        "cache_triangle_table",
+        "clock_epoch_s",
+        "clock_drift_ppm",
+        "clock_jitter_us",
     )
 
     @classmethod
@@ -255,9 +270,9 @@ class DeviceParams:
             ):
                 raise SlotRejected(REJECT_PARAMS_VALUE, 'colour_correction must be {"beta": [6 finite numbers]}')
             beta = tuple(float(x) for x in b)
-        tracking = obj.get("tracking")
-        if tracking is not None and not isinstance(tracking, bool):
-            raise SlotRejected(REJECT_PARAMS_VALUE, f"tracking must be true or false, got {tracking!r}")
+        for key in ("tracking", "cache_triangle_table"):
+            if obj.get(key) is not None and not isinstance(obj[key], bool):
+                raise SlotRejected(REJECT_PARAMS_VALUE, f"{key} must be true or false, got {obj[key]!r}")
         return cls(
             mode,
             positive("sigma_rg"),
@@ -272,9 +287,18 @@ class DeviceParams:
             number("max_roll_sigma_deg", 0.0, 180.0),
             number("noise_probe_px", 0.0, 20.0, lo_open=False),
             _quaternion_order(obj.get("quaternion_order")),
-            tracking,
-            *(closed(key, hi, unit) for key, (_, hi, unit) in EXCLUSION_KEYS.items()),
+            obj.get("tracking"),
+            cache_triangle_table=obj.get("cache_triangle_table"),
+            clock_epoch_s=number("clock_epoch_s", 0.0, ROLLOVER_US / 1e6, lo_open=False),
+            clock_drift_ppm=number("clock_drift_ppm", -MAX_DRIFT_PPM, MAX_DRIFT_PPM + 1e-9, lo_open=False),
+            clock_jitter_us=number("clock_jitter_us", 0.0, MAX_JITTER_US + 1e-9, lo_open=False),
+            **{key: closed(key, hi, unit) for key, (_, hi, unit) in EXCLUSION_KEYS.items()},
         )
+
+    def clock_model(self, base: ClockModel) -> ClockModel:
+        """``base`` with this set's clock keys."""
+        keys = {"epoch_s": self.clock_epoch_s, "drift_ppm": self.clock_drift_ppm, "jitter_us": self.clock_jitter_us}
+        return replace(base, **{k: v for k, v in keys.items() if v is not None})  # type: ignore[arg-type]
 
     def apply(self, base: PipelineParams) -> PipelineParams:
         solve = base.solve
@@ -526,4 +550,5 @@ class PipelineSolver:
             self.last = LastAttitude(np.asarray(out.solution.q_icrs_to_sensor, float), t, out.omega)
         fields = result_fields(out)
         fields["ext.reason"] = out.reason
+        fields["ext.utc_epoch"] = t  # the exposure's mid-time; the sequence puts it on the device clock
         return fields

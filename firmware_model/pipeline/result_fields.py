@@ -85,17 +85,16 @@ def return_bits(out: PipelineOutput) -> int:
     return bits
 
 
-def omega_fields(omega, covariance) -> dict:
-    """The rate (rad/s, sensor axes) and its 3x3 covariance ((rad/s)^2) in the standard structure:
-    ``omega`` and, as xx, yy, zz, xy, xz, yz, ``matching.0.omega_covariance`` and
-    ``ers.omega_covariance`` (docs/ICD.md section 10)."""
+def upper_triangle(covariance) -> np.ndarray:
+    """A 3x3 covariance's six distinct terms in the result's order: xx, yy, zz, xy, xz, yz."""
     c = np.asarray(covariance, dtype=float)
-    upper = np.array([c[0, 0], c[1, 1], c[2, 2], c[0, 1], c[0, 2], c[1, 2]])
-    return {
-        "omega": np.asarray(omega, dtype=float),
-        "matching.0.omega_covariance": upper,
-        "ers.omega_covariance": upper,
-    }
+    return np.array([c[0, 0], c[1, 1], c[2, 2], c[0, 1], c[0, 2], c[1, 2]])
+
+
+def omega_fields(omega, covariance) -> dict:
+    """The rate (rad/s, sensor axes) in the standard structure's ``omega`` and its 3x3 covariance
+    ((rad/s)^2) in the extension's ``omega_covariance`` (docs/ICD.md section 10)."""
+    return {"omega": np.asarray(omega, dtype=float), "ext.omega_covariance": upper_triangle(covariance)}
 
 
 def star_entries(out: PipelineOutput, first: int, count: int) -> np.ndarray:
@@ -174,6 +173,9 @@ def result_fields(out: PipelineOutput) -> dict:
                 "matching.0.set_tests": int(sol.attempts),
                 "ext.quaternion": q,
                 "ext.sigma": _sigma_axes(sol.covariance),
+                "matching.0.attitude_covariance": np.zeros(6)
+                if sol.covariance is None
+                else upper_triangle(sol.covariance),
                 "ext.residual_rms": float(sol.consensus_rms),
             }
         )

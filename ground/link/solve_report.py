@@ -209,16 +209,18 @@ def _header(rec: np.ndarray) -> dict:
     return {
         "bits": [b.name for b in result.ReturnBits if rc & b],
         "epoch": float(rec["epoch"]),
-        "epoch_utc": utc_iso(float(rec["epoch"])),
+        "utc_epoch": float(rec["ext"]["utc_epoch"]),
+        "epoch_utc": utc_iso(float(rec["ext"]["utc_epoch"])),
         "omega_rad_s": [float(v) for v in rec["omega"]],
-        "omega_sigma_rad_s": [float(np.sqrt(max(v, 0.0))) for v in rec["ers"]["omega_covariance"][:3]],
+        "omega_sigma_rad_s": [float(np.sqrt(max(v, 0.0))) for v in rec["ext"]["omega_covariance"][:3]],
         "hardware": hardware_record(rec),
     }
 
 
 def result_record(rec: np.ndarray) -> dict:
-    """:func:`solve_record` plus the COSMOS return bits, the epoch (POSIX s and ISO UTC), omega and
-    its 1-sigma per axis (rad/s; the sigma from ``ers.omega_covariance``, 0 when not tracking)."""
+    """:func:`solve_record` plus the COSMOS return bits, the epoch (device clock s; ``utc_epoch``
+    POSIX s and ``epoch_utc`` ISO UTC of the same instant), omega and
+    its 1-sigma per axis (rad/s; the sigma from ``ext.omega_covariance``, 0 when not tracking)."""
     return {**solve_record(rec), **_header(rec)}
 
 
@@ -227,10 +229,12 @@ _SECTION_KEYS = {
     0x000: ("sequence",),
     0x004: ("return_code", "status", "bits"),
     0x028: ("omega_rad_s",),
-    0x040: ("epoch", "epoch_utc"),
-    0x440: ("omega_sigma_rad_s",),
+    0x040: ("epoch",),
     0x048: ("hardware", "bodies_in_fov"),
     result.EXT_OFFSET: (
+        "utc_epoch",
+        "epoch_utc",
+        "omega_sigma_rad_s",
         "reason",
         "method",
         "n_detected",
