@@ -6,7 +6,8 @@
   ``sqrt(mean((rg' - rg_cat)^2 + (bg' - bg_cat)^2) / 2)``.
 * :func:`correct_refraction` removes atmospheric refraction from observed sensor-frame star
   vectors, given an approximate attitude (within about a degree, as in eq. 25), the site, the
-  time and the weather, using astropy's AltAz frame with and without pressure.
+  time and the weather, using astropy's AltAz frame with and without pressure, with the project's
+  Earth orientation (``ground.sim.earth_orientation``: any date, no download, no global setting).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 
 from firmware_model.pipeline.run import apply_colour_correction
 from ground.atomic_write import write_text
+from ground.sim import earth_orientation
 
 PARAMETER_KIND = "colour_correction"
 
@@ -165,9 +167,7 @@ class Site:
 def _altaz_frames(site: Site, time):
     import astropy.units as u
     from astropy.coordinates import AltAz
-    from astropy.utils import iers
 
-    iers.conf.auto_download = False
     loc = site.location()
     vacuum = AltAz(obstime=time, location=loc, pressure=0 * u.hPa)
     air = AltAz(
@@ -188,9 +188,10 @@ def refraction_angle(alt_true_rad, site: Site, time, az_rad=None):
 
     alt = np.atleast_1d(np.asarray(alt_true_rad, dtype=float))
     az = np.zeros_like(alt) if az_rad is None else np.atleast_1d(np.asarray(az_rad, dtype=float))
-    vacuum, air = _altaz_frames(site, time)
-    true = SkyCoord(az=az * u.rad, alt=alt * u.rad, frame=vacuum)
-    return true.transform_to(air).alt.rad - alt
+    with earth_orientation.tables():
+        vacuum, air = _altaz_frames(site, time)
+        true = SkyCoord(az=az * u.rad, alt=alt * u.rad, frame=vacuum)
+        return true.transform_to(air).alt.rad - alt
 
 
 def correct_refraction(vec_sensor, a_icrs_to_sensor, site: Site, time, iterations: int = 3):
@@ -205,14 +206,15 @@ def correct_refraction(vec_sensor, a_icrs_to_sensor, site: Site, time, iteration
     v = np.atleast_2d(np.asarray(vec_sensor, dtype=float))
     a = np.asarray(a_icrs_to_sensor, dtype=float)
     v_icrs = v @ a  # rows: A^T s
-    vacuum, air = _altaz_frames(site, time)
-    observed = SkyCoord(CartesianRepresentation(v_icrs.T * u.one), frame=ICRS()).transform_to(vacuum)
-    alt_obs, az = observed.alt.rad, observed.az.rad
-    alt_true = alt_obs.copy()
-    for _ in range(iterations):
-        r = SkyCoord(az=az * u.rad, alt=alt_true * u.rad, frame=vacuum).transform_to(air).alt.rad - alt_true
-        alt_true = alt_obs - r
-    fixed = SkyCoord(az=az * u.rad, alt=alt_true * u.rad, frame=vacuum).transform_to(ICRS())
+    with earth_orientation.tables():
+        vacuum, air = _altaz_frames(site, time)
+        observed = SkyCoord(CartesianRepresentation(v_icrs.T * u.one), frame=ICRS()).transform_to(vacuum)
+        alt_obs, az = observed.alt.rad, observed.az.rad
+        alt_true = alt_obs.copy()
+        for _ in range(iterations):
+            r = SkyCoord(az=az * u.rad, alt=alt_true * u.rad, frame=vacuum).transform_to(air).alt.rad - alt_true
+            alt_true = alt_obs - r
+        fixed = SkyCoord(az=az * u.rad, alt=alt_true * u.rad, frame=vacuum).transform_to(ICRS())
     xyz = fixed.cartesian.xyz.value.T
     xyz /= np.linalg.norm(xyz, axis=1)[:, None]
     return xyz @ a.T

@@ -103,17 +103,11 @@ class SouthAtlanticAnomaly:
 
 def subsatellite_point(position_gcrs_km, t_posix: float) -> tuple[float, float, float]:
     """(geodetic latitude deg, longitude deg, height km) under a GCRS position (km) at POSIX UTC
-    ``t_posix``: astropy GCRS -> ITRS -> WGS84, without downloading IERS tables."""
-    import astropy.units as u
-    from astropy.coordinates import GCRS, ITRS, CartesianRepresentation
-    from astropy.time import Time
-    from astropy.utils import iers
+    ``t_posix``: GCRS -> ITRS -> WGS84 with the project's Earth orientation
+    (``ground.sim.earth_orientation``: any date, no download, no wall clock)."""
+    from ground.sim import earth_orientation
 
-    with iers.conf.set_temp("auto_download", False):
-        t = Time(t_posix, format="unix", scale="utc")
-        xyz = CartesianRepresentation(*(np.asarray(position_gcrs_km, dtype=float) * u.km))
-        geo = GCRS(xyz, obstime=t).transform_to(ITRS(obstime=t)).earth_location.to_geodetic()
-    return float(geo.lat.deg), float(geo.lon.deg), float(geo.height.to_value(u.km))
+    return earth_orientation.subsatellite_point(position_gcrs_km, t_posix)
 
 
 def sensitive_area_cm2(detector: DetectorModel, camera) -> float:
