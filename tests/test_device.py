@@ -17,6 +17,7 @@ from protocol.commands import (
     NackInfo,
     NackReason,
     ReadRange,
+    SequenceState,
     SlotImage,
     SlotRejected,
     XferBegin,
@@ -83,12 +84,15 @@ def test_edac_read_write_and_file_access():
     assert ok(dev, Code.READ_EDAC, ReadRange(0x100, 8, long=False).pack()) == struct.pack("<H", 0x100) + b"scratch!"
     long_read = ok(dev, Code.READ_EDAC, ReadRange(0, 512, long=True).pack())
     assert len(long_read) == 514 and long_read[2 + 0x100 : 2 + 0x108] == b"scratch!"
-    # file access: short form index 0x41 = EDAC 0x104, long form by address
+    # file access (ICD page 1-35916): both forms take the EDAC address / 4; index 0x41 = EDAC 0x104
     assert ok(dev, Code.WRITE_FILE, b"\x41WXYZ") == b"\x41WXYZ"
-    assert ok(dev, Code.READ_FILE, b"\x04\x01") == b"\x04\x01WXYZ"
+    assert ok(dev, Code.READ_FILE, b"\x41\x00") == b"\x41\x00WXYZ"
     assert ok(dev, Code.READ_FILE, b"\x40") == b"\x40scra"
+    assert ok(dev, Code.READ_FILE, b"\x13\x00")[2:] == b"\x00\x00\x00\x00"  # EDAC 0x4C, no result yet
+    assert ok(dev, Code.WRITE_FILE, b"\x41\x00abcd") == b"\x41\x00abcd"
+    assert ok(dev, Code.READ_FILE, b"\x41")[1:] == b"abcd"
     assert nack(dev, Code.WRITE_FILE, b"\x10abcd").reason == NackReason.READ_ONLY
-    assert nack(dev, Code.READ_FILE, b"\x02\x01").reason == NackReason.BAD_ADDRESS  # not word aligned
+    assert nack(dev, Code.READ_FILE, b"\x80\x00").reason == NackReason.BAD_ADDRESS  # EDAC 0x200: past the end
     assert nack(dev, Code.WRITE_EDAC, struct.pack("<H", 0x4C) + b"\0").reason == NackReason.READ_ONLY
     assert nack(dev, Code.WRITE_EDAC, struct.pack("<H", 0x1FF) + b"ab").reason == NackReason.BAD_ADDRESS
     assert nack(dev, Code.READ_EDAC, ReadRange(0x1F0, 32).pack()).reason == NackReason.BAD_ADDRESS
@@ -159,7 +163,7 @@ def test_go_without_catalog_never_fakes_an_attitude():
     assert int(rec["return_code"]) & 0xFF == result.ReturnBits.STATUS_NOT_OK and not rec["quaternion"].any()
     assert rec["sequence"] == 1
     assert nack(dev, Code.GO, b"\x37").reason == NackReason.NOT_SUPPORTED  # self-test
-    assert nack(dev, Code.GO, b"\x4b").reason == NackReason.BAD_PARAMETER
+    assert nack(dev, Code.GO, b"\x8b").reason == NackReason.BAD_PARAMETER  # bit 7 unassigned
 
 
 def _read_result(dev, address=0, count=result.TOTAL_LENGTH):
@@ -250,8 +254,10 @@ def test_combination_multipart_reply():
     assert len(parts[3].data) == 2 + 832
     rc = struct.unpack("<I", parts[1].data[2:])[0]
     assert result.status_of(rc) == result.Status.NO_CATALOG
-    assert nack(dev, Code.COMBINATION, Combination(0x37, 0x0800, 3).pack()).reason == NackReason.NOT_SUPPORTED
-    assert nack(dev, Code.COMBINATION, Combination(0x0B, 0x8000, 3).pack()).reason == NackReason.BAD_PARAMETER
+    # refusals are the ICD's failure reply (page 1-35918): ACK 0, Final, sequence state + text
+    for mask, text in ((0x0800, "self-test result section"), (0x8000, "unknown section bits")):
+        (rep,) = send(dev, Code.COMBINATION, Combination(0x0B, mask, 3).pack())
+        assert not rep.ack and rep.final and rep.data[0] == SequenceState.DONE and text in rep.data[1:].decode()
 
 
 def test_image_dark_window():
@@ -263,7 +269,7 @@ def test_image_dark_window():
     assert nack(dev, Code.IMAGE, DarkWindow(2, 0, 0, 1, 1).pack()).reason == NackReason.BAD_PARAMETER
     assert nack(dev, Code.IMAGE, DarkWindow(0, 2460, 0, 10, 1).pack()).reason == NackReason.OUT_OF_RANGE
     assert nack(dev, Code.IMAGE, win[:25]).reason == NackReason.BAD_LENGTH
-    assert nack(dev, Code.IMAGE, b"\x01" + bytes(10)).reason == NackReason.NOT_SUPPORTED
+    assert nack(dev, Code.IMAGE, b"\x02" + bytes(10)).reason == NackReason.BAD_PARAMETER  # reserved subcommand
 
 
 def test_transfer_commit_crc_and_validator():

@@ -33,11 +33,25 @@ def test_read_range_forms():
     assert exc.value.reason == NackReason.BAD_LENGTH
 
 
-def test_file_forms_distinguished_by_length():
+def test_file_forms_distinguished_by_length_and_both_carry_the_edac_address_over_4():
+    """ICD page 1-35916: short and long forms both give the EDAC address divided by 4."""
     assert ReadFile.unpack(b"\x41") == ReadFile(0x104, False)
-    assert ReadFile.unpack(b"\x04\x01") == ReadFile(0x104, True)
+    assert ReadFile.unpack(b"\x41\x00") == ReadFile(0x104, True)
+    assert ReadFile(0x4C, True).pack() == b"\x13\x00"  # index 0x13: the result length
     assert WriteFile.unpack(b"\x41abcd") == WriteFile(0x104, b"abcd", False)
-    assert WriteFile.unpack(b"\x04\x01abcd").long
+    assert WriteFile.unpack(b"\x41\x00abcd") == WriteFile(0x104, b"abcd", True)
+
+
+def test_time_reply_is_48_bits_little_endian_and_the_new_layouts_round_trip():
+    from protocol.commands import CombinationFailure, RectangularPoke, TimeReply
+
+    assert TimeReply(0x0000_1234_5678_9ABC).pack() == bytes.fromhex("bc9a78563412")
+    assert TimeReply.unpack(bytes.fromhex("020000000080")).micros == (1 << 47) + 2
+    with pytest.raises(PayloadError):
+        TimeReply.unpack(b"\x00" * 8)
+    poke = RectangularPoke(1, 2, 3, 1, 2, b"\x01\x00\x02\x00")
+    assert RectangularPoke.unpack(poke.pack()) == poke and poke.head() == poke.pack()[:10]
+    assert CombinationFailure.unpack(b"\x03terminated") == CombinationFailure(3, "terminated")
 
 
 def test_combination_accepts_cosmos_4_byte_and_5_byte_forms():
@@ -125,6 +139,7 @@ def test_every_payload_type_of_the_command_table_round_trips():
         Peek,
         Poke,
         SlotRequest,
+        TimeReply,
         WriteAck,
         WriteEdac,
         XferDataAck,
@@ -155,6 +170,7 @@ def test_every_payload_type_of_the_command_table_round_trips():
         SlotImage: SlotImage(2, True, 10, 0x1234, b'{"keys": []}'),
         FaultRequest: FaultRequest(0, b"drop_reply count=1\n"),
         FaultStatus: FaultStatus(2, 3, tuple(range(9))),
+        TimeReply: TimeReply(0x123456789ABC),
     }
     types = {t for c in TABLE for t in (c.request, c.reply) if t is not None}
     assert types <= set(samples)

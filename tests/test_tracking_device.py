@@ -89,11 +89,12 @@ def test_tracking_follows_a_slew_then_falls_back_to_lost_in_space(device):
     assert all(result.status_of(int(r["return_code"])) is result.Status.OK for r in recs)
     assert _method(recs[0]) != "tracking" and not recs[0]["omega"].any()  # the first fix: lost in space
     assert [_method(r) for r in recs[1:]] == ["tracking"] * 7
-    for r in recs[3:]:  # the rate within 4 sigma per axis, its covariance in both standard fields
-        cov = r["matching"][0]["omega_covariance"]
-        assert np.array_equal(cov, r["ers"]["omega_covariance"])
+    for r in recs[3:]:  # the rate within 4 sigma per axis (its covariance in the extension)
+        cov = r["ext"]["omega_covariance"]
+        att = r["matching"][0]["attitude_covariance"]  # the ICD's matching +0x80: the attitude's
+        assert att[:3].all() and np.allclose(np.sqrt(att[:3]), r["ext"]["sigma"])
         assert np.all(np.abs(r["omega"] - OMEGA) < 4 * np.sqrt(cov[:3])), (r["omega"], OMEGA, np.sqrt(cov[:3]))
-    assert np.degrees(np.sqrt(recs[-1]["matching"][0]["omega_covariance"][:3])).max() < 0.02  # deg/s
+    assert np.degrees(np.sqrt(recs[-1]["ext"]["omega_covariance"][:3])).max() < 0.02  # deg/s
     text = format_record(result_record(recs[-1]))
     assert "method tracking" in text and "] +- [" in text  # omega with its sigma
 
@@ -134,8 +135,8 @@ def test_params_file_sets_the_device_default(tmp_path, text, default):
 def test_omega_covariance_is_the_upper_triangle():
     cov = np.array([[1.0, 4.0, 5.0], [4.0, 2.0, 6.0], [5.0, 6.0, 3.0]])
     fields = omega_fields([0.1, 0.2, 0.3], cov)
-    assert fields["matching.0.omega_covariance"].tolist() == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
-    assert fields["ers.omega_covariance"].tolist() == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    assert fields["ext.omega_covariance"].tolist() == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    assert not any(key.startswith(("matching.", "ers.")) for key in fields)  # the ICD's matching +0x80: attitude
 
 
 def test_frame_time_is_mid_exposure_from_the_timestamp_or_the_go():

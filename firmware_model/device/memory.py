@@ -138,7 +138,10 @@ class Memory:
     @staticmethod
     def _file_address(address: int) -> None:
         if address % 4 or address + 4 > EDAC_SIZE:
-            raise Refused(NackReason.BAD_ADDRESS, f"file address 0x{address:04X} is not a 4-byte EDAC word")
+            raise Refused(
+                NackReason.BAD_ADDRESS,
+                f"file index 0x{address // 4:X} (EDAC 0x{address:04X}) outside the {EDAC_SIZE // 4} words of EDAC",
+            )
 
     def read_file(self, req: ReadFile) -> bytes:
         self._file_address(req.address)

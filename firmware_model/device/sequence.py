@@ -51,7 +51,7 @@ KNOWN_GO_BITS = 0x7F  #: bit 7 is unassigned: NACKed BAD_PARAMETER
 MAX_EXPOSURE_S = 60.0  #: a frame stamped more than this after its GO was not exposed by it
 #: the boot message a GO with LOAD_NAND leaves in EDAC (ICD page 1-35916 names an ASIC ID message;
 #: its text is ours)
-BOOT_MESSAGE = "ASIC ID 0x5316 rev 1; bootloader NAND blocks 0-3; application NAND block 0x8000"
+BOOT_MESSAGE = "ASIC ID 0x5316 rev 1; boot NAND 0-3; application NAND 0x8000"
 
 
 @dataclass(frozen=True)

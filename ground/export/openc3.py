@@ -57,15 +57,23 @@ def _default(f: model.Field) -> str:
 
 
 def _pieces(f: model.Field) -> list[model.Field]:
-    """OpenC3 places a little-endian integer of an odd size (the 3-byte COMBINATION mask) by its
-    most significant byte and then counts the packet one field too long: such a field is
-    declared as its low 16 bits (its own name) and the byte above (``NAME_HIGH``)."""
+    """OpenC3 places a little-endian integer of an odd size (the 3-byte COMBINATION mask, TIME's
+    6-byte count) by its most significant byte and then counts the packet one field too long: such
+    a field is declared as its low bits (its own name: 16 of 24, 32 of 48) and the bits above
+    (``NAME_HIGH``)."""
     if f.endian != model.LITTLE or f.kind not in ("UINT", "INT") or f.bits in (8, 16, 32, 64):
         return [f]
-    if f.bits != 24:
+    if f.bits not in (24, 48):
         raise ValueError(f"{f.name}: no OpenC3 layout for a {f.bits}-bit little-endian integer")
-    low = replace(f, bits=16, kind="UINT", description=f.description + ", bits 0-15")
-    high = replace(f, name=f.name + "_HIGH", offset=f.offset + 16, bits=8, description=f.description + ", bits 16-23")
+    n = f.bits * 2 // 3
+    low = replace(f, bits=n, kind="UINT", description=f.description + f", bits 0-{n - 1}")
+    high = replace(
+        f,
+        name=f.name + "_HIGH",
+        offset=f.offset + n,
+        bits=f.bits - n,
+        description=f.description + f", bits {n}-{f.bits - 1}",
+    )
     return [low, high]
 
 

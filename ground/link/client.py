@@ -32,10 +32,12 @@ from protocol.commands import (
     APP_START_ADDRESS,
     GO_OPERATIONAL,
     MAX_FAULT_SCRIPT,
+    MAX_POKE_PIXELS,
     UPLOAD_CHUNK,
     AddressedBytes,
     Code,
     Combination,
+    CombinationFailure,
     CrcReply,
     CrcRequest,
     DarkWindow,
@@ -52,8 +54,10 @@ from protocol.commands import (
     Poke,
     ReadFile,
     ReadRange,
+    RectangularPoke,
     SlotImage,
     SlotRequest,
+    TimeReply,
     WriteAck,
     WriteEdac,
     WriteFile,
@@ -99,6 +103,27 @@ class Nack(LinkError):
         self.code = code
         self.reason = info.reason
         self.text = info.text
+
+
+class SequenceFailed(Nack):
+    """COMBINATION's failure reply (docs/ICD.md section 7): ``state`` the sequence state
+    (:class:`~protocol.commands.SequenceState`) and ``text``; it carries no reason code (``reason`` 0)."""
+
+    def __init__(self, failure: CombinationFailure, raw: bytes):
+        LinkError.__init__(self, f"COMBINATION failed: sequence {failure.state_name}: {failure.text}", raw)
+        self.code = Code.COMBINATION
+        self.reason = 0
+        self.text = failure.text
+        self.state = failure.state
+
+
+def refusal(code: int, data: bytes, raw: bytes) -> Nack:
+    """The error of a reply with ACK clear: the command's own failure layout when the command table
+    gives it one (COMBINATION), else our NACK."""
+    spec = COMMANDS.get(code)
+    if spec is not None and spec.failure is not None:
+        return SequenceFailed(spec.failure.unpack(data), raw)
+    return Nack(code, NackInfo.unpack(data), raw)
 
 
 class ReplyTimeout(LinkError):
@@ -273,7 +298,7 @@ class Client:
                 if reply is None:
                     continue
                 if not reply.ack:
-                    raise Nack(code, NackInfo.unpack(reply.data), bytes(received))
+                    raise refusal(code, reply.data, bytes(received))
                 if parts and len(damage) > damage_before:  # a part of this reply may be among them
                     raise MalformedReply(
                         f"{code_name(code)}: a frame was damaged inside the multi-part reply: {damage[-1]}",
@@ -460,6 +485,27 @@ class Client:
             piece: AddressedBytes = self._reply(Code.COMBINATION, part.data)
             out[piece.address] = piece.data
         return out
+
+    def time(self) -> int:
+        """TIME: the device clock, microseconds (latched when the command's last FEND arrived)."""
+        reply: TimeReply = self._call(Code.TIME, None)
+        return reply.micros
+
+    def poke_image(self, buffer: int, row: int, col: int, pixels: np.ndarray) -> None:
+        """IMAGE Rectangular Poke of a 2-D array of pixel values (u16) at (row, col) of ``buffer``,
+        split into as many pokes as the data field needs (rows of at most MAX_POKE_PIXELS)."""
+        values = np.asarray(pixels)
+        if values.ndim != 2 or values.size == 0 or values.min() < 0 or values.max() > 0xFFFF:
+            raise ValueError("poke pixels must be a non-empty 2-D array of values 0..65535")
+        rows_per = max(1, MAX_POKE_PIXELS // values.shape[1])
+        for start in range(0, values.shape[0], rows_per):
+            block = values[start : start + rows_per]
+            for c0 in range(0, block.shape[1], MAX_POKE_PIXELS):
+                piece = np.ascontiguousarray(block[:, c0 : c0 + MAX_POKE_PIXELS], "<u2")
+                poke = RectangularPoke(buffer, row + start, col + c0, piece.shape[0], piece.shape[1], piece.tobytes())
+                data = self._send(Code.IMAGE, poke)
+                if data != poke.head():
+                    raise MalformedReply("IMAGE: reply does not echo the rectangular poke's head", data)
 
     def dark_window(self, window: DarkWindow) -> None:
         data = self._send(Code.IMAGE, window)

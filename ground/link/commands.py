@@ -63,6 +63,11 @@ def _run_ping(c: Client, a) -> dict:
     return {"banner": c.ping()}
 
 
+def _run_time(c: Client, a) -> dict:
+    micros = c.time()
+    return {"time_us": micros, "time_s": micros / 1e6}
+
+
 def _run_init(c, a):
     c.init(a.address)
     return {"init": a.address, "banner": c.ping()}
@@ -174,21 +179,25 @@ def _run_slot_info(c, a):
 def _fault_file(path: str) -> str:
     """The text of the fault script at ``path``, parsed here first: a file that does not parse is a
     usage error naming its line (exit 2), before anything is sent."""
+    from firmware_model import user_files
     from firmware_model.device.faults import FaultScriptError, parse_script
     from protocol.commands import MAX_FAULT_SCRIPT
 
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-        parse_script(text, path)
-    except (OSError, UnicodeDecodeError) as exc:
-        raise argparse.ArgumentTypeError(f"fault file {path}: {exc}") from None
-    except FaultScriptError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    size = len(text.encode("utf-8"))
-    if size > MAX_FAULT_SCRIPT:
+    why = user_files.problem(path)  # a FIFO hung the read; /dev/zero was read to 3.7 GB
+    if why is not None:
+        raise argparse.ArgumentTypeError(f"fault file {path}: {why}")
+    size = Path(path).stat().st_size
+    if size > MAX_FAULT_SCRIPT:  # before it is read
         raise argparse.ArgumentTypeError(
             f"fault file {path}: {size} bytes, one FAULT load carries at most {MAX_FAULT_SCRIPT}"
         )
+    try:
+        text = user_files.read_text(path, MAX_FAULT_SCRIPT)
+        parse_script(text, path)
+    except user_files.UserFileError as exc:
+        raise argparse.ArgumentTypeError(f"fault file {exc}") from None
+    except FaultScriptError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
     return text
 
 
@@ -268,6 +277,25 @@ def _a_fault(p):
     sub.add_parser("status", help="faults armed and the fault counters")
 
 
+def _a_image_poke(p):
+    p.add_argument("buffer", type=ranged(int, 0, 1, "an image buffer (0 or 1)"), help="image buffer 0 or 1")
+    p.add_argument("row", type=U16, help="first row")
+    p.add_argument("col", type=U16, help="first column")
+    p.add_argument("file", help="a .npy file of a 2-D array of pixel values 0..65535")
+
+
+def _run_image_poke(c, a):
+    import numpy as np
+
+    try:
+        with open(a.file, "rb") as f:
+            pixels = np.load(f, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise ValueError(f"{a.file}: not a .npy array: {exc}") from None
+    c.poke_image(a.buffer, a.row, a.col, pixels)
+    return {"buffer": a.buffer, "row": a.row, "col": a.col, "rows": int(pixels.shape[0]), "cols": int(pixels.shape[1])}
+
+
 def _a_send(p):
     p.add_argument("code", type=ranged(int, 0, 0x1F, "a command code (0x00-0x1F)"), help="command code 0x00-0x1F")
     p.add_argument("data", type=_hex, nargs="?", default=b"", help="data field as hex (default: empty)")
@@ -282,6 +310,7 @@ Run = Callable[["Client", argparse.Namespace], dict]
 #: add_arguments; run)
 _SUBCOMMANDS: dict[str, tuple[Code | str, Callable, Run]] = {
     "ping": (Code.PING, _args_none, _run_ping),
+    "time": (Code.TIME, _args_none, _run_time),
     "init": (Code.INIT, _a_init, _run_init),
     "diag": (Code.DIAGNOSTIC, _a_diag, _run_diag),
     "peek": (Code.PEEK, _args_addr_count, _run_peek),
@@ -295,6 +324,7 @@ _SUBCOMMANDS: dict[str, tuple[Code | str, Callable, Run]] = {
     "result": (Code.READ_RESULT, _a_result, _run_result),
     "combination": (Code.COMBINATION, _a_combination, _run_combination),
     "dark-window": (Code.IMAGE, _a_dark, _run_dark_window),
+    "image-poke": (Code.IMAGE, _a_image_poke, _run_image_poke),
     "upload": ("upload FILE into SLOT (resumable, then commit)", _a_upload, _run_upload),
     "slot-status": (Code.XFER_STATUS, _args_slot, _run_slot_status),
     "slot-abort": (Code.XFER_ABORT, _args_slot, _run_slot_abort),
