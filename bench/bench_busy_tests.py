@@ -11,6 +11,11 @@ Each busy loop is a Python process spinning on the clock; it stops by itself onc
 bound has passed (a hang guard) and is killed as soon as the loaded run ends, whatever happens.
 The load average before each run is printed: "quiet" means no busy loops of ours, not an idle
 machine. Exit status 1 when a test failed in either run.
+
+Each run's whole pytest output and JUnit report are kept in a folder (``--keep DIR``, default a new
+``bench_busy_tests-*`` folder in the temporary directory) that is printed; the full report of
+every test that failed or errored (its message and traceback, from the JUnit file) is printed at
+the end, so a failure seen once beside the busy loops can be read, not only counted.
 """
 
 from __future__ import annotations
@@ -45,6 +50,10 @@ SHORT = [
     "tests/test_hil.py::test_short_closed_loop_through_the_paced_device[standin]",
     "tests/test_real_frames.py::test_real_frames_solve_with_datasheet_optics_and_defaults",
     "tests/test_real_frames.py::test_device_and_offline_replay_give_the_same_answers",
+    # their wall-clock bounds became hang guards (issue 42): proved beside the busy loops too
+    "tests/test_link_latency.py",
+    "tests/test_faults_device.py",
+    "tests/test_fuzz_tcp.py",
 ]
 
 BUSY_LOOP = "import sys, time\nend = time.monotonic() + float(sys.argv[1])\nwhile time.monotonic() < end:\n    pass\n"
@@ -61,6 +70,8 @@ class Outcome:
     exit_code: int = 0
     counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(("passed", "failed", "error", "skipped"), 0))
     bad: list[str] = field(default_factory=list)
+    reports: list[str] = field(default_factory=list)  #: the full report of each test that did not pass
+    kept: Path | None = None  #: the folder holding this run's pytest output and JUnit file
 
 
 def start_busy(n: int, bound_s: float) -> list[subprocess.Popen]:
@@ -85,18 +96,25 @@ def _junit(path: Path, out: Outcome) -> None:
         out.counts[kind] += 1
         if kind in ("failed", "error"):
             out.bad.append(f"{kind}: {name}")
+            for child in case:
+                if child.tag in ("failure", "error"):
+                    text = child.text or ""
+                    out.reports.append(f"{kind}: {name}: {child.get('message', '')}\n{text}".rstrip())
 
 
-def run_pytest(label: str, args: list[str], busy: int, bound_s: float) -> Outcome:
-    """pytest ``args`` with ``busy`` busy loops beside it; within ``bound_s`` (a hang guard)."""
-    out = Outcome(label, busy, os.getloadavg()[0])
-    with tempfile.TemporaryDirectory() as tmp:
-        junit = Path(tmp) / "junit.xml"
-        cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", f"--junitxml={junit}", *args]
+def run_pytest(label: str, args: list[str], busy: int, bound_s: float, keep: Path) -> Outcome:
+    """pytest ``args`` with ``busy`` busy loops beside it; within ``bound_s`` (a hang guard). Its
+    output (``LABEL.out``) and JUnit report (``LABEL.junit.xml``) are kept in ``keep``."""
+    out = Outcome(label, busy, os.getloadavg()[0], kept=keep)
+    keep.mkdir(parents=True, exist_ok=True)
+    junit = keep / f"{label}.junit.xml"
+    junit.unlink(missing_ok=True)
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", f"--junitxml={junit}", *args]
+    with open(keep / f"{label}.out", "wb") as log:
         procs = start_busy(busy, bound_s + 60.0)
         t0 = time.perf_counter()
         try:
-            proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, start_new_session=True)
+            proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
             try:
                 out.exit_code = proc.wait(timeout=bound_s)
             except subprocess.TimeoutExpired:
@@ -109,10 +127,10 @@ def run_pytest(label: str, args: list[str], busy: int, bound_s: float) -> Outcom
         finally:
             out.wall_s = time.perf_counter() - t0
             stop_busy(procs)
-        if junit.exists():
-            _junit(junit, out)
-        elif out.exit_code not in (0, 5):
-            out.bad.append(f"pytest exited {out.exit_code} without a report")
+    if junit.exists():
+        _junit(junit, out)
+    elif out.exit_code not in (0, 5):
+        out.bad.append(f"pytest exited {out.exit_code} without a report (its output: {keep / f'{label}.out'})")
     return out
 
 
@@ -122,6 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--busy", type=int, default=3, help="busy-loop processes beside the loaded run (default 3)")
     ap.add_argument("--loaded-only", action="store_true", help="no quiet run")
     ap.add_argument("--bound-s", type=float, default=None, help="hang guard of each run (default 1800, short 900)")
+    ap.add_argument("--keep", type=Path, default=None, help="folder for each run's output and JUnit report (kept)")
     ap.add_argument("pytest_args", nargs="*", help="pytest's arguments instead of the selection (after --)")
     args = ap.parse_args(argv)
     if args.busy < 0:
@@ -133,12 +152,14 @@ def main(argv: list[str] | None = None) -> int:
     else:
         selection, pytest_args = "default (pytest -q)", []
     bound = args.bound_s or (900.0 if args.short else 1800.0)
+    keep = args.keep or Path(tempfile.mkdtemp(prefix="bench_busy_tests-"))
     print(f"bench_busy_tests: selection {selection}; {os.cpu_count()} cores; busy loops {args.busy}", flush=True)
+    print(f"  each run's output and JUnit report: {keep}", flush=True)
     runs = []
     if not args.loaded_only:
-        runs.append(run_pytest("quiet", pytest_args, 0, bound))
+        runs.append(run_pytest("quiet", pytest_args, 0, bound, keep))
         print(f"  quiet run done: {runs[-1].wall_s:.1f} s", flush=True)
-    runs.append(run_pytest("loaded", pytest_args, args.busy, bound))
+    runs.append(run_pytest("loaded", pytest_args, args.busy, bound, keep))
     print(f"{'run':8}{'busy':>5}{'load1':>7}{'wall_s':>9}{'passed':>8}{'failed':>8}{'errors':>8}{'skipped':>9}")
     for r in runs:
         c = r.counts
@@ -151,6 +172,9 @@ def main(argv: list[str] | None = None) -> int:
     for r in runs:
         for line in r.bad:
             print(f"{r.label}: {line}")
+    for r in runs:
+        for report in r.reports:
+            print(f"\n===== {r.label} run: {report}")
     return 1 if any(r.bad for r in runs) else 0
 
 

@@ -1,16 +1,20 @@
-"""The link keeps answering while the device works: a catalog COMMIT is answered without waiting
-for the catalog's pattern index (built in another process, seconds for this catalog), PINGs are
-answered while it is built, and while a GO sequence solves a dense frame (thousands of blobs and
-hot pixels). The device is a separate process on a pty, as in flight.
+"""The link keeps answering while the device works: a catalog COMMIT is answered (its pattern
+index built in another process, seconds for this catalog), PINGs are answered while it is built,
+and while a GO sequence solves a dense frame (thousands of blobs and hot pixels) they are answered
+with the sequence still running (BUSY). The device is a separate process on a pty, as in flight.
 
-The bounds are generous (0.5 s where the figures are ~1-30 ms, bench/bench_link_during_go.py): they
-catch work done on the link thread or a call holding the GIL for seconds, not a slow machine."""
+No clock decides: every wait is a hang guard (tests/guards.py), and "answered during the GO" is
+shown by the banners (BUSY while the sequence runs), not by a round-trip time. The round trips
+themselves (~1-30 ms) and the COMMIT's (~10 ms, not the ~4 s of building the index) are
+bench/bench_link_during_go.py's figures; that the COMMIT leaves the build to another process and a
+GO waits for it is tests/test_ready.py's (the build held open by a gate)."""
 
 import json
 import time
 
 import numpy as np
 import pytest
+from guards import HANG_S, REPLY_S
 
 from firmware_model.catalog.image_io import catalog_to_image
 from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes
@@ -22,10 +26,6 @@ from ground.testing.device_proc import DeviceProcess
 from protocol import result
 from protocol.commands import Slot
 
-BOUND_S = 0.5  #: the longest a PING may take
-#: the longest the COMMIT may take: it parses the 2.9 MB image (~10 ms) and writes it with an fsync;
-#: building the index here as well would take 2.6 s or more (~4 s of building, in another process)
-COMMIT_BOUND_S = 1.5
 CAMERA = tetra3_setup.DATASHEET_CAMERA
 
 
@@ -51,42 +51,30 @@ def dense_frame(blobs: int, hot: int) -> Frame:
     return Frame(pixels=np.clip(img, 0, 4095).astype(np.uint16), pattern="RGGB", black_level=64, white_level=4095)
 
 
-def timed(call):
-    t0 = time.perf_counter()
-    value = call()
-    return value, time.perf_counter() - t0
-
-
 def test_pings_are_answered_during_the_index_build_and_a_dense_frame_go(catalog_image, tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))  # no cached index: the COMMIT builds it
     camera = tmp_path / "camera.json"
     camera.write_text(json.dumps(CAMERA.to_dict()))
     frame = frame_to_bytes(dense_frame(blobs=3000, hot=40_000))
     with DeviceProcess("--pty", "--state", str(tmp_path / "state"), "--camera", str(camera)) as dev:
-        with Client(dev.path, timeout=10.0) as c:
+        with Client(dev.path, timeout=REPLY_S) as c:
             c.ping()  # a client's first command drains the line first
             c.init()
             c.upload(Slot.CATALOG, catalog_image, progress=False, commit=False)
-            reply, commit_s = timed(lambda: c.xfer_commit(Slot.CATALOG))
-            assert reply.active and commit_s < COMMIT_BOUND_S, commit_s
-            during_build = []
-            t_end = time.monotonic() + 2.0
-            while time.monotonic() < t_end:
-                during_build.append(timed(c.ping)[1])
-                time.sleep(0.01)
+            assert c.xfer_commit(Slot.CATALOG).active
+            during_build = [c.ping() for _ in range(20)]  # answered while the index is built elsewhere
             c.upload(Slot.FRAME, frame, progress=False)
             c.go()
             during_go = []
-            t_end = time.monotonic() + 120.0
-            while time.monotonic() < t_end:
-                banner, seconds = timed(c.ping)
-                during_go.append(seconds)
-                if banner.endswith("IDLE"):
+            deadline = time.monotonic() + HANG_S * 4  # a hang guard: the solve takes seconds
+            while time.monotonic() < deadline:
+                during_go.append(c.ping())
+                if during_go[-1].endswith("IDLE"):
                     break
                 time.sleep(0.01)
             status = result.status_of(int(c.read_result_record()["return_code"]))
         assert dev.alive, dev.stderr()
-    assert banner.endswith("IDLE") and status != result.Status.SOLVER_ERROR, (banner, status, dev.stderr())
-    assert len(during_go) > 3  # the GO waited for the index, then solved: PINGed throughout
-    assert max(during_build) < BOUND_S, sorted(during_build)[-5:]
-    assert max(during_go) < BOUND_S, sorted(during_go)[-5:]
+    assert all(b.startswith("ST16-EMU") for b in during_build), during_build
+    assert during_go[-1].endswith("IDLE") and status != result.Status.SOLVER_ERROR, (during_go[-1], status)
+    # the link answered while the sequence ran (it waited for the index, then solved), not only after it
+    assert sum("BUSY" in b for b in during_go) >= 3, during_go
