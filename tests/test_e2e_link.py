@@ -225,6 +225,8 @@ def test_refused_frame_is_an_answer_not_silence(device, scene, tmp_path):
     log = [json.loads(line) for line in (tmp_path / "out" / "results.jsonl").read_text().splitlines()]
     assert log[0]["frame"] == "a_small.dng" and "NACKed" in log[0]["reason"]
     assert log[1]["frame"] == "b_good.dng" and log[1]["status"] == "OK"
+    good = sorted(scene["frames"].glob("*rggb.dng"))[0]
+    assert score(log[1], Truth.for_frame(good))["outcome"] == "correct"  # the truth beside the linked frame
 
 
 def test_replay_refuses_to_mix_runs_and_resumes_where_it_stopped(scene, tmp_path):
@@ -252,12 +254,13 @@ def test_frame_upload_can_show_its_progress(device, scene, capsys):
     from firmware_model.pipeline.frame_readers import read_frame
 
     _upload_catalog(device, scene["image"])
-    frame = read_frame(sorted(scene["frames"].glob("*rggb.dng"))[0])
+    path = sorted(scene["frames"].glob("*rggb.dng"))[0]
+    frame = read_frame(path)
     for shown in (False, True):
         solver = LinkSolver(device, upload_progress=shown, timeout=guards.REPLY_S)
         try:
             rec = solver.solve(frame)
         finally:
             solver.close()
-        assert rec["status"] == "OK"
+        assert rec["status"] == "OK" and score(rec, Truth.for_frame(path))["outcome"] == "correct"
         assert ("slot 1" in capsys.readouterr().err) == shown

@@ -1,7 +1,9 @@
 """Bright-body exclusion (firmware_model.pipeline.exclusion; docs/pipeline.md "Bright-body
 exclusion", docs/ICD.md sections 7, 9, 10): frames of stars only, rendered with a timestamp, whose
-boresight is 5 deg inside or outside a body's limit; the statuses, the hardware.status bits, the
-reason, the attitude memory of the device, and the parameters' range."""
+boresight is 5 deg, or half a degree, inside or outside a body's limit; the statuses, the
+hardware.status bits, the reason, the check on every path (lost in space, tracked, blind
+solve_image), the attitude memory of the device (its direction of propagation, OK answers only),
+and the parameters' range."""
 
 import copy
 import json
@@ -16,6 +18,7 @@ from firmware_model.device.device import Device
 from firmware_model.device.sensor_input import REJECT_PARAMS_VALUE, DeviceParams, PipelineSolver
 from firmware_model.pipeline.exclusion import (
     BLIND_BACKGROUND_FRACTION,
+    STATUS_OF,
     ExclusionLimits,
     LastAttitude,
     blinded,
@@ -25,7 +28,7 @@ from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.pipeline.result_fields import result_fields
 from firmware_model.pipeline.run import PipelineParams, run_pipeline
 from firmware_model.pipeline.sky_bodies import ATMOSPHERE_KM, EARTH_RADIUS_KM, sky_bodies
-from firmware_model.reference_frames import matrix_to_quat, quat_to_matrix, rotation_angle
+from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, quat_to_matrix, rotation_angle
 from ground.cli.main import main as ground_main
 from ground.link.solve_report import format_record, record_from_output
 from protocol import nsp, result, slip
@@ -68,6 +71,7 @@ def unchecked(scene, catalog):
     """The frame's answer with no check at all (each case checks a copy)."""
     out = run_pipeline(scene[1], NOMINAL, catalog, PipelineParams(exclusion=None))
     assert out.status is Status.OK, out.reason
+    assert rotation_angle(quat_to_matrix(out.solution.q_icrs_to_sensor), scene[0]) < 2 * PIXEL_RAD  # the truth
     return out
 
 
@@ -200,6 +204,85 @@ def test_a_remembered_attitude_turns_at_the_trackers_rate():
     assert last.recall(110.5, 10.0) is None and last.recall(99.0, 10.0) is None  # too old, or a later frame's
 
 
+def test_a_remembered_attitude_turns_the_way_the_sensor_turns():
+    """The direction, not only the angle: a sensor turning at +2 deg/s about its x axis carries
+    its boresight (sensor +z, in ICRS) towards -y of the starting frame (``v_sensor = A v``,
+    ``A(t + dt) = R(-omega dt) A``, docs/CONVENTIONS.md), as the tracker's own prediction does."""
+    from firmware_model.ident.attitude import quat_matrix
+    from firmware_model.ident.tracking import TrackState, predict
+
+    a0 = quat_to_matrix(matrix_to_quat(np.eye(3)))
+    omega = np.radians([2.0, 0.0, 0.0])
+    turned = quat_to_matrix(LastAttitude(matrix_to_quat(a0), 100.0, omega).recall(103.0, 10.0).q)
+    six = np.radians(6.0)
+    np.testing.assert_allclose(turned[2], [0.0, -np.sin(six), np.cos(six)], atol=1e-12)  # the boresight in ICRS
+    state = TrackState.from_fix(matrix_to_quat(a0), np.eye(3) * 1e-12, 100.0, omega=omega)
+    assert rotation_angle(turned, quat_matrix(predict(state, 103.0).q)) < 1e-12  # the tracker's kinematics
+    a1 = attitude_from_radec_roll(*np.radians([83.8, -5.4, 20.0]))  # any attitude: omega is in sensor axes
+    turned1 = quat_to_matrix(LastAttitude(matrix_to_quat(a1), 0.0, omega).recall(3.0, 10.0).q)
+    np.testing.assert_allclose(a1 @ turned1[2], [0.0, -np.sin(six), np.cos(six)], atol=1e-9)
+
+
+@pytest.mark.parametrize("body", ["sun", "moon"])
+def test_a_body_half_a_degree_inside_its_limit_is_excluded_and_half_a_degree_outside_is_not(scene, unchecked, body):
+    """The limit itself, not 5 deg either side of it: a check off by more than half a degree fails."""
+    _, frame, edges = scene
+    others = {"sun_deg": 0.0, "moon_deg": 0.0}
+    inside = check_exclusion(
+        copy.deepcopy(unchecked), frame, ExclusionLimits(**{**others, f"{body}_deg": edges[body] + 0.5})
+    )
+    assert inside.status is STATUS_OF[body] and inside.solution is None and inside.in_fov == (body,), inside.reason
+    outside = check_exclusion(
+        copy.deepcopy(unchecked), frame, ExclusionLimits(**{**others, f"{body}_deg": edges[body] - 0.5})
+    )
+    assert outside.status is Status.OK and outside.in_fov == () and outside.solution is not None, outside.reason
+
+
+def test_the_earth_half_a_degree_either_side_of_its_limit(scene, unchecked):
+    a, frame, _ = scene
+    limits = ExclusionLimits(sun_deg=0.0, moon_deg=0.0, earth_deg=25.0)
+    for edge, status in ((24.5, Status.EARTH_IN_FOV), (25.5, Status.OK)):
+        placed = Frame(frame.pixels, timestamp=EPOCH, metadata={"sc_position_km": _earth_at(a, edge)})
+        assert check_exclusion(copy.deepcopy(unchecked), placed, limits).status is status, edge
+
+
+def test_the_tracked_path_is_checked_for_bright_bodies(scene, catalog):
+    """A frame the tracker follows (no lost-in-space solve) with the Sun inside its limit:
+    SUN_IN_FOV by the tracked attitude, as a lost-in-space answer would be."""
+    from firmware_model.ident.solver import Method
+    from firmware_model.ident.tracking import TrackState
+    from firmware_model.pipeline.tracking_run import Tracker
+
+    a, frame, edges = scene
+
+    def tracker():
+        return Tracker(state=TrackState.from_fix(matrix_to_quat(a), np.eye(3) * (PIXEL_RAD / 10) ** 2, 0.0))
+
+    sun_in = PipelineParams(optics=None, exclusion=ExclusionLimits(sun_deg=_inside(edges["sun"]), moon_deg=0.0))
+    tracked = tracker().solve(frame, 0.1, NOMINAL, catalog, PipelineParams(optics=None, exclusion=None))
+    assert tracked.status is Status.OK and tracked.solution.method is Method.TRACKING, tracked.reason  # tracked
+    assert rotation_angle(quat_to_matrix(tracked.solution.q_icrs_to_sensor), a) < 2 * PIXEL_RAD
+    out = tracker().solve(frame, 0.1, NOMINAL, catalog, sun_in)
+    assert out.status is Status.SUN_IN_FOV and out.solution is None and out.in_fov == ("sun",), out.reason
+    assert out.reason.endswith("by the solved attitude")
+
+
+def test_a_blind_solve_image_is_checked_for_bright_bodies(scene, tmp_path):
+    """solve_image with no camera (the field of view searched against the whole-sky database, built
+    in this run's own cache): a FITS frame stamped with its time, the Sun inside its limit ->
+    SUN_IN_FOV; outside it -> OK at the true attitude."""
+    from ground.api import solve_image
+    from ground.sim.frame_writer import write_fits
+
+    a, frame, edges = scene
+    path = write_fits(frame, tmp_path / "orion.fits")
+    ok = solve_image(path, params=PipelineParams(exclusion=ExclusionLimits(sun_deg=_outside(edges["sun"]))))
+    assert ok.status == "OK", ok.reason
+    assert rotation_angle(quat_to_matrix(ok.q_icrs_to_sensor), a) < 2 * PIXEL_RAD
+    sun_in = solve_image(path, params=PipelineParams(exclusion=ExclusionLimits(sun_deg=_inside(edges["sun"]))))
+    assert sun_in.status == "SUN_IN_FOV" and sun_in.q_icrs_to_sensor is None, sun_in.reason
+
+
 # ------------------------------------------------------------------ the device's attitude memory
 
 
@@ -234,7 +317,7 @@ def test_a_blinded_frame_after_a_fix_is_judged_by_the_last_attitude(scene, catal
     """An OK solve, then a saturated frame 1 s later with the Sun inside the (new) limit by the
     remembered attitude: SUN_IN_FOV, bit 9, the attitude's age in the reason; with a memory
     shorter than 1 s: BLINDED."""
-    _, frame, edges = scene
+    a, frame, edges = scene
     dev = Device(
         solver=PipelineSolver(NOMINAL, PipelineParams(optics=None)),
         frame_source=Frames([frame, _saturated(_later(1.0))]),
@@ -243,6 +326,7 @@ def test_a_blinded_frame_after_a_fix_is_judged_by_the_last_attitude(scene, catal
     assert _send(dev, Code.INIT, (0x2000).to_bytes(4, "little")).ack
     fix = _go(dev, DeviceParams(sun_exclusion_deg=_outside(edges["sun"]), moon_exclusion_deg=0.0))
     assert result.status_of(int(fix["return_code"])) is Status.OK
+    assert rotation_angle(quat_to_matrix(np.asarray(fix["quaternion"], float)), a) < 2 * PIXEL_RAD  # the truth
     rec = _go(
         dev, DeviceParams(sun_exclusion_deg=_inside(edges["sun"]), moon_exclusion_deg=0.0, exclusion_memory_s=memory_s)
     )
@@ -255,6 +339,36 @@ def test_a_blinded_frame_after_a_fix_is_judged_by_the_last_attitude(scene, catal
     else:
         assert _reason(rec) == "blinded: 100 % of the pixels saturated"
         assert not int(rec["hardware"]["status"]) & 0x0E00
+
+
+def test_a_low_confidence_answer_is_not_remembered_and_a_blinded_frame_after_it_is_blinded(scene, catalog, monkeypatch):
+    """Only OK attitudes are remembered: a LOW_CONFIDENCE answer (its attitude right, here) then a
+    saturated frame 1 s later with the Sun inside the limit by that attitude: BLINDED, not
+    SUN_IN_FOV (nothing remembered); after an OK answer the same frame is SUN_IN_FOV."""
+    from firmware_model.device import sensor_input
+
+    _, frame, edges = scene
+    solver = PipelineSolver(NOMINAL, PipelineParams(optics=None))
+    real = sensor_input.run_pipeline
+
+    def low_confidence(*args, **kw):
+        out = real(*args, **kw)
+        if out.status is Status.OK:
+            out.status, out.reason = Status.LOW_CONFIDENCE, "consensus below eta (the test's)"
+        return out
+
+    monkeypatch.setattr(sensor_input, "run_pipeline", low_confidence)
+    dev = Device(solver=solver, frame_source=Frames([frame, _saturated(_later(1.0))]))
+    dev.transfers.objects[Slot.CATALOG] = catalog
+    assert _send(dev, Code.INIT, (0x2000).to_bytes(4, "little")).ack
+    low = _go(dev, DeviceParams(sun_exclusion_deg=_outside(edges["sun"]), moon_exclusion_deg=0.0))
+    assert result.status_of(int(low["return_code"])) is Status.LOW_CONFIDENCE, _reason(low)
+    assert np.asarray(low["quaternion"]).any()  # an attitude was reported, with low confidence
+    rec = _go(dev, DeviceParams(sun_exclusion_deg=_inside(edges["sun"]), moon_exclusion_deg=0.0))
+    assert result.status_of(int(rec["return_code"])) is Status.BLINDED, _reason(rec)
+    assert _reason(rec) == "blinded: 100 % of the pixels saturated"
+    assert not int(rec["hardware"]["status"]) & 0x0E00
+    assert solver.last is None  # nothing remembered
 
 
 # ------------------------------------------------------------------ the parameters

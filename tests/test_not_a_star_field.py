@@ -11,6 +11,7 @@ from firmware_model.ident.consensus import CHANCE_ANSWERS, NOT_A_STAR_FIELD, cha
 from firmware_model.ident.pair_match import PairCandidates
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.pipeline.run import run_pipeline
+from firmware_model.reference_frames import quat_to_matrix, rotation_angle
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
 from ground.sim.device_process import pick_attitudes
@@ -79,3 +80,4 @@ def test_a_star_field_with_hot_pixels_still_solves(catalog):
     frame = Frame(pixels=pixels, pattern="MONO", black_level=r.frame.black_level, white_level=r.frame.white_level)
     out = run_pipeline(frame, CAMERA, catalog)
     assert out.status is Status.OK
+    assert np.degrees(rotation_angle(quat_to_matrix(out.solution.q_icrs_to_sensor), a)) < 0.01  # the true attitude

@@ -113,6 +113,15 @@ def scene():
     return image, catalog, frame, camera
 
 
+def _attitude_error_deg(q, scene) -> float:
+    """The angle (deg) between ``q`` and the scene frame's true attitude (rendered at it)."""
+    from firmware_model.reference_frames import quat_to_matrix, rotation_angle
+    from ground.sim.device_process import pick_attitudes
+
+    (a,) = pick_attitudes(scene[1], scene[3], 1, np.random.default_rng(27))  # the scene's own draw
+    return float(np.degrees(rotation_angle(quat_to_matrix(q), a)))
+
+
 def test_the_device_builds_its_stored_catalogs_index_before_it_says_listening(tmp_path, scene):
     from firmware_model.device.slots import SlotStore
 
@@ -201,6 +210,7 @@ def test_a_commit_builds_the_index_elsewhere_the_link_answers_and_a_go_waits_for
     assert build.done() and "_pattern_build" not in active.__dict__
     alone = record_from_output(run_pipeline(frame, camera, catalog, PipelineParams()))
     assert rec["status"] == alone["status"] == "OK"
+    assert _attitude_error_deg(rec["q_icrs_to_sensor"], scene) < 0.01  # the truth
     assert rec["q_icrs_to_sensor"] == pytest.approx(alone["q_icrs_to_sensor"], abs=1e-6)
     assert [s["catalog_id"] for s in rec["stars"]] == [s["catalog_id"] for s in alone["stars"]]
 
@@ -230,13 +240,13 @@ def test_a_first_solves_stages_add_up_to_its_total(tmp_path, scene):
         waited = time.perf_counter() - t0
         again = solve_image(pixels, camera=camera, catalog={str(tmp_path / "cat.st16cat")!r})
         print(json.dumps({{"first": s.record["timings_s"], "waited": waited, "status": s.status,
-                          "again": again.record["timings_s"]}}))
+                          "again": again.record["timings_s"], "q": s.q_icrs_to_sensor}}))
         """
     )
     assert run.returncode == 0, run.stderr
     got = json.loads(run.stdout.strip().splitlines()[-1])
     first = got["first"]
-    assert got["status"] == "OK"
+    assert got["status"] == "OK" and _attitude_error_deg(got["q"], scene) < 0.01  # the truth
     assert first["compile"] > 0 and first["catalog"] > 0 and first["index"] > 0  # the device's twin
     parts = sum(v for k, v in first.items() if k != "total")
     assert parts == pytest.approx(first["total"], rel=0.05, abs=0.02)
