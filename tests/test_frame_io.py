@@ -419,11 +419,11 @@ def test_frame_files_takes_png_and_jpeg(tmp_path):
 def test_shared_real_colour_frames(shared_data):
     import json
 
+    from conftest import require_shared
+
     from firmware_model.pipeline.frame_readers import frame_files
 
-    folder = shared_data / "frames" / "colour-real"
-    if not folder.is_dir():
-        pytest.skip("colour-real frames are absent")
+    folder = require_shared(shared_data / "frames" / "colour-real")  # a skip, or under CI=true a failure
     ref = json.loads((folder / "reference_pointing.json").read_text())
     paths = frame_files(folder)
     assert sorted(p.name for p in paths) == sorted(ref)

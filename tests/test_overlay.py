@@ -3,10 +3,15 @@ and shapes per kind, a legend whose counts are the record's, labels clear of eac
 
 import numpy as np
 import pytest
+from conftest import required
 
 from firmware_model.pipeline.raw_frame import Frame
 
-pytest.importorskip("matplotlib")
+
+@pytest.fixture(autouse=True)
+def _matplotlib():
+    """matplotlib is a [test] requirement: absent, these tests fail (conftest.required), never skip."""
+    required("matplotlib")
 
 
 def star(x, y, catalog_id=None, flux=100.0, body=None):

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import require_shared
 
 from firmware_model.camera import CameraModel
 from firmware_model.catalog.image_io import catalog_to_image
@@ -30,9 +31,7 @@ GROUND = [sys.executable, "-m", "ground.cli"]
 
 @pytest.fixture(scope="module")
 def tetra3(shared_data, tmp_path_factory):
-    frames = shared_data / "frames" / "tetra3-mono"
-    if not frames.is_dir():
-        pytest.skip("tetra3 frames absent")
+    frames = require_shared(shared_data / "frames" / "tetra3-mono")  # a skip, or under CI=true a failure
     catalog = build_catalog(tetra3_setup.catalog_design())
     work = tmp_path_factory.mktemp("tetra3")
     (work / "catalog.st16cat").write_bytes(catalog_to_image(catalog))

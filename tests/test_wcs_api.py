@@ -112,9 +112,11 @@ def test_solve_image_bad_input():
 
 @pytest.fixture(scope="module")
 def tetra3_frames(shared_data_module):
-    frames = sorted((shared_data_module / "frames" / "tetra3-mono").glob("*.tiff"))
-    if not frames:
-        pytest.skip("tetra3 frames absent")
+    from conftest import require_shared
+
+    folder = require_shared(shared_data_module / "frames" / "tetra3-mono")  # a skip, or under CI=true a failure
+    frames = sorted(folder.glob("*.tiff"))
+    assert frames, f"{folder} holds no .tiff frames"
     return frames
 
 
