@@ -28,6 +28,7 @@ from protocol.commands import (
     Poke,
     ReadFile,
     ReadRange,
+    RectangularPoke,
     SlotImage,
     SlotRequest,
     TimeReply,
@@ -54,7 +55,8 @@ class Command:
     several messages; ``decode_first``, the device decodes the data field before anything else
     (IMAGE checks mode and subcommand first, FAULT whether fault injection is on); ``failure``, the
     layout of a refusal when the ICD gives the command its own (COMBINATION's failure reply; None:
-    our NACK, :class:`~protocol.commands.NackInfo`)."""
+    our NACK, :class:`~protocol.commands.NackInfo`); ``also``, further layouts of the data field
+    (IMAGE's Rectangular Poke beside its Dark Window)."""
 
     code: Code
     request: type[Layout] | None
@@ -68,6 +70,12 @@ class Command:
     parts: bool = False
     decode_first: bool = True
     failure: type[CombinationFailure] | None = None
+    also: tuple[type[Layout], ...] = ()
+
+    @property
+    def requests(self) -> tuple[type[Layout], ...]:
+        """Every layout the data field may have: ``request``, then ``also`` (IMAGE's subcommands)."""
+        return ((self.request,) if self.request is not None else ()) + self.also
 
     @property
     def name(self) -> str:
@@ -209,6 +217,7 @@ TABLE: tuple[Command, ...] = (
         "echo of the 26 bytes; of the poke's 10-byte head",
         "WRONG_MODE, BAD_LENGTH, BAD_PARAMETER, OUT_OF_RANGE, TOO_LARGE",
         decode_first=False,
+        also=(RectangularPoke,),
     ),
     Command(
         Code.COMBINATION,

@@ -121,8 +121,9 @@ def test_result_and_combination_print_decoded_fields(port, capsys):
         rc, out = run_json(port, capsys, *argv)
         assert out["status"] == "NO_CATALOG" and out["n_matched"] == 0 and out["q_icrs_to_sensor"] is None
         when = datetime.fromisoformat(out["epoch_utc"].replace("Z", "+00:00"))
-        assert abs(when.timestamp() - out["epoch"]) < 1e-3
+        assert abs(when.timestamp() - out["utc_epoch"]) < 1e-3
         assert abs((datetime.now(UTC) - when).total_seconds()) < 120
+        assert 0 <= out["epoch"] < 3600  # the device clock: seconds since its power-on (epoch 0)
 
 
 def test_combination_sections_decode_to_attitude_and_time():
@@ -137,7 +138,8 @@ def test_combination_sections_decode_to_attitude_and_time():
         {
             "return_code": result.make_return_code(result.Status.OK, result.ReturnBits.IMAGE1_SUCCESS),
             "quaternion": q,
-            "epoch": 1795495102.25,
+            "epoch": 12.5,  # the device clock
+            "ext.utc_epoch": 1795495102.25,
             "ext.n_matched": 7,
             "ext.n_detected": 9,
         },
@@ -150,7 +152,7 @@ def test_combination_sections_decode_to_attitude_and_time():
     assert out["status"] == "OK" and out["bits"] == ["IMAGE1_SUCCESS"] and "sequence" not in out
     assert out["ra_deg"] == pytest.approx(83.8) and out["dec_deg"] == pytest.approx(-5.4)
     assert out["roll_deg"] == pytest.approx(10.0) and out["n_matched"] == 7
-    assert out["epoch_utc"] == "2026-11-24T04:38:22.250Z" and "raw" not in out
+    assert out["epoch_utc"] == "2026-11-24T04:38:22.250Z" and out["epoch"] == 12.5 and "raw" not in out
     assert out["hardware"]["quaternion_order"] == "scalar_first"  # the hardware section flags the order
     text = format_record(out)
     assert "RA 83.80000 deg, Dec -5.40000 deg, roll 10.0000 deg" in text and "detected 9, matched 7" in text

@@ -264,3 +264,22 @@ def test_frame_upload_can_show_its_progress(device, scene, capsys):
             solver.close()
         assert rec["status"] == "OK" and score(rec, Truth.for_frame(path))["outcome"] == "correct"
         assert ("slot 1" in capsys.readouterr().err) == shown
+
+
+def test_a_frame_poked_in_through_the_link_solves_as_an_uploaded_one(device, scene):
+    """IMAGE Rectangular Poke writes a rendered frame's pixels into image buffer 0 and a GO with bit
+    0x40 INJECTED solves that buffer (docs/ICD.md §6-§7): image injection through NSP alone."""
+    from firmware_model.pipeline.frame_readers import read_frame
+    from ground.link.solve_report import solve_record
+
+    _upload_catalog(device, scene["image"])
+    path = sorted(scene["frames"].glob("*_rggb.dng"))[0]
+    frame = read_frame(path)
+    with Client(device, timeout=guards.REPLY_S) as c:
+        c.poke_image(0, 0, 0, frame.pixels)
+        rec = c.go_and_wait(0x0B | 0x40, timeout=guards.HANG_S)
+    out = solve_record(rec)
+    sc = score(out, Truth.for_frame(path))
+    assert out["status"] == "OK", out["reason"]
+    assert sc["outcome"] == "correct" and sc["attitude_error_deg"] < 0.01, sc
+    assert not int(rec["return_code"]) & result.ReturnBits.DETECTOR_IMAGE  # the buffer, not the detector

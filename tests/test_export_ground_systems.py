@@ -101,7 +101,7 @@ def test_definitions_parse_with_openc3_and_follow_protocol(tmp_path):
 
     packet = telemetry["RESULT"]
     offsets = _flat_offsets(result.RESULT)
-    assert len(offsets) > 800
+    assert len(offsets) > 750  # every scalar of the structure (29 extension stars of 10 fields among them)
     for name, (offset, dt) in offsets.items():
         item = packet.items[name]
         assert (item.bit_offset, item.bit_size) == (HEADER_BITS + 8 * offset, 8 * dt.itemsize), name

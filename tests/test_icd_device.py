@@ -242,3 +242,11 @@ def test_the_result_epoch_is_the_exposure_mid_time_on_the_device_clock():
     # to the resolution of POSIX seconds near 1.7e9 (0.24 us)
     assert float(rec["epoch"]) == pytest.approx(device_at_go + 0.05 * (1 + 100e-6), abs=1e-6)
     assert float(rec["ext"]["utc_epoch"]) == pytest.approx(1.7e9 + 0.05, abs=1e-6)
+
+
+def test_the_attitude_covariance_is_the_upper_triangle_row_by_row():
+    """ICD page 1-35920: matching telemetry +0x80, six f64, the upper triangle."""
+    from firmware_model.pipeline.result_fields import upper_triangle_by_rows
+
+    cov = np.array([[1.0, 4.0, 5.0], [4.0, 2.0, 6.0], [5.0, 6.0, 3.0]])
+    assert upper_triangle_by_rows(cov).tolist() == [1.0, 4.0, 5.0, 2.0, 6.0, 3.0]

@@ -86,9 +86,16 @@ def return_bits(out: PipelineOutput) -> int:
 
 
 def upper_triangle(covariance) -> np.ndarray:
-    """A 3x3 covariance's six distinct terms in the result's order: xx, yy, zz, xy, xz, yz."""
+    """A 3x3 covariance's six distinct terms in the extension's order: xx, yy, zz, xy, xz, yz."""
     c = np.asarray(covariance, dtype=float)
     return np.array([c[0, 0], c[1, 1], c[2, 2], c[0, 1], c[0, 2], c[1, 2]])
+
+
+def upper_triangle_by_rows(covariance) -> np.ndarray:
+    """The upper triangle of a 3x3 covariance row by row, as the ICD's matching telemetry holds the
+    attitude covariance (page 1-35920): xx, xy, xz, yy, yz, zz."""
+    c = np.asarray(covariance, dtype=float)
+    return c[np.triu_indices(3)]
 
 
 def omega_fields(omega, covariance) -> dict:

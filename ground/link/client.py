@@ -356,7 +356,7 @@ class Client:
         ``code`` (None: no data field); retried when the table says it may be (``idempotent``
         given overrides)."""
         spec = COMMANDS[code]
-        if not (request is None if spec.request is None else type(request) is spec.request):
+        if not (request is None if spec.request is None else type(request) in spec.requests):
             raise TypeError(f"{code_name(code)} takes {spec.request}, not {type(request)}")
         kw.setdefault("idempotent", spec.idempotent)
         return self.transact(code, request.pack() if request is not None else b"", **kw)

@@ -28,6 +28,7 @@ from protocol.commands import (
     Poke,
     ReadFile,
     ReadRange,
+    RectangularPoke,
     SlotRequest,
     WriteEdac,
     WriteFile,
@@ -53,6 +54,12 @@ FAULTS = (
 )
 
 
+def _poke(rng: random.Random, buffer: int, row: int, col: int, rows: int, cols: int) -> RectangularPoke:
+    """A Rectangular Poke of random pixel values, of the right length nine times in ten."""
+    n = rows * cols if rng.random() < 0.9 else rng.randrange(rows * cols + 2)
+    return RectangularPoke(buffer, row, col, rows, cols, rng.randbytes(2 * n))
+
+
 def _plausible_data(rng: random.Random, code: int) -> bytes:
     """A data field of the right shape for ``code`` with random values (often out of range): of
     the request type the command table gives ``code`` (``tests/test_nsp_payloads.py`` checks that
@@ -73,7 +80,11 @@ def _plausible_data(rng: random.Random, code: int) -> bytes:
         Code.WRITE_EDAC: lambda: WriteEdac(r(0, 600), rng.randbytes(r(1, 40))).pack(),
         Code.GO: lambda: Go(rng.choice([0x02, 0x03, 0x0B, 0x12, r(256)])).pack(),
         Code.READ_RESULT: lambda: ReadRange(r(0, 3000), r(0, 3000), long=True).pack(),
-        Code.IMAGE: lambda: DarkWindow(r(3), r(3000), r(3000), r(1, 3000), r(1, 3000)).pack(),
+        Code.IMAGE: lambda: (
+            DarkWindow(r(3), r(3000), r(3000), r(1, 3000), r(1, 3000))
+            if r(2)
+            else _poke(rng, r(3), r(3000), r(3000), r(1, 24), r(1, 24))
+        ).pack(),
         Code.COMBINATION: lambda: Combination(rng.choice([0x02, 0x03, 0x0B, r(256)]), r(1 << 24)).pack(),
         Code.XFER_BEGIN: lambda: XferBegin(r(5), rng.choice([r(1, 5000), r(1 << 32)]), r(1 << 32)).pack(),
         Code.XFER_DATA: lambda: XferData(r(5), r(6000), rng.randbytes(r(1, 300))).pack(),
