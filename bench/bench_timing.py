@@ -9,7 +9,8 @@ A. GO -> result ready for each capture source, each its own ``st16-device --pty`
    length reads non-zero. GO cycles go round-robin over the sources, one at a time, so machine load
    (2 shared cores) falls on every source alike; ``frames`` is the baseline the others are read
    against. Budget: p99 <= 300 ms. ``realistic``: ``--sky --timing realistic`` (result held until
-   100 ms exposure + 100 ms processing after GO), the cadence a flight computer would see.
+   100 ms exposure + 400 ms processing after GO: about 2 Hz, the real unit's cadence), the cadence a
+   flight computer would see; its budget is the hold + 50 ms.
 B. The HIL loop (``ground.hil.run``): update rate with a minimal COMBINATION mask at paced
    115 200 baud, and latency from exposure mid-time to the result at the host.
 
@@ -30,7 +31,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from firmware_model.device.sequence import Timing  # noqa: E402
+
 BUDGET_MS = 300.0
+REALISTIC_BUDGET_MS = 1e3 * Timing().hold("built") + 50.0  #: the realistic hold + 50 ms
 POLL_S = 0.002
 
 
@@ -176,7 +180,8 @@ def part_a(n: int, sources: list[str], n_frames: int) -> None:
     print(f"{'source':<10}{'p50 ms':>9}{'p99 ms':>9}{'max ms':>9}   budget p99 <= {BUDGET_MS:.0f} ms   statuses")
     for name in sources:
         t = np.array(times[name])
-        verdict = "ok" if np.percentile(t, 99) <= BUDGET_MS else "OVER"
+        budget = REALISTIC_BUDGET_MS if name == "realistic" else BUDGET_MS
+        verdict = "ok" if np.percentile(t, 99) <= budget else f"OVER ({budget:.0f} ms)"
         print(
             f"{name:<10}{np.median(t):>9.1f}{np.percentile(t, 99):>9.1f}{t.max():>9.1f}   {verdict:<26}{status[name]}"
         )
@@ -205,7 +210,7 @@ def main(argv=None) -> int:
         "--sources",
         default="frames,sky,sky_bodies,feed,realistic",
         help="comma-separated: frames, sky, sky_bodies (sky with an orbit: glare and exclusion), feed, realistic "
-        "(--sky held to 100 + 100 ms by --timing realistic)",
+        "(--sky held to 100 + 400 ms by --timing realistic)",
     )
     ap.add_argument("--hil-duration", type=float, default=30.0, help="seconds of closed loop (part B)")
     ap.add_argument("--dynamics", default="auto", choices=("auto", "basilisk", "standin"), help="part B dynamics")

@@ -250,3 +250,18 @@ def test_the_attitude_covariance_is_the_upper_triangle_row_by_row():
 
     cov = np.array([[1.0, 4.0, 5.0], [4.0, 2.0, 6.0], [5.0, 6.0, 3.0]])
     assert upper_triangle_by_rows(cov).tolist() == [1.0, 4.0, 5.0, 2.0, 6.0, 3.0]
+
+
+def test_the_parameter_file_sets_the_clock_model_and_the_options_win(tmp_path):
+    from firmware_model.device.sensor_input import DeviceParams
+    from protocol.commands import SlotRejected
+
+    params = tmp_path / "params.json"
+    params.write_text('{"clock_drift_ppm": 50, "clock_epoch_s": 12.5, "clock_jitter_us": 3}')
+    args = cli.build_parser().parse_args(["--pty", "--params", str(params), "--clock-jitter-us", "7"])
+    model = cli.build_device(args).device_clock.model
+    assert (model.drift_ppm, model.epoch_s, model.jitter_us) == (50.0, 12.5, 7.0)
+    for bad in (b'{"clock_drift_ppm": 1500}', b'{"clock_epoch_s": -1}', b'{"clock_jitter_us": "x"}'):
+        with pytest.raises(SlotRejected) as exc:
+            DeviceParams.from_json(bad)
+        assert exc.value.code == 0x0402 and "clock_" in exc.value.message
