@@ -343,6 +343,10 @@ class Device:
 
     # ------------------------------------------------------------------ identity and counters
 
+    def arrival(self) -> float:
+        """When the command being handled arrived: its final FEND (the clock source's time)."""
+        return self.device_clock.source() if self._rx_at is None else self._rx_at
+
     def injected(self, pixels: Any) -> Frame:
         """The frame of an image buffer (GO bit INJECTED), in :attr:`injected_format`."""
         f = self.injected_format

@@ -125,6 +125,9 @@ class Settings(Protocol):
     faults: FaultInjector  #: scripted faults (stuck result, frozen detector, upsets)
     device_clock: DeviceClock  #: the clock TIME reads and every reported time is on
 
+    def arrival(self) -> float:
+        """When the command being handled arrived (its final FEND; the clock source's time)."""
+
     def injected(self, pixels: np.ndarray) -> Any:
         """The frame of an image buffer (GO bit INJECTED)."""
 
@@ -348,7 +351,7 @@ class SequenceRunner:
         self.state = SequenceState.RUNNING
         st.housekeeping.set_busy(True)
         params = tr.objects.get(Slot.PARAMS)
-        now = st.device_clock.source()
+        now = st.arrival()  # the exposure starts when the GO has arrived
         ctx = SolveContext(
             go_code=code,
             sequence=self.sequence,
