@@ -4,15 +4,27 @@ counter in EDAC memory, and fuzz traffic that never arms one."""
 
 import random
 import struct
+import threading
 
 import pytest
 
 from firmware_model.device.device import Device, SlotHandler
-from firmware_model.device.faults import FaultInjector, FaultScriptError, parse_script
+from firmware_model.device.faults import (
+    MAX_DELAYED,
+    MAX_UPSET_WORDS,
+    DelayedReplies,
+    FaultInjector,
+    FaultScriptError,
+    draw_words,
+    parse_script,
+)
 from firmware_model.device.memory import RAM_BASE, RESULT_BASE
 from protocol import edac, nsp, result, slip
 from protocol.commands import (
     Code,
+    Combination,
+    DiagnosticRequest,
+    Diagnostics,
     FaultAction,
     FaultRequest,
     FaultStatus,
@@ -30,6 +42,7 @@ from protocol.commands import (
     XferData,
 )
 from protocol.crc import crc32
+from tests import guards
 
 HOST = 0x11
 
@@ -306,8 +319,8 @@ def test_single_bit_upsets_are_corrected_on_the_next_read():
 def test_a_double_bit_upset_nacks_every_read_until_the_word_is_written():
     dev = Device(fault_injection=True)
     load(dev, "edac_upset region=ram bits=2 seed=5")
-    ((word, bits),) = dev.faults.upsets["ram"].items()
-    assert bits == 2 and word == random.Random(5).sample(range(0x10000 // 4), 1)[0]
+    ((word, bits),) = dev.faults.upset_words("ram").items()
+    assert bits == 2 and [word] == draw_words(5, 0x10000 // 4, 1).tolist()
     address = RAM_BASE + 4 * word
     for _ in range(2):
         info = nack(dev, Code.PEEK, Peek(address - 2, 4).pack())
@@ -376,3 +389,160 @@ def test_st16_ground_refuses_a_script_too_long_for_one_fault_load(tmp_path, caps
         main(["--port", "loop://", "fault", "load", str(long)])
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and err.count("\n") == 1 and "6000 bytes, one FAULT load carries at most 4159" in err
+
+
+# ------------------------------------------------------------------ issue 40: resets, counters, delays, bounds
+
+
+def late_replies(dev) -> list[bytes]:
+    """Frames the device hands its transport later (a COMBINATION's, a delayed reply), as the
+    link's ``serve`` would write them."""
+    sent: list[bytes] = []
+    dev.late_reply = sent.extend
+    return sent
+
+
+def catalog(dev, image: bytes) -> None:
+    ok(dev, Code.XFER_BEGIN, XferBegin(Slot.CATALOG, len(image), crc32(image)).pack())
+    ok(dev, Code.XFER_DATA, XferData(Slot.CATALOG, 0, image).pack())
+    ok(dev, Code.XFER_COMMIT, SlotRequest(Slot.CATALOG).pack())
+
+
+def join_reply_threads() -> None:
+    for thread in threading.enumerate():
+        if thread.name.startswith("reply-"):
+            thread.join(guards.HANG_S)
+            assert not thread.is_alive()
+
+
+@pytest.mark.timeout(guards.HANG_S)
+def test_no_reply_to_a_combination_received_before_a_reset():
+    release = threading.Event()
+
+    def solver(ctx):
+        release.wait(guards.HANG_S)
+        return {"return_code": result.make_return_code(result.Status.OK)}
+
+    dev = app(solver=solver, frame_source=lambda ctx: 1)
+    catalog(dev, b"cat!")
+    sent = late_replies(dev)
+    load(dev, "reset after=2")
+    assert frames(dev, Code.COMBINATION, Combination(0x0B, 0x1).pack()) == []  # command 1: its reply waits
+    assert "APPLICATION" in ok(dev, Code.PING).decode()  # command 2: answered, then the reset
+    join_reply_threads()
+    release.set()
+    assert sent == []  # the ICD: a reset loses what was in flight (it used to be ACKed, sequence 0, NO_RESULT)
+    assert "BOOTLOADER" in ok(dev, Code.PING).decode() and counter(dev, "resets") == 1
+    assert Diagnostics.unpack(ok(dev, Code.DIAGNOSTIC, DiagnosticRequest().pack())).replies == 1  # the PING's
+
+
+def test_a_dropped_reply_before_a_reset_never_takes_a_counter_below_zero():
+    dev = app()
+    load(dev, "reset after=1\ndrop_reply count=1")
+    assert frames(dev, Code.PING) == []  # command 1: executed, its reply dropped, then the reset
+    diag = Diagnostics.unpack(ok(dev, Code.DIAGNOSTIC, DiagnosticRequest().pack()))
+    assert diag.replies == 0 and diag.accepted == 1  # it used to read 4294967295: 0 - 1
+    assert dev.counters.replies == 1 and counter(dev, "dropped_replies") == 1 == counter(dev, "resets")
+
+
+def test_a_new_catalog_image_rewrites_the_upset_words():
+    loads = []
+
+    def activate(data: bytes) -> bytes:
+        loads.append(data)
+        return data
+
+    dev = app(slots={Slot.CATALOG: SlotHandler(lambda d: None, activate)})
+    catalog(dev, b"old catalog image")
+    assert load(dev, "edac_upset region=catalog bits=2 count=2\nedac_upset region=catalog bits=1 seed=4").armed >= 2
+    catalog(dev, b"the new catalog image")  # a COMMIT writes every word of the catalog
+    assert fault(dev, FaultAction.STATUS).armed == 0
+    go(dev)
+    assert loads == [b"old catalog image", b"the new catalog image"]  # no reload
+    assert [counter(dev, n) for n in ("edac_corrected", "edac_uncorrectable", "catalog_reloads")] == [0, 0, 0]
+
+
+@pytest.mark.timeout(guards.HANG_S)
+def test_a_delayed_reply_is_sent_later_while_the_device_serves_on():
+    dev = Device(fault_injection=True)
+    sent = late_replies(dev)
+    waits: list[float] = []
+    dev.sleep = waits.append  # never called: the device does not wait when a transport takes late replies
+    arrived = threading.Event()
+    dev.late_reply = lambda f: (sent.extend(f), arrived.set())
+    load(dev, "delay_reply ms=50 count=1")
+    assert frames(dev, Code.PING) == []  # held back
+    assert len(frames(dev, Code.PING)) == 1  # the next command is served meanwhile
+    assert arrived.wait(guards.HANG_S)
+    assert [decode(f).code for f in sent] == [Code.PING] and waits == []
+    assert counter(dev, "delayed_replies") == 1 and dev.counters.replies == 1 + 2  # FAULT, both PINGs
+
+
+@pytest.mark.timeout(guards.HANG_S)
+def test_fault_clear_and_a_reset_drop_the_delayed_replies_still_waiting():
+    dev = app()
+    sent = late_replies(dev)
+    load(dev, "delay_reply ms=60000 fraction=1")
+    for _ in range(3):
+        assert frames(dev, Code.PING) == []
+    assert len(dev.faults.delayed) == 3 and dev.counters.replies == 2 + 3  # INIT, FAULT and the PINGs'
+    assert fault(dev, FaultAction.CLEAR).armed == 0  # answered at once (it used to wait 3 x 60 s)
+    assert len(dev.faults.delayed) == 0 and dev.counters.replies == 2 + 1  # the PINGs' never sent
+    load(dev, "delay_reply ms=60000 fraction=1")
+    assert frames(dev, Code.PING) == []
+    load(dev, "reset now")
+    assert len(dev.faults.delayed) == 0 and sent == []
+    assert counter(dev, "delayed_replies") == 4
+
+
+def test_a_delayed_reply_that_finds_the_queue_full_is_dropped():
+    dev = Device(fault_injection=True)
+    late_replies(dev)
+    load(dev, "delay_reply ms=60000 fraction=1")
+    for _ in range(MAX_DELAYED + 2):
+        assert frames(dev, Code.PING) == []
+    assert len(dev.faults.delayed) == MAX_DELAYED and counter(dev, "dropped_replies") == 2
+    fault(dev, FaultAction.CLEAR)
+    assert dev.counters.replies == 2  # nothing of the PINGs was sent
+
+
+def test_delayed_replies_go_in_due_order_and_a_drop_calls_unsent():
+    queue = DelayedReplies(limit=3)
+    sent, unsent, done = [], [], threading.Event()
+    assert queue.add(60.0, lambda: sent.append("late"), lambda: unsent.append("late"))
+    assert queue.add(0.02, lambda: sent.append("second"), lambda: unsent.append("second"))
+    assert queue.add(0.0, lambda: sent.append("first"), lambda: unsent.append("first"))
+    assert not queue.add(0.0, lambda: sent.append("full"), lambda: unsent.append("full"))
+    assert queue.add(0.04, done.set, lambda: None) is False  # still full until one is sent
+    while len(queue) > 1:
+        threading.Event().wait(0.01)  # a poll of the queue, not a measured time
+    assert sent == ["first", "second"] and queue.drop() == 1 and unsent == ["late"] and len(queue) == 0
+
+
+def test_upset_words_are_distinct_seeded_and_cheap_to_place():
+    for n, k in [(1, 1), (10, 5), (10, 6), (128, 128), (16384, 3), (1 << 24, 200_000)]:
+        words = draw_words(7, n, k)
+        assert words.size == k and len(set(words.tolist())) == k and 0 <= words.min() and words.max() < n
+        assert words.tolist() == draw_words(7, n, k).tolist()  # seeded
+        assert k == n or words.tolist() != draw_words(8, n, k).tolist()
+    inj = FaultInjector(lambda region: 1 << 24 if region == "catalog" else 0)  # a 64 MiB catalog
+    inj.load(parse_script(f"edac_upset region=catalog bits=2 count={MAX_UPSET_WORDS}"))
+    assert inj.armed == MAX_UPSET_WORDS and inj.catalog_access() and inj.armed == 0
+    assert inj.counters["edac_uncorrectable"] == MAX_UPSET_WORDS
+
+
+@pytest.mark.timeout(guards.HANG_S)
+def test_a_script_places_at_most_a_million_upset_words_in_all():
+    line = "edac_upset region=catalog bits=1 count=1000000 seed={}\n"
+    script = "".join(line.format(i) for i in range(75))[:4159]  # the whole FAULT data field
+    with pytest.raises(FaultScriptError) as exc:
+        parse_script(script, "faults.txt")
+    assert str(exc.value) == (
+        "faults.txt line 2: edac_upset: the script's upsets add up to 2000000 words, over the 1000000 one script may place"
+    )
+    dev = Device(fault_injection=True)
+    dev.store.set_active(Slot.CATALOG, bytes(1_711_896))  # a 1.7 MB catalog: 427 974 words
+    info = nack(dev, Code.FAULT, FaultRequest(FaultAction.LOAD, script.encode()).pack())
+    assert info.reason == NackReason.BAD_PARAMETER and "add up to 2000000 words" in info.text
+    assert load(dev, line.format(0)).armed == 1_711_896 // 4  # count above the words: every word
+    assert len(frames(dev, Code.PING)) == 1

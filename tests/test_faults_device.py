@@ -4,6 +4,7 @@ that tells flight software the fault happened. Also the one-line refusals of a b
 command lines, and FAULT on a device without ``--fault-injection``."""
 
 import json
+import signal
 import struct
 import subprocess
 import time
@@ -13,9 +14,9 @@ import pytest
 
 from ground.cli.main import main as ground_main
 from ground.link.client import Client, MalformedReply, Nack, ReplyTimeout
-from ground.testing.device_proc import DeviceProcess, device_command
-from protocol import edac, result
-from protocol.commands import FaultAction, NackReason, Slot
+from ground.testing.device_proc import DeviceProcess, device_command, tracebacks
+from protocol import edac, nsp, result, slip
+from protocol.commands import Code, Combination, FaultAction, NackReason, Slot
 from protocol.crc import crc32
 from tests import guards
 
@@ -214,3 +215,70 @@ def test_fault_is_not_supported_without_fault_injection(served_device, capsys):
     assert ground_main(["--port", served_device, "fault", "status"]) == 5
     err = capsys.readouterr().err
     assert "NOT_SUPPORTED" in err and "start st16-device with --fault-injection" in err and err.count("\n") == 1
+
+
+# ------------------------------------------------------------------ issue 40: resets, delays, the link while armed
+
+
+def ping_frame() -> bytes:
+    return nsp.command(nsp.DEVICE_ADDRESS, nsp.HOST_ADDRESS, Code.PING).frame()
+
+
+@pytest.mark.timeout(4 * guards.HANG_S)
+def test_delayed_replies_are_dropped_at_fault_clear_and_sigterm_stops_the_device():
+    dev = DeviceProcess("--pty", "--fault-injection")
+    try:
+        with Client(dev.path, timeout=guards.REPLY_S, retries=0) as c:
+            c.fault(FaultAction.LOAD, "delay_reply ms=60000 fraction=1")
+            for _ in range(3):
+                c.write_raw(ping_frame())
+            st = c.fault(FaultAction.CLEAR)  # it used to be answered after the three delays: 180 s
+            assert st.armed == 0 and dict(zip(edac.FAULT_COUNTERS, st.counters))["delayed_replies"] == 3
+            assert "BOOTLOADER" in c.ping()  # served at once, and no PING reply of the three comes first
+            assert c.stale_replies == 0
+            c.fault(FaultAction.LOAD, "delay_reply ms=60000 fraction=1")
+            for _ in range(3):
+                c.write_raw(ping_frame())
+            assert c.fault(FaultAction.STATUS).armed == 1  # the PINGs are read: their replies wait
+        rc = dev.stop(signal.SIGTERM, timeout=guards.HANG_S)  # it used to sit out the delays (SIGKILL here)
+        assert rc == 0 and tracebacks(dev.stderr()) == 0
+    finally:
+        dev.stop(signal.SIGKILL)
+
+
+@pytest.mark.timeout(2 * guards.HANG_S)
+def test_a_combination_received_before_a_scripted_reset_gets_no_reply():
+    with DeviceProcess("--pty", "--fault-injection", "--timing", "realistic", "--exposure-ms", "3000") as dev:
+        with Client(dev.path, timeout=guards.REPLY_S) as c:
+            c.init()
+            c.fault(FaultAction.LOAD, "reset after=2")
+            combination = nsp.command(
+                nsp.DEVICE_ADDRESS, nsp.HOST_ADDRESS, Code.COMBINATION, Combination(0x0B, 1).pack()
+            )
+            c.write_raw(combination.frame())  # command 1: its reply waits for the sequence
+            c.write_raw(ping_frame())  # command 2: answered, then the reset
+            seen: list[nsp.Message] = []
+            decoder = slip.Decoder(nsp.MAX_MESSAGE)
+            while not any(m.code == Code.PING for m in seen):
+                seen += [nsp.decode(e.data) for e in decoder.feed(c.read_raw(0.2)) if hasattr(e, "data")]
+            assert "BOOTLOADER" in c.ping() and "BOOTLOADER" in c.ping()
+            seen += [nsp.decode(e.data) for e in decoder.feed(c.read_raw(0.2)) if hasattr(e, "data")]
+            assert [m.code for m in seen] == [Code.PING]  # the COMBINATION used to be ACKed: sequence 0, NO_RESULT
+            assert c.stale_replies == 0 and c.discarded == 0
+            assert c.diagnostic().replies == 2  # the PINGs since the reset
+
+
+@pytest.mark.timeout(2 * guards.HANG_S)
+def test_the_link_is_served_while_a_million_catalog_upsets_are_armed(field, client):
+    line = "edac_upset region=catalog bits=1 count=1000000 seed={}\n"
+    full = "".join(line.format(i) for i in range(75))[:4159]
+    with pytest.raises(Nack) as exc:  # the whole FAULT data field of them: refused before any work
+        client.fault(FaultAction.LOAD, full)
+    assert exc.value.reason == NackReason.BAD_PARAMETER
+    assert "add up to 2000000 words, over the 1000000" in str(exc.value)
+    before = counters(client)
+    words = len(field["image"]) // 4
+    assert client.fault(FaultAction.LOAD, line.format(0)).armed == words  # every word of the catalog
+    assert "APPLICATION" in client.ping()
+    client.go_and_wait(timeout=guards.HANG_S)
+    assert counted(client, before) == {"edac_corrected": words}

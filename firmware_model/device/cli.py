@@ -297,6 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         serve(device, link, stop, baud=args.baud if args.pace else None, turnaround=turnaround_ms / 1000.0)
     finally:
+        device.faults.delayed.drop()  # delayed replies still waiting are never sent
         device.wait_idle(timeout=5.0)
         link.close()
         close = getattr(device.solver, "close", None)

@@ -246,23 +246,42 @@ class Device:
                 out.extend(self._frames(self.receive_frame(event.data)))
         return out
 
-    def _frames(self, replies: list[nsp.Message]) -> list[bytes]:
+    def _frames(self, replies: list[nsp.Message], late: Callable[[list[bytes]], None] | None = None) -> list[bytes]:
         """The frames of one command's ``replies`` as the scripted reply faults leave them:
-        dropped, the last one's CRC corrupted, or sent after a delay (:attr:`sleep`)."""
+        dropped, the last one's CRC corrupted, or held back. A delayed reply is queued
+        (``faults.delayed``) and handed later to ``late`` (the callback of the session that sent
+        the command; None: the transport's now, :attr:`late_reply`), the link serving on
+        meanwhile, unless FAULT clear, a reset or the device stopping drops it first; without a
+        transport the call waits (:attr:`sleep`) and returns them."""
         if not replies:
             return []
         fault = self.faults.reply(replies[0].code)
         if fault.drop:
-            with self._lock:  # the link counter counts what was sent
-                self.counters.replies -= len(replies)
+            self._unsent(self.counters, len(replies))
             return []
         frames = [m.frame() for m in replies]
         if fault.corrupt:
             raw = replies[-1].encode()
             frames[-1] = slip.encode(raw[:-2] + bytes([raw[-2] ^ 0xFF, raw[-1] ^ 0xFF]))
         if fault.delay_s > 0:
-            self.sleep(fault.delay_s)
+            send = late or self.late_reply
+            if send is None:
+                self.sleep(fault.delay_s)
+                return frames
+            counted, n = self.counters, len(replies)
+            if not self.faults.delayed.add(fault.delay_s, lambda: send(frames), lambda: self._unsent(counted, n)):
+                self.faults.count("dropped_replies")  # the queue is full: dropped, as drop_reply would
+                self._unsent(counted, n)
+            return []
         return frames
+
+    def _unsent(self, counted: Counters, n: int) -> None:
+        """``n`` reply messages counted in ``counted`` were not sent after all: the link counter
+        counts what was sent. Counters a reset or DIAGNOSTIC has replaced since hold nothing of
+        them (and a counter never goes below zero)."""
+        with self._lock:
+            if counted is self.counters:
+                counted.replies = max(0, counted.replies - n)
 
     def receive_frame(self, raw: bytes) -> list[nsp.Message]:
         """Handle one unescaped frame: count runts / bad CRCs addressed to us, ignore others."""
@@ -287,7 +306,10 @@ class Device:
         if self.faults.reset_before(msg.code):
             self.reset()
             return []
+        catalog = self.store.active(Slot.CATALOG)
         replies = self.dispatcher.handle(msg)
+        if self.store.active(Slot.CATALOG) is not catalog:  # a new image rewrote every catalog word
+            self.faults.written("catalog")
         if self.faults.reset_after(msg.code) or self._reset_now:
             self._reset_now = False
             self.reset()
@@ -297,8 +319,12 @@ class Device:
 
     def reset(self) -> None:
         """A scripted reset: back to bootloader mode, the result cleared to NO_RESULT, the link
-        counters, scratch and RAM as after a restart; slots and the fault counters kept."""
+        counters, scratch and RAM as after a restart; slots and the fault counters kept. What was
+        in flight is lost: no reply is sent to a command received before it (a COMBINATION
+        waiting for its sequence, a delayed reply)."""
         with self._lock:
+            self.dispatcher.generation += 1
+            self.faults.delayed.drop()
             self._mode.app = False
             self.counters = Counters()
             self.runner.reset()

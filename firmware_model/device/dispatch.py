@@ -72,7 +72,7 @@ class Counters:
         return Diagnostics(**{**asdict(self), "per_code": tuple(self.per_code)})
 
 
-def _frames(replies: list[nsp.Message]) -> list[bytes]:
+def _frames(replies: list[nsp.Message], late: Callable[[list[bytes]], None] | None = None) -> list[bytes]:
     return [m.frame() for m in replies]
 
 
@@ -89,7 +89,7 @@ class Dispatcher:
         lock: threading.RLock,
         counters: Callable[[], Counters],
         late_reply: Callable[[], Callable[[list[bytes]], None] | None],
-        frames: Callable[[list[nsp.Message]], list[bytes]] = _frames,
+        frames: Callable[[list[nsp.Message], Callable[[list[bytes]], None] | None], list[bytes]] = _frames,
         failure_state: Callable[[], int] = int,
     ):
         if set(handlers) != set(COMMANDS):
@@ -99,6 +99,8 @@ class Dispatcher:
         self._counters = counters
         self._late_reply = late_reply
         self._frames = frames
+        #: bumped by a device reset: a reply still to come for a command received before it is never sent
+        self.generation = 0
         self._failure_state = failure_state
 
     def handle(self, msg: nsp.Message) -> list[nsp.Message]:
@@ -114,7 +116,10 @@ class Dispatcher:
                     replies = self._replies(msg, replies.wait)
                 else:
                     threading.Thread(
-                        target=self._answer_late, args=(msg, replies, late), daemon=True, name=f"reply-{msg.code:02X}"
+                        target=self._answer_late,
+                        args=(msg, replies, late, self.generation),
+                        daemon=True,
+                        name=f"reply-{msg.code:02X}",
                     ).start()
                     return []
             return self._count_replies(msg, replies)
@@ -156,11 +161,18 @@ class Dispatcher:
         self._counters().replies += len(replies)
         return replies
 
-    def _answer_late(self, msg: nsp.Message, pending: Pending, late: Callable[[list[bytes]], None]) -> None:
+    def _answer_late(
+        self, msg: nsp.Message, pending: Pending, late: Callable[[list[bytes]], None], generation: int
+    ) -> None:
         """Wait for ``pending`` (the lock is released while waiting) and hand its replies to
-        ``late``, the transport's callback of the session that sent ``msg``."""
+        ``late``, the transport's callback of the session that sent ``msg``; nothing when a reset
+        came meanwhile (``generation`` is no longer the dispatcher's)."""
         with self._lock:
-            replies = self._count_replies(msg, self._replies(msg, pending.wait))
-        frames = self._frames(replies)
+            replies = self._replies(msg, pending.wait)
+            if generation != self.generation:
+                log.info("device: no reply to command 0x%02X: the device reset since it was received", msg.code)
+                return
+            replies = self._count_replies(msg, replies)
+        frames = self._frames(replies, late)
         if frames:
             late(frames)

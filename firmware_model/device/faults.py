@@ -7,17 +7,24 @@ the Nth command") or by a fraction drawn from a :class:`random.Random` seeded wi
 ``seed`` (default 0), never by the clock, so a script does the same thing to the same traffic
 on any machine. The only time a fault reads is its own effect: ``delay_reply``'s ``ms``.
 
-:class:`FaultInjector` holds the armed faults, the EDAC upsets they placed and the counters
-(``protocol.edac.FAULT_COUNTERS``, shown at EDAC 0x009C); the device shell asks it at each
-reply, command, sequence, capture and memory access.
+:class:`FaultInjector` holds the armed faults, the EDAC upsets they placed (a numpy array of
+bits per word and region: placing, reading and rewriting them is vectorised, so a load is
+bounded, docs/ICD.md section 13), the delayed replies waiting to be sent (:class:`DelayedReplies`)
+and the counters (``protocol.edac.FAULT_COUNTERS``, shown at EDAC 0x009C); the device shell asks
+it at each reply, command, sequence, capture and memory access.
 """
 
 from __future__ import annotations
 
+import heapq
+import logging
 import random
 import threading
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from firmware_model.device.dispatch import Refused
 from protocol import edac
@@ -35,10 +42,17 @@ KEYS: dict[str, frozenset[str]] = {
 }
 REGIONS = ("scratch", "ram", "result", "catalog")  #: where ``edac_upset`` may strike
 MAX_COUNT = 1_000_000  #: largest count, at_go or after (ours: a bound on a typo, not a model)
+#: most upset words one script may place, its ``edac_upset`` counts added up (ours: bounds a load's
+#: work, docs/ICD.md section 13)
+MAX_UPSET_WORDS = 1_000_000
+#: most delayed replies waiting at once; a reply that finds them all waiting is dropped (ours)
+MAX_DELAYED = 1024
 MAX_DELAY_MS = 60_000.0  #: largest ``delay_reply`` delay (ours; the client's longest wait is 60 s)
 WORD = 4  #: bytes per EDAC-protected word: a 32-bit word under a (40,32) SEC-DED code (docs/ICD.md section 13)
 REPLY_FAULTS = ("drop_reply", "corrupt_crc", "delay_reply")  #: in the order they are decided
 GO_CODES = (Code.GO, Code.COMBINATION)  #: the commands that start a sequence (``reset at_go``)
+
+log = logging.getLogger(__name__)
 
 
 class FaultScriptError(ValueError):
@@ -134,6 +148,7 @@ def parse_script(text: str, source: str = "faults") -> tuple[Fault, ...]:
     """Every fault of ``text``; :class:`FaultScriptError` (``SOURCE line N: what``) at the first
     line that does not parse."""
     faults = []
+    upset_words = 0
     for number, line in enumerate(text.splitlines(), start=1):
         try:
             fault = parse_line(line, number)
@@ -141,7 +156,96 @@ def parse_script(text: str, source: str = "faults") -> tuple[Fault, ...]:
             raise FaultScriptError(f"{source} line {number}: {exc}") from None
         if fault is not None:
             faults.append(fault)
+            if fault.name == "edac_upset":
+                upset_words += int(fault.keys.get("count", 1))
+                if upset_words > MAX_UPSET_WORDS:
+                    raise FaultScriptError(
+                        f"{source} line {number}: edac_upset: the script's upsets add up to {upset_words} words, "
+                        f"over the {MAX_UPSET_WORDS} one script may place"
+                    )
     return tuple(faults)
+
+
+def draw_words(seed: int, n: int, k: int) -> np.ndarray:
+    """``k`` distinct word numbers of ``0..n-1`` (``k <= n``), sorted, drawn with
+    ``numpy.random.default_rng(seed)``: the same words for the same seed on any machine. Drawn
+    with replacement in rounds, repeats thrown out, each round at most half the last; when more
+    than half the words are wanted, the ones spared are drawn instead. Time O(k log k), plus O(n)
+    when more than half are wanted (then n < 2k)."""
+    rng = np.random.default_rng(seed)
+    if 2 * k > n:
+        chosen = np.ones(n, bool)
+        chosen[_draw_few(rng, n, n - k)] = False
+        return np.flatnonzero(chosen)
+    return _draw_few(rng, n, k)
+
+
+def _draw_few(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
+    """``k <= n / 2`` distinct numbers of ``0..n-1``, sorted (each round at least halves what is
+    missing)."""
+    chosen = np.empty(0, np.int32)  # a region has fewer than 2**31 words (a catalog at most 2**24)
+    while chosen.size < k:
+        drawn = np.sort(rng.integers(0, n, size=k - chosen.size, dtype=np.int32))
+        drawn = drawn[np.concatenate(([True], drawn[1:] != drawn[:-1]))]  # each number once
+        at = np.searchsorted(chosen, drawn)
+        known = at < chosen.size
+        known[known] = chosen[at[known]] == drawn[known]  # chosen in an earlier round
+        chosen = np.insert(chosen, at[~known], drawn[~known]) if chosen.size else drawn
+    return chosen
+
+
+class DelayedReplies:
+    """Replies a ``delay_reply`` fault holds back, each handed to its ``send`` callable when its
+    delay is over, by one thread that waits on a condition (never a sleep), while the link serves
+    on. :meth:`drop` forgets every one still waiting (FAULT clear, a reset, the device stopping),
+    calling its ``unsent``. At most ``limit`` wait at once."""
+
+    def __init__(self, limit: int = MAX_DELAYED):
+        self.limit = limit
+        self._cond = threading.Condition()
+        self._queue: list[tuple[float, int, Callable[[], None], Callable[[], None]]] = []  #: a heap by due time
+        self._added = 0
+        self._thread: threading.Thread | None = None
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._queue)
+
+    def add(self, delay_s: float, send: Callable[[], None], unsent: Callable[[], None]) -> bool:
+        """Call ``send()`` ``delay_s`` s from now unless dropped first (then ``unsent()``); False,
+        and nothing queued, when ``limit`` replies wait already."""
+        with self._cond:
+            if len(self._queue) >= self.limit:
+                return False
+            heapq.heappush(self._queue, (time.monotonic() + delay_s, self._added, send, unsent))
+            self._added += 1
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, daemon=True, name="delayed-replies")
+                self._thread.start()
+            self._cond.notify()
+        return True
+
+    def drop(self) -> int:
+        """Forget every reply still waiting (each one's ``unsent()`` called); how many."""
+        with self._cond:
+            dropped, self._queue = self._queue, []
+            self._cond.notify()
+        for _, _, _, unsent in dropped:
+            unsent()
+        if dropped:
+            log.info("faults: %d delayed replies dropped", len(dropped))
+        return len(dropped)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queue or self._queue[0][0] > time.monotonic():
+                    self._cond.wait(None if not self._queue else self._queue[0][0] - time.monotonic())
+                _, _, send, _ = heapq.heappop(self._queue)
+            try:
+                send()
+            except Exception:  # a transport's failure must not end the thread: later replies still go
+                log.exception("faults: a delayed reply could not be sent")
 
 
 @dataclass
@@ -178,6 +282,10 @@ class ReplyFault:
     delay_s: float = 0.0
 
 
+def _no_upsets() -> dict[str, np.ndarray]:
+    return {r: np.zeros(0, np.uint8) for r in REGIONS}
+
+
 class FaultInjector:
     """The armed faults of one device and its fault counters. ``words(region)`` gives the number
     of 4-byte words of a region now (the catalog's: of its active image); it chooses where
@@ -189,8 +297,10 @@ class FaultInjector:
         self._armed: list[_Armed] = []
         self._commands = 0  #: commands (FAULT aside) since the script was loaded
         self._gos = 0  #: GO / COMBINATION commands since then
-        self.upsets: dict[str, dict[int, int]] = {r: {} for r in REGIONS}  #: region -> word -> bits
+        #: region -> the upset of each word (0 none, 1 single-bit, 2 double-bit); empty: none placed
+        self.upsets: dict[str, np.ndarray] = _no_upsets()
         self.counters: dict[str, int] = dict.fromkeys(edac.FAULT_COUNTERS, 0)
+        self.delayed = DelayedReplies()  #: replies of ``delay_reply`` still to be sent
 
     # ------------------------------------------------------------------ the script
 
@@ -211,16 +321,25 @@ class FaultInjector:
         return now
 
     def clear(self) -> None:
-        """Disarm every fault and forget every upset (the counters stay)."""
+        """Disarm every fault, forget every upset and drop the delayed replies still waiting (the
+        counters stay)."""
         with self._lock:
             self._armed = []
-            self.upsets = {r: {} for r in REGIONS}
+            self.upsets = _no_upsets()
+        self.delayed.drop()  # outside the lock: a reply's ``unsent`` takes the device's
 
     @property
     def armed(self) -> int:
         """Faults still to act: armed lines not spent, plus words holding an upset."""
         with self._lock:
-            return sum(not a.spent for a in self._armed) + sum(len(w) for w in self.upsets.values())
+            lines = sum(not a.spent for a in self._armed)
+            return lines + sum(int(np.count_nonzero(w)) for w in self.upsets.values())
+
+    def upset_words(self, region: str) -> dict[int, int]:
+        """The words of ``region`` holding an upset -> its bits (1 or 2)."""
+        with self._lock:
+            hit = self.upsets[region]
+            return {int(w): int(hit[w]) for w in np.flatnonzero(hit)}
 
     def count(self, name: str, n: int = 1) -> None:
         with self._lock:
@@ -231,8 +350,10 @@ class FaultInjector:
         n_words = max(1, self._words(region))
         count = min(int(fault.keys.get("count", 1)), n_words)
         hit = self.upsets[region]
-        for word in random.Random(fault.seed).sample(range(n_words), count):
-            hit[word] = max(bits, hit.get(word, 0))
+        if hit.size != n_words:  # first upsets here, or of another catalog image: none of the old words kept
+            hit = self.upsets[region] = np.zeros(n_words, np.uint8)
+        words = draw_words(fault.seed, n_words, count)
+        hit[words] = np.maximum(hit[words], bits)
 
     def _firing(self, name: str) -> Fault | None:
         """The armed ``name`` fault that fires now, or None: its lines asked in script order until
@@ -311,9 +432,9 @@ class FaultInjector:
         """The catalog read by a solve: single-bit upsets corrected, double-bit ones detected;
         True when the active catalog must be reloaded from its stored image (counted)."""
         with self._lock:
-            words, self.upsets["catalog"] = self.upsets["catalog"], {}
-        single = sum(bits == 1 for bits in words.values())
-        double = len(words) - single
+            words, self.upsets["catalog"] = self.upsets["catalog"], np.zeros(0, np.uint8)
+        single = int(np.count_nonzero(words == 1))
+        double = int(np.count_nonzero(words == 2))
         if single:
             self.count("edac_corrected", single)
         if double:
@@ -327,28 +448,30 @@ class FaultInjector:
         """A read of bytes [offset, offset + length) of ``region``: single-bit upsets there are
         corrected (the data reads right; counted, the word scrubbed); a double-bit upset is counted
         and NACKs EDAC_UNCORRECTABLE, the word staying bad until it is written."""
+        if length <= 0:
+            return
         with self._lock:
-            hit = self.upsets[region]
-            words = [w for w in hit if offset // WORD <= w <= (offset + length - 1) // WORD]
-            if not words:
+            lo = max(0, offset // WORD)
+            words = self.upsets[region][lo : (offset + length - 1) // WORD + 1]  # a view: scrubbed in place
+            if not words.any():
                 return
-            single = [w for w in words if hit[w] == 1]
-            double = sorted(w for w in words if hit[w] == 2)
-            for w in single:
-                del hit[w]
-            self.counters["edac_corrected"] += len(single)
-            self.counters["edac_uncorrectable"] += len(double)
-        if double:
+            single = words == 1
+            double = np.flatnonzero(words == 2)
+            words[single] = 0
+            self.counters["edac_corrected"] += int(np.count_nonzero(single))
+            self.counters["edac_uncorrectable"] += int(double.size)
+        if double.size:
             raise Refused(
                 NackReason.EDAC_UNCORRECTABLE,
-                f"uncorrectable double-bit EDAC error in {region} word at offset 0x{double[0] * WORD:X} "
-                f"({len(double)} word(s) bad until rewritten)",
+                f"uncorrectable double-bit EDAC error in {region} word at offset 0x{(lo + int(double[0])) * WORD:X} "
+                f"({double.size} word(s) bad until rewritten)",
             )
 
     def written(self, region: str, offset: int = 0, length: int | None = None) -> None:
         """Bytes [offset, offset + length) of ``region`` rewritten (None: the whole region): the
-        upsets of the words they touch are gone."""
+        upsets of the words they touch are gone (the catalog's: by a new image, every word)."""
         with self._lock:
-            hit = self.upsets[region]
-            for w in [w for w in hit if length is None or offset // WORD <= w <= (offset + length - 1) // WORD]:
-                del hit[w]
+            if length is None:
+                self.upsets[region] = np.zeros(0, np.uint8)
+            elif length > 0:
+                self.upsets[region][max(0, offset // WORD) : (offset + length - 1) // WORD + 1] = 0
