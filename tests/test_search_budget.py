@@ -140,7 +140,7 @@ def test_the_deadline_is_flight_timing_only(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["--pty", "--deadline-ms", "500"])
     assert exc.value.code == 2
-    assert "--deadline-ms need --timing realistic" in capsys.readouterr().err
+    assert "--deadline-ms and --boot-ms need --timing realistic" in capsys.readouterr().err
     args = build_parser().parse_args(["--pty", "--timing", "realistic", "--deadline-ms", "500"])
     solver = build_device(args).solver
     assert solver.params.flight_deadline_s == 0.5

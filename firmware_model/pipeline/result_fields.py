@@ -182,7 +182,7 @@ def result_fields(out: PipelineOutput) -> dict:
                 "ext.sigma": _sigma_axes(sol.covariance),
                 "matching.0.attitude_covariance": np.zeros(6)
                 if sol.covariance is None
-                else upper_triangle(sol.covariance),
+                else upper_triangle_by_rows(sol.covariance),
                 "ext.residual_rms": float(sol.consensus_rms),
             }
         )
