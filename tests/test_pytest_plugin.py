@@ -1,8 +1,8 @@
 """The ``st16`` pytest plugin (``ground.testing.pytest_plugin``, docs/testing.md), run as a user's
 test session would run it (pytester): bad input is one setup error naming it with no device left,
 a device that does not start is quoted, and a device is stopped and reaped after a passing, a
-failing and an interrupted test, and when the test process is killed. The docs' example test file
-runs as it is (a long test)."""
+failing and an interrupted test, and when the test process is killed. The long tests (marked slow)
+run the docs' example test file as it is, and the attitude feed, the factory and the session device."""
 
 from __future__ import annotations
 
@@ -186,4 +186,57 @@ def test_the_docs_example_passes_as_a_user_runs_it(pytester):
     shutil.copy(EXAMPLE, pytester.path / EXAMPLE.name)
     result = pytester.runpytest_subprocess("-q", "-p", "no:cacheprovider")
     result.assert_outcomes(passed=3)
+    assert not devices_under(pytester.path.parent)
+
+
+@pytest.mark.slow
+def test_the_feed_the_factory_and_the_session_device(pytester):
+    pytester.makeconftest(
+        """
+        import pytest
+
+        @pytest.fixture(scope="session")
+        def st16_session_options():
+            return {"catalog": None, "init": True}
+        """
+    )
+    pytester.makepyfile(
+        """
+        import numpy as np
+        import pytest
+
+        from ground.testing.pytest_plugin import attitude_error_arcsec
+
+
+        @pytest.mark.st16(init=True, seed=5)
+        def test_the_fed_attitude_is_solved(st16_device, st16_feed, st16_catalog):
+            from firmware_model.camera import CameraModel
+            from firmware_model.reference_frames import matrix_to_quat
+            from ground.sim.device_process import pick_attitudes
+
+            assert st16_device.feed_url.startswith("tcp://127.0.0.1:")
+            a = pick_attitudes(st16_catalog.catalog, CameraModel.reference_design(), 1, np.random.default_rng(3))[0]
+            st16_feed.hold(matrix_to_quat(a))
+            rec = st16_device.client.go_and_wait()
+            assert (int(rec["return_code"]) >> 8) & 0xFF == 0, st16_device.log
+            assert attitude_error_arcsec(rec["quaternion"], matrix_to_quat(a)) < 60
+
+
+        def test_two_devices_from_the_factory(st16_device_factory):
+            one, two = st16_device_factory(catalog=None), st16_device_factory(catalog=None, init=True)
+            assert one.port != two.port
+            assert one.client.ping().startswith("ST16-EMU BOOTLOADER")
+            assert two.client.ping().startswith("ST16-EMU APPLICATION")
+
+
+        @pytest.mark.parametrize("k", range(2))
+        def test_the_session_device_is_shared(st16_session_device, k):
+            assert st16_session_device.client.ping().startswith("ST16-EMU APPLICATION")  # one INIT, at start
+            open("session_pids.txt", "a").write(f"{st16_session_device.proc.pid}\\n")
+        """
+    )
+    result = pytester.runpytest_subprocess("-q", "-p", "no:cacheprovider")
+    result.assert_outcomes(passed=4)
+    pids = set((pytester.path / "session_pids.txt").read_text().split())
+    assert len(pids) == 1 and all(gone(int(p)) for p in pids)
     assert not devices_under(pytester.path.parent)
