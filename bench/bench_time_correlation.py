@@ -33,6 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import cpu_name  # noqa: E402
 
 from ground.link.client import Client  # noqa: E402
+from ground.link.clock_sync import fit as fit_clock  # noqa: E402
+from ground.link.clock_sync import latch_estimate  # noqa: E402
 from ground.sim.device_process import start_device, stop_device  # noqa: E402
 from protocol import nsp  # noqa: E402
 from protocol.commands import Code  # noqa: E402
@@ -45,11 +47,6 @@ def _frame_bytes(code: int, data: bytes = b"") -> int:
     return len(nsp.command(nsp.DEVICE_ADDRESS, nsp.HOST_ADDRESS, code, data).frame())
 
 
-def _latch_estimate(t_send: float, t_recv: float, paced: bool, n_bytes: int) -> float:
-    """The host's estimate of when the command's final FEND arrived at the device."""
-    return t_send + n_bytes * 10.0 / BAUD if paced else 0.5 * (t_send + t_recv)
-
-
 def run(paced: bool, drift_ppm: float, polls: int, span: float, results: int) -> dict:
     extra = ["--clock-drift-ppm", str(drift_ppm), "--clock-epoch-s", "1000"]
     if paced:
@@ -60,13 +57,12 @@ def run(paced: bool, drift_ppm: float, polls: int, span: float, results: int) ->
             with Client(port, baudrate=BAUD) as c:
                 c.ping()
                 host, dev, rtt = [], [], []
-                n_time = _frame_bytes(Code.TIME)
                 gap = span / polls
                 for _ in tqdm(range(polls), desc=f"TIME polls ({'paced' if paced else 'unpaced'}, {drift_ppm:g} ppm)"):
                     t0 = time.monotonic()
                     d = c.time()
                     t1 = time.monotonic()
-                    host.append(_latch_estimate(t0, t1, paced, n_time))
+                    host.append(latch_estimate(t0, t1, BAUD if paced else None))
                     dev.append(d / 1e6)
                     rtt.append(t1 - t0)
                     time.sleep(max(0.0, gap - (time.monotonic() - t0)))
@@ -74,9 +70,10 @@ def run(paced: bool, drift_ppm: float, polls: int, span: float, results: int) ->
                 n_go = _frame_bytes(Code.GO, b"\x0b")
                 mapped = []
                 h, d, rt = np.array(host), np.array(dev), np.array(rtt)
-                quick = rt <= np.percentile(rt[: polls // 2], 25)  # the driver's acceptance rule
                 fit = np.arange(polls) < polls // 2
-                rate, offset = np.polyfit(h[fit & quick] - h[0], d[fit & quick], 1)
+                clock_map = fit_clock(h[fit], d[fit], rt[fit])  # the fastest quarter of the first half
+                quick = rt <= np.percentile(rt[fit], 25)
+                rate, offset = clock_map.rate, clock_map.offset
                 go_rtt = []
                 for _ in range(results):
                     t0 = time.monotonic()
@@ -86,8 +83,8 @@ def run(paced: bool, drift_ppm: float, polls: int, span: float, results: int) ->
                     while c.result_length() == 0:
                         time.sleep(0.005)
                     epoch = struct.unpack("<d", c.read_result(0x040, 8))[0]
-                    arrival = _latch_estimate(t0, t1, paced, n_go)
-                    mapped.append(((epoch - offset) / rate + h[0]) - arrival)
+                    arrival = t0 + n_go * 10.0 / BAUD if paced else 0.5 * (t0 + t1)
+                    mapped.append(clock_map.to_host(epoch) - arrival)
         finally:
             stop_device(proc)
     test = ~fit
