@@ -219,6 +219,7 @@ def build_device(args: argparse.Namespace) -> Device:
         quaternion_order=device_params.quaternion_order or QuaternionOrder.SCALAR_FIRST,
         fault_injection=bool(args.fault_injection or args.faults),
         clock_model=clock,
+        **_simulated_clocks(source),
     )
     if args.timing == "realistic":
         ms = {"exposure_s": args.exposure_ms, "processing_s": args.processing_ms, "boot_s": args.boot_ms}
@@ -230,6 +231,14 @@ def build_device(args: argparse.Namespace) -> Device:
     if ready is not None:  # a capture source's own start-up (a rendering source's noise), drawn meanwhile
         ready()
     return device
+
+
+def _simulated_clocks(source: Any) -> dict[str, Any]:
+    """A capture source in simulated time (``simulated_clock``: the attitude feed's ``clock=sim``,
+    a ``42://`` feed) gives the device both its clocks: POSIX time and the device clock's source
+    (docs/hil.md "Simulated time"); otherwise none (the machine's)."""
+    sim = getattr(source, "simulated_clock", None)
+    return {} if sim is None else {"clock": sim.posix, "clock_source": sim.elapsed}
 
 
 def clock_model(args: argparse.Namespace, params: DeviceParams) -> ClockModel:

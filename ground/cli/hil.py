@@ -12,19 +12,50 @@ import sys
 from ground import json_text
 from ground.arg_types import progress_on, ranged
 
-#: The demo passes when its final pointing error is under this, deg.
+#: The demo passes when its final pointing error is under this, deg, ...
 PASS_MARK_DEG = 0.05
+#: ... and the flight side used an OK answer of the tracker this recently (s of simulated time):
+#: a pass needs the tracker, not the gyro alone (docs/hil.md "The flight side").
+FRESH_FIX_S = 5.0
+
+
+def tracker_failure(summary: dict) -> str | None:
+    """Why the run fails for want of the tracker, or None."""
+    off = summary.get("tracker_off_after_s")
+    told = "" if off is None else f" (--tracker-off-after {off:g})"
+    if summary.get("acquisition_s") is None:
+        return f"the estimator never had a fix from the tracker{told}: no attitude, the controller only damped the rate"
+    age = summary.get("last_fix_age_s")
+    if age is None or age > FRESH_FIX_S:
+        return f"the flight side's last tracker fix is {age:.1f} s old at the end, over {FRESH_FIX_S:g} s{told}"
+    return None
 
 
 def _demo(args) -> int:
     import contextlib
 
-    from ground.hil.run import run_hil
+    from ground.hil.gyro import GyroSpec
+    from ground.hil.run import parse_epoch, run_hil
 
+    gyro = GyroSpec(args.gyro_bias_deg_h, args.gyro_arw_deg_rt_h, args.gyro_rrw_deg_h_rt_h, args.gyro_sf_ppm)
+    problems = gyro.problems()
+    if problems:
+        print(f"st16-ground: {'; '.join(problems)}", file=sys.stderr)
+        return 2
+    parse_epoch(args.epoch)  # one line, exit 2, before the catalog is built
     # under --json the loop's own progress lines go to stderr: stdout is the one summary document
     with contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext():
         summary = run_hil(
-            args.out, args.duration, args.dynamics, args.seed, progress=progress_on(args), scenario=args.scenario
+            args.out,
+            args.duration,
+            args.dynamics,
+            args.seed,
+            progress=progress_on(args),
+            scenario=args.scenario,
+            epoch_utc=args.epoch,
+            speed=args.speed,
+            gyro_spec=gyro,
+            tracker_off_after=args.tracker_off_after,
         )
     if args.json:
         print(json_text.dumps({**summary, "written": [f"{args.out}/{n}" for n in _WRITTEN]}))
@@ -32,6 +63,10 @@ def _demo(args) -> int:
         for key, value in summary.items():
             print(f"{key}: {value:.4g}" if isinstance(value, float) else f"{key}: {value}")
         print(f"written: {args.out}/{', '.join(_WRITTEN)}")
+    why = tracker_failure(summary)
+    if why is not None:
+        print(f"st16-ground: hil demo failed: {why}", file=sys.stderr)
+        return 1
     if args.scenario != "none":
         from ground.hil.scenario_report import scenario_failure
 
@@ -83,5 +118,38 @@ def register(sub) -> None:
         default="auto",
         help="auto: Basilisk when bsk is installed, else the numpy stand-in",
     )
-    d.add_argument("--seed", type=int, default=15, help="target attitude and initial error")
+    d.add_argument("--seed", type=int, default=15, help="target attitude and initial error; the gyro's noise")
+    from ground.hil.gyro import DEFAULT, LIMITS
+    from ground.hil.run import DEFAULT_EPOCH_UTC
+
+    d.add_argument(
+        "--epoch",
+        default=DEFAULT_EPOCH_UTC,
+        help=f"the run's simulated start, ISO-8601 UTC (default {DEFAULT_EPOCH_UTC}: fixed, so a run is the same any day)",
+    )
+    d.add_argument(
+        "--speed",
+        type=ranged(float, 0.0, 100.0, "a speed"),
+        default=0.0,
+        help="simulated s per real s (1: real time; default 0: as fast as the device answers; lockstep at any speed)",
+    )
+    d.add_argument(
+        "--tracker-off-after",
+        type=ranged(float, 0.0, 1e6, "a time in s"),
+        default=None,
+        help="withhold the tracker's answers from the flight side after this many s (0: never a fix; the control run)",
+    )
+    for name, unit in (
+        ("bias_deg_h", "1-sigma turn-on bias, deg/h"),
+        ("arw_deg_rt_h", "angle random walk, deg/sqrt(h)"),
+        ("rrw_deg_h_rt_h", "rate random walk, deg/h/sqrt(h)"),
+        ("sf_ppm", "1-sigma scale-factor error, ppm"),
+    ):
+        d.add_argument(
+            f"--gyro-{name.split('_')[0]}",
+            dest=f"gyro_{name}",
+            type=float,
+            default=getattr(DEFAULT, name),
+            help=f"gyro {unit}, 0..{LIMITS[name]:g} (default {getattr(DEFAULT, name):g}: ground.hil.gyro)",
+        )
     d.set_defaults(func=_demo)

@@ -14,8 +14,13 @@ with a planned slew past a bright body, in orbit, and the plot with the scenario
 from __future__ import annotations
 
 import importlib.util
+from datetime import UTC
 
 from ground.arg_types import InputError
+
+#: The runs' default start (simulated time): 2026-12-01 00:00 UTC, a waning gibbous Moon, at which
+#: both scenarios plan (docs/hil.md "Scenarios"); a fixed epoch, so a run is the same on any date.
+DEFAULT_EPOCH_UTC = "2026-12-01T00:00:00"
 
 
 def free_udp_port() -> int:
@@ -25,6 +30,32 @@ def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def free_tcp_port() -> int:
+    """A TCP port on loopback that no one holds now (the lockstep feed's)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def parse_epoch(text: str) -> float:
+    """POSIX s of an ISO-8601 UTC time (``2026-12-01T00:00:00``, a trailing ``Z`` allowed);
+    InputError (one line) for one that does not parse or lies outside 1990-2100."""
+    from datetime import datetime
+
+    try:
+        dt = datetime.fromisoformat(text.strip().removesuffix("Z"))
+    except ValueError:
+        raise InputError(f"--epoch {text[:40]!r}: not an ISO-8601 UTC time (e.g. {DEFAULT_EPOCH_UTC})") from None
+    if dt.tzinfo is not None and dt.utcoffset() != UTC.utcoffset(None):
+        raise InputError(f"--epoch {text[:40]!r}: give UTC (no offset, or Z)")
+    posix = dt.replace(tzinfo=UTC).timestamp()
+    if not 631152000.0 <= posix < 4102444800.0:
+        raise InputError(f"--epoch {text[:40]!r}: outside 1990-2100")
+    return posix
 
 
 def make_dynamics(kind: str, q0, w0, q_target, dt: float):
@@ -52,13 +83,18 @@ def run_hil(
     progress: bool = True,
     scenario: str = "none",
     limits_deg: dict[str, float] | None = None,
+    epoch_utc: str = DEFAULT_EPOCH_UTC,
+    speed: float = 0.0,
+    gyro_spec=None,
+    tracker_off_after: float | None = None,
 ) -> dict:
     """The closed loop of the module docstring; returns the summary (also written to ``out``).
     ``duration_s`` None: 30 s, or the scenario's own length; ``limits_deg`` a scenario's exclusion
-    angles (default ``scenarios.LIMITS_DEG``)."""
+    angles (default ``scenarios.LIMITS_DEG``); ``epoch_utc`` the simulated start; ``speed`` simulated
+    s per real s (0: unpaced); ``gyro_spec`` the gyro class (``ground.hil.gyro.DEFAULT``);
+    ``tracker_off_after`` s of simulated time after which the flight side gets no answer."""
     import json
     import tempfile
-    import time
     from pathlib import Path
 
     import numpy as np
@@ -71,11 +107,15 @@ def run_hil(
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
     from ground.hil import scenario_report, scenarios
+    from ground.hil.gyro import DEFAULT, Gyro
     from ground.link.client import Client
     from ground.sim.device_process import pick_attitudes, start_device, stop_device
     from ground.sim.hil_loop import MINIMAL_MASK, run_closed_loop
     from protocol.commands import Slot
 
+    start_posix = parse_epoch(epoch_utc)
+    gyro_spec = DEFAULT if gyro_spec is None else gyro_spec
+    Gyro(gyro_spec)  # a spec out of range: ValueError before anything starts
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -89,7 +129,7 @@ def run_hil(
         duration_s = 30.0 if duration_s is None else duration_s
     else:
         try:
-            plan = scenarios.plan(scenario, time.time(), limits_deg)
+            plan = scenarios.plan(scenario, start_posix, limits_deg)
         except ValueError as exc:
             raise InputError(f"--scenario {exc}") from None  # the reason starts with the name
         q0, w0 = plan.slew.target(0.0), np.zeros(3)
@@ -99,7 +139,7 @@ def run_hil(
     dt = 0.02
     dynamics, note = make_dynamics(dynamics_kind, q0, w0, q_target, dt)
     print(f"hil: dynamics {dynamics.label}{note}", flush=True)
-    url = f"udp://127.0.0.1:{free_udp_port()}"
+    url = f"tcp://127.0.0.1:{free_tcp_port()}?clock=sim"  # lockstep: the device on simulated time
     with tempfile.TemporaryDirectory() as state:
         proc, pty = start_device(Path(state))  # the catalog goes up unpaced, persisted in the state
         try:
@@ -110,7 +150,8 @@ def run_hil(
                     c.upload(Slot.PARAMS, json.dumps(plan.params()).encode(), progress=False)
         finally:
             stop_device(proc)
-        proc, pty = start_device(Path(state), "--pace", "--baud", "115200", "--attitude-feed", url)
+        # unpaced: a paced link stamps arrivals with the machine's clock, simulated time with the feed's
+        proc, pty = start_device(Path(state), "--attitude-feed", url)
         try:
             with Client(pty, timeout=5.0) as c:
                 c.init()
@@ -126,12 +167,22 @@ def run_hil(
                     progress=progress,
                     target_at=None if plan is None else plan.slew.target,
                     position_at=None if plan is None else plan.position_km,
+                    start_posix=start_posix,
+                    speed=speed,
+                    gyro_spec=gyro_spec,
+                    gyro_seed=seed,
+                    tracker_off_after=tracker_off_after,
                 )
         finally:
             stop_device(proc)
     rows = log.rows()
     write_text(out / "hil_log.jsonl", "".join(json.dumps(r) + "\n" for r in rows))
-    summary = summarise(log, rows, duration_s, MINIMAL_MASK)
+    summary = summarise(log, rows, duration_s, MINIMAL_MASK) | {
+        "epoch_utc": epoch_utc,
+        "speed": speed,
+        "gyro": vars(gyro_spec) | {"class": "tactical FOG (LN-200 class; ground.hil.gyro)"},
+        "tracker_off_after_s": tracker_off_after,
+    }
     if plan is None:
         _plot(log, rows, out / "hil.png")
     else:
@@ -143,15 +194,39 @@ def run_hil(
 
 
 def summarise(log, rows: list[dict], duration_s: float, mask: int) -> dict:
+    """The run's figures: rates, latency, tracker vs truth, and the pointing error (truth to
+    target) at the start, the end and 30, 60, 300 s; the acquisition time and the estimate's error."""
+    import math
+
     import numpy as np
+
+    from firmware_model.reference_frames import quat_to_matrix, rotation_angle
 
     ok = [r for r in rows if "latency_s" in r]
     lat = np.array([r["latency_s"] for r in ok]) * 1e3
+    wall = np.array([u.wall_latency_s for u in log.updates if u.wall_latency_s is not None]) * 1e3
     err = np.array([r["measured_error_arcsec"] for r in ok])
-    pointing = [r["pointing_error_deg"] for r in ok]
+    t0 = log.truth_t[0] if log.truth_t else 0.0
+
+    def pointing(k: int) -> float:
+        target = log.target_q[k] if log.target_q else log.q_target
+        return math.degrees(rotation_angle(quat_to_matrix(log.truth_q[k]), quat_to_matrix(target)))
+
+    at = {}
+    for s in (30, 60, 300):
+        k = int(np.searchsorted(log.truth_t, t0 + s - 1e-9))
+        if k < len(log.truth_t):
+            at[str(s)] = pointing(k)
+    est_err = None
+    if log.estimate_q and log.estimate_q[-1] is not None and log.truth_q:
+        est_err = (
+            math.degrees(rotation_angle(quat_to_matrix(log.estimate_q[-1]), quat_to_matrix(log.truth_q[-1]))) * 3600
+        )
+    oks = [u.received for u in log.updates if u.status == "OK"]
+    end = log.truth_t[-1] if log.truth_t else t0
     return {
         "dynamics": log.dynamics,
-        "link": "pty paced at 115200 baud",
+        "link": "pty, unpaced; lockstep in simulated time",
         "mask": f"0x{mask:04X}",
         "duration_s": duration_s,
         "updates": len(rows),
@@ -160,10 +235,16 @@ def summarise(log, rows: list[dict], duration_s: float, mask: int) -> dict:
         "ok_rate_hz": len(ok) / duration_s,
         "latency_ms_p50": float(np.median(lat)) if ok else None,
         "latency_ms_p99": float(np.percentile(lat, 99)) if ok else None,
+        "go_to_result_wall_ms_p50": float(np.median(wall)) if len(wall) else None,
+        "go_to_result_wall_ms_p99": float(np.percentile(wall, 99)) if len(wall) else None,
         "measured_error_arcsec_p50": float(np.median(err)) if ok else None,
         "measured_error_arcsec_p99": float(np.percentile(err, 99)) if ok else None,
-        "pointing_error_deg_first": pointing[0] if ok else None,
-        "pointing_error_deg_last": pointing[-1] if ok else None,
+        "acquisition_s": None if log.first_fix_t is None else log.first_fix_t - t0,
+        "last_fix_age_s": None if not oks else end - oks[-1],
+        "estimate_error_arcsec_last": est_err,
+        "pointing_error_deg_at": at,
+        "pointing_error_deg_first": pointing(0) if log.truth_q else None,
+        "pointing_error_deg_last": pointing(len(log.truth_q) - 1) if log.truth_q else None,
         "statuses": {s: sum(r["status"] == s for r in rows) for s in sorted({r["status"] for r in rows})},
     }
 

@@ -19,6 +19,8 @@ before the mid-time on (the feed is suspect that long after a fault). Registered
 ``st16.frame_sources``. URL query options: ``format``, ``exposure`` (s, default the detector's
 0.1), ``timeout`` (s, 0.25), ``max_gap`` (s, 0.5), ``pattern`` (RGGB), ``idle`` (s, 60: over TCP a
 peer silent that long is closed, and a new connection takes over at once, as on the NSP TCP link),
+``clock`` (``wall``, the default, or ``sim``: the device takes its time from the samples and reads
+no wall clock for what it reports, ``ground.sim.feed_clock``; docs/hil.md "Simulated time"),
 ``orbit`` (``ALT_KM[,INC_DEG[,RAAN_DEG[,ARG_LAT_DEG[,EPOCH_UTC]]]]``, ``ground.sim.orbit``: the
 spacecraft's position at the mid-time when the samples carry none), and the detector effects over
 a mission (``ground.sim.detector_effects.SOURCE_OPTIONS``: ``cosmic_rate``, ``hits_per_frame``,
@@ -54,6 +56,7 @@ from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.reference_frames import quat_to_matrix
 from ground.sim.detector_effects import SOURCE_OPTIONS, effects_from_options
 from ground.sim.exposure import ExposureRenderer
+from ground.sim.feed_clock import WALL_GUARD_S, FeedClock
 from ground.sim.feed_wire import IDLE_S, FeedUrl, Listener, Sample
 from ground.sim.orbit import CircularOrbit, utc_iso
 from ground.sim.sensor_sim import DetectorModel
@@ -124,6 +127,9 @@ class AttitudeFeed:
         self._faults: deque[tuple[float, str]] = deque(maxlen=64)
         self._cond = threading.Condition()
         self._fresh_peer = False  #: a peer connected and has sent no sample yet
+        #: real seconds a capture waits at most (simulated time, ``ground.sim.feed_clock``: the clock
+        #: stands still while the simulator does); None: the clock alone bounds the wait
+        self.wall_guard_s: float | None = None
 
     def new_peer(self) -> None:
         """A simulator (re)connected: its first sample may start over at an earlier time."""
@@ -172,10 +178,11 @@ class AttitudeFeed:
         or after it; raises FrameUnavailable with the reason when the feed cannot give a sound attitude.
         The wait looks at the clock every :data:`WAIT_SLICE_S` of real time, so with a manual clock
         it lasts until that clock is moved past the deadline (or the sample arrives)."""
+        wall_end = None if self.wall_guard_s is None else time.monotonic() + self.wall_guard_s
         with self._cond:
             while not (self._ring and self._ring[-1].t >= t):
                 left = t + timeout - self.clock()
-                if left <= 0:
+                if left <= 0 or (wall_end is not None and time.monotonic() > wall_end):
                     break
                 self._cond.wait(min(left, WAIT_SLICE_S))
             if not self._ring:
@@ -225,6 +232,9 @@ class AttitudeFeedSource:
             self.max_gap = float(opts.pop("max_gap", 0.5))
             self.idle = float(opts.pop("idle", IDLE_S))
             self.orbit = CircularOrbit.parse(opts.pop("orbit")) if "orbit" in opts else None
+            clock_kind = opts.pop("clock", "wall")
+            if clock_kind not in ("wall", "sim"):
+                raise ValueError(f"clock={clock_kind[:40]!r}: wall or sim")
             asked = {k: opts.pop(k) for k in list(opts) if k in SOURCE_OPTIONS}
             self.effects = effects_from_options(asked, self.orbit)
         except ValueError as exc:
@@ -239,8 +249,22 @@ class AttitudeFeedSource:
         # at start-up, not inside the first GO
         # glare: samples may carry a position, which renders the bright bodies
         self._drawing = self.renderer.draw_bank(self.renderer.effective_detector(self.det, self.effects), glare=True)
-        self.feed = AttitudeFeed(clock)
-        self.listener = Listener(url, self.feed.offer, self.feed.fault, self.feed.new_peer, idle_s=self.idle)
+        #: simulated time (``clock=sim``, ``ground.sim.feed_clock``): the device's clocks read it
+        self.simulated_clock = FeedClock() if clock_kind == "sim" else None
+        self.feed = AttitudeFeed(clock if self.simulated_clock is None else self.simulated_clock.posix)
+        offer = self.feed.offer if self.simulated_clock is None else self._offer_simulated
+        if self.simulated_clock is not None:
+            self.feed.wall_guard_s = WALL_GUARD_S
+        self.listener = Listener(url, offer, self.feed.fault, self.feed.new_peer, idle_s=self.idle)
+
+    def _offer_simulated(self, sample: Sample) -> None:
+        """A sample offered in simulated time: the clock moves to the newest one kept."""
+        assert self.simulated_clock is not None
+        self.simulated_clock.offering(sample.t)
+        self.feed.offer(sample)
+        newest = self.feed.newest_t()
+        if newest is not None:
+            self.simulated_clock.accepted(newest)
 
     def ready(self) -> None:
         """Return once the source can render at once (its noise bank drawn)."""

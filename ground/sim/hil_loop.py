@@ -1,59 +1,73 @@
-"""The HIL closed loop (docs/hil.md): dynamics propagated in real time stream their truth to the
-device's attitude feed, and a flight-software loop reads the tracker's attitude over the serial
-link and feeds it back as the controller's measurement.
+"""The HIL closed loop (docs/hil.md): a dynamics simulation streams its truth to the device's
+attitude feed, and a flight-software loop reads the tracker's answers over the serial link and
+feeds its own estimate to the controller. Lockstep, in simulated time:
 
-* Dynamics thread (the caller's): every ``dt`` s of wall time, step the dynamics (``ground.sim.
-  hil_dynamics``), send the truth sample stamped with its wall time (POSIX s) to the feed, and give
-  the controller the flight loop's estimate.
-* Flight loop thread: COMBINATION (GO 0x0B with a minimal section mask: return code, quaternion,
-  epoch) back to back; an OK attitude, valid at the exposure mid-time ``epoch + exposure / 2``,
-  becomes the estimate, carried forward with the gyro (the truth rate) to the present; statuses
-  other than OK keep the previous estimate (the controller coasts on the gyro).
+* The device runs with the feed's ``clock=sim`` (``ground.sim.feed_clock``): its time is the newest
+  sample's, so nothing it reports depends on the machine's clock or load.
+* Each step of ``dt`` simulated s: the flight software (``ground.hil.estimator.Mekf`` on the gyro
+  of ``ground.hil.gyro``) reads an answer that is due, starts a GO that is due, gives the
+  controller its estimate (while lost: the target, so the controller only damps the gyro's rate),
+  and the dynamics step; the truth sample goes to the feed. The truth is never given to the flight
+  side: it is logged, and scored afterwards.
+* A GO (0x0B) every ``go_period_s`` (0.5 s: the ICD's ~2 Hz cadence) is sent only once the device
+  has taken the newest sample (TIME, read until it shows that sample's time), so the exposure
+  starts at a known simulated time; its answer (return code, quaternion, epoch and the attitude
+  covariance, read with READ RESULT) is used ``result_delay_s`` (0.5 s: exposure and processing)
+  of simulated time later, the simulation waiting in real time for the device if it must. The
+  answer's epoch, on the device clock, is mapped to simulated time by the first TIME reading.
+* ``speed``: simulated seconds per real second (1: real time; 0: as fast as the device answers).
+  The run's statuses, attitudes and time tags are the same at any speed (docs/hil.md "Lockstep").
+* ``tracker_off_after`` (s): no GO after that much simulated time; the flight side coasts on the
+  gyro (the control run: at 0 it never gets a fix).
 
-A scenario (``ground.hil.scenarios``, docs/hil.md "Scenarios") adds a moving target
-(``target_at``: s since the start -> q, given to the dynamics every step) and an orbit
-(``position_at``: s -> GCRS km, sent as each sample's ``r`` so the device sees the bodies from the
-spacecraft); both are logged per step.
-
-The loop runs ``duration_s`` and on until the flight loop has ``min_ok_updates`` OK answers (0:
-no such wait), at most ``overrun_s`` past ``duration_s``; a test sets a count, so what it checks
-does not depend on how many solves a loaded machine manages in the time. ``clock`` and ``sleep``
-(``time.time``, ``time.sleep``) are the loop's: the device stamps GO with its own POSIX clock, so
-only a device on the same clock can share a different one.
+A scenario (``ground.hil.scenarios``) adds a moving target (``target_at``: s since the start -> q)
+and an orbit (``position_at``: s -> GCRS km, sent as each sample's ``r``); both are logged per step.
+The loop runs ``duration_s`` and on until ``min_ok_updates`` OK answers (0: no such wait), at most
+``overrun_s`` past ``duration_s``.
 """
 
 from __future__ import annotations
 
 import math
 import struct
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from firmware_model.reference_frames import matrix_to_quat, quat_to_matrix, rotation_angle
+from ground.hil.estimator import Mekf
+from ground.hil.gyro import DEFAULT, Gyro, GyroSpec
 from ground.sim.attitude_feed import slerp
 from ground.sim.feed_wire import Sample, Sender
 from protocol import result
 
-#: return code (0x0002), quaternion (0x0004), epoch (0x0010): 44 result bytes per update
-MINIMAL_MASK = 0x0016
 GO_CODE = 0x0B  #: ON | LOAD_NAND | COMMAND
+#: what the flight side reads of each result: return code, quaternion, omega, epoch; the covariance
+READ_HEAD = (0x004, 0x048 - 0x004)
+READ_COVARIANCE = (0x7E8 + 128, 48)  #: matching[0].attitude_covariance
+MINIMAL_MASK = 0x0416  #: the same sections by COMBINATION (return code, quaternion, epoch, matching)
+GO_PERIOD_S = 0.5
+RESULT_DELAY_S = 0.5
+WALL_GUARD_S = 60.0  #: real seconds the loop waits for the device at most (a hang guard)
 
 
 @dataclass
 class Update:
-    """One COMBINATION of the flight loop: host times (POSIX s), the tracker's answer."""
+    """One answer of the tracker: simulated times (POSIX s) of the GO and of its use, the answer,
+    the exposure mid-time (its epoch mapped to simulated time), the device's epoch as reported, the
+    attitude covariance, and the real seconds from GO to the result ready."""
 
     sent: float
     received: float
     status: str
     q: list[float] | None  #: the attitude, OK answers only
-    t_mid: float | None  #: exposure mid-time (device clock = POSIX s), for every status
+    t_mid: float | None  #: exposure mid-time (simulated POSIX s, mapped from the device clock), every status
+    epoch: float | None = None  #: the result's epoch, device clock s
+    cov: list[float] | None = None
+    wall_latency_s: float | None = None
 
 
 @dataclass
@@ -67,6 +81,8 @@ class HilLog:
     target_q: list[list[float]] = field(default_factory=list)  #: per step, when the target moves
     truth_r: list[list[float]] = field(default_factory=list)  #: GCRS km per step, when in orbit
     updates: list[Update] = field(default_factory=list)
+    estimate_q: list[list[float] | None] = field(default_factory=list)  #: per step, None while lost
+    first_fix_t: float | None = None  #: simulated POSIX s the estimator took its first attitude
 
     def ok_updates(self) -> int:
         """Updates that brought an OK attitude."""
@@ -93,6 +109,7 @@ class HilLog:
         out = []
         for u in self.updates:
             row: dict = {"t": u.received - t0, "status": u.status, "sent": u.sent, "received": u.received}
+            row |= {"epoch": u.epoch, "q": u.q}
             if u.t_mid is not None and u.t_mid > t0:
                 a_true = quat_to_matrix(self.truth_at(u.t_mid))
                 row |= {
@@ -110,71 +127,45 @@ class HilLog:
         return out
 
 
-class Estimator:
-    """The flight software's attitude: the last tracker attitude carried forward with the gyro."""
-
-    def __init__(self, q0, w0, now: float):
-        self._lock = threading.Lock()
-        self.a = quat_to_matrix(q0)
-        self.w = np.asarray(w0, dtype=float)
-        self.t = now
-
-    def propagate(self, w, now: float) -> tuple[np.ndarray, np.ndarray]:
-        """Carry the estimate to ``now`` with gyro rate ``w``; returns (q, w)."""
-        with self._lock:
-            self.a = Rotation.from_rotvec(-np.asarray(w) * (now - self.t)).as_matrix() @ self.a
-            self.w, self.t = np.asarray(w, dtype=float), now
-            return matrix_to_quat(self.a), self.w
-
-    def measured(self, q, t_mid: float) -> None:
-        """A tracker attitude valid at ``t_mid``: carried to the estimate's time with the gyro."""
-        with self._lock:
-            self.a = Rotation.from_rotvec(-self.w * (self.t - t_mid)).as_matrix() @ quat_to_matrix(q)
-
-
-def _parse(parts: dict[int, bytes]) -> tuple[str, list[float] | None, float | None]:
-    """(status name, quaternion of an OK answer else None, epoch or None when not stamped)."""
-    rc = struct.unpack("<I", parts[0x004])[0]
+def _epoch_of(head: bytes) -> tuple[str, list[float] | None, float | None, np.ndarray | None]:
+    """(status name, OK quaternion, epoch or None, omega) of the result head (READ_HEAD)."""
+    rc = struct.unpack_from("<I", head, 0)[0]
     status = result.status_of(rc)
     name = status.name if isinstance(status, result.Status) else f"status {status}"
-    epoch = struct.unpack("<d", parts[0x040])[0]
-    q = list(struct.unpack("<4d", parts[0x008])) if status == result.Status.OK else None
-    return name, q, (epoch if epoch > 0 else None)
+    q = list(struct.unpack_from("<4d", head, 4)) if status == result.Status.OK else None
+    epoch = struct.unpack_from("<d", head, 0x040 - 0x004)[0]
+    return name, q, (epoch if epoch > 0 else None), np.array(struct.unpack_from("<3d", head, 0x028 - 0x004))
 
 
-class FlightLoop(threading.Thread):
-    """COMBINATIONs back to back on ``client`` until stopped, each answered within ``timeout`` s;
-    OK attitudes go to ``estimator``; ``clock`` stamps each update's send and receipt."""
+class DeviceLink:
+    """The flight side's use of the link in lockstep: TIME until the device has taken a sample, GO,
+    and the result once ready. ``wall`` (real s) bounds every wait."""
 
-    def __init__(
-        self,
-        client,
-        estimator: Estimator,
-        log: HilLog,
-        exposure_s: float,
-        mask: int = MINIMAL_MASK,
-        timeout: float = 5.0,
-        clock: Callable[[], float] = time.time,
-    ):
-        super().__init__(name="flight-loop", daemon=True)
-        self.client, self.estimator, self.log = client, estimator, log
-        self.exposure_s, self.mask, self.timeout, self.clock = exposure_s, mask, timeout, clock
-        self.stop = threading.Event()
-        self.error: Exception | None = None
+    def __init__(self, client, wall: Callable[[], float] = time.monotonic, guard_s: float = WALL_GUARD_S):
+        self.client, self.wall, self.guard_s = client, wall, guard_s
 
-    def run(self) -> None:
-        try:
-            while not self.stop.is_set():
-                sent = self.clock()
-                parts = self.client.combination(GO_CODE, self.mask, timeout=self.timeout)
-                received = self.clock()
-                status, q, epoch = _parse(parts)
-                t_mid = None if epoch is None else epoch + self.exposure_s / 2.0
-                if q is not None and t_mid is not None:
-                    self.estimator.measured(q, t_mid)
-                self.log.updates.append(Update(sent, received, status, q, t_mid))
-        except Exception as exc:  # noqa: BLE001 - reported by the caller after join
-            self.error = exc
+    def wait_device_time(self, at_least_s: float) -> float:
+        """Read TIME until the device clock shows ``at_least_s`` (it has taken that sample); its s."""
+        end = self.wall() + self.guard_s
+        while True:
+            now = self.client.time() / 1e6
+            if now >= at_least_s - 2e-6:
+                return now
+            if self.wall() > end:
+                raise TimeoutError(f"the device clock stayed at {now:.6f} s, short of {at_least_s:.6f} s")
+            time.sleep(0.0005)
+
+    def go(self) -> None:
+        self.client.go(GO_CODE)
+
+    def answer(self) -> tuple[bytes, bytes]:
+        """The result head and covariance, waiting for the sequence to finish."""
+        end = self.wall() + self.guard_s
+        while self.client.result_length() == 0:
+            if self.wall() > end:
+                raise TimeoutError(f"no result within {self.guard_s:g} s of GO")
+            time.sleep(0.001)
+        return self.client.read_result(*READ_HEAD), self.client.read_result(*READ_COVARIANCE)
 
 
 def run_closed_loop(
@@ -191,59 +182,95 @@ def run_closed_loop(
     progress: bool = True,
     min_ok_updates: int = 0,
     overrun_s: float = 10.0,
-    combination_timeout: float = 5.0,
-    clock: Callable[[], float] = time.time,
+    combination_timeout: float = WALL_GUARD_S,
+    start_posix: float = 1_800_000_000.0,
+    speed: float = 0.0,
+    gyro_spec: GyroSpec = DEFAULT,
+    gyro_seed: int = 0,
+    tracker_off_after: float | None = None,
+    go_period_s: float = GO_PERIOD_S,
+    result_delay_s: float = RESULT_DELAY_S,
+    wall: Callable[[], float] = time.monotonic,
     sleep: Callable[[float], None] = time.sleep,
     target_at: Callable[[float], np.ndarray] | None = None,
     position_at: Callable[[float], np.ndarray] | None = None,
 ) -> HilLog:
-    """Run the loop for ``duration_s`` of wall time and on until ``min_ok_updates`` OK answers,
-    at most ``overrun_s`` more (module docstring); ``client`` is a connected
-    ``ground.link.client.Client`` of a device serving ``--attitude-feed feed_url``; each
-    COMBINATION is answered within ``combination_timeout`` s; ``target_at`` and ``position_at``
-    (s since the start) a scenario's moving target and orbit."""
+    """Run the lockstep loop of the module docstring from simulated POSIX ``start_posix``;
+    ``client`` is a connected ``ground.link.client.Client`` of a device serving ``--attitude-feed
+    feed_url`` with ``clock=sim`` (its clock epoch 0); ``combination_timeout`` real s bounds each
+    wait for the device; ``mask`` is kept for the summary (the loop reads the same sections)."""
+    del mask
     log = HilLog(dynamics.label, [float(v) for v in q_target])
+    dev = DeviceLink(client, wall, combination_timeout)
+    start = float(start_posix)
 
-    def send(t: float, q, w) -> None:
+    def target(t: float) -> np.ndarray:
+        return np.asarray(q_target if target_at is None else target_at(t - start), dtype=float)
+
+    def send(t: float, q, w, logged: bool = True) -> None:
+        r = None if position_at is None else np.asarray(position_at(t - start), dtype=float)
+        sender.send(Sample(t, q, w, r=r))  # the feed sample's r (docs/hil.md section 1)
+        if not logged:
+            return
         log.truth_t.append(t)
         log.truth_q.append([float(v) for v in q])
         if target_at is not None:
-            target = target_at(t - start)
-            dynamics.set_target(target)
-            log.target_q.append([float(v) for v in target])
-        if position_at is None:
-            sender.send(Sample(t, q, w))
-            return
-        r = position_at(t - start)
-        log.truth_r.append([float(v) for v in r])
-        sender.send(Sample(t, q, w, r=r))  # the feed sample's r (docs/hil.md section 1)
+            log.target_q.append([float(v) for v in target(t)])
+        if r is not None:
+            log.truth_r.append([float(v) for v in r])
 
     q, w = np.asarray(q0, dtype=float), np.asarray(w0, dtype=float)
     n = int(round(duration_s / dt))
+    off_at = math.inf if tracker_off_after is None else start + tracker_off_after
+    gyro = Gyro(gyro_spec, gyro_seed)
+    est = Mekf(start, gyro_spec)
     with Sender(feed_url) as sender:
-        start = clock()
-        estimator = Estimator(q0, w0, start)
+        send(start - dt, q, w, logged=False)  # the device clock counts from this sample
         send(start, q, w)
-        loop = FlightLoop(client, estimator, log, exposure_s, mask, combination_timeout, clock)
-        loop.start()
+        offset = start - dev.wait_device_time(dt)  # simulated POSIX s = device clock s + offset
+        wall0 = wall()
+        pending: tuple[float, float] | None = None  #: (simulated GO time, real GO time)
+        next_go = start
         bar = tqdm(total=n, desc="closed loop", unit="step", disable=not progress)
         k = 0
         try:
-            while loop.is_alive() and (k < n or clock() < start + duration_s + overrun_s):
-                if k >= n and not loop.stop.is_set() and log.ok_updates() >= min_ok_updates:
-                    loop.stop.set()  # the feed goes on until the last COMBINATION is answered
-                k += 1
+            while True:
                 t = start + k * dt
-                sleep(max(0.0, t - clock()))
-                dynamics.set_measurement(*estimator.propagate(w, t))  # gyro: the truth rate
+                if pending is not None and t >= pending[0] + result_delay_s - 1e-9:
+                    head, cov_bytes = dev.answer()
+                    latency = wall() - pending[1]
+                    status, qm, epoch, _ = _epoch_of(head)
+                    cov = list(struct.unpack("<6d", cov_bytes))
+                    t_mid = None if epoch is None else epoch + offset
+                    log.updates.append(Update(pending[0], t, status, qm, t_mid, epoch, cov, latency))
+                    if qm is not None and t_mid is not None:
+                        est.update(quat_to_matrix(qm), t_mid, cov)
+                        if log.first_fix_t is None:
+                            log.first_fix_t = t
+                    pending = None
+                done = k >= n and (log.ok_updates() >= min_ok_updates or t >= start + duration_s + overrun_s)
+                if done and pending is None:
+                    break
+                if pending is None and not done and t >= next_go - 1e-9 and t < off_at:
+                    dev.wait_device_time(t - offset)  # the device has taken the sample at t
+                    pending = (t, wall())
+                    dev.go()
+                    next_go += go_period_s
+                log.estimate_q.append(None if est.lost else [float(v) for v in matrix_to_quat(est.a)])
+                q_ctl = target(t) if est.lost else matrix_to_quat(est.a)  # lost: damp the rate only
+                dynamics.set_measurement(q_ctl, est.w)
+                if target_at is not None:
+                    dynamics.set_target(target(t))
+                w_before = w
                 q, w = dynamics.step(dt)
-                send(t, q, w)  # the target for the next step is set with this one's truth
+                est.propagate(gyro.measure(0.5 * (w_before + w), dt), t + dt)
+                k += 1
+                send(start + k * dt, q, w)
                 if k <= n:
                     bar.update()
+                if speed > 0:
+                    sleep(max(0.0, wall0 + (k * dt) / speed - wall()))
         finally:
             bar.close()
-            loop.stop.set()
-            loop.join(timeout=combination_timeout + 10.0)
-    if loop.error is not None:
-        raise loop.error
+    log.estimate_q.append(None if est.lost else [float(v) for v in matrix_to_quat(est.a)])
     return log

@@ -1,0 +1,87 @@
+"""The HIL flight side (ground.hil.gyro, ground.hil.estimator; docs/hil.md "The flight side"): the
+gyro's noise terms, the estimator lost until its first fix, converging on answers with their
+covariance, and drifting on the gyro alone; bad parameters refused."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from ground.hil.estimator import Mekf
+from ground.hil.gyro import DEFAULT, DEG_PER_H, Gyro, GyroSpec
+
+
+def _angle_deg(a, b) -> float:
+    return math.degrees(np.linalg.norm(Rotation.from_matrix(a @ b.T).as_rotvec()))
+
+
+def test_gyro_bias_and_noise_are_seeded_and_of_the_stated_size():
+    g1, g2 = Gyro(DEFAULT, 3), Gyro(DEFAULT, 3)
+    assert np.array_equal(g1.measure(np.zeros(3), 0.02), g2.measure(np.zeros(3), 0.02))
+    g = Gyro(GyroSpec(bias_deg_h=0.0, arw_deg_rt_h=0.07, rrw_deg_h_rt_h=0.0, sf_ppm=0.0), 1)
+    dt, n = 0.02, 20000
+    angle = np.sum([g.measure(np.zeros(3), dt) * dt for _ in range(n)], axis=0)  # n dt = 400 s
+    # the angle random walk: sigma = ARW sqrt(t); three axes, a loose bound on one draw
+    sigma = DEFAULT.arw * math.sqrt(n * dt)
+    assert np.all(np.abs(angle) < 5 * sigma) and np.any(np.abs(angle) > 0.1 * sigma)
+    biased = Gyro(GyroSpec(bias_deg_h=1.0, arw_deg_rt_h=0.0, rrw_deg_h_rt_h=0.0, sf_ppm=0.0), 2)
+    assert 0 < np.linalg.norm(biased.measure(np.zeros(3), dt)) < 10 * DEG_PER_H
+
+
+@pytest.mark.parametrize(
+    "spec",
+    [
+        GyroSpec(bias_deg_h=-1.0),
+        GyroSpec(arw_deg_rt_h=math.nan),
+        GyroSpec(sf_ppm=1e9),
+        GyroSpec(rrw_deg_h_rt_h=math.inf),
+    ],
+)
+def test_a_gyro_out_of_range_is_refused(spec):
+    assert spec.problems()
+    with pytest.raises(ValueError):
+        Gyro(spec)
+
+
+def _run(fix_until: float, seconds: float = 120.0, seed: int = 4):
+    """A body turning at 0.1 deg/s; answers every 0.5 s (20 arcsec, valid 0.05 s after the GO, used
+    0.5 s after it) until ``fix_until``; returns (estimator, truth matrix, errors in arcsec per s)."""
+    dt, w = 0.02, np.radians([0.1, -0.05, 0.02])
+    gyro = Gyro(DEFAULT, seed)
+    rng = np.random.default_rng(seed)
+    a = Rotation.from_rotvec([0.3, -1.0, 2.0]).as_matrix()
+    est = Mekf(0.0, DEFAULT)
+    hist: dict[int, np.ndarray] = {}
+    sigma = math.radians(20 / 3600)
+    cov = [sigma**2, 0, 0, sigma**2, 0, sigma**2]
+    err = {}
+    for k in range(int(seconds / dt)):
+        t = k * dt
+        hist[k] = a
+        if k % 25 == 0 and k >= 25 and (k - 25) * dt < fix_until:  # the answer of the GO at (k - 25) dt
+            mid = k - 25 + 2  # 0.04 s after the GO: on a step
+            meas = Rotation.from_rotvec(rng.normal(0, sigma, 3)).as_matrix() @ hist[mid]
+            assert est.lost == (est.fixes == 0)
+            est.update(meas, mid * dt, cov)
+        a = Rotation.from_rotvec(-w * dt).as_matrix() @ a
+        est.propagate(gyro.measure(w, dt), t + dt)
+        if k % 50 == 49 and not est.lost:
+            err[round(t + dt)] = _angle_deg(est.a, a) * 3600
+    return est, a, err
+
+
+def test_lost_until_the_first_fix_then_tracks_within_the_answers_noise():
+    est = Mekf(0.0, DEFAULT)
+    assert est.lost and math.isinf(est.sigma_deg())
+    est, a, err = _run(fix_until=1e9)
+    assert not est.lost and est.fixes > 200
+    assert max(v for t, v in err.items() if t >= 10) < 30.0  # arcsec; the answers are 20 arcsec 1-sigma per axis
+
+
+def test_without_answers_the_error_grows_on_the_gyro():
+    _, _, tracked = _run(fix_until=1e9, seconds=200)
+    _, _, coasting = _run(fix_until=20.0, seconds=200)
+    assert coasting[200] > 3 * tracked[200] and coasting[200] > coasting[30]
