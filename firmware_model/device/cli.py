@@ -82,6 +82,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="NSP address of the device (default 0x0E)",
     )
     parser.add_argument("--state", help="directory for persistent state (slots); in memory if absent")
+    parser.add_argument(
+        "--heads",
+        metavar="FILE",
+        help="serve 1-4 heads on the one link, each at its address and mounting (JSON; docs/ICD.md section 14)",
+    )
     parser.add_argument("--baud", type=int, default=115200, help="line rate for --port and for --pace")
     parser.add_argument(
         "--tcp-idle",
@@ -289,6 +294,10 @@ def main(argv: list[str] | None = None) -> int:
         clock_model(args, DeviceParams())  # the options alone, before the slow start (the --params file's later)
     except ValueError as exc:
         parser.error(str(exc))
+    if args.heads:
+        from firmware_model.device import heads
+
+        return heads.run(args, turnaround_ms)
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr, format="%(message)s")
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     try:

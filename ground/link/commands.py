@@ -296,6 +296,51 @@ def _run_image_poke(c, a):
     return {"buffer": a.buffer, "row": a.row, "col": a.col, "rows": int(pixels.shape[0]), "cols": int(pixels.shape[1])}
 
 
+def _a_heads(p):
+    p.add_argument(
+        "addresses",
+        type=U8,
+        nargs="+",
+        help="the heads' NSP addresses (st16-device --heads; docs/ICD.md section 14)",
+    )
+
+
+def _run_heads(c: Client, a) -> dict:
+    """Each head's state from its EDAC memory (one READ EDAC of 0x00-0x5C each); a head that does
+    not answer is shown as such, the others still read."""
+    import numpy as np
+
+    from ground.link.client import LinkError
+    from protocol import edac
+
+    heads: dict[str, dict] = {}
+    own = c.device_address
+    try:
+        for address in a.addresses:
+            c.device_address = address
+            name = f"0x{address:02X}"
+            try:
+                raw = c.read_edac(0, edac.offset("banner"))
+            except LinkError as exc:
+                heads[name] = {"answers": False, "error": str(exc)}
+                continue
+            rec = np.frombuffer(raw + bytes(edac.SIZE - len(raw)), dtype=edac.EDAC_DTYPE)[0]
+            heads[name] = {
+                "answers": True,
+                "mode": "application" if rec["app_mode"] else "bootloader",
+                "busy": bool(rec["busy"]),
+                "result_ready": bool(int(rec["status"]) & edac.STATUS_RESULT_READY),
+                "sequence": int(rec["sequence"]),
+                "accepted": int(rec["accepted"]),
+                "nacked": int(rec["nacked"]),
+                "bad_crc": int(rec["bad_crc"]),
+                "other_address": int(rec["other_address"]),
+            }
+    finally:
+        c.device_address = own
+    return {"heads": heads}
+
+
 def _a_send(p):
     p.add_argument("code", type=ranged(int, 0, 0x1F, "a command code (0x00-0x1F)"), help="command code 0x00-0x1F")
     p.add_argument("data", type=_hex, nargs="?", default=b"", help="data field as hex (default: empty)")
@@ -331,6 +376,7 @@ _SUBCOMMANDS: dict[str, tuple[Code | str, Callable, Run]] = {
     "slot-info": (Code.SLOT_INFO, _args_slot, _run_slot_info),
     "fault": (Code.FAULT, _a_fault, _run_fault),
     "send": ("send any command code with a hex data field", _a_send, _run_send),
+    "heads": ("each head's state on a shared line (READ EDAC of every address given)", _a_heads, _run_heads),
 }
 
 #: name -> the command code the subcommand sends (the others are ground helpers)

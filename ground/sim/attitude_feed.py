@@ -273,7 +273,7 @@ class AttitudeFeedSource:
     def close(self) -> None:
         self.listener.close()
 
-    def __call__(self, ctx) -> Frame:
+    def __call__(self, ctx, mount=None) -> Frame:
         t_mid = ctx.started + self.exposure_s / 2.0
         q, w = self.feed.at(t_mid, self.timeout, self.max_gap)
         try:
@@ -283,8 +283,11 @@ class AttitudeFeedSource:
         position = self.feed.position_at(t_mid)
         if position is None and self.orbit is not None:
             position = self.orbit.position_gcrs_km(t_mid)
+        attitude = quat_to_matrix(q)
+        if mount is not None:  # a head's body-to-sensor mounting: the source gives the body's attitude (--heads)
+            attitude = mount @ attitude
         frame = self.renderer.render(
-            quat_to_matrix(q),
+            attitude,
             self.det,
             seed=ctx.sequence,
             psf=psf if psf.max_track_px >= MIN_SMEAR_PX else None,

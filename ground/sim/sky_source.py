@@ -184,7 +184,7 @@ class SkySource:
         """Return once the source can render at once (its noise bank drawn)."""
         self._drawing.join()
 
-    def __call__(self, ctx):
+    def __call__(self, ctx, mount=None):
         with self._lock:
             exp = self.schedule[self._next % len(self.schedule)]
             self._next += 1
@@ -203,8 +203,11 @@ class SkySource:
         effects = self.effects
         if effects is not None and t_posix is not None:
             effects = effects.at_time(t_posix)  # the SAA under the spacecraft at the exposure
+        attitude = quat_to_matrix(exp.q_icrs_to_sensor)
+        if mount is not None:  # a head's body-to-sensor mounting: the source gives the body's attitude (--heads)
+            attitude = mount @ attitude
         return self.renderer.render(
-            quat_to_matrix(exp.q_icrs_to_sensor),
+            attitude,
             det,
             exp.seed,
             epoch_utc=epoch,
