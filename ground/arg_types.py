@@ -6,16 +6,20 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+#: Longest echo of a refused value (a 5000-digit count was echoed in a 5087-character line).
+ECHO_CHARS = 40
+
 
 def ranged(kind, lo=None, hi=None, what: str = "value"):
     """An argparse type: ``kind(text)`` (ints also as 0x.. / 0o.. / 0b..) within [lo, hi]."""
 
     def parse(text: str):
+        shown = text if len(text) <= ECHO_CHARS else f"{text[: ECHO_CHARS - 3]}... ({len(text)} characters)"
         try:
             value = int(text, 0) if kind is int else kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(
-                f"{what} must be {'an integer' if kind is int else 'a number'}, got {text!r}"
+                f"{what} must be {'an integer' if kind is int else 'a number'}, got {shown!r}"
             ) from None
         if value != value or (lo is not None and value < lo) or (hi is not None and value > hi):  # NaN too
             bounds = (
@@ -23,7 +27,7 @@ def ranged(kind, lo=None, hi=None, what: str = "value"):
                 if lo is not None and hi is not None
                 else (f"at least {lo}" if lo is not None else f"at most {hi}")
             )
-            raise argparse.ArgumentTypeError(f"{what} must be {bounds}, got {text}")
+            raise argparse.ArgumentTypeError(f"{what} must be {bounds}, got {shown}")
         return value
 
     parse.__name__ = what  # argparse names the type in its messages

@@ -17,7 +17,7 @@ FORBIDDEN = {"protocol": ("firmware_model", "ground"), "firmware_model": ("groun
 #: Bottom first. A group is a module path prefix; the longest matching prefix names a module's group.
 STACKS = {
     "firmware_model": [
-        ("firmware_model.reference_frames", "firmware_model.catalog"),
+        ("firmware_model.reference_frames", "firmware_model.catalog", "firmware_model.user_files"),
         # the camera model (pixels <-> directions): identification needs it, and nothing of the pipeline
         ("firmware_model.camera",),
         ("firmware_model.ident",),

@@ -19,18 +19,16 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse
 import functools
-import json
 import logging
 import signal
 import sys
 import threading
 from collections.abc import Callable
 from dataclasses import replace
-from pathlib import Path
 from typing import Any
 
 import protocol
-from firmware_model import user_cache_dir
+from firmware_model import user_cache_dir, user_files
 from firmware_model.camera import CameraModel
 from firmware_model.device.catalog_slot import catalog_slot_handler
 from firmware_model.device.clock import ClockModel
@@ -50,7 +48,7 @@ from firmware_model.device.slots import SlotStore
 from firmware_model.pipeline import scale_free
 from firmware_model.pipeline.run import PipelineParams
 from protocol import nsp
-from protocol.commands import Slot
+from protocol.commands import MAX_FAULT_SCRIPT, Slot, SlotRejected
 from protocol.result import QuaternionOrder
 
 DEFAULT_PACED_TURNAROUND_MS = 1.0  #: ours; the research documents no turnaround
@@ -179,9 +177,24 @@ def load_camera(path: str | None) -> CameraModel:
     if path is None:
         return CameraModel.reference_design()
     try:
-        return CameraModel.from_dict(json.loads(Path(path).read_text()))
-    except (OSError, ValueError, TypeError, KeyError) as exc:
+        return CameraModel.from_dict(user_files.load_json_file(path))
+    except user_files.UserFileError as exc:  # it names the file
+        raise ValueError(f"camera model {exc}") from None
+    except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
         raise ValueError(f"camera model {path}: {exc}") from None
+
+
+def load_params(path: str) -> DeviceParams:
+    """The ``--params`` file (a regular file of at most ``user_files.MAX_JSON_BYTES``, JSON of
+    bounded depth); ValueError naming the file."""
+    try:
+        data = user_files.read_bytes(path, user_files.MAX_JSON_BYTES)
+    except user_files.UserFileError as exc:
+        raise ValueError(f"--params {exc}") from None
+    try:
+        return DeviceParams.from_json(data)
+    except SlotRejected as exc:
+        raise ValueError(f"--params {path}: {exc.message}") from None
 
 
 def build_device(args: argparse.Namespace) -> Device:
@@ -192,15 +205,15 @@ def build_device(args: argparse.Namespace) -> Device:
     if not 0 <= args.address <= 0xFF:
         raise ValueError(f"address 0x{args.address:X} outside 0x00-0xFF")
     camera = load_camera(args.camera)
+    device_params = load_params(args.params) if args.params else DeviceParams()
     source: Callable[[SolveContext], Any] | None = None
     if args.frames:
         source = FileFrames(args.frames, camera, loop=args.loop)
     elif args.sky:
-        source = load_frame_source("sky", args.sky, camera)
+        source = _named(f"--sky {args.sky}", lambda: load_frame_source("sky", args.sky, camera))
     elif args.attitude_feed:
         source = load_frame_source("attitude_feed", args.attitude_feed, camera)
     store = SlotStore(args.state, volatile={Slot.FRAME}) if args.state else None
-    device_params = DeviceParams.load(args.params) if args.params else DeviceParams()
     clock = clock_model(args, device_params)
     solver = PipelineSolver(
         camera,
@@ -258,19 +271,44 @@ def clock_model(args: argparse.Namespace, params: DeviceParams) -> ClockModel:
     return model
 
 
+def _named(what: str, make: Callable[[], Any]) -> Any:
+    """``make()``, its one-line errors naming ``what`` when they do not already (a binary file
+    given to ``--sky`` said only ``'utf-8' codec can't decode byte 0xb4 ...``)."""
+    try:
+        return make()
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{what}: not UTF-8 text (byte 0x{exc.object[exc.start]:02X} at offset {exc.start})") from None
+    except (ValueError, OSError) as exc:
+        text = str(exc)
+        if what.split(" ", 1)[1] in text:
+            raise
+        raise ValueError(f"{what}: {text}") from None
+
+
 def load_fault_file(path: str) -> tuple[Fault, ...]:
     """The faults of the script at ``path``; ValueError (one line naming the line) if it does not
-    parse or cannot be read."""
+    parse or cannot be read: a FIFO or a device is refused, and a file over the
+    ``MAX_FAULT_SCRIPT`` bytes one FAULT load carries is refused before it is read."""
     try:
-        text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ValueError(f"fault file {path}: {exc}") from None
-    return parse_script(text, path)
+        text = user_files.read_text(path, MAX_FAULT_SCRIPT)
+    except user_files.UserFileError as exc:
+        raise ValueError(f"fault file {exc}") from None
+    try:
+        return parse_script(text, path)
+    except ValueError as exc:  # a 5000-digit count was echoed whole
+        raise ValueError(user_files.shorten_words(str(exc))) from None
 
 
 def build_link(args: argparse.Namespace) -> Link:
+    """The transport the options name; OSError naming the port or address (``--tcp
+    127.0.0.1:5000: [Errno 98] Address already in use``)."""
     url = "pty://" if args.pty else args.port if args.port else f"tcp://{args.tcp}"
-    return open_link(url, baud=args.baud, tcp_idle=args.tcp_idle)
+    try:
+        return open_link(url, baud=args.baud, tcp_idle=args.tcp_idle)
+    except OSError as exc:
+        option = "--pty" if args.pty else f"--port {args.port}" if args.port else f"--tcp {args.tcp}"
+        detail = f"[Errno {exc.errno}] {exc.strerror}" if exc.errno is not None and exc.strerror else str(exc)
+        raise OSError(f"{option}: {detail}") from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -300,12 +338,15 @@ def main(argv: list[str] | None = None) -> int:
         return heads.run(args, turnaround_ms)
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr, format="%(message)s")
     sys.setswitchinterval(SWITCH_INTERVAL_S)
+    link: Link | None = None
     try:
         faults = load_fault_file(args.faults) if args.faults else ()  # before the slow start
+        link = build_link(args)  # so is the port: a busy address is one line at once, naming it
         device = build_device(args)
         device.arm(faults)
-        link = build_link(args)
     except (ValueError, OSError) as exc:
+        if link is not None:
+            link.close()
         print(f"st16-device: {exc}", file=sys.stderr)
         return 2
     stop = threading.Event()

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from firmware_model import user_files
 from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.device.clock import MAX_DRIFT_PPM, MAX_JITTER_US, ROLLOVER_US, ClockModel
@@ -203,7 +204,7 @@ class DeviceParams:
     @classmethod
     def from_json(cls, data: bytes) -> DeviceParams:
         try:
-            obj = json.loads(data.decode("utf-8"))
+            obj = user_files.loads(data)  # its depth bounded: 100 000 brackets raised RecursionError
         except (UnicodeDecodeError, ValueError) as exc:
             raise SlotRejected(REJECT_PARAMS_JSON, f"parameter set is not UTF-8 JSON: {exc}") from None
         if not isinstance(obj, dict):
@@ -384,7 +385,7 @@ class FileFrames:
         try:
             frame = read_frame(path)
         except (FrameReadError, OSError, ValueError) as exc:
-            raise FrameUnavailable(f"{path.name}: {exc}") from None
+            raise FrameUnavailable(exc.brief if isinstance(exc, FrameReadError) else f"{path.name}: {exc}") from None
         if (frame.width, frame.height) != (self.camera.width, self.camera.height):
             raise FrameUnavailable(
                 f"{path.name} is {frame.width} x {frame.height}; the camera is "

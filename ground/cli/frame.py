@@ -101,9 +101,13 @@ def register(sub) -> None:
 
 def _camera_from_args(args):
     from firmware_model.camera import CameraModel
+    from firmware_model.device.cli import load_camera
 
     if args.camera:
-        return CameraModel.from_dict(json.loads(Path(args.camera).read_text()))
+        try:  # a FIFO refused, the size and the JSON depth bounded (one line naming the file)
+            return load_camera(args.camera)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
     ref = CameraModel.reference_design()
     if args.width or args.height or args.fov:
         return CameraModel.from_fov(args.width or ref.width, args.height or ref.height, args.fov or 7.5)
@@ -223,7 +227,8 @@ def cmd_inspect(args) -> int:
 
     import numpy as np
 
-    from firmware_model.camera import CameraModel
+    from firmware_model import user_files
+    from firmware_model.device.cli import load_camera
     from firmware_model.pipeline.extract import PSF_SIGMA_RANGE_PX, extract_stars
     from firmware_model.pipeline.frame_readers import FrameReadError, read_frame
     from ground.cli.offline_options import load_params
@@ -231,7 +236,7 @@ def cmd_inspect(args) -> int:
 
     try:
         frame = read_frame(args.frame)
-        camera = CameraModel.from_dict(json.loads(Path(args.camera).read_text())) if args.camera else None
+        camera = load_camera(args.camera) if args.camera else None
     except (FrameReadError, ValueError, OSError) as exc:
         return _fail(str(exc))
     log.debug("%s: %d x %d %s frame", args.frame, frame.width, frame.height, frame.pattern)
@@ -263,12 +268,14 @@ def cmd_inspect(args) -> int:
     tpath = Path(args.truth) if args.truth else truth_path_for(args.frame)
     if args.truth or tpath.is_file():
         try:
-            truth = json.loads(tpath.read_text())
+            truth = user_files.load_json_file(tpath, max_bytes=64 << 20)
             if not isinstance(truth, dict):
                 raise ValueError("not a JSON object")
             matches = _match_truth(stars, truth)
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:  # a star without "y" too
             why = f"{type(exc).__name__}: {exc}" if isinstance(exc, (KeyError, TypeError, AttributeError)) else exc
+            if isinstance(exc, user_files.UserFileError):  # it names the file: said once
+                why = str(exc).removeprefix(f"{tpath}: ")
             if args.truth:  # asked for: an error
                 return _fail(f"--truth {args.truth}: not a readable truth file ({why})")
             log.warning("st16-ground: %s is not a readable truth file (%s); ignored", tpath.name, why)

@@ -92,13 +92,13 @@ def add_params_option(parser) -> None:
 
 def load_params(path: str | None) -> PipelineParams:
     """Pipeline parameters from a slot-2 parameter file (defaults without one)."""
-    from firmware_model.device.sensor_input import DeviceParams
+    from firmware_model.device.cli import load_params as load_device_params
     from firmware_model.pipeline.run import PipelineParams
 
     if path is None:
         return PipelineParams()
-    try:
-        return DeviceParams.load(path).apply(PipelineParams())
+    try:  # the device's own reading of --params: a FIFO refused, the size and the JSON depth bounded
+        return load_device_params(path).apply(PipelineParams())
     except ValueError as exc:
         raise InputError(str(exc)) from None
 

@@ -3,20 +3,22 @@ would, then upload and commit it."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from ground import json_text
 from ground.arg_types import InputError, progress_on
 from protocol.commands import Slot
 
 
 def _params_upload(args) -> int:
+    from firmware_model import user_files
     from firmware_model.device.sensor_input import DeviceParams
     from ground.cli.link import open_client, render, report_error
     from ground.link.client import LinkError
     from protocol.commands import SlotRejected
 
-    data = Path(args.file).read_bytes()
+    try:  # a FIFO or a device refused, the size bounded before reading
+        data = user_files.read_bytes(args.file, user_files.MAX_JSON_BYTES)
+    except user_files.UserFileError as exc:
+        raise InputError(str(exc)) from None
     try:
         DeviceParams.from_json(data)  # refuse locally what the device would refuse
     except SlotRejected as exc:

@@ -196,8 +196,8 @@ def _fault_file(path: str) -> str:
         parse_script(text, path)
     except user_files.UserFileError as exc:
         raise argparse.ArgumentTypeError(f"fault file {exc}") from None
-    except FaultScriptError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
+    except FaultScriptError as exc:  # a 5000-digit count was echoed whole
+        raise argparse.ArgumentTypeError(user_files.shorten_words(str(exc))) from None
     return text
 
 
