@@ -54,13 +54,18 @@ were interpolated by the demosaicing anyway, mostly from the very sites that are
 
 from __future__ import annotations
 
-import json
+import contextlib
+import os
+import sys
+import tempfile
+import threading
 import warnings
 from datetime import UTC, datetime, timezone
 from pathlib import Path
 
 import numpy as np
 
+from firmware_model import user_files
 from firmware_model.pipeline.raw_frame import Frame, frame_from_bytes, normalise_pattern
 from protocol import frame_blob
 
@@ -99,21 +104,55 @@ MAX_FRAME_PIXELS = 1 << 27
 #: ~25 ms at a time, stalling the device's link thread during a GO (bench/bench_link_during_go.py)
 TIFF_READ_BYTES = 8 << 20
 JPEG_SIGNATURE = b"\xff\xd8\xff"
+#: Widest or tallest frame (px): the result's fields hold a frame's rows in 16 bits (``good_rows``),
+#: so a 1 x 100 000 TIFF raised OverflowError after its solve (issue 40).
+MAX_FRAME_SIDE = 0xFFFF
 
 
 class FrameReadError(ValueError):
-    """A file could not be read as a frame; the message says why."""
+    """A file could not be read as a frame; the message (``PATH: reason``) says why, and
+    :attr:`brief` says it cause first with the file's name only (for the device's 96-byte
+    ``ext.reason``, where the path cut the cause off)."""
+
+    def __init__(self, message: str):
+        super().__init__(message)
+        path, sep, reason = message.partition(": ")
+        self.reason = reason if sep else message
+        self.name = Path(path).name if sep else ""
+
+    @property
+    def brief(self) -> str:
+        """``reason (NAME)``: the cause first, then the file's name."""
+        return f"{self.reason} ({self.name})" if self.name else self.reason
 
 
 def read_frame(path) -> Frame:
     """Read any supported frame file (module docstring); raises FrameReadError."""
     path = Path(path)
-    if not path.is_file():
-        raise FrameReadError(f"{path}: {'a directory, not a frame file' if path.is_dir() else 'no such file'}")
-    with open(path, "rb") as fh:
-        head = fh.read(16)
+    why = user_files.problem(path)  # a FIFO, a device or a symlink loop named for what it is
+    if why is not None:
+        raise FrameReadError(f"{path}: {'a directory, not a frame file' if path.is_dir() else why}")
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(16)
+    except OSError as exc:
+        raise FrameReadError(f"{path}: {user_files.os_reason(exc)}") from None
     if not head:
         raise FrameReadError(f"{path}: file is empty")
+    return _checked_sides(path, _read_by_kind(path, head))
+
+
+def _checked_sides(path: Path, frame: Frame) -> Frame:
+    """``frame`` when each side is 2..:data:`MAX_FRAME_SIDE` px; else FrameReadError."""
+    height, width = frame.pixels.shape[:2]
+    if not (2 <= width <= MAX_FRAME_SIDE and 2 <= height <= MAX_FRAME_SIDE):
+        raise FrameReadError(
+            f"{path}: a {width} x {height} px image: a frame needs 2 to {MAX_FRAME_SIDE} px on each side"
+        )
+    return frame
+
+
+def _read_by_kind(path: Path, head: bytes) -> Frame:
     try:
         if head.startswith(b"\x93NUMPY"):
             return read_npy(path)
@@ -158,15 +197,17 @@ def read_dng(path) -> Frame:
     import rawpy
 
     path = Path(path)
-    try:
-        raw = rawpy.imread(str(path))
-    except Exception as exc:  # rawpy raises its own LibRaw* exception hierarchy
-        raise FrameReadError(f"{path}: not a readable raw file ({exc})") from None
-    with raw:
+    with _libraw_stderr() as said:
         try:
-            pixels = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
-        except Exception as exc:
-            raise FrameReadError(f"{path}: raw data could not be unpacked ({exc})") from None
+            raw = rawpy.imread(str(path))
+        except Exception as exc:  # rawpy raises its own LibRaw* exception hierarchy
+            raise FrameReadError(f"{path}: not a readable raw file ({exc}{said()})") from None
+    with raw:
+        with _libraw_stderr() as said:
+            try:
+                pixels = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
+            except Exception as exc:
+                raise FrameReadError(f"{path}: raw data could not be unpacked ({exc}{said()})") from None
         desc = raw.color_desc.decode("ascii", "replace")
         colors = np.asarray(raw.raw_colors_visible[:2, :2])
         blpc = list(raw.black_level_per_channel)
@@ -200,6 +241,47 @@ def read_dng(path) -> Frame:
     )
 
 
+_STDERR_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _libraw_stderr():
+    """LibRaw writes its own lines to the process' stderr (``data corrupted at 123456`` for a cut
+    DNG) beside the one-line error: they are caught here (file descriptor 2, for the block) and
+    ``said()`` gives them as ``; libraw: ...`` for that error's reason. Anything written to stderr
+    meanwhile is written back once the block ends, unless the block raised (then it is LibRaw's)."""
+    with _STDERR_LOCK:
+        try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (OSError, ValueError, AttributeError):  # no stderr to guard
+            yield lambda: ""
+            return
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
+            caught = [b""]
+
+            def said() -> str:
+                os.dup2(saved, 2)  # restored before the error is raised and printed
+                tmp.seek(0)
+                caught[0] = tmp.read(4096)
+                text = " ".join(caught[0].decode("utf-8", "replace").split())
+                return f"; libraw: {user_files.echo(text, 120)}" if text else ""
+
+            ok = False
+            try:
+                yield said
+                ok = True
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+                if ok:
+                    tmp.seek(0)
+                    rest = tmp.read()
+                    if rest:
+                        os.write(2, rest)
+
+
 def _tiff_description_json(path: Path) -> dict:
     """JSON object stored in ImageDescription by ground.sim.frame_writer, or {}."""
     import tifffile
@@ -210,8 +292,8 @@ def _tiff_description_json(path: Path) -> dict:
     except Exception:  # not a TIFF container (e.g. CR3): no embedded description
         return {}
     try:
-        obj = json.loads(desc)
-    except (TypeError, json.JSONDecodeError):
+        obj = user_files.loads(desc)
+    except (TypeError, ValueError):  # not JSON, or nested too deep: not ours
         return {}
     return obj if isinstance(obj, dict) and obj.get("format") == "st16-frame" else {}
 
@@ -240,7 +322,13 @@ def read_tiff(path) -> Frame:
         raise FrameReadError(f"{path}: TIFF image has shape {data.shape}; a raw mono frame must be 2-D")
     if isinstance(exposure, tuple):
         exposure = exposure[0] / exposure[1] if exposure[1] else None
-    white = float(np.iinfo(data.dtype).max) if np.issubdtype(data.dtype, np.integer) else float(np.nanmax(data))
+    if np.issubdtype(data.dtype, np.integer):
+        white = float(np.iinfo(data.dtype).max)
+    else:
+        finite = data[np.isfinite(data)] if data.size else data
+        if not finite.size:  # np.nanmax warned twice (All-NaN slice) and the frame failed later
+            raise FrameReadError(f"{path}: TIFF image holds no finite pixel value (all NaN or infinite)")
+        white = float(finite.max())
     return Frame(pixels=data, pattern="MONO", black_level=0.0, white_level=white, exposure_s=exposure)
 
 
@@ -341,11 +429,11 @@ def read_npy(path) -> Frame:
         raise FrameReadError(f"{path}: not a readable .npy array ({exc})") from None
     side = path.with_suffix(".json")
     meta = {}
-    if side.is_file():
+    if side.exists():
         try:
-            meta = json.loads(side.read_text())
-        except json.JSONDecodeError as exc:
-            raise FrameReadError(f"{side}: sidecar is not valid JSON ({exc})") from None
+            meta = user_files.load_json_file(side)
+        except user_files.UserFileError as exc:
+            raise FrameReadError(f"{side}: sidecar {str(exc).removeprefix(f'{side}: ')}") from None
         if not isinstance(meta, dict):
             raise FrameReadError(f"{side}: sidecar must hold a JSON object")
     return Frame(

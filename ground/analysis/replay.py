@@ -346,6 +346,8 @@ def replay(
     if not Path(directory).is_dir():  # a missing input: exit 2, as every other
         raise InputError(f"{directory}: {'not a directory' if Path(directory).exists() else 'no such directory'}")
     paths = frame_files(directory)
+    if not paths:  # nothing to replay is an input error (exit 2), not an empty success
+        raise InputError(f"{directory}: no frame files (DNG/raw, FITS, TIFF, PNG, JPEG, .npy) in the directory")
     log = ResultsLog(out_dir)
     done = {r.get("frame") for r in log.records()}
     if done and not resume:
@@ -370,19 +372,26 @@ def replay(
         t0 = time.perf_counter()
         try:
             record = solver.solve(frame, say) if isinstance(solver, LinkSolver) else solver.solve(frame)
+            record["exchange_s"] = time.perf_counter() - t0
+            record["solve_s"] = record["timings_s"].get("total")
+            truth = Truth.for_frame(path, frame, say)
+            record.update(base)
+            record.update(score(record, truth))
+            record["residuals_arcsec"] = [
+                s["residual_arcsec"] for s in matched_stars(record) if s["residual_arcsec"] is not None
+            ]
+            if wcs_camera is not None and record["q_icrs_to_sensor"] is not None:
+                wcs_stem = Path(out_dir) / "wcs" / path.stem
+                record["wcs"] = str(_write_frame_wcs(record, frame, wcs_camera(frame), wcs_stem))
         except Nack as exc:  # the device refused this frame (its size, say): logged, and the run goes on
             log.append({**base, "outcome": "refused", "reason": str(exc)})
             continue
-        record["exchange_s"] = time.perf_counter() - t0
-        record["solve_s"] = record["timings_s"].get("total")
-        truth = Truth.for_frame(path, frame, say)
-        record.update(base)
-        record.update(score(record, truth))
-        record["residuals_arcsec"] = [
-            s["residual_arcsec"] for s in matched_stars(record) if s["residual_arcsec"] is not None
-        ]
-        if wcs_camera is not None and record["q_icrs_to_sensor"] is not None:
-            record["wcs"] = str(_write_frame_wcs(record, frame, wcs_camera(frame), Path(out_dir) / "wcs" / path.stem))
+        except TimeoutError:  # the device did not come back: the run ends (exit 4), its records kept
+            raise
+        except Exception as exc:  # one frame that fails is a counted row, never the end of the run
+            _log.debug("%s: failed", path.name, exc_info=True)
+            log.append({**base, "outcome": "failed", "reason": _failure(exc)})
+            continue
         log.append(record)
         bar.set_postfix_str(record["outcome"])
         _log.debug("%s: %s", path.name, record["outcome"])
@@ -396,6 +405,13 @@ def replay(
             say(f"plots skipped: {exc}")
     write_text(Path(out_dir) / "summary.json", json.dumps(summary, indent=2))
     return summary
+
+
+def _failure(exc: BaseException) -> str:
+    """One line, at most 300 characters, saying why a frame failed (``--debug``/``--log-level
+    debug`` gives its traceback)."""
+    text = " ".join(f"{type(exc).__name__}: {exc}".split())
+    return text if len(text) <= 300 else text[:297] + "..."
 
 
 def _write_frame_wcs(record: dict, frame: Frame, camera: CameraModel, stem: Path) -> Path:

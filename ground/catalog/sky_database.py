@@ -9,8 +9,13 @@ seconds). Each zip member carries a CRC-32 that reading checks, so a damaged or 
 fails to load, as does one of another version or recipe; all three are one line naming the file
 (:class:`DatabaseError`). The default file, in the user's cache directory, is built again when it
 fails; a file the user names is not overwritten unasked (``st16-ground database build``).
-Writing goes to a temporary file beside the target that replaces it only once complete, so a
-full disk leaves the old file as it was.
+Writing goes to a temporary file beside the target (``.NAME.PID.part.npz``) that replaces it
+only once complete, so a full disk leaves the old file as it was; a part left by a build that was
+killed (its process gone) is removed by the next save (whole or nothing, issue 40).
+
+Reading refuses a FIFO, a device or a symlink loop in one line before opening it, and checks
+every member's header against the bytes the member holds before loading it (a crafted member
+claiming 10**12 float64 raised numpy's _ArrayMemoryError).
 
 Figures (this machine class: docs/identification.md, "Blind and wide"): ~2.3e6 patterns of
 ~41 000 stars, ~85 MB, built in ~15 s, loaded in ~0.05 s.
@@ -20,6 +25,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 import zipfile
 from dataclasses import dataclass
@@ -128,13 +134,20 @@ def build(progress: bool = False) -> SkyDatabase:
 def save(db: SkyDatabase, path: str | Path) -> None:
     """Write ``db`` to ``path`` whole or not at all (OSError, the old file intact, when not); in
     the user cache, other versions' files go once it is written (nothing reads them again)."""
-    from ground.atomic_write import atomic_path
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_parts(path)
     meta = np.frombuffer(json.dumps(db.meta).encode(), np.uint8)
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.savez(f, meta=meta, mag=db.mag, star_id=db.star_id, **db.index.arrays())  # type: ignore[attr-defined]
+    tmp = path.parent / f".{path.stem}.{os.getpid()}.part{path.suffix}"
+    try:
+        with open(tmp, "wb") as f:
+            np.savez(f, meta=meta, mag=db.mag, star_id=db.star_id, **db.index.arrays())  # type: ignore[attr-defined]
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     db.path = path
     if path.resolve() == default_path().resolve():
         for old in path.parent.glob("sky-v*.npz"):
@@ -142,18 +155,85 @@ def save(db: SkyDatabase, path: str | Path) -> None:
                 old.unlink(missing_ok=True)
 
 
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process: alive
+        return True
+    return True
+
+
+def remove_stale_parts(path: str | Path) -> list[Path]:
+    """Remove the temporary files beside ``path`` that a save killed midway left
+    (``.NAME.PID.part.npz`` of a process that has gone, or ``.NAME.*.part.npz`` of the earlier
+    naming); returns those removed. A part being written by a running process is kept."""
+    path = Path(path)
+    removed = []
+    prefix, suffix = f".{path.stem}.", f".part{path.suffix}"
+    for part in path.parent.glob(f"{prefix}*{suffix}"):
+        tag = part.name[len(prefix) : -len(suffix)]
+        if tag.isdigit() and (int(tag) == os.getpid() or _alive(int(tag))):
+            continue
+        try:
+            part.unlink()
+        except OSError:
+            continue
+        removed.append(part)
+    if removed:
+        _log.info("sky database: removed %d part(s) of a save that did not finish", len(removed))
+    return removed
+
+
+def _check_members(path: Path) -> None:
+    """Every member of the ``.npz`` at ``path`` stored (the database is never compressed) within
+    the file, its ``.npy`` header claiming no more bytes than the member holds: checked before any
+    array is allocated (DatabaseError otherwise)."""
+    size = path.stat().st_size
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            name = info.filename
+            if info.compress_type != zipfile.ZIP_STORED or info.file_size != info.compress_size:
+                raise DatabaseError(f"sky database {path}: member {name} is compressed: not a sky database")
+            if info.file_size > size:
+                raise DatabaseError(f"sky database {path}: member {name} claims more bytes than the file holds")
+            if not name.endswith(".npy"):
+                continue
+            with zf.open(info) as f:
+                version = np.lib.format.read_magic(f)
+                read_header = {
+                    (1, 0): np.lib.format.read_array_header_1_0,
+                    (2, 0): np.lib.format.read_array_header_2_0,
+                }.get(version)
+                if read_header is None:
+                    raise DatabaseError(f"sky database {path}: member {name} of .npy version {version}")
+                shape, _, dtype = read_header(f)
+                claimed = int(np.prod(np.asarray(shape, dtype=np.float64))) * dtype.itemsize
+                if dtype.hasobject or claimed > info.file_size:
+                    raise DatabaseError(
+                        f"sky database {path}: member {name} claims {' x '.join(map(str, shape))} "
+                        f"{dtype} ({claimed} bytes) in {info.file_size}: damaged"
+                    )
+
+
 def load(path: str | Path) -> SkyDatabase:
     """The database in ``path``; :class:`DatabaseError` (one line naming the file) when it is
     missing, damaged, truncated, not a database or of another version or recipe."""
+    from firmware_model import user_files
     from firmware_model.pipeline.pattern_index import PatternIndex
 
     path = Path(path)
     t0 = time.perf_counter()
+    why = user_files.problem(path)  # a FIFO hung np.load until killed; a symlink loop: RuntimeError
+    if why is not None:
+        raise DatabaseError(f"sky database {path}: {why}")
     try:
+        _check_members(path)
         with np.load(path, allow_pickle=False) as z:
             if "meta" not in z.files:
                 raise DatabaseError(f"sky database {path}: not a sky database (no meta member)")
-            meta = json.loads(bytes(z["meta"]).decode())
+            meta = user_files.loads(bytes(z["meta"]).decode())
             if meta.get("format") != "colour-st16 sky database":
                 raise DatabaseError(f"sky database {path}: not a sky database")
             if meta.get("version") != VERSION or meta.get("recipe") != recipe():
@@ -194,6 +274,12 @@ def sky_database(path: str | Path | None = None, progress: bool = False) -> SkyD
     ``st16-ground database build --database PATH`` makes one), or the user cache's, built (with a
     line on stderr and, with ``progress``, a bar) when missing, damaged or of another version, and
     kept when the folder can be written. Loaded once per process."""
+    if path is not None:
+        from firmware_model import user_files
+
+        why = user_files.problem(Path(path).expanduser())  # before resolve(), which raised RuntimeError on a loop
+        if why is not None and why != "no such file":  # a missing file: load() says it, with the build command
+            raise DatabaseError(f"sky database {path}: {why}")
     target = Path(path).expanduser().resolve() if path is not None else default_path()
     if target in _LOADED:
         _LOADED[target].load_s = 0.0  # loaded before: this call cost nothing
