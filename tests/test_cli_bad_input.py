@@ -23,13 +23,14 @@ def files(tmp_path):
     (tmp_path / "text.txt").write_text("hello, I am not what you think\n")
     (tmp_path / "a_file").write_text("x")
     (tmp_path / "frames").mkdir()
+    (tmp_path / "frames" / "f.npy").write_bytes(b"")  # a frame file: the catalog is checked, not the empty folder
     return tmp_path
 
 
 @pytest.mark.parametrize(
     "argv,code,fragment",
     [
-        (["params", "upload", "{d}/nope.json"], 2, "No such file"),
+        (["params", "upload", "{d}/nope.json"], 2, "nope.json: no such file"),
         (["params", "upload", "{d}/garbage.bin"], 2, "not UTF-8 JSON"),
         (["replay", "{d}/frames", "--offline", "--catalog", "{d}/nope.st16cat"], 2, "--catalog"),
         (["replay", "{d}/frames", "--offline", "--catalog", "{d}/text.txt"], 2, "TRUNCATED"),

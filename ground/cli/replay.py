@@ -17,9 +17,16 @@ from ground.cli.solve import DEFAULT_RESULTS, user_camera
 
 
 def _replay(args) -> int:
+    from firmware_model.pipeline.frame_readers import frame_files
     from ground.analysis.replay import LinkSolver, replay
     from ground.cli.link import client_kwargs
 
+    # the input first: no database built, catalog loaded or port opened for a directory without frames
+    where = Path(args.directory)
+    if not where.is_dir():
+        raise InputError(f"{where}: {'not a directory' if where.exists() else 'no such directory'}")
+    if not frame_files(where):
+        raise InputError(f"{where}: no frame files (DNG/raw, FITS, TIFF, PNG, JPEG, .npy) in the directory")
     if args.offline:
         solver = offline_solver(args)
     else:

@@ -118,13 +118,15 @@ def _solve_file(args) -> int:
     from firmware_model.pipeline.frame_readers import FrameReadError, read_frame
     from ground.analysis.replay import warm_up_kernels
 
-    solver = offline_solver(args)  # options checked, the database and --catalog loaded
-    solver.every_star = True  # no result record in between: list every detection (issue 30)
-    modules_s = time.perf_counter() - t0 - sum(solver.setup_s.values())  # the rest: imports
-    try:
+    t_read = time.perf_counter()
+    try:  # the input first: a directory or a bad file is one line before any database is built
         frame = read_frame(args.frame)
     except FrameReadError as exc:
         raise InputError(str(exc)) from None
+    read_s = time.perf_counter() - t_read
+    solver = offline_solver(args)  # options checked, the database and --catalog loaded
+    solver.every_star = True  # no result record in between: list every detection (issue 30)
+    modules_s = time.perf_counter() - t0 - read_s - sum(solver.setup_s.values())  # the rest: imports
     # the pipeline's modules and kernels, loaded now (a line and a bar when the kernels compile)
     t1 = time.perf_counter()
     loaded = warm_up_kernels(progress=progress_on(args)) > 0
