@@ -139,8 +139,8 @@ def test_feed_url_parse_and_errors():
     "query, msg",
     [
         ("foo=1", "unknown option"),
-        ("exposure=abc", "could not convert"),
-        ("timeout=-1", "timeout >= 0"),
+        ("exposure=abc", "exposure=.abc. is not a number of seconds"),
+        ("timeout=-1", r"timeout=-1 s is outside \[0, 60\]"),
         ("pattern=XY", "attitude feed"),
     ],
 )

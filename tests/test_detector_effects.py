@@ -40,7 +40,7 @@ def test_hits_per_frame_are_poisson_with_mean_flux_times_area_times_exposure():
 
 @pytest.mark.parametrize("bad", [dict(flux_cm2_s=-1.0), dict(hits_per_frame=-0.5), dict(flux_cm2_s=float("nan"))])
 def test_negative_rates_are_refused(bad):
-    with pytest.raises(ValueError, match="at least 0"):
+    with pytest.raises(ValueError, match="at least 0|from 0 to"):
         de.CosmicRays(**bad)
 
 

@@ -44,7 +44,7 @@ def test_a_schedule_effects_line_renders_tracks_and_hot_pixels_from_the_rows_see
 @pytest.mark.parametrize(
     "line, says",
     [
-        ("# effects: cosmic_rate=-1\n", "line 1: a cosmic-ray flux must be at least 0"),
+        ("# effects: cosmic_rate=-1\n", "line 1: effect option cosmic_rate=-1 is outside 0 to 1e+06"),
         ("# effects: cosmic_rates=4\n", "line 1: unknown effect option(s) ['cosmic_rates']"),
         ("# effects: saa=1\n", "line 1: effect option saa needs an orbit"),
         ("# effects: dose_krad=lots\n", "line 1: effect option dose_krad='lots' is not a number"),

@@ -54,10 +54,16 @@ import numpy as np
 from firmware_model.device.device import FrameUnavailable
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.reference_frames import quat_to_matrix
-from ground.sim.detector_effects import SOURCE_OPTIONS, effects_from_options
+from ground.sim.detector_effects import (
+    MAX_SOURCE_HITS_PER_FRAME,
+    SOURCE_OPTIONS,
+    check_hits,
+    effects_from_options,
+)
 from ground.sim.exposure import ExposureRenderer
 from ground.sim.feed_clock import WALL_GUARD_S, FeedClock
 from ground.sim.feed_wire import IDLE_S, FeedUrl, Listener, Sample
+from ground.sim.nasa42 import Nasa42Options, Reader
 from ground.sim.orbit import CircularOrbit, utc_iso
 from ground.sim.sensor_sim import DetectorModel
 from ground.sim.sky_source import check_position
@@ -186,6 +192,8 @@ class AttitudeFeed:
                     break
                 self._cond.wait(min(left, WAIT_SLICE_S))
             if not self._ring:
+                if self._faults:  # every sample so far was bad: say why, not that none came
+                    raise FrameUnavailable(f"attitude feed: no good sample; last fault: {self._faults[-1][1]}")
                 raise FrameUnavailable("attitude feed: no sample received")
             newest = self._ring[-1]
             if newest.t < t:
@@ -216,6 +224,33 @@ class AttitudeFeed:
         return a.r + f * (b.r - a.r)
 
 
+#: The feed's timing options (s): name -> (smallest, largest, whether the smallest is allowed).
+#: Documented ceilings: an exposure of 10 s (star trackers expose for up to ~1 s), a capture's wait
+#: and a gap of 60 s (the device's reply guard), a silent peer kept for a day.
+TIMING_OPTIONS = {
+    "exposure": (0.0, 10.0, False),
+    "timeout": (0.0, 60.0, True),
+    "max_gap": (0.0, 60.0, False),
+    "idle": (0.0, 86400.0, False),
+}
+
+
+def _timing(opts: dict[str, str], key: str, default: float) -> float:
+    """The timing option ``key`` (s) popped from ``opts``, or ``default``; ValueError for one that
+    is not a number or outside :data:`TIMING_OPTIONS` (NaN and infinities too)."""
+    if key not in opts:
+        return default
+    text = opts.pop(key)
+    lo, hi, closed = TIMING_OPTIONS[key]
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"{key}={text[:40]!r} is not a number of seconds") from None
+    if not ((lo <= value if closed else lo < value) and value <= hi):
+        raise ValueError(f"{key}={text[:40]} s is outside {'[' if closed else '('}{lo:g}, {hi:g}]")
+    return value
+
+
 class AttitudeFeedSource:
     """Capture source: the exposure at each GO rendered along the fed attitude path. ``clock``
     (POSIX s) must be the device's, whose GO time the exposure starts at (module docstring)."""
@@ -223,27 +258,32 @@ class AttitudeFeedSource:
     def __init__(
         self, spec: str, camera, renderer: ExposureRenderer | None = None, clock: Callable[[], float] = time.time
     ):
-        url = FeedUrl.parse(spec)
-        opts = dict(url.options)
+        nasa: Nasa42Options | None = None
+        if spec.startswith("42://"):  # NASA 42's IPC socket (ground.sim.nasa42): always simulated time
+            try:
+                nasa = Nasa42Options(spec)
+            except ValueError as exc:
+                raise ValueError(f"attitude feed {spec!r}: {exc}") from None
+        url = FeedUrl.parse(spec) if nasa is None else None
+        opts = dict(url.options if url is not None else nasa.options if nasa is not None else {})
         try:
             self.det = DetectorModel(pattern=opts.pop("pattern", "RGGB"))
-            self.exposure_s = float(opts.pop("exposure", self.det.exposure_s))
-            self.timeout = float(opts.pop("timeout", 0.25))
-            self.max_gap = float(opts.pop("max_gap", 0.5))
-            self.idle = float(opts.pop("idle", IDLE_S))
+            self.exposure_s = _timing(opts, "exposure", self.det.exposure_s)
+            self.timeout = _timing(opts, "timeout", 0.25)
+            self.max_gap = _timing(opts, "max_gap", 0.5)
+            self.idle = _timing(opts, "idle", IDLE_S)
             self.orbit = CircularOrbit.parse(opts.pop("orbit")) if "orbit" in opts else None
-            clock_kind = opts.pop("clock", "wall")
+            clock_kind = opts.pop("clock", "wall") if nasa is None else "sim"
             if clock_kind not in ("wall", "sim"):
                 raise ValueError(f"clock={clock_kind[:40]!r}: wall or sim")
             asked = {k: opts.pop(k) for k in list(opts) if k in SOURCE_OPTIONS}
             self.effects = effects_from_options(asked, self.orbit)
+            if opts:
+                raise ValueError(f"unknown option(s) {sorted(opts)}")
+            self.det = DetectorModel(pattern=self.det.pattern, exposure_s=self.exposure_s)
+            check_hits(self.effects, self.det, camera, MAX_SOURCE_HITS_PER_FRAME)
         except ValueError as exc:
             raise ValueError(f"attitude feed {spec!r}: {exc}") from None
-        if opts:
-            raise ValueError(f"attitude feed {spec!r}: unknown option(s) {sorted(opts)}")
-        if not (self.exposure_s > 0 and self.timeout >= 0 and self.max_gap > 0 and self.idle > 0):
-            raise ValueError(f"attitude feed {spec!r}: exposure, max_gap and idle must be > 0, timeout >= 0")
-        self.det = DetectorModel(pattern=self.det.pattern, exposure_s=self.exposure_s)
         self.camera = camera
         self.renderer = renderer or ExposureRenderer(camera)
         # at start-up, not inside the first GO
@@ -255,7 +295,11 @@ class AttitudeFeedSource:
         offer = self.feed.offer if self.simulated_clock is None else self._offer_simulated
         if self.simulated_clock is not None:
             self.feed.wall_guard_s = WALL_GUARD_S
-        self.listener = Listener(url, offer, self.feed.fault, self.feed.new_peer, idle_s=self.idle)
+        self.listener: Listener | Reader = (
+            Listener(url, offer, self.feed.fault, self.feed.new_peer, idle_s=self.idle)
+            if url is not None
+            else Reader(nasa, offer, self.feed.fault, self.feed.new_peer)  # type: ignore[arg-type]
+        )
 
     def _offer_simulated(self, sample: Sample) -> None:
         """A sample offered in simulated time: the clock moves to the newest one kept."""
@@ -281,8 +325,13 @@ class AttitudeFeedSource:
         except TooFast as exc:  # BAD_FRAME at once: the render's work would grow without bound
             raise FrameUnavailable(f"attitude feed: {exc}") from None
         position = self.feed.position_at(t_mid)
+        source = "interpolated sample"
         if position is None and self.orbit is not None:
-            position = self.orbit.position_gcrs_km(t_mid)
+            position, source = self.orbit.position_gcrs_km(t_mid), "orbit"
+        if position is not None:
+            why = check_position(position, utc_iso(t_mid))  # between two good samples, or the Moon's
+            if why:
+                raise FrameUnavailable(f"attitude feed: {source} {why}")
         attitude = quat_to_matrix(q)
         if mount is not None:  # a head's body-to-sensor mounting: the source gives the body's attitude (--heads)
             attitude = mount @ attitude

@@ -191,7 +191,19 @@ def run_availability(
     depend on it); a tqdm bar on stderr when ``progress``."""
     from tqdm import tqdm
 
+    from firmware_model.camera import CameraModel
+    from ground.arg_types import InputError
+    from ground.sim.detector_effects import MAX_HITS_PER_FRAME, MissionEffects, check_hits
+    from ground.sim.sensor_sim import DetectorModel
+
     effects = tuple(effects)
+    det = DetectorModel(pattern=cfg.pattern, exposure_s=cfg.exposure_s)
+    for effect in effects:  # before any work: a flux over a long exposure could ask for millions of hits
+        if isinstance(effect, MissionEffects):
+            try:
+                check_hits(effect, det, CameraModel.reference_design(), MAX_HITS_PER_FRAME)
+            except ValueError as exc:
+                raise InputError(f"sim availability: {exc}") from None
     ks = list(range(cfg.n_attitudes))
     parts = [ks[i : i + chunk] for i in range(0, len(ks), chunk)]
     rows: list[dict] = []

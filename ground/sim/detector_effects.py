@@ -133,8 +133,12 @@ class CosmicRays:
     def __post_init__(self):
         if not self.flux_cm2_s >= 0:  # NaN too
             raise ValueError(f"a cosmic-ray flux must be at least 0 per cm^2 per s, got {self.flux_cm2_s}")
-        if self.hits_per_frame is not None and not self.hits_per_frame >= 0:
-            raise ValueError(f"hits per frame must be at least 0, got {self.hits_per_frame}")
+        if not self.flux_cm2_s <= MAX_COSMIC_RATE:
+            raise ValueError(
+                f"a cosmic-ray flux must be at most {MAX_COSMIC_RATE:g} per cm^2 per s, got {self.flux_cm2_s}"
+            )
+        if self.hits_per_frame is not None and not 0 <= self.hits_per_frame <= MAX_HITS_PER_FRAME:
+            raise ValueError(f"hits per frame must be from 0 to {MAX_HITS_PER_FRAME:g}, got {self.hits_per_frame}")
         if not (self.depth_um > 0 and self.e_per_um > 0 and self.charge_fwhm_fraction >= 0 and self.diffusion_px >= 0):
             raise ValueError("a track needs depth > 0, charge per um > 0, spread >= 0 and diffusion >= 0")
 
@@ -264,6 +268,8 @@ class MissionEffects:
 
     def __post_init__(self):
         hot_pixel_fraction(self.dose_krad)  # refuses a negative dose
+        if not self.dose_krad <= MAX_DOSE_KRAD:
+            raise ValueError(f"a dose must be at most {MAX_DOSE_KRAD:g} krad, got {self.dose_krad}")
         lo, hi = TEMPERATURE_RANGE_C
         if self.temperature_c is not None and not lo <= self.temperature_c <= hi:
             raise ValueError(f"a detector temperature must be from {lo:g} to {hi:g} degC, got {self.temperature_c}")
@@ -322,22 +328,68 @@ class MissionEffects:
         return RenderInputs(det, objs, extra, truth, timestamp)
 
 
+#: The largest cosmic-ray flux an effect option or ``--cosmic-rate`` takes (particles per cm^2 per s):
+#: 1000 times the coarse anomaly's peak (``SouthAtlanticAnomaly.flux_cm2_s``); equal to
+#: ``ground.arg_types.FLUX_PER_CM2_S``'s (a test keeps them equal).
+MAX_COSMIC_RATE = 1e6
+#: The largest total dose (krad(Si)): a tenth of the array hot (:data:`HOT_FRACTION_PER_KRAD`);
+#: equal to ``ground.arg_types.DOSE_KRAD``'s.
+MAX_DOSE_KRAD = 1e4
+#: The most radiation hits (mean per frame, from ``hits_per_frame`` or from the flux over the
+#: exposure and the array, the anomaly's included) a device source renders: each track costs
+#: ~0.6 ms of render (measured on the 2-core machine: 10 000 hits 6.6 s), so a GO stays within
+#: ~3 s; 200 times the 24 hits of the anomaly's flux on the reference array in 0.1 s.
+MAX_SOURCE_HITS_PER_FRAME = 5000.0
+#: The most hits per frame ``sim availability`` renders (its ``--hits-per-frame`` ceiling,
+#: ``ground.arg_types.HITS_PER_FRAME``): a batch run, ~60 s a frame at the ceiling.
+MAX_HITS_PER_FRAME = 1e5
+
+_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
+
+
+def _flag(text: str) -> bool:
+    if text.lower() in _TRUE:
+        return True
+    if text.lower() in _FALSE:
+        return False
+    raise ValueError(f"is not one of {'/'.join(_TRUE)} or {'/'.join(_FALSE)}")
+
+
 #: The device sources' effect options (``--attitude-feed URL?cosmic_rate=4&saa=1``, a schedule's
-#: ``# effects: cosmic_rate=4 dose_krad=10``): name -> (converter, meaning).
-SOURCE_OPTIONS: dict[str, tuple[Callable[[str], Any], str]] = {
-    "cosmic_rate": (float, "cosmic-ray flux, particles per cm^2 per s"),
-    "hits_per_frame": (float, "a fixed mean of hits per frame instead of the flux"),
-    "saa": (lambda v: v.lower() in ("1", "true", "yes", "on"), "the South Atlantic Anomaly (needs an orbit)"),
-    "dose_krad": (float, "total dose, krad: hot pixels grow with it"),
-    "temperature_c": (float, "detector temperature, degC: dark current"),
-    "duty": (float, "the housekeeping model's duty cycle 0-1 sets the detector temperature"),
+#: ``# effects: cosmic_rate=4 dose_krad=10``): name -> (converter, meaning, (smallest, largest)
+#: value or None for a flag). Checked at start-up: every value finite and in its range, each key
+#: once, and the mean hits per frame at most :data:`MAX_SOURCE_HITS_PER_FRAME`
+#: (:func:`check_source_effects`).
+SOURCE_OPTIONS: dict[str, tuple[Callable[[str], Any], str, tuple[float, float] | None]] = {
+    "cosmic_rate": (float, "cosmic-ray flux, particles per cm^2 per s", (0.0, MAX_COSMIC_RATE)),
+    "hits_per_frame": (float, "a fixed mean of hits per frame instead of the flux", (0.0, MAX_SOURCE_HITS_PER_FRAME)),
+    "saa": (_flag, "the South Atlantic Anomaly (needs an orbit): 1/0, true/false, yes/no, on/off", None),
+    "dose_krad": (float, "total dose, krad: hot pixels grow with it", (0.0, MAX_DOSE_KRAD)),
+    "temperature_c": (float, "detector temperature, degC: dark current", TEMPERATURE_RANGE_C),
+    "duty": (float, "the housekeeping model's duty cycle 0-1 sets the detector temperature", (0.0, 1.0)),
 }
+
+
+def parse_option_pairs(text: str) -> dict[str, str]:
+    """``KEY=VALUE`` items (spaces or commas between them) as a dict; ValueError for an item
+    without ``=`` or a key given twice."""
+    out: dict[str, str] = {}
+    for item in text.replace(",", " ").split():
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise ValueError("expected KEY=VALUE items")
+        key = key.strip()
+        if key in out:
+            raise ValueError(f"effect option {key} given twice")
+        out[key] = value.strip()
+    return out
 
 
 def effects_from_options(options: dict[str, str], orbit=None) -> MissionEffects | None:
     """The :class:`MissionEffects` a device source's options ask for (:data:`SOURCE_OPTIONS`), with
     the source's ``orbit`` for the SAA; None when none is given; ValueError with a one-line reason
-    for an unknown key, a value that is not a number, or one out of range."""
+    for an unknown key, a value that is not a number (or not a flag), infinite, NaN or out of its
+    range."""
     unknown = sorted(set(options) - set(SOURCE_OPTIONS))
     if unknown:
         raise ValueError(f"unknown effect option(s) {unknown}; known: {sorted(SOURCE_OPTIONS)}")
@@ -345,10 +397,15 @@ def effects_from_options(options: dict[str, str], orbit=None) -> MissionEffects 
         return None
     values: dict = {}
     for key, text in options.items():
+        convert, _, bounds = SOURCE_OPTIONS[key]
+        shown = text if len(text) <= 40 else f"{text[:37]}... ({len(text)} characters)"
         try:
-            values[key] = SOURCE_OPTIONS[key][0](text)
-        except ValueError:
-            raise ValueError(f"effect option {key}={text!r} is not a number") from None
+            values[key] = convert(text)
+        except ValueError as exc:
+            why = str(exc) if bounds is None else "is not a number"
+            raise ValueError(f"effect option {key}={shown!r} {why}") from None
+        if bounds is not None and not bounds[0] <= values[key] <= bounds[1]:  # NaN too
+            raise ValueError(f"effect option {key}={shown} is outside {bounds[0]:g} to {bounds[1]:g}")
     if values.get("saa") and orbit is None:
         raise ValueError("effect option saa needs an orbit to know when the spacecraft is in the anomaly")
     cosmic = None
@@ -358,9 +415,32 @@ def effects_from_options(options: dict[str, str], orbit=None) -> MissionEffects 
             hits_per_frame=values.get("hits_per_frame"),
             saa=SouthAtlanticAnomaly() if values.get("saa") else None,
         )
-    dose = values.get("dose_krad", 0.0)
-    if not dose >= 0:
-        raise ValueError(f"effect option dose_krad must be at least 0, got {dose}")
     return MissionEffects(
-        cosmic=cosmic, dose_krad=dose, temperature_c=values.get("temperature_c"), duty=values.get("duty"), orbit=orbit
+        cosmic=cosmic,
+        dose_krad=values.get("dose_krad", 0.0),
+        temperature_c=values.get("temperature_c"),
+        duty=values.get("duty"),
+        orbit=orbit,
     )
+
+
+def most_hits(effects: MissionEffects | None, detector: DetectorModel, camera) -> float:
+    """The most radiation hits per frame ``effects`` may ask for on ``camera`` in ``detector``'s
+    exposure (inside the anomaly when it has one)."""
+    if effects is None or effects.cosmic is None:
+        return 0.0
+    c = effects.cosmic
+    mean = c.mean_hits(detector, camera)
+    if c.saa is not None:
+        mean = max(mean, c.saa.flux_cm2_s * sensitive_area_cm2(detector, camera) * detector.exposure_s)
+    return mean
+
+
+def check_hits(effects: MissionEffects | None, detector: DetectorModel, camera, limit: float) -> None:
+    """ValueError with one line when ``effects`` would put more than ``limit`` hits in a frame."""
+    mean = most_hits(effects, detector, camera)
+    if mean > limit:
+        raise ValueError(
+            f"effects ask for {mean:.3g} radiation hits per frame ({camera.width} x {camera.height} px, "
+            f"{detector.exposure_s:g} s exposure), more than the {limit:g} a frame may hold"
+        )

@@ -110,7 +110,11 @@ class FeedUrl:
             port = None
         if not parts.hostname or port is None:
             raise ValueError(f"attitude feed {url!r}: needs HOST:PORT")
-        options = dict(parse_qsl(parts.query, keep_blank_values=True))
+        pairs = parse_qsl(parts.query, keep_blank_values=True)
+        options = dict(pairs)
+        if len(options) < len(pairs):
+            twice = sorted({k for k, _ in pairs if sum(k == j for j, _ in pairs) > 1})
+            raise ValueError(f"attitude feed {url!r}: option(s) {twice} given twice")
         fmt = options.pop("format", "json")
         if fmt not in FORMATS:
             raise ValueError(f"attitude feed {url!r}: format must be one of {FORMATS}")

@@ -92,11 +92,47 @@ class CircularOrbit:
         )
         if len(parts) == 5:
             try:
-                Time(parts[4], scale="utc")
-            except ValueError:
-                raise ValueError(f"orbit {spec!r}: epoch {parts[4]!r} is not an ISO-8601 UTC time") from None
-            kwargs["epoch_utc"] = parts[4]
+                kwargs["epoch_utc"] = parse_utc(parts[4]).isot
+            except ValueError as exc:
+                raise ValueError(f"orbit {spec!r}: epoch {parts[4]!r} {exc}") from None
         return cls(**kwargs)  # type: ignore[arg-type]
+
+
+#: The earliest time a schedule, an orbit or a feed may name: UTC with leap seconds, as it is now,
+#: began in 1972 (the Earth orientation table, ``ground.sim.earth_orientation``, starts in 1962).
+EARLIEST_UTC = "1972-01-01T00:00:00"
+
+
+def parse_utc(text: str) -> Time:
+    """A UTC time from ISO-8601 text (or another astropy format); ValueError whose text completes
+    ``time '...' <reason>``: not a time, before :data:`EARLIEST_UTC`, or one ERFA warns about
+    (a second 60 on a day without a leap second, a year beyond the leap-second table's reach)."""
+    import warnings
+
+    from erfa import ErfaWarning
+
+    early = f"is before {EARLIEST_UTC[:10]}: UTC as it is (with leap seconds) began in 1972"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ErfaWarning)
+        try:
+            t = Time(text, scale="utc")
+            t.tt  # noqa: B018 - the conversion ERFA checks the year in
+        except ErfaWarning as exc:
+            why = str(exc).split(' of "', 1)[-1].split(" (Note")[0].rstrip('"')
+            if "dubious year" in why and str(text).strip()[:4] < EARLIEST_UTC[:4]:
+                raise ValueError(early) from None
+            if "dubious year" in why:
+                why = "a year beyond the leap-second table's reach: ERFA's dubious year"
+            elif "end of day" in why:
+                why = "second 60 on a day without a leap second"
+            raise ValueError(f"is not a valid UTC time ({why})") from None
+        except (ValueError, TypeError):
+            raise ValueError("is not ISO-8601 UTC (YYYY-MM-DDThh:mm:ss)") from None
+    if not t.isscalar:
+        raise ValueError("is not one time")
+    if t < Time(EARLIEST_UTC, scale="utc"):
+        raise ValueError(early)
+    return t
 
 
 def utc_iso(t_posix: float) -> str:
