@@ -152,9 +152,11 @@ TABLE: tuple[Command, ...] = (
         "CRC: CRC-16 of a device memory span",
         "u8 space (0 EDAC, 1 memory map, 2 result), u32 address, u32 length (1-2^20)",
         "same 9 bytes + u16 CRC-16/MCRF4XX",
-        "syntax: BAD_LENGTH / BAD_PARAMETER; operation: BAD_ADDRESS",
+        "syntax: BAD_LENGTH / BAD_PARAMETER; operation: BAD_ADDRESS; WRONG_MODE: a FLASH subcommand "
+        "outside maintenance mode (in it, 0x06 is FLASH, §15)",
         OURS,
         idempotent=True,
+        decode_first=False,  # in maintenance mode 0x06 is FLASH (docs/ICD.md §15)
     ),
     Command(
         Code.READ_FILE,

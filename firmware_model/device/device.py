@@ -33,6 +33,7 @@ from firmware_model.device.dispatch import Counters, Dispatcher, Handler, Mode, 
 from firmware_model.device.faults import Fault, FaultInjector, FaultScriptError, parse_script
 from firmware_model.device.housekeeping import Housekeeping
 from firmware_model.device.memory import WORDS, Memory, Supervisor
+from firmware_model.device.nand import MAINTENANCE_ADDRESS, Maintenance, Nand
 from firmware_model.device.sequence import (
     COMBINATION_TIMEOUT,
     MAX_DARK_WINDOWS,
@@ -148,6 +149,16 @@ class Device:
             ),
             self.faults,
         )
+        root = self.transfers.store.root
+        #: maintenance mode and the FLASH command on the NAND (docs/ICD.md section 15)
+        self.maintenance = Maintenance(
+            Nand(None if root is None else root / "nand"),
+            self._lock,
+            self.memory.crc,
+            lambda offset, length: bytes(self.memory._ram[offset : offset + length]),  # SRAM: the RAM region
+            self._fp_message,
+        )
+        self.housekeeping.flash_errors = self.maintenance.nand.error_counts
         self.dispatcher = Dispatcher(
             self._handlers(),
             self._lock,
@@ -167,7 +178,7 @@ class Device:
             Code.PEEK: mem.peek,
             Code.POKE: mem.poke,
             Code.DIAGNOSTIC: self._diagnostic,
-            Code.CRC: mem.crc,
+            Code.CRC: lambda data: self.maintenance.crc_or_flash(self.in_maintenance, data),
             Code.READ_FILE: mem.read_file,
             Code.WRITE_FILE: mem.write_file,
             Code.READ_EDAC: mem.read_edac,
@@ -208,6 +219,16 @@ class Device:
     @app_mode.setter
     def app_mode(self, value: bool) -> None:
         self._mode.app = value
+
+    @property
+    def in_maintenance(self) -> bool:
+        """Maintenance mode: entered by INIT MAINTENANCE_ADDRESS in bootloader mode, left when the
+        application starts (INIT 0x2000, a GO that boots) or on a reset (docs/ICD.md section 15)."""
+        return self.maintenance.entered and not self._mode.app
+
+    def _fp_message(self, text: str) -> None:
+        """A functional processor message into EDAC (0x00C0), where the boot message goes."""
+        self.runner.boot_message = text
 
     @property
     def boot_banner(self) -> str:
@@ -329,6 +350,7 @@ class Device:
             self.counters = Counters()
             self.runner.reset()
             self.memory.reset()
+            self.maintenance.reset()
             self.device_clock.power_on()
             self.faults.count("resets")
         log.info("device: scripted reset")
@@ -390,11 +412,16 @@ class Device:
     def _ping(self, data: bytes) -> bytes:
         if data:
             raise Refused(NackReason.BAD_LENGTH, "PING takes no data")
+        if self.in_maintenance:
+            return f"ST16-EMU MAINTENANCE {VERSION} addr=0x{self.address:02X}".encode()
         return (self.app_banner() if self.app_mode else self.boot_banner).encode()
 
     def _init(self, req: Init) -> bytes:
         if self.app_mode:
             raise Refused(NackReason.WRONG_MODE, "INIT is a bootloader command; the application is running")
+        if req.address == MAINTENANCE_ADDRESS:  # ours: the functional processor's maintenance program
+            self.maintenance.entered = True
+            return b""
         if req.address != APP_START_ADDRESS:
             raise Refused(NackReason.BAD_ADDRESS, f"no application image at 0x{req.address:08X}")
         self.app_mode = True

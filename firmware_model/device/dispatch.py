@@ -26,12 +26,14 @@ Handler = Callable[[Any], Any]
 
 
 class Refused(Exception):
-    """A command the device refuses: NACKed with ``reason`` and ``text``."""
+    """A command the device refuses: NACKed with ``reason`` and ``text``; with ``data``, NACKed
+    with those bytes instead (a failure reply the ICD lays out, e.g. FLASH's)."""
 
-    def __init__(self, reason: int, text: str):
+    def __init__(self, reason: int, text: str, data: bytes | None = None):
         super().__init__(text)
         self.reason = int(reason)
         self.text = text
+        self.data = data
 
 
 @dataclass(frozen=True)
@@ -145,6 +147,8 @@ class Dispatcher:
         except (Refused, PayloadError) as exc:
             self._counters().nacked += 1
             text = exc.text if isinstance(exc, Refused) else exc.message
+            if isinstance(exc, Refused) and exc.data is not None:  # the ICD's own failure layout
+                return [nsp.reply_to(msg, exc.data, ack=False)]
             spec = COMMANDS.get(msg.code)
             if spec is not None and spec.failure is not None:  # the ICD's own failure reply
                 return [nsp.reply_to(msg, spec.failure(self._failure_state(), text).pack(), ack=False)]

@@ -19,6 +19,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -62,6 +63,8 @@ class Housekeeping:
         self._t = clock()
         self._busy = False
         self._temps = [AMBIENT_C + n.idle_rise_c for n in (DETECTOR, PROCESSOR, BOARD)]
+        #: the NAND's (corrected, uncorrectable, bad blocks): hardware telemetry +0x00 (docs/ICD.md §15)
+        self.flash_errors: Callable[[], tuple[int, int, int]] = lambda: (0, 0, 0)
 
     def _advance(self) -> float:
         now = self._clock()
@@ -100,10 +103,11 @@ class Housekeeping:
                 out.append(channel.nominal * (1.0 + VOLTAGE_NOISE * rng.standard_normal()))
         return tuple(out)
 
-    def result_fields(self) -> dict[str, int]:
+    def result_fields(self) -> dict[str, Any]:
         """The result's hardware temperatures now, as COSMOS's conversions read them."""
         det, proc, _ = self.temperatures()
         return {
             "hardware.detector_temp_raw": detector_temp_raw(det),
             "hardware.processor_temp_raw": processor_temp_raw(proc),
+            "hardware.flash_errors": list(self.flash_errors()),
         }
