@@ -1,4 +1,4 @@
-"""The HIL flight side (ground.hil.gyro, ground.hil.estimator; docs/hil.md "The flight side"): the
+"""The HIL flight side (ground.sim.gyro, ground.sim.flight_estimator; docs/hil.md "The flight side"): the
 gyro's noise terms, the estimator lost until its first fix, converging on answers with their
 covariance, and drifting on the gyro alone; bad parameters refused."""
 
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from ground.hil.estimator import Mekf
-from ground.hil.gyro import DEFAULT, DEG_PER_H, Gyro, GyroSpec
+from ground.sim.flight_estimator import Mekf
+from ground.sim.gyro import DEFAULT, DEG_PER_H, Gyro, GyroSpec
 
 
 def _angle_deg(a, b) -> float:

@@ -34,8 +34,8 @@ def tracker_failure(summary: dict) -> str | None:
 def _demo(args) -> int:
     import contextlib
 
-    from ground.hil.gyro import GyroSpec
     from ground.hil.run import parse_epoch, run_hil
+    from ground.sim.gyro import GyroSpec
 
     gyro = GyroSpec(args.gyro_bias_deg_h, args.gyro_arw_deg_rt_h, args.gyro_rrw_deg_h_rt_h, args.gyro_sf_ppm)
     problems = gyro.problems()
@@ -119,8 +119,8 @@ def register(sub) -> None:
         help="auto: Basilisk when bsk is installed, else the numpy stand-in",
     )
     d.add_argument("--seed", type=int, default=15, help="target attitude and initial error; the gyro's noise")
-    from ground.hil.gyro import DEFAULT, LIMITS
     from ground.hil.run import DEFAULT_EPOCH_UTC
+    from ground.sim.gyro import DEFAULT, LIMITS
 
     d.add_argument(
         "--epoch",
@@ -150,6 +150,6 @@ def register(sub) -> None:
             dest=f"gyro_{name}",
             type=float,
             default=getattr(DEFAULT, name),
-            help=f"gyro {unit}, 0..{LIMITS[name]:g} (default {getattr(DEFAULT, name):g}: ground.hil.gyro)",
+            help=f"gyro {unit}, 0..{LIMITS[name]:g} (default {getattr(DEFAULT, name):g}: ground.sim.gyro)",
         )
     d.set_defaults(func=_demo)

@@ -91,7 +91,7 @@ def run_hil(
     """The closed loop of the module docstring; returns the summary (also written to ``out``).
     ``duration_s`` None: 30 s, or the scenario's own length; ``limits_deg`` a scenario's exclusion
     angles (default ``scenarios.LIMITS_DEG``); ``epoch_utc`` the simulated start; ``speed`` simulated
-    s per real s (0: unpaced); ``gyro_spec`` the gyro class (``ground.hil.gyro.DEFAULT``);
+    s per real s (0: unpaced); ``gyro_spec`` the gyro class (``ground.sim.gyro.DEFAULT``);
     ``tracker_off_after`` s of simulated time after which the flight side gets no answer."""
     import json
     import tempfile
@@ -107,9 +107,9 @@ def run_hil(
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
     from ground.hil import scenario_report, scenarios
-    from ground.hil.gyro import DEFAULT, Gyro
     from ground.link.client import Client
     from ground.sim.device_process import pick_attitudes, start_device, stop_device
+    from ground.sim.gyro import DEFAULT, Gyro
     from ground.sim.hil_loop import MINIMAL_MASK, run_closed_loop
     from protocol.commands import Slot
 
@@ -180,7 +180,7 @@ def run_hil(
     summary = summarise(log, rows, duration_s, MINIMAL_MASK) | {
         "epoch_utc": epoch_utc,
         "speed": speed,
-        "gyro": vars(gyro_spec) | {"class": "tactical FOG (LN-200 class; ground.hil.gyro)"},
+        "gyro": vars(gyro_spec) | {"class": "tactical FOG (LN-200 class; ground.sim.gyro)"},
         "tracker_off_after_s": tracker_off_after,
     }
     if plan is None:

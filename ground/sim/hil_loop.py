@@ -4,8 +4,8 @@ feeds its own estimate to the controller. Lockstep, in simulated time:
 
 * The device runs with the feed's ``clock=sim`` (``ground.sim.feed_clock``): its time is the newest
   sample's, so nothing it reports depends on the machine's clock or load.
-* Each step of ``dt`` simulated s: the flight software (``ground.hil.estimator.Mekf`` on the gyro
-  of ``ground.hil.gyro``) reads an answer that is due, starts a GO that is due, gives the
+* Each step of ``dt`` simulated s: the flight software (``ground.sim.flight_estimator.Mekf`` on the gyro
+  of ``ground.sim.gyro``) reads an answer that is due, starts a GO that is due, gives the
   controller its estimate (while lost: the target, so the controller only damps the gyro's rate),
   and the dynamics step; the truth sample goes to the feed. The truth is never given to the flight
   side: it is logged, and scored afterwards.
@@ -38,10 +38,10 @@ import numpy as np
 from tqdm import tqdm
 
 from firmware_model.reference_frames import matrix_to_quat, quat_to_matrix, rotation_angle
-from ground.hil.estimator import Mekf
-from ground.hil.gyro import DEFAULT, Gyro, GyroSpec
 from ground.sim.attitude_feed import slerp
 from ground.sim.feed_wire import Sample, Sender
+from ground.sim.flight_estimator import Mekf
+from ground.sim.gyro import DEFAULT, Gyro, GyroSpec
 from protocol import result
 
 GO_CODE = 0x0B  #: ON | LOAD_NAND | COMMAND

@@ -1,6 +1,6 @@
 """The flight side's attitude estimator (docs/hil.md "The flight side"): a multiplicative extended
 Kalman filter (Lefferts, Markley and Shuster 1982; Markley and Crassidis 2014, section 6.2) on
-the gyro of ``ground.hil.gyro``, updated with the tracker's answers and their reported covariance.
+the gyro of ``ground.sim.gyro``, updated with the tracker's answers and their reported covariance.
 
 * **Lost at start.** Until the first OK answer the estimator has no attitude (``lost``): it still
   integrates the gyro from an arbitrary attitude, which gives the relative rotation between any two
@@ -26,7 +26,7 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ground.hil.gyro import DEG_PER_H, GyroSpec
+from ground.sim.gyro import DEG_PER_H, GyroSpec
 
 FALLBACK_SIGMA_RAD = math.radians(20.0 / 3600.0)  #: an answer without a covariance: 20 arcsec, our assumption
 HISTORY_S = 5.0  #: how far back an answer's mid-time may lie
