@@ -234,3 +234,29 @@ def test_the_device_keeps_its_nand_in_the_state_directory(tmp_path):
     assert _flash(dev, Sub.WRITE_PAGE, page).ack
     again = Device(store=SlotStore(tmp_path / "state"))
     assert again.maintenance.nand.read_page(page)[:4] == b"kept"
+
+
+def test_scripted_flash_faults_are_counted_and_a_rewrite_repairs_them():
+    from firmware_model.device.faults import parse_script
+
+    dev = Device(fault_injection=True)
+    nand = dev.maintenance.nand
+    script = "flash_ecc bits=1 count=3 seed=2\nflash_bad_block count=1\nflash_disturb reads=500\n"
+    dev.arm(parse_script(script))
+    assert dev.faults.counters["flash_ecc"] == 3 and dev.faults.counters["flash_bad_block"] == 1
+    assert nand.disturb_reads == 500
+    failing = set(nand.failing)
+    _maintenance(dev)
+    # the flight software reads the NAND, sees the errors, and rewrites every programmed block
+    for pp in sorted(nand.pages):
+        try:
+            nand.read_page(pp)
+        except Exception:
+            pass
+    corrected, _, bad = nand.error_counts()
+    assert corrected >= 1 and bad == len(nand.factory_bad)
+    for first, last in ((0, 255), (APP_PAGE, APP_PAGE + 255)):
+        rep = _flash(dev, Sub.REWRITE_NAND, first, last)
+        assert rep.ack or flash.unpack_failure(rep.data)[2] == Failure.ECC
+    assert nand.error_counts()[2] == len(nand.factory_bad) + len(failing)  # the failing block relocated, bad
+    assert not nand.failing and nand.error_counts()[0] == 0

@@ -159,6 +159,7 @@ class Device:
             self._fp_message,
         )
         self.housekeeping.flash_errors = self.maintenance.nand.error_counts
+        self.faults.flash = self.maintenance.apply_fault
         self.dispatcher = Dispatcher(
             self._handlers(),
             self._lock,

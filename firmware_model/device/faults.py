@@ -39,7 +39,12 @@ KEYS: dict[str, frozenset[str]] = {
     "reset": frozenset({"at_go", "after", "now"}),
     "edac_upset": frozenset({"region", "bits", "count"}),
     "frozen_detector": frozenset({"count"}),
+    # the NAND (docs/ICD.md section 15): applied at load through ``FaultInjector.flash``
+    "flash_ecc": frozenset({"bits", "count"}),
+    "flash_bad_block": frozenset({"count"}),
+    "flash_disturb": frozenset({"reads"}),
 }
+FLASH_FAULTS = ("flash_ecc", "flash_bad_block", "flash_disturb")  #: counted under their own names
 REGIONS = ("scratch", "ram", "result", "catalog")  #: where ``edac_upset`` may strike
 MAX_COUNT = 1_000_000  #: largest count, at_go or after (ours: a bound on a typo, not a model)
 #: most upset words one script may place, its ``edac_upset`` counts added up (ours: bounds a load's
@@ -92,6 +97,8 @@ def _value(key: str, text: str) -> float | int | str:
         return _number(text, key, True, 0, MAX_COUNT if key == "count" else 2**63 - 1)
     if key in ("at_go", "after"):
         return _number(text, key, True, 1, MAX_COUNT)
+    if key == "reads":
+        return _number(text, key, True, 1, 10**9)
     if key == "bits":
         if text not in ("1", "2"):
             raise ValueError(f"bits={text!r}: 1 (corrected) or 2 (uncorrectable)")
@@ -112,6 +119,10 @@ def _needs(name: str, keys: Mapping[str, object]) -> str | None:
         return f"{name} needs count="
     if name == "edac_upset" and not {"region", "bits"} <= set(keys):
         return "edac_upset needs region= and bits="
+    if name == "flash_ecc" and "bits" not in keys:
+        return "flash_ecc needs bits="
+    if name == "flash_disturb" and "reads" not in keys:
+        return "flash_disturb needs reads="
     return None
 
 
@@ -301,6 +312,8 @@ class FaultInjector:
         self.upsets: dict[str, np.ndarray] = _no_upsets()
         self.counters: dict[str, int] = dict.fromkeys(edac.FAULT_COUNTERS, 0)
         self.delayed = DelayedReplies()  #: replies of ``delay_reply`` still to be sent
+        #: applies a flash fault to the NAND and returns how many pages or blocks it struck
+        self.flash: Callable[[Fault], int] | None = None
 
     # ------------------------------------------------------------------ the script
 
@@ -313,6 +326,9 @@ class FaultInjector:
             for fault in faults:
                 if fault.name == "edac_upset":
                     self._place(fault)
+                elif fault.name in FLASH_FAULTS:
+                    struck = self.flash(fault) if self.flash is not None else 0
+                    self.counters[fault.name] = self.counters.get(fault.name, 0) + struck
                 elif fault.name == "reset" and fault.keys.get("now"):
                     now = True
                 else:

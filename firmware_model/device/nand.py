@@ -401,6 +401,39 @@ class Maintenance:
             self.aborted = True
         self.buffer = bytearray(ERASED)
 
+    # ------------------------------------------------------------------ scripted faults
+
+    def apply_fault(self, fault: Any) -> int:
+        """A flash fault of a fault script (docs/ICD.md section 13), applied at load; the pages or
+        blocks it struck. ``flash_ecc bits=B count=N``: N programmed pages (drawn from the seed)
+        hold B flipped bits; ``flash_bad_block count=N``: N programmed blocks fail at their next
+        erase or program (relocated then, counted bad); ``flash_disturb reads=R``: one bit flips
+        every R page reads of a block from now on."""
+        nand = self.nand
+        rng = np.random.default_rng([fault.seed, 45, 1])
+        count = int(fault.keys.get("count", 1))
+        with self._lock:
+            programmed = sorted(nand.pages)
+            if fault.name == "flash_ecc":
+                picks = [
+                    programmed[int(i)] for i in rng.choice(len(programmed), min(count, len(programmed)), replace=False)
+                ]
+                for pp in picks:
+                    nand.errors[pp] = max(nand.errors.get(pp, 0), int(fault.keys["bits"]))
+                    nand._dirty.add(pp // PAGES_PER_BLOCK)
+                nand.flush()
+                return len(picks)
+            if fault.name == "flash_bad_block":
+                blocks = sorted({pp // PAGES_PER_BLOCK for pp in programmed})
+                picks = [blocks[int(i)] for i in rng.choice(len(blocks), min(count, len(blocks)), replace=False)]
+                nand.failing.update(picks)
+                nand.flush()
+                return len(picks)
+            if fault.name == "flash_disturb":
+                nand.disturb_reads = int(fault.keys["reads"])
+                return 1
+        raise ValueError(f"not a flash fault: {fault.name}")
+
     # ------------------------------------------------------------------ 0x06
 
     def crc_or_flash(self, active: bool, data: bytes) -> Any:
