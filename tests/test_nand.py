@@ -260,3 +260,38 @@ def test_scripted_flash_faults_are_counted_and_a_rewrite_repairs_them():
         assert rep.ack or flash.unpack_failure(rep.data)[2] == Failure.ECC
     assert nand.error_counts()[2] == len(nand.factory_bad) + len(failing)  # the failing block relocated, bad
     assert not nand.failing and nand.error_counts()[0] == 0
+
+
+def test_the_ground_flash_command_through_a_pty(tmp_path):
+    """st16-ground's flash helper on a served device: the replies, a failure reply's kind and
+    page, and WRONG_MODE outside maintenance mode."""
+    import argparse
+
+    from firmware_model.device.link import PtyLink, serve
+    from ground.link.client import Client, Nack
+    from ground.link.commands import COMMANDS
+    from ground.link.flash_ops import FlashFailed, flash_command
+
+    dev = Device()
+    link = PtyLink()
+    stop = threading.Event()
+    thread = threading.Thread(target=serve, args=(dev, link, stop), daemon=True)
+    thread.start()
+    try:
+        with Client(link.path, timeout=guards.REPLY_S) as c:
+            with pytest.raises(Nack, match="WRONG_MODE"):
+                flash_command(c, Sub.ERASE_BLOCK, 64)
+            c.init(MAINTENANCE_ADDRESS)
+            assert flash_command(c, Sub.WRITE_BUFFER, 0, data=b"abc") == struct.pack("<H", 0) + b"abc"
+            with pytest.raises(FlashFailed) as failed:
+                flash_command(c, Sub.CRC_NAND, 5, 1)
+            assert failed.value.kind == Failure.SYNTAX
+            run = COMMANDS["flash"][2]
+            out = run(c, argparse.Namespace(sub="crc-nand", fields=[100, 100], data=b"", long=False))
+            assert out == {"sub": "crc_nand", "ok": False, "failure": "operation", "page": 100}
+            out = run(c, argparse.Namespace(sub="7", fields=[], data=b"", long=False))
+            assert out["ok"] and len(bytes.fromhex(out["reply_hex"])) == 2
+    finally:
+        stop.set()
+        thread.join(guards.HANG_S)
+        link.close()

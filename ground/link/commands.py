@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ground import json_text
-from ground.arg_types import SECONDS, U8, U16, U32, progress_on, ranged
+from ground.arg_types import SECONDS, U8, U16, U32, InputError, progress_on, ranged
 from protocol.command_table import COMMANDS as COMMAND_TABLE
 from protocol.commands import GO_OPERATIONAL, Code, DarkWindow
 
@@ -296,6 +296,36 @@ def _run_image_poke(c, a):
     return {"buffer": a.buffer, "row": a.row, "col": a.col, "rows": int(pixels.shape[0]), "cols": int(pixels.shape[1])}
 
 
+def _a_flash(p):
+    from protocol.flash import Sub
+
+    names = ", ".join(f"{s.name.lower().replace('_', '-')} ({int(s)})" for s in Sub)
+    p.add_argument("sub", help=f"the FLASH subcommand, by name or number: {names}")
+    p.add_argument("fields", type=_int, nargs="*", help="its fields in order (docs/ICD.md section 15)")
+    p.add_argument("--data", type=_hex, default=b"", help="write-buffer: the bytes, as hex")
+    p.add_argument("--long", action="store_true", help="read-buffer: the long form (u16 count)")
+
+
+def _run_flash(c: Client, a) -> dict:
+    """FLASH in maintenance mode (enter it with init --address 0x4000): the reply after byte 0 as
+    hex, or the failure reply's kind and page."""
+    from ground.link.flash_ops import FlashFailed, flash_command
+    from protocol.flash import Sub
+
+    key = a.sub.replace("-", "_").upper()
+    try:
+        sub = Sub(int(a.sub, 0)) if a.sub[:1].isdigit() else Sub[key]
+    except (KeyError, ValueError):
+        raise InputError(
+            f"unknown FLASH subcommand {a.sub!r}; known: {', '.join(s.name.lower() for s in Sub)}"
+        ) from None
+    try:
+        reply = flash_command(c, sub, *a.fields, data=a.data, long=a.long)
+    except FlashFailed as exc:
+        return {"sub": sub.name.lower(), "ok": False, "failure": exc.kind.name.lower(), "page": exc.page}
+    return {"sub": sub.name.lower(), "ok": True, "reply_hex": reply.hex()}
+
+
 def _a_heads(p):
     p.add_argument(
         "addresses",
@@ -377,6 +407,7 @@ _SUBCOMMANDS: dict[str, tuple[Code | str, Callable, Run]] = {
     "fault": (Code.FAULT, _a_fault, _run_fault),
     "send": ("send any command code with a hex data field", _a_send, _run_send),
     "heads": ("each head's state on a shared line (READ EDAC of every address given)", _a_heads, _run_heads),
+    "flash": ("FLASH SUBCOMMAND [FIELDS]: the NAND in maintenance mode (docs/ICD.md section 15)", _a_flash, _run_flash),
 }
 
 #: name -> the command code the subcommand sends (the others are ground helpers)
