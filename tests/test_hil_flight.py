@@ -85,3 +85,54 @@ def test_without_answers_the_error_grows_on_the_gyro():
     _, _, tracked = _run(fix_until=1e9, seconds=200)
     _, _, coasting = _run(fix_until=20.0, seconds=200)
     assert coasting[200] > 3 * tracked[200] and coasting[200] > coasting[30]
+
+
+def test_the_default_epoch_is_fixed_and_plans_both_scenarios():
+    from ground.hil import scenarios
+    from ground.hil.run import DEFAULT_EPOCH_UTC, parse_epoch
+
+    start = parse_epoch(DEFAULT_EPOCH_UTC)
+    assert start == parse_epoch("2026-12-01T00:00:00Z") == 1796083200.0
+    for name in ("eclipse-exit", "moon-slew"):
+        assert scenarios.plan(name, start).duration_s > 60
+
+
+@pytest.mark.parametrize("text", ["2026-13-01", "yesterday", "2026-12-01T00:00:00+02:00", "1900-01-01", "nan"])
+def test_an_epoch_that_does_not_parse_is_refused(text):
+    from ground.arg_types import InputError
+    from ground.hil.run import parse_epoch
+
+    with pytest.raises(InputError, match="--epoch"):
+        parse_epoch(text)
+
+
+def test_the_feed_clock_is_the_newest_kept_sample():
+    from ground.sim.feed_clock import FeedClock
+
+    c = FeedClock()
+    assert c.posix() == 0.0 and c.elapsed() == 0.0
+    c.offering(100.0)
+    assert c.posix() == 100.0 and c.elapsed() == 0.0  # a first sample is checked against itself
+    c.accepted(100.0)
+    c.accepted(100.5)
+    c.accepted(100.2)  # never back
+    assert c.posix() == 100.5 and c.elapsed() == pytest.approx(0.5)
+
+
+@pytest.mark.hil
+def test_lockstep_gives_the_same_run_at_any_speed(tmp_path):
+    """The closed loop through the device in simulated time: unpaced and at 2x real time, the same
+    statuses, attitudes and time tags (docs/hil.md "Lockstep")."""
+    import json
+
+    from ground.hil.run import run_hil
+
+    logs = []
+    for speed in (0.0, 2.0):
+        out = tmp_path / f"speed-{speed:g}"
+        summary = run_hil(out, 3.0, dynamics_kind="standin", progress=False, speed=speed)
+        assert summary["ok_updates"] >= 4 and summary["acquisition_s"] == 0.5
+        logs.append([json.loads(x) for x in (out / "hil_log.jsonl").read_text().splitlines()])
+    keys = ("status", "sent", "received", "t_mid", "epoch", "q")
+    assert len(logs[0]) == len(logs[1]) >= 5
+    assert [[r[k] for k in keys] for r in logs[0]] == [[r[k] for k in keys] for r in logs[1]]

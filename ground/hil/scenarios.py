@@ -130,8 +130,8 @@ def _checked(sc: Scenario, step_s: float = 1.0) -> Scenario:
     for name, edge in closest.items():
         if name != sc.body and edge < sc.limits_deg[name] + 1.0:
             raise ValueError(
-                f"{sc.name}: the {name} comes {edge:.1f} deg from the planned boresight today, "
-                f"within its {sc.limits_deg[name]:g} deg limit (+1 deg): run it another day"
+                f"{sc.name}: the {name} comes {edge:.1f} deg from the planned boresight at that epoch, "
+                f"within its {sc.limits_deg[name]:g} deg limit (+1 deg): choose another --epoch"
             )
     return sc
 
@@ -162,7 +162,7 @@ def sunrise_after(orbit: CircularOrbit, t0_posix: float, sun: np.ndarray) -> flo
                 return float(np.linalg.norm(r - np.dot(r, sun) * sun)) - 6378.137
 
             return float(brentq(margin, t_grid[k], t_grid[k + 1], xtol=1e-3))
-    raise ValueError("eclipse-exit: this orbit has no eclipse today")
+    raise ValueError("eclipse-exit: this orbit has no eclipse at that epoch")
 
 
 def _eclipse_exit(start: float, limits: dict[str, float]) -> Scenario:

@@ -33,6 +33,14 @@ LIMITS = {
     "sf_ppm": 1e5,  #: 10 %
 }
 
+#: how each parameter is named to a user: ``st16-ground hil demo``'s option and the unit
+SHOWN = {
+    "bias_deg_h": ("--gyro-bias", "deg/h"),
+    "arw_deg_rt_h": ("--gyro-arw", "deg/sqrt(h)"),
+    "rrw_deg_h_rt_h": ("--gyro-rrw", "deg/h/sqrt(h)"),
+    "sf_ppm": ("--gyro-sf", "ppm"),
+}
+
 
 @dataclass(frozen=True)
 class GyroSpec:
@@ -50,7 +58,8 @@ class GyroSpec:
         for name, hi in LIMITS.items():
             v = getattr(self, name)
             if not (math.isfinite(v) and 0.0 <= v <= hi):
-                out.append(f"gyro {name.replace('_', ' ')} {v:g} outside [0, {hi:g}]")
+                option, unit = SHOWN[name]
+                out.append(f"{option} {v:g} {unit} outside [0, {hi:g}]")
         return out
 
     @property
