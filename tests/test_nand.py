@@ -295,3 +295,26 @@ def test_the_ground_flash_command_through_a_pty(tmp_path):
         stop.set()
         thread.join(guards.HANG_S)
         link.close()
+
+
+def test_a_boot_from_nand_reads_the_boot_block_and_the_image_and_fails_when_they_are_lost():
+    """GO with LOAD_NAND reads the NAND: a primary boot block with an uncorrectable page falls back
+    to a backup; an uncorrectable application image stops the boot; Rewrite NAND cannot save it
+    (rewritten as read), a rewrite of the image from the ground can."""
+    dev = Device(solver=lambda ctx: {"return_code": result.make_return_code(result.Status.OK)})
+    nand = dev.maintenance.nand
+    nand.errors[3] = 2  # the primary boot block: a page lost
+    assert _send(dev, Code.GO, b"\x02")[0].ack  # booted from the backup at page 64
+    assert nand.error_counts()[1] == 1
+    dev.reset()
+    nand.errors[APP_PAGE + 10] = 2
+    (rep,) = _send(dev, Code.GO, b"\x02")
+    info = NackInfo.unpack(rep.data)
+    assert not rep.ack and info.reason == NackReason.EDAC_UNCORRECTABLE and str(APP_PAGE + 10) in info.text
+    assert not dev.app_mode
+    # maintenance: the ground writes the page again from its copy of the image
+    _maintenance(dev)
+    good = nand.pages[APP_PAGE + 11]  # (any content will do: the model checks ECC, not the code)
+    assert _flash(dev, Sub.REWRITE_NAND, APP_PAGE, APP_PAGE + 63).ack is False  # ECC failed: rewritten as read
+    assert nand.errors.get(APP_PAGE + 10, 0) == 0 and good == nand.pages[APP_PAGE + 11]
+    assert _send(dev, Code.GO, b"\x02")[0].ack

@@ -51,10 +51,13 @@ from protocol import edac, nsp, result, slip
 from protocol.commands import (
     APP_START_ADDRESS,
     Code,
+    Combination,
     DiagnosticRequest,
     FaultAction,
     FaultRequest,
     FaultStatus,
+    Go,
+    GoBits,
     Init,
     NackReason,
     Slot,
@@ -184,10 +187,10 @@ class Device:
             Code.WRITE_FILE: mem.write_file,
             Code.READ_EDAC: mem.read_edac,
             Code.WRITE_EDAC: mem.write_edac,
-            Code.GO: seq.go,
+            Code.GO: self._go,
             Code.READ_RESULT: seq.read_result,
             Code.IMAGE: seq.image,
-            Code.COMBINATION: seq.combination,
+            Code.COMBINATION: self._combination,
             Code.TIME: self._time,
             Code.XFER_BEGIN: tr.xfer_begin,
             Code.XFER_DATA: tr.xfer_data,
@@ -226,6 +229,20 @@ class Device:
         """Maintenance mode: entered by INIT MAINTENANCE_ADDRESS in bootloader mode, left when the
         application starts (INIT 0x2000, a GO that boots) or on a reset (docs/ICD.md section 15)."""
         return self.maintenance.entered and not self._mode.app
+
+    def _from_nand(self, go_code: int) -> None:
+        """A GO or COMBINATION that boots the functional processor reads the NAND first: its boot
+        block and application image (docs/ICD.md section 15); Refused when they cannot be read."""
+        if not self._mode.app and go_code & GoBits.LOAD_NAND and not self.runner.booting:
+            self.maintenance.boot_check()
+
+    def _go(self, req: Go) -> Any:
+        self._from_nand(req.code)
+        return self.runner.go(req)
+
+    def _combination(self, req: Combination) -> Any:
+        self._from_nand(req.go_code)
+        return self.runner.combination(req)
 
     def _fp_message(self, text: str) -> None:
         """A functional processor message into EDAC (0x00C0), where the boot message goes."""

@@ -401,6 +401,43 @@ class Maintenance:
             self.aborted = True
         self.buffer = bytearray(ERASED)
 
+    # ------------------------------------------------------------------ boot from NAND
+
+    def boot_check(self) -> None:
+        """What a GO with LOAD_NAND in bootloader mode reads from the NAND (page 1-35916): the
+        boot block (the first of pages 0, 64, 128, 192 whose pages all pass ECC: "searched, in
+        order, if the primary boot block suffers an irrecoverable ECC error", page 1-35914), then
+        the application image at block 0x8000. Refused (EDAC_UNCORRECTABLE) when no boot block or
+        the image cannot be read: the functional processor does not start. Every page read
+        disturbs its block and counts in the flash error telemetry."""
+        nand = self.nand
+        boot_pages = -(-(flash.BOOT_BYTES + len(BOOT_HEADER) + 8) // PAGE_BYTES)
+        try:
+            with self._lock:
+                for start in flash.BOOT_PAGES:
+                    try:
+                        for page in range(start, start + boot_pages):
+                            nand.read_page(page)
+                        break
+                    except EccError:
+                        continue
+                else:
+                    raise Refused(
+                        NackReason.EDAC_UNCORRECTABLE,
+                        "boot from NAND failed: every boot block (pages 0, 64, 128, 192) has an uncorrectable ECC error",
+                    )
+                first = APP_BLOCK * PAGES_PER_BLOCK
+                for page in range(first, first + APP_PAGES):
+                    try:
+                        nand.read_page(page)
+                    except EccError as exc:
+                        raise Refused(
+                            NackReason.EDAC_UNCORRECTABLE,
+                            f"boot from NAND failed: the application image has an uncorrectable ECC error in page {exc.page}",
+                        ) from None
+        finally:
+            nand.flush()
+
     # ------------------------------------------------------------------ scripted faults
 
     def apply_fault(self, fault: Any) -> int:
