@@ -111,7 +111,7 @@ TABLE: tuple[Command, ...] = (
         "INIT: start the application",
         "u32 start address",
         "none",
-        "BAD_ADDRESS (≠ 0x2000), WRONG_MODE",
+        "BAD_ADDRESS (≠ 0x2000; 0x4000 enters maintenance mode, §15), WRONG_MODE",
     ),
     Command(
         Code.PEEK,
