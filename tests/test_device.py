@@ -246,18 +246,54 @@ def test_go_no_frame_and_solver_error():
 
 
 def test_combination_multipart_reply():
+    """ICD page 1-35918: the sections as one stream, each message u16 bytes already transmitted
+    + at most 1 024 result bytes; ACK on each, Final on the last; a zero mask: one message, u16 0."""
     dev = app_device()
     parts = send(dev, Code.COMBINATION, Combination(0x0B, 0x0207, 3).pack())
-    addrs = [struct.unpack_from("<H", p.data)[0] for p in parts]
-    assert addrs == [0x000, 0x004, 0x008, 0x4A8]
-    assert [p.final for p in parts] == [False, False, False, True] and all(p.ack for p in parts)
-    assert len(parts[3].data) == 2 + 832
-    rc = struct.unpack("<I", parts[1].data[2:])[0]
+    counts = [struct.unpack_from("<H", p.data)[0] for p in parts]
+    assert counts == [0] and parts[0].final and parts[0].ack
+    assert len(parts[0].data) == 2 + 4 + 4 + 32 + 832
+    rc = struct.unpack_from("<I", parts[0].data, 2 + 4)[0]
     assert result.status_of(rc) == result.Status.NO_CATALOG
+    (empty,) = send(dev, Code.COMBINATION, Combination(0x00, 0, 3).pack())
+    assert empty.ack and empty.final and empty.data == b"\x00\x00"
     # refusals are the ICD's failure reply (page 1-35918): ACK 0, Final, sequence state + text
     for mask, text in ((0x0800, "self-test result section"), (0x8000, "unknown section bits")):
         (rep,) = send(dev, Code.COMBINATION, Combination(0x0B, mask, 3).pack())
         assert not rep.ack and rep.final and rep.data[0] == SequenceState.DONE and text in rep.data[1:].decode()
+
+
+def test_combination_reply_counts_bytes_already_transmitted_and_reassembles_to_the_sections():
+    """Mask 0x1000 | 0x0400 | 0x0001 (4 + 352 + 1 504 = 1 860 bytes): two messages counting 0 and
+    1 024, Final on the second; joined, they are the sections' bytes in address order; the client
+    splits them back by section."""
+    from ground.link.client import Client, MalformedReply
+    from protocol.nsp import Message
+
+    dev = app_device()
+    mask = 0x1000 | 0x0400 | 0x0001
+    parts = send(dev, Code.COMBINATION, Combination(0x00, mask, 3).pack())
+    assert [struct.unpack_from("<H", p.data)[0] for p in parts] == [0, 1024]
+    assert [p.final for p in parts] == [False, True] and all(p.ack for p in parts)
+    assert [len(p.data) - 2 for p in parts] == [1024, 4 + 352 + 1504 - 1024]
+    raw = _read_result(dev)
+    sections = [(0x000, 4), (0x7E8, 352), (0xA38, 1504)]
+    assert b"".join(p.data[2:] for p in parts) == b"".join(raw[a : a + n] for a, n in sections)
+
+    class Canned(Client):  # the client's reassembly, on the device's messages
+        def __init__(self, replies):
+            self.replies = replies
+
+        def _request(self, code, request, **kw):
+            return self.replies
+
+    assert Canned(parts).combination(0x00, mask) == {a: raw[a : a + n] for a, n in sections}
+    assert Canned(send(dev, Code.COMBINATION, Combination(0x00, 0, 3).pack())).combination(0x00, 0) == {}
+    bad_count = [parts[0], Message(parts[1].dst, parts[1].src, parts[1].mcf, b"\x00\x05" + parts[1].data[2:])]
+    with pytest.raises(MalformedReply, match="already transmitted"):
+        Canned(bad_count).combination(0x00, mask)
+    with pytest.raises(MalformedReply, match="its sections hold"):
+        Canned(parts[:1]).combination(0x00, mask)
 
 
 def test_image_dark_window():

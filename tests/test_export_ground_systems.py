@@ -295,9 +295,10 @@ def test_openc3_interface_against_the_device_decodes_what_our_client_does(tmp_pa
         assert decoded_first["EXT_MAGIC"] == result.EXT_MAGIC
         assert whole.read("EXT_REASON") == rec["ext"]["reason"].decode() != ""
 
-        # COMBINATION: a sequence, then one packet per section bit (the extension joined from 2
-        # parts), nothing more (the next packet is the next command's); a mask of 0: one
-        # empty COMBINATION_REPLY (the target's README says so)
+        # COMBINATION: a sequence, then one packet per section bit (the device sends the 1 544
+        # bytes as one stream in 2 messages counting bytes already transmitted, ICD page 1-35918;
+        # NspProtocol splits them by the mask it wrote), nothing more (the next packet is the next
+        # command's); a mask of 0: one empty COMBINATION_REPLY (the target's README says so)
         link = Openc3Link(root, values)
         try:
             mask = 0x0001 | 0x0002 | 0x0004 | 0x1000
@@ -325,6 +326,57 @@ def test_openc3_interface_against_the_device_decodes_what_our_client_does(tmp_pa
     assert len(ext.buffer) == 5 + result.EXTENSION.itemsize
 
 
+def test_nsp_protocol_splits_a_counted_combination_reply_by_the_mask_it_wrote(tmp_path):
+    """The generated lib/nsp_protocol.py alone: a COMBINATION command written with mask
+    0x1000 | 0x0400 | 0x0001 (3-byte form), then the device's reply (ICD page 1-35918: counts 0
+    and 1 024) gives one message per section, the section's address in bytes 0-1, Final on the
+    last (one per read: the blank-string read drains them); without a remembered mask, or with
+    a count that does not continue, the reply passes joined; a zero mask gives no data."""
+    required("openc3")
+    from firmware_model.device.device import Device
+    from protocol import nsp
+    from protocol.commands import Code, Combination
+
+    root = _export(tmp_path)
+    spec = importlib.util.spec_from_file_location("nsp_protocol", root / "targets" / TARGET / "lib" / "nsp_protocol.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+
+    dev = Device()
+    dev.handle(nsp.command(0x0E, 0x02, Code.INIT, (0x2000).to_bytes(4, "little")))
+
+    def wire(mask):
+        command = nsp.command(0x0E, 0x02, Code.COMBINATION, Combination(0x00, mask, 3).pack())
+        return command.encode()[:-2], [m.encode()[:-2] for m in dev.handle(command)]  # CRC stripped
+
+    def read_all(protocol, messages):
+        out = []
+        for m in messages:
+            data, _ = protocol.read_data(m)
+            while data not in ("STOP", b""):  # alone, not last of an interface's chain: b"", not STOP
+                out.append(bytes(data))
+                data, _ = protocol.read_data(b"")
+        return out
+
+    mask = 0x1000 | 0x0400 | 0x0001
+    command, reply = wire(mask)
+    assert [int.from_bytes(m[3:5], "little") for m in reply] == [0, 1024]
+    stream = b"".join(m[5:] for m in reply)
+    protocol = module.NspProtocol()
+    assert protocol.write_data(command) == (command, None)
+    out = read_all(protocol, reply)
+    sections = [(0x000, 4), (0x7E8, 352), (0xA38, 1504)]
+    assert [int.from_bytes(m[3:5], "little") for m in out] == [a for a, _ in sections]
+    assert [m[2] & 0x80 for m in out] == [0, 0, 0x80] and all(m[2] & 0x20 for m in out)
+    assert b"".join(m[5:] for m in out) == stream and [len(m) - 5 for m in out] == [n for _, n in sections]
+    assert read_all(module.NspProtocol(), reply) == [reply[-1][:3] + bytes(2) + stream]  # no mask: joined
+    protocol.write_data(command)
+    assert read_all(protocol, reply[1:]) == [reply[-1][:3] + (1024).to_bytes(2, "little") + reply[1][5:]]
+    command, reply = wire(0)
+    protocol.write_data(command)
+    assert read_all(protocol, reply) == [reply[0][:3]]
+
+
 def test_the_target_readme_says_what_the_operator_must_know(tmp_path):
     """README.md of the plugin: the packets a COMBINATION returns per mask bit (the end-to-end
     test checks them on a device), the MASK / MASK_HIGH split, how lib/nsp_protocol.py loads."""
@@ -336,12 +388,12 @@ def test_the_target_readme_says_what_the_operator_must_know(tmp_path):
     root = _export(tmp_path)
     text = (root / "README.md").read_text()
     telemetry = _packet_config(root).telemetry[TARGET]
-    rows = re.findall(r"^\| 0x([0-9A-F]{4}) \| `(\w+)` \| 0x([0-9A-F]{3}) \| (\d+) \| (\d+) \|$", text, re.M)
+    rows = re.findall(r"^\| 0x([0-9A-F]{4}) \| `(\w+)` \| 0x([0-9A-F]{3}) \| (\d+) \|$", text, re.M)
     assert len(rows) == len(result.SECTIONS)
-    for mask, name, address, length, parts in rows:
+    for mask, name, address, length in rows:
         assert result.SECTIONS[int(mask, 16)] == (int(address, 16), int(length))
         assert telemetry[name].items["ADDRESS"].id_value == int(address, 16)
-        assert int(parts) == -(-int(length) // RESULT_PART)
+    assert f"at most {RESULT_PART} result bytes" in text and "ICD page 1-35918" in text
     assert "one telemetry packet per bit set in the mask" in text
     assert "`MASK = mask & 0xFFFF` and `MASK_HIGH = mask >> 16`" in text
     assert max(result.SECTIONS) <= 0xFFFF  # so MASK_HIGH is 0, as the README says
@@ -354,7 +406,7 @@ def test_the_target_readme_says_what_the_operator_must_know(tmp_path):
 
 def test_xtce_holds_every_parameter(tmp_path):
     required("yamcs.pymdb")
-    from ground.export import model
+    from ground.export import model, xtce
 
     path = tmp_path / "st16.xml"
     assert main(["export", "xtce", str(path)]) == 0
@@ -362,16 +414,23 @@ def test_xtce_holds_every_parameter(tmp_path):
     tree = ET.parse(path).getroot()
     system = model.build()
     header = len(model.header(0, False))
+    # COMBINATION_<SECTION> is the OpenC3 target's (its NspProtocol re-addresses the sections); on
+    # the wire a COMBINATION reply counts bytes already transmitted (ICD page 1-35918)
+    telemetry = xtce.wire_telemetry(system)
+    assert {p.name for p in system.telemetry} - {p.name for p in telemetry} == {
+        p.name for p in system.telemetry if p.name.startswith("COMBINATION_") and p.name != "COMBINATION_REPLY"
+    }
+    assert len(telemetry) == len(system.telemetry) - len(result.SECTIONS)
     expected = header + sum(
         # a packet told apart by its address takes ADDRESS from its code's generic reply
         1
-        for p in system.telemetry
+        for p in telemetry
         for f in p.fields[header:]
         if f.bits and f.id_value is None
     )
     assert len(tree.findall(".//x:ParameterSet/x:Parameter", ns)) == expected
     containers = {c.get("name") for c in tree.findall(".//x:SequenceContainer", ns)}
-    assert containers == {"NSP_REPLY", *(p.name for p in system.telemetry)}
+    assert containers == {"NSP_REPLY", *(p.name for p in telemetry)}
     assert {c.get("name") for c in tree.findall(".//x:MetaCommand", ns)} == {p.name for p in system.commands}
 
 

@@ -330,11 +330,21 @@ class SequenceRunner:
                 raise Refused(NackReason.BUSY, "sequence did not complete in time")
         if deadline is not None and self.state == SequenceState.TERMINATED:
             raise Refused(NackReason.BUSY, f"sequence {self.sequence} terminated before its data")
-        parts: list[bytes] = []
-        for bit, (address, length) in sorted(result.SECTIONS.items()):
-            if mask & bit:
-                parts.extend(self._result_parts(address, length))
-        return parts or [b""]
+        return self._counted_parts(sorted(section for bit, section in result.SECTIONS.items() if mask & bit))
+
+    def _counted_parts(self, sections: list[tuple[int, int]]) -> list[bytes]:
+        """COMBINATION's success reply (ICD page 1-35918): the ``sections`` (address, length; in
+        increasing address order) as one stream, in messages of at most RESULT_PART result bytes,
+        each ``u16 bytes already transmitted`` (by the earlier messages of the reply) + its bytes;
+        no section: one message of just ``u16 0``."""
+        stream = bytearray()
+        for address, length in sections:
+            self.settings.faults.read("result", address, length)
+            stream += self.result[address : address + length]
+        return [
+            sent.to_bytes(2, "little") + bytes(stream[sent : sent + RESULT_PART])
+            for sent in range(0, max(len(stream), 1), RESULT_PART)
+        ]
 
     # ------------------------------------------------------------------ the sequence
 

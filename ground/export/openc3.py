@@ -170,8 +170,7 @@ def readme(system: model.SpaceSystem, target: str = TARGET) -> str:
     rows = []
     for mask, (address, length) in sorted(result.SECTIONS.items()):
         packet = next(n for n in names if n.startswith("COMBINATION_") and _section_address(system, n) == address)
-        parts = -(-length // DEVICE_PART)
-        rows.append(f"| 0x{mask:04X} | `{packet}` | 0x{address:03X} | {length} | {parts} |")
+        rows.append(f"| 0x{mask:04X} | `{packet}` | 0x{address:03X} | {length} |")
     example = 0x0001 | 0x0002 | 0x0004 | 0x0020
     variables = "\n".join(f"| `{name}` | `{value}` | {what} |" for name, value, what in VARIABLES)
     return f"""# {target}: an OpenC3 COSMOS plugin for the ST-16-style colour star tracker
@@ -199,13 +198,14 @@ from doing so. Keep `keepalive` below `read_timeout`.
 ## `lib/nsp_protocol.py`
 
 `targets/{target}/lib/nsp_protocol.py` holds `NspProtocol`, the third protocol of the
-interface: it joins the parts of READ RESULT and COMBINATION replies into one packet (the stock
-`SlipProtocol` and `CrcProtocol` below it cannot). COSMOS loads it by itself: the target's
+interface: it joins the parts of a READ RESULT reply into one packet, and those of a COMBINATION
+reply into one packet per section (the stock `SlipProtocol` and `CrcProtocol` below it cannot). COSMOS loads it by itself: the target's
 `lib/` folder is on the interface's Python path (the target is `LANGUAGE python`,
 `target.txt`), and the `PROTOCOL` line names the file alone (`nsp_protocol.py`: COSMOS makes
 the class name `NspProtocol` from the file name). Keep the file in this target's `lib/`; if you
 move the interface into another plugin, copy the file into that plugin's target `lib/` too.
-Without it every part is a packet of its own and a READ RESULT is not identified as `RESULT`.
+Without it every part is a packet of its own, a READ RESULT is not identified as `RESULT` and a
+COMBINATION's sections are not told apart.
 
 ## COMBINATION: which packets come back
 
@@ -222,11 +222,19 @@ The reply is **one telemetry packet per bit set in the mask**, in increasing add
 order of the table), each identified by its address; a mask of 0 gives one empty
 `COMBINATION_REPLY`; a NACK (`NACK`) instead of any of them when the device refuses. With the
 COMMAND go bit (0x08, set in {GO_OPERATIONAL} = 0x{GO_OPERATIONAL:02X}) the packets come once the
-sequence has finished (the device waits up to 60 s). "Parts on the wire" is what arrives
-before `NspProtocol` joins them (at most {DEVICE_PART} result bytes a part):
+sequence has finished (the device waits up to 60 s).
 
-| mask bit | packet | address | bytes | parts on the wire |
-|---|---|---|---|---|
+On the wire (ICD page 1-35918) the device sends the requested sections, in this order, as one
+stream in messages of at most {DEVICE_PART} result bytes, each starting with a u16 count of the
+bytes the earlier messages of the reply carried (0, {DEVICE_PART}, ...). `NspProtocol` remembers
+the mask of the last COMBINATION command it wrote, joins the reply by those counts and passes one
+packet per section with the section's address in bytes 0-1, which identifies it. A reply it
+cannot split (no COMBINATION written through this interface since it connected, or not the
+mask's length) passes as one packet of all its bytes after the count 0, which COSMOS then
+identifies as `COMBINATION_SEQUENCE` (address 0): only its length tells it apart.
+
+| mask bit | packet | address | bytes |
+|---|---|---|---|
 {chr(10).join(rows)}
 
 0x0800 (self-test) is not emulated: NACK NOT_SUPPORTED.
@@ -248,13 +256,16 @@ def _section_address(system: model.SpaceSystem, name: str) -> int | None:
 
 def protocol_source() -> str:
     """lib/nsp_protocol.py: the template with its generated block filled in from protocol/."""
-    ends = sorted(address + length for address, length in result.SECTIONS.values())
+    sections = (
+        f"    0x{bit:04X}: (0x{address:03X}, {length}),\n" for bit, (address, length) in sorted(result.SECTIONS.items())
+    )
     block = "\n".join(
         [
             "# BEGIN GENERATED",
             f"READ_RESULT = 0x{Code.READ_RESULT:02X}",
             f"COMBINATION = 0x{Code.COMBINATION:02X}",
-            f"SECTION_ENDS = frozenset({{{', '.join(f'0x{e:04X}' for e in ends)}}})",
+            "#: COMBINATION's section bits: (result address, bytes) (protocol.result.SECTIONS)",
+            "SECTIONS = {\n" + "".join(sections) + "}",
             "# END GENERATED",
         ]
     )

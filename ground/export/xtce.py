@@ -7,7 +7,10 @@ that reply's ``ADDRESS``. Parameters are named ``PACKET_ITEM`` (the header ones 
 entries are placed at absolute bit positions from the message start. Commands carry every field
 as an argument at its position, the header's with their defaults and the code fixed.
 
-Left out, because XTCE 1.2 has no "rest of the message" size: the variable-length tails (PING
+Left out: the ``COMBINATION_<SECTION>`` packets (:func:`wire_telemetry`: on the wire a COMBINATION
+reply's bytes 0-1 are a running byte count, ICD page 1-35918, not the section address that
+identifies them in the OpenC3 target after its ``NspProtocol``). Left out, because XTCE 1.2 has no
+"rest of the message" size: the variable-length tails (PING
 banner, NACK text, data of PEEK / READ EDAC / READ RESULT parts, upload data). The CRC and SLIP
 framing are the link's, as in the OpenC3 target.
 """
@@ -105,7 +108,7 @@ def space_system(system: model.SpaceSystem, name: str = SYSTEM) -> Any:
     )
     generic: dict[tuple[Any, ...], tuple[Any, dict[str, Any]]] = {}  # header ids -> container, its params
     # generic replies first: a packet told apart by its address extends its code's generic reply
-    ordered = sorted(system.telemetry, key=lambda p: any(f.id_value is not None for f in p.fields[len(head) :]))
+    ordered = sorted(wire_telemetry(system), key=lambda p: any(f.id_value is not None for f in p.fields[len(head) :]))
     for packet in ordered:
         ids = tuple((f.name, f.id_value) for f in packet.fields if f.name in params and f.id_value is not None)
         extra_ids = [f for f in packet.fields if f.name not in params and f.id_value is not None]
@@ -133,6 +136,20 @@ def space_system(system: model.SpaceSystem, name: str = SYSTEM) -> Any:
             generic.setdefault(ids, (container, own))
     _commands(pymdb, root, system)
     return root
+
+
+def wire_telemetry(system: model.SpaceSystem) -> list[model.Packet]:
+    """The telemetry packets a message as it comes off the wire can be identified as: all but the
+    ``COMBINATION_<SECTION>`` ones. A COMBINATION reply's bytes 0-1 count the result bytes already
+    transmitted (ICD page 1-35918), not a section's address: only the OpenC3 target's
+    ``NspProtocol`` re-emits one message per section with its address, and a Yamcs link has no such
+    step here, so the reply is the generic ``COMBINATION_REPLY`` (its ``ADDRESS`` is that count)."""
+    return [p for p in system.telemetry if not (p.name.startswith("COMBINATION_") and _has_extra_id(p))]
+
+
+def _has_extra_id(packet: model.Packet) -> bool:
+    head = {f.name for f in model.header(0, False)}
+    return any(f.id_value is not None and f.name not in head for f in packet.fields)
 
 
 def _all(pymdb: Any, conditions: list[Any]) -> Any:

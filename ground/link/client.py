@@ -476,14 +476,30 @@ class Client:
         return self.read_result_record()
 
     def combination(self, go_code: int, mask: int, timeout: float = 30.0, mask_bytes: int = 4) -> dict[int, bytes]:
-        """COMBINATION: returns {result address: bytes} of every part (placed by its address)."""
+        """COMBINATION: returns {result address: bytes} of every requested section. The reply
+        (ICD page 1-35918) is the sections in increasing address order as one stream, each message
+        ``u16 bytes already transmitted`` + its bytes: joined by that count, then split by ``mask``."""
         parts = self._request(Code.COMBINATION, Combination(go_code, mask, mask_bytes), timeout=timeout)
-        out: dict[int, bytes] = {}
+        stream = b""
         for part in parts:
-            if not part.data:
-                continue
-            piece: AddressedBytes = self._reply(Code.COMBINATION, part.data)
-            out[piece.address] = piece.data
+            if len(part.data) < 2:
+                raise MalformedReply("COMBINATION: a reply message without its u16 byte count", part.data)
+            sent = int.from_bytes(part.data[:2], "little")
+            if sent != len(stream):
+                raise MalformedReply(
+                    f"COMBINATION: a message says {sent} bytes already transmitted, {len(stream)} were", part.data
+                )
+            stream += part.data[2:]
+        sections = sorted(section for bit, section in result.SECTIONS.items() if mask & bit)
+        if len(stream) != sum(length for _, length in sections):
+            raise MalformedReply(
+                f"COMBINATION: {len(stream)} result bytes for mask 0x{mask:X}, "
+                f"its sections hold {sum(length for _, length in sections)}",
+                stream[:64],
+            )
+        out: dict[int, bytes] = {}
+        for address, length in sections:
+            out[address], stream = stream[:length], stream[length:]
         return out
 
     def time(self) -> int:
