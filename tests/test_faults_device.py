@@ -191,7 +191,8 @@ def test_a_fault_file_arms_at_start_and_a_bad_one_is_one_line_exit_2(tmp_path):
     run = subprocess.run([*device_command(), "--pty", "--faults", str(bad)], capture_output=True, text=True, timeout=60)
     assert run.returncode == 2 and run.stdout == ""
     assert run.stderr == f"st16-device: {bad} line 3: unknown fault 'drop_replies'; known: " + (
-        "delay_reply, drop_reply, corrupt_crc, stuck_result, reset, edac_upset, frozen_detector\n"
+        "delay_reply, drop_reply, corrupt_crc, stuck_result, reset, edac_upset, frozen_detector, "
+        "flash_ecc, flash_bad_block, flash_disturb\n"
     )
 
 
