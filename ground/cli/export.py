@@ -40,8 +40,14 @@ def _openc3(args) -> int:
     _refuse_existing_directory(root, args.force)
     version = openc3.check_openc3()
     with staging.staged(root, args.force, directory=True) as tmp:
-        openc3.write_target(tmp, model.build())
-        n_cmd, n_tlm = openc3.validate(tmp)
+        if args.heads:  # one target per head on one line (ground.export.heads)
+            from ground.export import heads
+
+            heads.write_targets(tmp, model.build(), args.heads)
+            n_cmd, n_tlm = heads.validate(tmp, args.heads)
+        else:
+            openc3.write_target(tmp, model.build())
+            n_cmd, n_tlm = openc3.validate(tmp)
     out = {"dir": str(root), "openc3": version, "commands": n_cmd, "telemetry": n_tlm}
     print(
         json_text.dumps(out)
@@ -64,7 +70,12 @@ def _xtce(args) -> int:
         schema = xtce.find_schema(args.schema)
     except FileNotFoundError as exc:
         raise InputError(str(exc)) from None
-    text = xtce.dumps(model.build())
+    if args.heads:  # one subsystem per head (ground.export.heads)
+        from ground.export import heads
+
+        text = heads.xtce_dumps(model.build(), args.heads)
+    else:
+        text = xtce.dumps(model.build())
     if schema is not None:
         errors = xtce.schema_errors(text, schema)
         if errors:  # a bug of the exporter, not bad input: exit 1, nothing written
@@ -87,6 +98,24 @@ def _xtce(args) -> int:
     return 0
 
 
+HEADS_HELP = "several heads on one line (st16-device --heads): their NSP addresses, e.g. 0x0E,0x0F; one target each"
+
+
+def _addresses(text: str) -> list[int]:
+    """``--heads 0x0E,0x0F``: 1-4 distinct addresses 0x00-0xFF."""
+    try:
+        addresses = [int(a, 0) for a in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text[:40]!r}: comma-separated addresses, e.g. 0x0E,0x0F") from None
+    from ground.export.heads import check_addresses
+
+    try:
+        check_addresses(addresses)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return addresses
+
+
 def register(sub) -> None:
     """Called by ``ground.cli.main``: ``export openc3`` and ``export xtce``."""
     export = sub.add_parser("export", help="ground-system definitions from protocol/: OpenC3 COSMOS target, XTCE")
@@ -100,6 +129,7 @@ def register(sub) -> None:
         action="store_true",
         help="replace a non-empty directory (whole: nothing of it is kept)",
     )
+    p.add_argument("--heads", type=_addresses, help=HEADS_HELP)
     p.set_defaults(func=_openc3)
     p = esub.add_parser("xtce", help="the same space system as XTCE 1.2 (via yamcs-pymdb)")
     p.add_argument("file", nargs="?", help="XTCE file to write (an existing one is replaced); or -o FILE")
@@ -111,4 +141,5 @@ def register(sub) -> None:
         help="XTCE 1.2 schema to validate against before writing (default: ../shared/data/xtce/"
         "SpaceSystemV1.2.xsd of a checkout, when there); an invalid export is refused",
     )
+    p.add_argument("--heads", type=_addresses, help=HEADS_HELP)
     p.set_defaults(func=_xtce)

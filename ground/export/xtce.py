@@ -92,11 +92,17 @@ def pymdb_module() -> Any:
     return pymdb
 
 
-def space_system(system: model.SpaceSystem, name: str = SYSTEM) -> Any:
-    """The ``yamcs.pymdb.System`` of ``system``."""
+def space_system(system: model.SpaceSystem, name: str = SYSTEM, parent: Any = None) -> Any:
+    """The ``yamcs.pymdb.System`` of ``system`` (a ``Subsystem`` of ``parent`` when given: one
+    head of several, ``ground.export.heads``)."""
     pymdb = pymdb_module()
 
-    root = pymdb.System(name, short_description="ST-16-style colour star tracker, NSP link (docs/ICD.md)")
+    about = "ST-16-style colour star tracker, NSP link (docs/ICD.md)"
+    root = (
+        pymdb.System(name, short_description=about)
+        if parent is None
+        else pymdb.Subsystem(parent, name, short_description=about)
+    )
     head = model.header(0, False)
     params = {f.name: _parameter(pymdb, root, f.name, f) for f in head}
     base = pymdb.Container(
