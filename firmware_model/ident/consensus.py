@@ -139,6 +139,7 @@ class ConsensusResult:
     attempts: int = 0
     hypotheses: int = 0
     rivals: list[VerifiedMatch] = field(default_factory=list)
+    coincidences: int = 0  #: catalog pairs the seed pairs met as well as the answer's (:func:`pair_hypotheses`)
 
 
 def detection_angles(vectors: np.ndarray) -> np.ndarray:
@@ -433,7 +434,7 @@ def match_scene(
     expected = chance_answers(best.chance, coincidences)
     if expected > CHANCE_ANSWERS:
         return ConsensusResult(Outcome.NO_MATCH, None, _chance_reason(best, coincidences, expected), attempts, 0)
-    return ConsensusResult(Outcome.LOW_CONFIDENCE, best, reason, attempts, len(verified), rivals)
+    return ConsensusResult(Outcome.LOW_CONFIDENCE, best, reason, attempts, len(verified), rivals, coincidences)
 
 
 #: A low-confidence answer is refused (NO_MATCH) when the search is expected to have met more than

@@ -181,6 +181,7 @@ class SolveResult:
     verifications: int = 0  #: hypotheses the solve verified (its counted work)
     stopped: Stop = Stop.NONE  #: what stopped the search early, if anything (``budget.Stop``)
     noise_extra: float = 0.0  #: per-axis noise (rad) the residuals showed beyond the announced (strategy.adapt_noise)
+    hypotheses: int = 0  #: wrong hypotheses the solve met as well supported as its seed (the chance test's count)
 
     @property
     def roll_sigma(self) -> float:

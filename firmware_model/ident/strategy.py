@@ -63,7 +63,15 @@ from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog, angle_between
 from firmware_model.ident.attitude import covariance_kernel, quat_matrix, solve_attitude
 from firmware_model.ident.budget import SearchBudget, Stop, stop_reason
-from firmware_model.ident.consensus import ConsensusParams, Outcome, confident, match_scene
+from firmware_model.ident.consensus import (
+    CHANCE_ANSWERS,
+    NOT_A_STAR_FIELD,
+    ConsensusParams,
+    Outcome,
+    chance_answers,
+    confident,
+    match_scene,
+)
 from firmware_model.ident.four_star import match_four_star
 from firmware_model.ident.pair_match import PairNoise
 from firmware_model.ident.solver import (
@@ -831,11 +839,11 @@ def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveP
         if res.best is None:
             return _spent(no_match(budget.reason or res.reason, method), budget)
         out = solution_from_match(res.best, res.outcome, res.reason, scene.index_map, catalog, method, n)
-        out.attempts = res.attempts
+        out.attempts, out.hypotheses = res.attempts, res.coincidences
     else:
         if n < 3:
             return no_match(f"geometric mode needs at least three detections, got {n}", method)
-        found, groups = match_geometric(v, catalog, noise, params, check, budget)
+        found, groups, hypotheses = match_geometric(v, catalog, noise, params, check, budget)
         timings.match = time.perf_counter() - t1 - verify_time[0]
         timings.verify = verify_time[0]
         timings.total = time.perf_counter() - t0
@@ -843,8 +851,14 @@ def solve(vectors, rg, bg, catalog: OnboardCatalog, params: SolveParams = SolveP
             why = budget.reason or "no verified identification"
             return _spent(no_match(f"{why} ({groups} 4-star group(s), triangle fallback)", method), budget)
         best, status, reason = decide_geometric(found, n, params.consensus)
+        refusal = reason if status is Outcome.NO_MATCH else None
+        refusal = refusal or chance_refusal(status, best.n, best.chance, max(hypotheses, budget.used))
+        if refusal is not None:
+            refused = no_match(refusal, method)
+            refused.attempts = groups
+            return _spent(refused, budget)
         out = solution_from_match(best, status, reason, scene.index_map, catalog, method, n)
-        out.attempts = groups
+        out.attempts, out.hypotheses = groups, max(hypotheses, budget.used)
     out.timings = timings
     out.notes = scene.notes
     return bound_roll(_spent(out, budget), params.max_roll_sigma)
@@ -858,29 +872,34 @@ def _spent(sol: SolveResult, budget: SearchBudget) -> SolveResult:
 
 def match_geometric(
     v: np.ndarray, catalog: OnboardCatalog, noise: PairNoise, params: SolveParams, check: Check, budget: SearchBudget
-) -> tuple[list[VerifiedMatch], int]:
+) -> tuple[list[VerifiedMatch], int, int]:
     """Verified geometric hypotheses: 4-star matching (Dong et al.), then the triangle fallback
-    when it is not conclusive. Returns the verified matches and the 4-star groups tried."""
+    when it is not conclusive. Returns the verified matches, the 4-star groups tried and the
+    hypotheses met (the 4-star answer and the catalog triangles the triads matched)."""
     n = len(v)
     eps = params.four_star.epsilon or params.four_star.epsilon_sigmas * noise.sigma_phi
     found: list[VerifiedMatch] = []
-    groups = 0
+    groups = hypotheses = 0
     if n >= 4:
         fs = match_four_star(v, catalog, eps, params.four_star)
         groups = fs.groups
         if len(fs.det) >= 2:
+            hypotheses += 1
             match, _ = check(fs.det, fs.cat)
             if match is not None:
                 found.append(match)
     if not (found and geometric_high(found[0], [], n, params.consensus)):
-        found += match_triangles(v, catalog, eps, check, params.triangle, budget)
-    return found, groups
+        more, met = match_triangles(v, catalog, eps, check, params.triangle, budget)
+        found += more
+        hypotheses += met
+    return found, groups, hypotheses
 
 
 def decide_geometric(found: list[VerifiedMatch], n: int, cp: ConsensusParams) -> tuple[VerifiedMatch, Outcome, str]:
     """The best of the verified geometric hypotheses (most stars, then coverage), its confidence
     and the reason when it is not high: rivals with a different attitude and comparable support,
-    or too small a share of the ``n`` detections."""
+    or too small a share of the ``n`` detections; NO_MATCH for a 3-star answer with a rival (two
+    triangles at odds say this frame makes such matches by coincidence)."""
     best = max(found, key=lambda f: (f.n, f.coverage if np.isfinite(f.coverage) else 0.0))
     rivals = [
         f
@@ -891,9 +910,33 @@ def decide_geometric(found: list[VerifiedMatch], n: int, cp: ConsensusParams) ->
     ]
     if geometric_high(best, rivals, n, cp):
         return best, Outcome.HIGH_CONFIDENCE, ""
+    if rivals and best.n <= 3:  # two triangles at odds: a 3-star match this frame makes by coincidence
+        return (
+            best,
+            Outcome.NO_MATCH,
+            (
+                f"{NOT_A_STAR_FIELD}: a 3-star match and {len(rivals)} rival(s) as well supported at another attitude "
+                "(at least one is a coincidence, so either may be)"
+            ),
+        )
     if rivals:
         return best, Outcome.LOW_CONFIDENCE, f"{len(rivals)} rival hypothesis(es) with comparable support"
     return best, Outcome.LOW_CONFIDENCE, f"{best.n} of {n} detections matched"
+
+
+def chance_refusal(status: Outcome, n: int, chance: float, hypotheses: int) -> str | None:
+    """Why a low-confidence answer of ``n`` stars is refused (None: it is not): among the
+    ``hypotheses`` the search verified, an as well supported wrong one is expected more than
+    ``consensus.CHANCE_ANSWERS`` times (each lines up its stars beyond two with probability
+    ``chance``: ``consensus.chance_answers``), so its attitude cannot be told from a coincidence (a
+    frame of hot pixels, no star in it). The consensus route makes the same test on its seed pairs."""
+    expected = chance_answers(chance, hypotheses)
+    if status is not Outcome.LOW_CONFIDENCE or expected <= CHANCE_ANSWERS:
+        return None
+    return (
+        f"{NOT_A_STAR_FIELD}: {n}-star match expected {expected:.2g} times by chance "
+        f"({hypotheses} hypotheses verified; chance {chance:.2g} beyond the seed pair)"
+    )
 
 
 def geometric_high(best: VerifiedMatch, rivals: list[VerifiedMatch], n: int, cp: ConsensusParams) -> bool:

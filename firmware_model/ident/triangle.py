@@ -170,9 +170,12 @@ def match_triangles(
     params: TriangleParams = TriangleParams(),
     budget: SearchBudget | None = None,
 ):
-    """Verified hypotheses from triangle candidates, best (most stars) first; ``budget`` counts the
-    calls to ``verify`` (the caller spends it there) and stops the search when it is exhausted."""
+    """Verified hypotheses from triangle candidates, best (most stars) first, and how many catalog
+    triangles the detection triads met (each a hypothesis of where they lie: the chance test's
+    count); ``budget`` counts the calls to ``verify`` (the caller spends it there) and stops the
+    search when it is exhausted."""
     found: list[VerifiedMatch] = []
+    met = 0
     n = min(len(vectors), params.max_stars)
     order = TriadOrder(n, params.adaptive)
     for t, (i, j, k) in enumerate(order):
@@ -182,6 +185,7 @@ def match_triangles(
         n_found = len(found)
         others = np.setdiff1d(np.arange(min(len(vectors), 3 + params.probe_stars + 3)), det)[: params.probe_stars]
         tris = triangles(vectors[det], catalog, eps, params.max_pairs)[: params.max_triangles]
+        met += len(tris)
         if len(tris) > params.probe_below and len(others):
             # the probe needs a true star among the others: a triad with few candidates is
             # verified in full (a frame with three true stars among false ones)
@@ -200,4 +204,4 @@ def match_triangles(
             order.failed(det)
         if found and max(f.n for f in found) >= params.decisive_stars:
             break
-    return sorted(found, key=lambda f: (-f.n, -(f.coverage if np.isfinite(f.coverage) else 0.0)))
+    return sorted(found, key=lambda f: (-f.n, -(f.coverage if np.isfinite(f.coverage) else 0.0))), met

@@ -32,6 +32,7 @@ from firmware_model.ident.strategy import (
     StrategyParams,
     agrees,
     bound_roll,
+    chance_refusal,
     estimated_noise_factor,
     geometric_detection_cap,
     hold_searched,
@@ -369,7 +370,23 @@ def identify_stars(
         name = stage.run(frame)
         assert name in stage.hands_to, f"{stage.name} handed to {name}, not in the plan"
     assert frame.out is not None  # every path to DONE leaves an answer
-    return _accounted(frame.out, frame.timings, t0, stars)
+    return _accounted(_chance_checked(frame.out, frame.timings), frame.timings, t0, stars)
+
+
+def _chance_checked(out: PipelineOutput, timings: StageTimings) -> PipelineOutput:
+    """``out``, or NO_MATCH when it is a low-confidence answer that the hypotheses met over the
+    whole frame would give by chance (``strategy.chance_refusal``): a frame of hot pixels with no
+    star in it. Every solve of the frame (one, and one more per pattern seed the optics search
+    refined) is counted as meeting as many hypotheses as the answer's own solve did, or the frame's
+    verifications when they are more."""
+    sol = out.solution
+    if out.status is not Status.LOW_CONFIDENCE or sol is None:
+        return out
+    met = max(sol.hypotheses * (1 + timings.seeds), timings.verifications)
+    refusal = chance_refusal(sol.status, len(sol.matched_det), sol.chance, met)
+    if refusal is None:
+        return out
+    return PipelineOutput(Status.NO_MATCH, refusal, out.stars, out.used, SolveResult(Outcome.NO_MATCH, refusal))
 
 
 @dataclass

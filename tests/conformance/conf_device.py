@@ -15,7 +15,8 @@ from pathlib import Path
 
 import pytest
 import serial
-from nsp_min import Link
+
+from .nsp_min import Link
 
 #: Hang guard for a device start (the first start after an install compiles kernels, ~40 s).
 START_S = 180.0

@@ -7,9 +7,10 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
-from conf_device import DeviceProcess
-from icd import init_application
-from nsp_min import Link
+
+from .conf_device import DeviceProcess
+from .icd import init_application
+from .nsp_min import Link
 
 
 @pytest.fixture

@@ -9,7 +9,7 @@ from __future__ import annotations
 import struct
 import time
 
-from nsp_min import HANG_S, Link, Msg
+from .nsp_min import HANG_S, Link, Msg
 
 PING = 0x00  # docs/ICD.md (not on the public pages read)
 INIT = 0x01  # docs/ICD.md: u32 start address, 0x00002000 enters the application

@@ -2,7 +2,8 @@
 conformance test speaks the wrong protocol."""
 
 import pytest
-from nsp_min import FEND, FESC, TFEND, TFESC, SlipDecoder, crc16, nsp_frame, parse, slip_frame
+
+from .nsp_min import FEND, FESC, TFEND, TFESC, SlipDecoder, crc16, nsp_frame, parse, slip_frame
 
 pytestmark = pytest.mark.timeout(30)
 

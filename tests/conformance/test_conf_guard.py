@@ -6,7 +6,8 @@ import ast
 from pathlib import Path
 
 import pytest
-from count_statements import REPO, statements
+
+from .count_statements import REPO, statements
 
 pytestmark = pytest.mark.timeout(30)
 

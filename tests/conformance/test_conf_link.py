@@ -7,8 +7,9 @@ describe the counters but their address is in a table not visible in the public 
 import struct
 
 import pytest
-from icd import GO, IMAGE, READ_EDAC, SCRATCH, WRITE_FILE, counters, dark_window, read_edac
-from nsp_min import DEVICE_ADDRESS, FEND, FESC, HOST_ADDRESS, nsp_frame, nsp_payload, slip_frame
+
+from .icd import GO, IMAGE, READ_EDAC, SCRATCH, WRITE_FILE, counters, dark_window, read_edac
+from .nsp_min import DEVICE_ADDRESS, FEND, FESC, HOST_ADDRESS, nsp_frame, nsp_payload, slip_frame
 
 pytestmark = pytest.mark.timeout(120)
 

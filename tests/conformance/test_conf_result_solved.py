@@ -15,8 +15,9 @@ import zlib
 from pathlib import Path
 
 import pytest
-from conf_device import DeviceProcess
-from icd import GO, GO_COMMAND, GO_ON, MATCHING, init_application, result_bytes, wait_result_ready
+
+from .conf_device import DeviceProcess
+from .icd import GO, GO_COMMAND, GO_ON, MATCHING, init_application, result_bytes, wait_result_ready
 
 pytestmark = pytest.mark.timeout(300)
 

@@ -4,7 +4,8 @@ import struct
 import time
 
 import pytest
-from icd import (
+
+from .icd import (
     BAD_LENGTH,
     EDAC_SIZE,
     READ_EDAC,
@@ -21,7 +22,7 @@ from icd import (
     time_us,
     write_edac,
 )
-from nsp_min import DEVICE_ADDRESS, FEND, HOST_ADDRESS, nsp_payload, slip_escape
+from .nsp_min import DEVICE_ADDRESS, FEND, HOST_ADDRESS, nsp_payload, slip_escape
 
 pytestmark = pytest.mark.timeout(120)
 
