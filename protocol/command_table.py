@@ -227,7 +227,7 @@ TABLE: tuple[Command, ...] = (
         AddressedBytes,
         "COMBINATION GO_CODE MASK: sequence + selected result sections",
         "u8 go code, section mask: 3 bytes (4-byte field, as COSMOS sends) or 4 bytes (5-byte field) **[ours: both]**",
-        "parts: u16 address, bytes",
+        "parts: u16 result bytes already sent, bytes (§6, ICD page 1-35918)",
         "failure reply (§7): u8 sequence state + text, for every refusal",
         parts=True,
         failure=CombinationFailure,
