@@ -318,3 +318,34 @@ def test_a_boot_from_nand_reads_the_boot_block_and_the_image_and_fails_when_they
     assert _flash(dev, Sub.REWRITE_NAND, APP_PAGE, APP_PAGE + 63).ack is False  # ECC failed: rewritten as read
     assert nand.errors.get(APP_PAGE + 10, 0) == 0 and good == nand.pages[APP_PAGE + 11]
     assert _send(dev, Code.GO, b"\x02")[0].ack
+
+
+def test_the_catalog_lives_in_the_nand_and_an_uncorrectable_page_stops_the_solve(tmp_path):
+    """A committed catalog is programmed into the NAND; every GO reads it; an uncorrectable page
+    NACKs the GO until the NAND is rewritten, a corrected one only counts."""
+    from firmware_model.device.nand import CATALOG_BLOCK, CATALOG_MAGIC
+
+    store = SlotStore(tmp_path / "state")
+    dev = Device(store=store, solver=lambda ctx: {"return_code": result.make_return_code(result.Status.OK)})
+    image = bytes(range(256)) * 40  # 10 240 bytes: 5 pages + the header
+    dev.maintenance.store_catalog(image)
+    dev.runner.transfers.objects[0] = "catalog"
+    nand = dev.maintenance.nand
+    first = CATALOG_BLOCK * PAGES_PER_BLOCK
+    assert nand.read_page(first).startswith(CATALOG_MAGIC) and nand.read_page(first + 1)[:256] == bytes(range(256))
+    assert _send(dev, Code.INIT, struct.pack("<I", APP_START_ADDRESS))[0].ack
+    nand.errors[nand.physical_page(first + 2)] = 1
+    assert _send(dev, Code.GO, b"\x09")[0].ack  # a corrected error: the solve goes on, it counts
+    assert dev.wait_idle(guards.REPLY_S) and nand.error_counts()[0] == 1
+    nand.errors[nand.physical_page(first + 3)] = 2
+    (rep,) = _send(dev, Code.GO, b"\x09")
+    info = NackInfo.unpack(rep.data)
+    assert not rep.ack and info.reason == NackReason.EDAC_UNCORRECTABLE and str(first + 3) in info.text
+    # the ground commits the catalog again: the NAND copy is rewritten whole
+    nand.pages[nand.physical_page(first)] = b"\xff" * PAGE_BYTES  # (forces the reprogram)
+    dev.maintenance.store_catalog(image)
+    assert _send(dev, Code.GO, b"\x09")[0].ack
+    assert dev.wait_idle(guards.REPLY_S)
+    # it persisted: a restart finds the catalog in the NAND
+    again = Device(store=SlotStore(tmp_path / "state"))
+    assert again.maintenance.nand.read_page(first + 1)[:256] == bytes(range(256))

@@ -172,6 +172,7 @@ class Device:
             failure_state=lambda: int(self.runner.state),
         )
         self.transfers.activate_stored()
+        self.maintenance.store_catalog(self.store.active(Slot.CATALOG))
 
     def _handlers(self) -> dict[int, Handler]:
         """The handler of every command-table code."""
@@ -238,11 +239,18 @@ class Device:
 
     def _go(self, req: Go) -> Any:
         self._from_nand(req.code)
+        self._catalog_reads(req.code)
         return self.runner.go(req)
 
     def _combination(self, req: Combination) -> Any:
         self._from_nand(req.go_code)
+        self._catalog_reads(req.go_code)
         return self.runner.combination(req)
+
+    def _catalog_reads(self, go_code: int) -> None:
+        """A sequence reads the catalog's tables from the NAND (docs/ICD.md section 15)."""
+        if go_code & GoBits.COMMAND and not self.runner.busy:
+            self.maintenance.read_catalog()
 
     def _fp_message(self, text: str) -> None:
         """A functional processor message into EDAC (0x00C0), where the boot message goes."""
@@ -349,6 +357,7 @@ class Device:
         replies = self.dispatcher.handle(msg)
         if self.store.active(Slot.CATALOG) is not catalog:  # a new image rewrote every catalog word
             self.faults.written("catalog")
+            self.maintenance.store_catalog(self.store.active(Slot.CATALOG))  # and the NAND's copy
         if self.faults.reset_after(msg.code) or self._reset_now:
             self._reset_now = False
             self.reset()

@@ -60,6 +60,8 @@ DISTURB_READS = 100_000  #: ours: page reads of a block per flipped bit (literat
 ENDURANCE = 100_000  #: program/erase cycles of a block (page 1-35923); beyond it the block fails
 APP_BLOCK = 0x8000  #: the application image's first block (page 1-35916)
 APP_PAGES = 4 * PAGES_PER_BLOCK  #: ours: a 512 KiB application image
+CATALOG_BLOCK = 0x9000  #: ours: where the catalog image is programmed (the pages do not place it)
+CATALOG_MAGIC = b"ST16CAT1"  #: ours: the catalog region's first page: magic, u32 length, u32 CRC-32
 BOOT_HEADER = b"ST16BOOT"  #: ours: the Configuration Header's magic (its content is not visible)
 MAINTENANCE_ADDRESS = 0x00004000  #: ours: INIT with this address enters maintenance mode
 ERASED = b"\xff" * PAGE_BYTES
@@ -322,6 +324,14 @@ class Nand:
         }
         _atomic_write(self.root / "meta.json", json.dumps(meta).encode())
 
+    def flush_reads(self) -> None:
+        """After a solve's reads: write only the blocks where an error was found (their error
+        state must survive a restart); the read counts of the others wait for the next flush."""
+        for phys in sorted(self._dirty):
+            base = phys * PAGES_PER_BLOCK
+            if any(base <= pp < base + PAGES_PER_BLOCK for pp in self.seen):
+                self._commit(phys)
+
     def flush(self) -> None:
         """Write the blocks whose read counts changed (the end of a FLASH command)."""
         for phys in sorted(self._dirty):
@@ -437,6 +447,52 @@ class Maintenance:
                         ) from None
         finally:
             nand.flush()
+
+    # ------------------------------------------------------------------ the catalog in the NAND
+
+    def store_catalog(self, image: bytes | None) -> None:
+        """Program the active catalog image into the NAND from :data:`CATALOG_BLOCK` (a header
+        page, then the image), unless it is there already: a commit to slot 0 or 3 writes it, as
+        the real unit keeps its star, hash and triangle tables in the NAND."""
+        if not image:
+            return
+        nand = self.nand
+        first = CATALOG_BLOCK * PAGES_PER_BLOCK
+        header = CATALOG_MAGIC + struct.pack("<II", len(image), crc32(image))
+        with self._lock:
+            pp = nand.physical_page(first)
+            if nand.pages.get(pp, b"")[: len(header)] == header:
+                return
+            n_pages = 1 + -(-len(image) // PAGE_BYTES)
+            for block in range(CATALOG_BLOCK, CATALOG_BLOCK + -(-n_pages // PAGES_PER_BLOCK)):
+                nand.erase_block(block)
+            nand.write_page(first, header.ljust(PAGE_BYTES, b"\xff"))
+            for i in range(n_pages - 1):
+                nand.write_page(first + 1 + i, image[i * PAGE_BYTES : (i + 1) * PAGE_BYTES].ljust(PAGE_BYTES, b"\xff"))
+            nand.flush()
+
+    def read_catalog(self) -> None:
+        """The reads of one cycle: every page of the catalog in the NAND (the ICD reads the entire
+        star and hash tables each cycle, page 1-35923; ours: the whole image). Refused
+        (EDAC_UNCORRECTABLE) at an uncorrectable page; nothing when no catalog is programmed."""
+        nand = self.nand
+        first = CATALOG_BLOCK * PAGES_PER_BLOCK
+        with self._lock:
+            head = nand.pages.get(nand.physical_page(first), b"")
+            if head[: len(CATALOG_MAGIC)] != CATALOG_MAGIC:
+                return
+            (length,) = struct.unpack_from("<I", head, len(CATALOG_MAGIC))
+            try:
+                for page in range(first, first + 1 + -(-length // PAGE_BYTES)):
+                    nand.read_page(page)
+            except EccError as exc:
+                raise Refused(
+                    NackReason.EDAC_UNCORRECTABLE,
+                    f"the catalog in the NAND has an uncorrectable ECC error in page {exc.page}: rewrite it in "
+                    "maintenance mode (Rewrite NAND) or commit the catalog again",
+                ) from None
+            finally:
+                nand.flush_reads()
 
     # ------------------------------------------------------------------ scripted faults
 
