@@ -91,10 +91,24 @@ def _demo(args) -> int:
 _WRITTEN = ("hil_log.jsonl", "summary.json", "hil.png")
 
 
+def _two_heads(args) -> int:
+    from pathlib import Path
+
+    from ground.hil import two_heads
+
+    return 0 if two_heads.run_scenario(Path(args.out)) else 1
+
+
 def register(sub) -> None:
     p = sub.add_parser("hil", help="hardware-in-the-loop: the tracker in a closed attitude loop")
     hsub = p.add_subparsers(dest="hil_command", metavar="ACTION")
     hsub.required = True
+    t = hsub.add_parser(
+        "two-heads",
+        help="two heads on one line, one swept past the Sun: the flight side selects an OK head (docs/hil.md)",
+    )
+    t.add_argument("-o", "--output", "--out", dest="out", default="st16-two-heads", help="output folder")
+    t.set_defaults(func=_two_heads)
     d = hsub.add_parser("demo", help="Basilisk (or a numpy stand-in) slews to a target on the tracker's attitude")
     d.add_argument(
         "-o", "--output", "--out", dest="out", default="st16-hil", help="output folder for the log, summary and plot"

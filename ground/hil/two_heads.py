@@ -174,3 +174,38 @@ def plot(out: list[dict], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def run_scenario(out_dir: Path, say=print) -> bool:
+    """The whole scenario: a catalog, ``st16-device --heads --sky`` on the sweep, the lockstep
+    selection; prints each row and the verdict through ``say``, writes ``two_heads.json`` and
+    ``two_heads.png`` into ``out_dir``; True when it passes."""
+    import tempfile
+
+    from firmware_model.catalog.image_io import catalog_to_image
+    from ground.catalog.build import build_catalog
+    from ground.catalog.design import CatalogDesign
+    from ground.sim.device_process import start_device, stop_device
+
+    image = catalog_to_image(build_catalog(CatalogDesign()))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        heads, schedule, rows = write_inputs(work)
+        proc, pty = start_device(work / "state", "--heads", str(heads), "--sky", str(schedule))
+        try:
+            out = run(pty, rows, image)
+        finally:
+            stop_device(proc)
+    for r in out:
+        err = "-" if r["error_arcsec"] is None else f"{r['error_arcsec']:.1f}"
+        st = r["status"]
+        say(
+            f"row {r['row']:>2}  0x0E {st['0x0E']:<14} 0x0F {st['0x0F']:<14} selected {r['selected']}  error {err} arcsec"
+        )
+    ok, text = verdict(out)
+    say(text)
+    (out_dir / "two_heads.json").write_text(json.dumps(out, indent=1))
+    plot(out, out_dir / "two_heads.png")
+    say(f"wrote {out_dir / 'two_heads.png'}")
+    return ok
