@@ -132,9 +132,13 @@ def test_the_heads_command_shows_each_heads_state(line):
         out = run(c, argparse.Namespace(addresses=[A, B, 0x42]))["heads"]
         assert c.device_address == A
     assert out["0x0E"]["mode"] == "application" and out["0x0F"]["mode"] == "bootloader"
-    assert out["0x0E"]["accepted"] == 2 and not out["0x0E"]["busy"]
+    assert out["0x0E"]["accepted"] == 2 and not out["0x0E"]["busy"] and "status" not in out["0x0E"]
     assert out["0x42"]["answers"] is False
     assert bus.unknown >= 1
+    with Client(path, timeout=guards.REPLY_S, device_address=A) as c:
+        c.go_and_wait(timeout=guards.REPLY_S)
+        out = run(c, argparse.Namespace(addresses=[A, B]))["heads"]
+    assert out["0x0E"]["status"] == "OK" and out["0x0E"]["result_ready"] and "status" not in out["0x0F"]
 
 
 def test_a_bus_refuses_duplicate_addresses_and_more_than_four_heads():

@@ -336,8 +336,8 @@ def _a_heads(p):
 
 
 def _run_heads(c: Client, a) -> dict:
-    """Each head's state from its EDAC memory (one READ EDAC of 0x00-0x5C each); a head that does
-    not answer is shown as such, the others still read."""
+    """Each head's state from its EDAC memory (one READ EDAC of 0x00-0x5C each) and, when a result
+    is ready, its status; a head that does not answer is shown as such, the others still read."""
     import numpy as np
 
     from ground.link.client import LinkError
@@ -366,6 +366,15 @@ def _run_heads(c: Client, a) -> dict:
                 "bad_crc": int(rec["bad_crc"]),
                 "other_address": int(rec["other_address"]),
             }
+            if heads[name]["result_ready"]:  # the last result's status (READ RESULT of the return code)
+                from protocol import result
+
+                try:
+                    rc = int.from_bytes(c.read_result(4, 4), "little")
+                except LinkError:
+                    rc = None
+                status = None if rc is None else result.status_of(rc)
+                heads[name]["status"] = getattr(status, "name", status)
     finally:
         c.device_address = own
     return {"heads": heads}
