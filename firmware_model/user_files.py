@@ -162,12 +162,14 @@ def load_json_file(path: str | os.PathLike, max_bytes: int = MAX_JSON_BYTES, max
         raise UserFileError(f"{path}: not valid JSON ({exc})") from None
 
 
-_LONG_WORD = re.compile(r"\S{" + str(MAX_ECHO_CHARS + 1) + ",}")
+MAX_WORD_CHARS = 200  #: longest run of non-blank characters a message keeps whole (a file's path fits)
+_LONG_WORD = re.compile(r"\S{" + str(MAX_WORD_CHARS + 1) + ",}")
 
 
-def shorten_words(message: str, limit: int = MAX_ECHO_CHARS) -> str:
+def shorten_words(message: str, limit: int = MAX_WORD_CHARS) -> str:
     """``message`` with every run of more than ``limit`` non-blank characters cut (:func:`echo`):
-    a message that quotes a user's value whole stays one readable line."""
+    a message that quotes a user's value whole stays one readable line, and one naming a file
+    keeps its path."""
     return _LONG_WORD.sub(lambda m: echo(m.group(0), limit), message)
 
 
