@@ -30,9 +30,12 @@ import firmware_model  # noqa: F401 - settles where the kernels are cached, with
 def _private_home() -> Path:
     """A fresh HOME with its own cache, config, data and state folders, exported for this process
     and every process it starts; removed when the run ends."""
+    known = os.environ.get("ST16_TESTS_HOME")
+    if known and Path(known).is_dir():
+        return Path(known)  # this module imported again in the same run: the same HOME
     home = Path(tempfile.mkdtemp(prefix="st16-tests-home-"))
     atexit.register(shutil.rmtree, home, True)
-    os.environ["HOME"] = str(home)
+    os.environ["HOME"] = os.environ["ST16_TESTS_HOME"] = str(home)
     for name, sub in (
         ("XDG_CACHE_HOME", ".cache"),
         ("XDG_CONFIG_HOME", ".config"),

@@ -173,7 +173,13 @@ def test_solve_file_json_is_one_document_with_the_files_written(files, capsys, m
 def test_hil_demo_says_why_it_failed(tmp_path, capsys, monkeypatch):
     import ground.hil.run as hil
 
-    summary = {"updates": 57, "pointing_error_deg_first": 4.003, "pointing_error_deg_last": 0.648}
+    summary = {
+        "updates": 57,
+        "pointing_error_deg_first": 4.003,
+        "pointing_error_deg_last": 0.648,
+        "acquisition_s": 0.5,
+        "last_fix_age_s": 0.2,
+    }
     monkeypatch.setattr(hil, "run_hil", lambda *a, **kw: dict(summary))
     argv = ["hil", "demo", "--duration", "10", "--dynamics", "standin", "--out", str(tmp_path)]
     rc, out, err = run(argv, capsys)
@@ -184,6 +190,11 @@ def test_hil_demo_says_why_it_failed(tmp_path, capsys, monkeypatch):
     assert rc == 1 and json.loads(out)["pointing_error_deg_last"] == 0.648 and len(err) == 1
     summary["pointing_error_deg_last"] = 0.01
     assert run(argv, capsys)[0] == 0
+    summary["last_fix_age_s"] = 30.0  # a run that ends on the gyro alone fails, whatever its error
+    rc, out, err = run(argv, capsys)
+    assert rc == 1 and err == [
+        "st16-ground: hil demo failed: the flight side's last tracker fix is 30.0 s old at the end, over 5 s"
+    ]
 
 
 @pytest.mark.parametrize(

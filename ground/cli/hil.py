@@ -27,7 +27,8 @@ def tracker_failure(summary: dict) -> str | None:
         return f"the estimator never had a fix from the tracker{told}: no attitude, the controller only damped the rate"
     age = summary.get("last_fix_age_s")
     if age is None or age > FRESH_FIX_S:
-        return f"the flight side's last tracker fix is {age:.1f} s old at the end, over {FRESH_FIX_S:g} s{told}"
+        old = "of unknown age" if age is None else f"{age:.1f} s old"
+        return f"the flight side's last tracker fix is {old} at the end, over {FRESH_FIX_S:g} s{told}"
     return None
 
 
