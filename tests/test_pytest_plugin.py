@@ -85,7 +85,7 @@ def test_bad_input_is_one_setup_error_naming_it_and_starts_no_device(pytester):
         at = next(n for n, ln in enumerate(result.outlines) if f"ERROR at setup of test_{k} " in ln)
         assert result.outlines[at + 1].startswith(named), result.outlines[at : at + 3]  # the message alone,
         assert result.outlines[at + 2].startswith("_" if k + 1 < len(BAD_INPUT) else "="), result.outlines[at : at + 3]
-    assert not devices_under(pytester.path.parent)
+    assert not devices_under(pytester.path)  # the inner run's devices (its basetemp is under it)
 
 
 def test_a_device_that_does_not_start_is_quoted_and_one_that_is_slow_is_stopped(pytester):
@@ -112,7 +112,7 @@ def test_a_device_that_does_not_start_is_quoted_and_one_that_is_slow_is_stopped(
             "*st16-device was not listening within 0.3 s; command:*",
         ]
     )
-    assert not devices_under(pytester.path.parent)
+    assert not devices_under(pytester.path)  # the inner run's devices (its basetemp is under it)
 
 
 def test_a_device_is_ready_and_reaped_after_a_failing_and_an_interrupted_test(pytester):
@@ -142,7 +142,7 @@ def test_a_device_is_ready_and_reaped_after_a_failing_and_an_interrupted_test(py
     result.stdout.fnmatch_lines(["*AssertionError: a failing test*"])
     started = [int(p) for p in pids.read_text().split()]
     assert len(started) == 2 and all(gone(p) for p in started)
-    assert not devices_under(pytester.path.parent)
+    assert not devices_under(pytester.path)  # the inner run's devices (its basetemp is under it)
 
 
 @pytest.mark.slow
@@ -186,7 +186,7 @@ def test_the_docs_example_passes_as_a_user_runs_it(pytester):
     shutil.copy(EXAMPLE, pytester.path / EXAMPLE.name)
     result = pytester.runpytest_subprocess("-q", "-p", "no:cacheprovider")
     result.assert_outcomes(passed=3)
-    assert not devices_under(pytester.path.parent)
+    assert not devices_under(pytester.path)  # the inner run's devices (its basetemp is under it)
 
 
 @pytest.mark.slow
@@ -239,4 +239,4 @@ def test_the_feed_the_factory_and_the_session_device(pytester):
     result.assert_outcomes(passed=4)
     pids = set((pytester.path / "session_pids.txt").read_text().split())
     assert len(pids) == 1 and all(gone(int(p)) for p in pids)
-    assert not devices_under(pytester.path.parent)
+    assert not devices_under(pytester.path)  # the inner run's devices (its basetemp is under it)
