@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from firmware_model.device.dispatch import Refused
+from firmware_model.device.slots import atomic_write
 from protocol import flash
 from protocol.commands import CrcReply, CrcRequest, MemorySpace, NackReason
 from protocol.crc import crc16_mcrf4xx, crc32
@@ -66,21 +67,6 @@ BOOT_HEADER = b"ST16BOOT"  #: ours: the Configuration Header's magic (its conten
 MAINTENANCE_ADDRESS = 0x00004000  #: ours: INIT with this address enters maintenance mode
 ERASED = b"\xff" * PAGE_BYTES
 DISTURB_MESSAGE_CYCLES = 1000  #: a progress message in EDAC every 1000 read cycles (page 1-35915)
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` crash-safe: a temporary file, fsync, rename, fsync the folder."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-    fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _image(name: bytes, n: int) -> bytes:
@@ -311,7 +297,7 @@ class Nand:
         }
         raw = json.dumps(head).encode()
         body = b"".join(self.pages[base + off] for off in offsets)
-        _atomic_write(self._block_path(phys), struct.pack("<I", len(raw)) + raw + body + struct.pack("<I", crc32(body)))
+        atomic_write(self._block_path(phys), struct.pack("<I", len(raw)) + raw + body + struct.pack("<I", crc32(body)))
 
     def _save_meta(self) -> None:
         if self.root is None:
@@ -322,7 +308,7 @@ class Nand:
             "grown_bad": sorted(self.grown_bad),
             "failing": sorted(self.failing),
         }
-        _atomic_write(self.root / "meta.json", json.dumps(meta).encode())
+        atomic_write(self.root / "meta.json", json.dumps(meta).encode())
 
     def flush_reads(self) -> None:
         """After a solve's reads: write only the blocks where an error was found (their error

@@ -44,7 +44,9 @@ from protocol.crc import CRC32_RESIDUE, crc32
 log = logging.getLogger(__name__)
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` crash-safe: a temporary file, fsync, rename, fsync the folder
+    (the device's persisted state: the slots and the NAND)."""
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as fh:
         fh.write(data)
@@ -361,7 +363,7 @@ class SlotStore:
     def _write_manifest(self) -> None:
         assert self.root is not None
         slots = {str(s): {"length": n, "crc32": c} for s, (n, c) in sorted(self._manifest.items())}
-        _atomic_write(self.root / MANIFEST, json.dumps({"slots": slots}).encode())
+        atomic_write(self.root / MANIFEST, json.dumps({"slots": slots}).encode())
 
     def _load_active(self, slot: int, sub: Path) -> None:
         """committed image"""
@@ -492,7 +494,7 @@ class SlotStore:
             return
         d = self._dir(slot)
         crc = crc32(data)
-        _atomic_write(d / "active.img", pack_image(data, crc))  # the commit: one rename
+        atomic_write(d / "active.img", pack_image(data, crc))  # the commit: one rename
         for old in ("active.json", "active.bin"):  # an older directory's pair, superseded
             (d / old).unlink(missing_ok=True)
         self._install(slot, data, crc)
@@ -587,10 +589,10 @@ class SlotStore:
         view = memoryview(data)
         ranges = [[a, b, zlib.crc32(view[a:b])] for a, b in tr.ranges]  # protocol.crc's, without a copy
         meta = {"format": PARTIAL_FORMAT, "length": tr.length, "crc32": tr.crc32, "ranges": ranges}
-        _atomic_write(d / "partial.json", json.dumps(meta, separators=(",", ":")).encode())
+        atomic_write(d / "partial.json", json.dumps(meta, separators=(",", ":")).encode())
         if fresh_log:
             j.close()
-            _atomic_write(d / "partial.log", _LOG_HEADER.pack(LOG_MAGIC, tr.length, tr.crc32))
+            atomic_write(d / "partial.log", _LOG_HEADER.pack(LOG_MAGIC, tr.length, tr.crc32))
         else:
             assert j.log_fd is not None
             os.ftruncate(j.log_fd, _LOG_HEADER.size)
