@@ -102,7 +102,7 @@ def part_nasa42(dest: Path | None, seconds: float) -> None:
     from ground.catalog.design import CatalogDesign
     from ground.link.client import Client
     from ground.sim.device_process import start_device, stop_device
-    from ground.sim.nasa42 import body_quaternion
+    from ground.sim.nasa42 import body_quaternion, run_folder
     from protocol import result
 
     work = Path(tempfile.mkdtemp())
@@ -114,15 +114,7 @@ def part_nasa42(dest: Path | None, seconds: float) -> None:
         )
         print(f"(42 built in {time.monotonic() - t0:.1f} s)")
     port = _free_port()
-    run = dest / f"bench-{port}"
-    shutil.copytree(dest / "ipc-tx", run)
-    ipc = (run / "Inp_IPC.txt").read_text().splitlines()
-    ipc[6] = f"localhost     {port}                     ! Server Host Name, Port "
-    (run / "Inp_IPC.txt").write_text("\n".join(ipc) + "\n")
-    sim = (run / "Inp_Sim.txt").read_text().splitlines()
-    sim[3] = f"{seconds:.1f}     0.1                 !  Sim Duration, Step Size [sec]"
-    sim[4] = "0.1                             !  File Output Interval [sec]"
-    (run / "Inp_Sim.txt").write_text("\n".join(sim) + "\n")
+    run = run_folder(dest, f"bench-{port}", port, seconds)
     state = work / "state"
     state.mkdir()
     proc, pty = start_device(state)

@@ -200,17 +200,9 @@ def _free_port() -> int:
 
 
 def _run_folder(dest: Path, port: int, seconds: float) -> str:
-    name = f"run-{os.getpid()}-{port}"
-    run = dest / name
-    shutil.copytree(dest / "ipc-tx", run)
-    ipc = (run / "Inp_IPC.txt").read_text().splitlines()
-    ipc[6] = f"localhost     {port}                     ! Server Host Name, Port "
-    (run / "Inp_IPC.txt").write_text("\n".join(ipc) + "\n")
-    sim = (run / "Inp_Sim.txt").read_text().splitlines()
-    sim[3] = f"{seconds:.1f}     0.1                 !  Sim Duration, Step Size [sec]"
-    sim[4] = "0.1                             !  File Output Interval [sec]"
-    (run / "Inp_Sim.txt").write_text("\n".join(sim) + "\n")
-    return name
+    from ground.sim.nasa42 import run_folder
+
+    return run_folder(dest, f"run-{os.getpid()}-{port}", port, seconds).name
 
 
 def _truth(run: Path):

@@ -36,11 +36,13 @@ from __future__ import annotations
 
 import math
 import re
+import shutil
 import socket
 import threading
 import time
 from collections.abc import Callable
 from datetime import UTC, datetime, timedelta
+from pathlib import Path
 from urllib.parse import parse_qsl, urlsplit
 
 import numpy as np
@@ -282,3 +284,19 @@ class Reader:
             if len(buf) > MAX_MESSAGE:
                 self._on_error(f"42 line over {MAX_MESSAGE} bytes: the message dropped")
                 buf, lines = b"", []
+
+
+def run_folder(dest: Path, name: str, port: int, seconds: float) -> Path:
+    """A run of 42 built in ``dest`` (``../shared/tools/nasa42/build.sh``): a copy of its
+    ``ipc-tx`` inputs as ``dest/name`` with the IPC socket on ``port`` and ``seconds`` of 0.1 s
+    steps, output every step (``Inp_IPC.txt`` line 7, ``Inp_Sim.txt`` lines 4-5)."""
+    run = dest / name
+    shutil.copytree(dest / "ipc-tx", run)
+    ipc = (run / "Inp_IPC.txt").read_text().splitlines()
+    ipc[6] = f"localhost     {port}                     ! Server Host Name, Port "
+    (run / "Inp_IPC.txt").write_text("\n".join(ipc) + "\n")
+    sim = (run / "Inp_Sim.txt").read_text().splitlines()
+    sim[3] = f"{seconds:.1f}     0.1                 !  Sim Duration, Step Size [sec]"
+    sim[4] = "0.1                             !  File Output Interval [sec]"
+    (run / "Inp_Sim.txt").write_text("\n".join(sim) + "\n")
+    return run
