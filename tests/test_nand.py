@@ -349,3 +349,26 @@ def test_the_catalog_lives_in_the_nand_and_an_uncorrectable_page_stops_the_solve
     # it persisted: a restart finds the catalog in the NAND
     again = Device(store=SlotStore(tmp_path / "state"))
     assert again.maintenance.nand.read_page(first + 1)[:256] == bytes(range(256))
+
+
+def test_a_catalog_is_programmed_with_one_write_per_block_and_its_header_last(tmp_path, monkeypatch):
+    """A 15 MB catalog is about 7 400 pages: programming it must write each block's file once (not
+    once per page, which took 5 s quiet and over 30 s beside busy loops), and the header page,
+    which makes the copy valid, goes in last."""
+    import firmware_model.device.nand as nand_module
+    from firmware_model.device.nand import CATALOG_BLOCK, CATALOG_MAGIC
+
+    dev = Device(store=SlotStore(tmp_path / "state"))
+    written: list[str] = []
+    real = nand_module.atomic_write
+    monkeypatch.setattr(nand_module, "atomic_write", lambda path, data: (written.append(path.name), real(path, data)))
+    image = bytes(range(256)) * (8 * PAGES_PER_BLOCK * PAGE_BYTES // 256)  # 8 blocks of pages + a header page
+    dev.maintenance.store_catalog(image)
+    blocks = 8 + 1
+    catalog_files = [name for name in written if name.startswith("block-")]
+    assert len(catalog_files) <= 2 * blocks + 1, len(catalog_files)  # erase + program per block, the header again
+    first = CATALOG_BLOCK * PAGES_PER_BLOCK
+    nand = dev.maintenance.nand
+    assert nand.read_page(first).startswith(CATALOG_MAGIC)
+    assert nand.read_page(first + 8 * PAGES_PER_BLOCK)[:256] == bytes(range(256))
+    assert catalog_files[-1] == f"block-{nand.physical_block(CATALOG_BLOCK):05x}.bin"

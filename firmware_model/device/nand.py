@@ -172,15 +172,30 @@ class Nand:
 
     def write_page(self, page: int, data: bytes) -> None:
         """Program logical ``page`` with ``data`` (PAGE_BYTES); FlashFailure when it is not erased."""
-        block, _ = divmod(page, PAGES_PER_BLOCK)
-        if not self.erased(page):
-            raise FlashFailure(Sub.WRITE_PAGE, b"", Failure.OPERATION, page, f"page {page} is not erased")
-        phys = self._usable(block, copy=True)
-        pp = phys * PAGES_PER_BLOCK + page % PAGES_PER_BLOCK
-        self.pages[pp] = bytes(data)
-        self.errors.pop(pp, None)
-        self.seen.pop(pp, None)
-        self._commit(phys)
+        self.write_pages(page, [data])
+
+    def write_pages(self, first: int, datas: list[bytes]) -> None:
+        """Program the logical pages from ``first`` with ``datas`` (PAGE_BYTES each), in order; each
+        block is committed once, after its last page (a crash leaves every block as it was or
+        as it became). FlashFailure at the first page not erased (the blocks before it stay
+        programmed)."""
+        pending = None  # the physical block programmed and not yet committed
+        try:
+            for page, data in enumerate(datas, first):
+                block = page // PAGES_PER_BLOCK
+                if not self.erased(page):
+                    raise FlashFailure(Sub.WRITE_PAGE, b"", Failure.OPERATION, page, f"page {page} is not erased")
+                phys = self._usable(block, copy=True)
+                if pending is not None and phys != pending:
+                    self._commit(pending)
+                pending = phys
+                pp = phys * PAGES_PER_BLOCK + page % PAGES_PER_BLOCK
+                self.pages[pp] = bytes(data)
+                self.errors.pop(pp, None)
+                self.seen.pop(pp, None)
+        finally:
+            if pending is not None:
+                self._commit(pending)
 
     def _usable(self, block: int, copy: bool) -> int:
         """The physical block to erase or program for logical ``block``: relocated to a spare when
@@ -452,9 +467,9 @@ class Maintenance:
             n_pages = 1 + -(-len(image) // PAGE_BYTES)
             for block in range(CATALOG_BLOCK, CATALOG_BLOCK + -(-n_pages // PAGES_PER_BLOCK)):
                 nand.erase_block(block)
-            nand.write_page(first, header.ljust(PAGE_BYTES, b"\xff"))
-            for i in range(n_pages - 1):
-                nand.write_page(first + 1 + i, image[i * PAGE_BYTES : (i + 1) * PAGE_BYTES].ljust(PAGE_BYTES, b"\xff"))
+            pages = [image[i : i + PAGE_BYTES].ljust(PAGE_BYTES, b"\xff") for i in range(0, len(image), PAGE_BYTES)]
+            nand.write_pages(first + 1, pages)
+            nand.write_page(first, header.ljust(PAGE_BYTES, b"\xff"))  # last: a copy cut short has no header
             nand.flush()
 
     def read_catalog(self) -> None:
@@ -594,8 +609,10 @@ class Maintenance:
                     raise _syntax(sub, rest, f"a boot block starts at page {', '.join(map(str, flash.BOOT_PAGES))}")
                 image = boot_image(self._ram(0, flash.BOOT_BYTES))
                 nand.erase_block(page // PAGES_PER_BLOCK)
-                for i in range(0, len(image), PAGE_BYTES):
-                    nand.write_page(page + i // PAGE_BYTES, image[i : i + PAGE_BYTES].ljust(PAGE_BYTES, b"\xff"))
+                nand.write_pages(
+                    page,
+                    [image[i : i + PAGE_BYTES].ljust(PAGE_BYTES, b"\xff") for i in range(0, len(image), PAGE_BYTES)],
+                )
             return bytes([sub]) + rest
         if sub == Sub.FIND_BAD_BLOCKS:
             first, last = self._fields(sub, rest)
