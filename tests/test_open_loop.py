@@ -17,7 +17,7 @@ from firmware_model.camera import CameraModel
 from firmware_model.pipeline.extract import (
     PSF_FAIL_FRACTION,
     ExtractParams,
-    _detect_and_fit,
+    _Pass,
     extract_stars,
     failed_fit_fraction,
 )
@@ -65,7 +65,7 @@ def test_defocus_ring_among_hot_pixel_clusters_measures_a_wide_psf(catalog):
     rng = np.random.default_rng(5)
     hot, _ = ol.hot_clusters_e((NOMINAL.height, NOMINAL.width), 20, rng, e_range=(1000.0, 3000.0))
     a, r = render(NOMINAL, POINTINGS[0], seed=3, psf=ol.DonutPSF(4.0, 2.0, 0.5), extra_e=hot)
-    fit, snr, _, _ = _detect_and_fit(r.frame, ExtractParams(), 1.0)
+    fit, snr, _ = _Pass(r.frame, ExtractParams(), 1.0, None).result()
     assert failed_fit_fraction(fit, snr) > PSF_FAIL_FRACTION  # the failure this mechanism is for
     stars = extract_stars(r.frame, NOMINAL)
     assert stars.psf_sigma_px > 1.8, stars.psf_sigma_px

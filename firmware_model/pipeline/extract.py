@@ -132,12 +132,16 @@ class StarList:
         return recs
 
 
+def _measurable(fit: FitResults) -> np.ndarray:
+    """True where a fitted sigma may enter the PSF measurement (:func:`measure_psf_sigma`)."""
+    return np.isfinite(fit.sigma) & ((fit.flags & _PSF_EXCLUDE) == 0) & ~fit.sharp
+
+
 def measure_psf_sigma(fit: FitResults, snr: np.ndarray) -> float:
     """Median fitted PSF sigma (px) of the :data:`PSF_SAMPLE_STARS` highest-SNR stars whose fit
     converged and is not saturated, clipped, blended or sharp; NaN with fewer than
     :data:`PSF_MIN_STARS` such stars."""
-    ok = np.isfinite(fit.sigma) & ((fit.flags & _PSF_EXCLUDE) == 0) & ~fit.sharp
-    idx = np.flatnonzero(ok)
+    idx = np.flatnonzero(_measurable(fit))
     if len(idx) < PSF_MIN_STARS:
         return float("nan")
     idx = idx[np.argsort(-snr[idx])][:PSF_SAMPLE_STARS]
@@ -171,6 +175,9 @@ def _repeats(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 #: Candidates fitted first, as a multiple of the cap: the fit goes on to fainter candidates only
 #: while fewer than the cap survive it (fit only where the result needs it).
 FIT_FIRST_FACTOR = 1.25
+#: Candidates fitted first by a pass that only measures the PSF, as a multiple of
+#: :data:`PSF_SAMPLE_STARS`; it fits further ones only while fewer than that many are measurable.
+PSF_FIT_FIRST_FACTOR = 1.6
 
 
 def _take(det: Detections, idx: np.ndarray) -> Detections:
@@ -187,42 +194,97 @@ def _take(det: Detections, idx: np.ndarray) -> Detections:
     )
 
 
-def _detect_and_fit(frame: Frame, params: ExtractParams, sigma_px: float, prepared=None):
-    """One pass at PSF sigma ``sigma_px``: detection with twice the candidate cap, the fit, and
-    then the cap applied to the candidates the fit did not reject as sharper than the PSF (so
-    hot pixels cannot crowd stars out of the cap). Candidates are fitted brightest first, and
-    fainter ones only while fewer than the cap survive (a candidate's fate depends only on the
-    brighter ones: the repeat test keeps the brighter of two); those never fitted count as
-    dropped by the cap. Returns (fit, detection SNR, seconds in the fit, notes on what was left
-    out)."""
-    cap = params.detect.max_candidates
-    dp = replace(params.detect, psf_sigma_px=sigma_px, max_candidates=CAP_MARGIN * cap)
-    det = detect_stars(frame, dp, prepared=prepared)
-    fp = replace(params.fit, psf_sigma_px=sigma_px)
-    t1 = time.perf_counter()
-    n = len(det)
-    if not n:
-        fit = fit_stars(frame, det, fp)
-        return fit, det.snr, time.perf_counter() - t1, [det.reason]
-    parts: list[FitResults] = []
-    stop = 0
-    chunk = max(int(np.ceil(FIT_FIRST_FACTOR * cap)), 1)
-    while True:
-        start, stop = stop, min(n, stop + chunk)
-        parts.append(fit_stars(frame, _take(det, np.arange(start, stop)), fp))
-        fit = parts[0] if len(parts) == 1 else _concat(parts)
+class _Pass:
+    """One pass at PSF sigma ``sigma_px``: detection with :data:`CAP_MARGIN` times the candidate
+    cap, then the fit of its candidates brightest first, only as far as asked (:meth:`fit_for_psf`
+    for the PSF measurement, :meth:`fit_to_cap` for the result). A candidate's fate depends only
+    on the brighter ones (the repeat test keeps the brighter of two), so fitting further never
+    changes the stars already kept. ``fit_s``: seconds in the fit."""
+
+    def __init__(self, frame: Frame, params: ExtractParams, sigma_px: float, prepared) -> None:
+        self.frame, self.sigma = frame, sigma_px
+        self.cap = params.detect.max_candidates
+        dp = replace(params.detect, psf_sigma_px=sigma_px, max_candidates=CAP_MARGIN * self.cap)
+        self.det = detect_stars(frame, dp, prepared=prepared)
+        self.fp = replace(params.fit, psf_sigma_px=sigma_px)
+        self.parts: list[FitResults] = []
+        self.stop = 0  # candidates fitted
+        self.fit_s = 0.0
+        self.fit = fit_stars(frame, _take(self.det, np.arange(0)), self.fp)
+        self.keep = np.arange(0)  # fitted candidates neither sharp nor a repeat, brightest first
+
+    def _fit_next(self, stop: int) -> None:
+        """Fit candidates up to index ``stop`` and update the kept ones."""
+        t0 = time.perf_counter()
+        start, self.stop = self.stop, min(len(self.det), stop)
+        self.parts.append(fit_stars(self.frame, _take(self.det, np.arange(start, self.stop)), self.fp))
+        fit = self.parts[0] if len(self.parts) == 1 else _concat(self.parts)
         keep = np.flatnonzero(~fit.sharp)
-        n_sharp = len(fit.sharp) - len(keep)
-        keep = keep[~_repeats(fit.x[keep], fit.y[keep])]
-        if len(keep) >= cap or stop == n:
-            break
-        chunk = max(2 * (cap - len(keep)), 8)
-    dt = time.perf_counter() - t1
-    notes = bound_notes(det, det.n_dropped_cap + max(len(keep) - cap, 0) + (n - stop), cap)
-    if n_sharp:
-        notes.append(f"{n_sharp} candidate(s) sharper than the PSF rejected by the fit (hot pixels / cosmic rays)")
-    keep = keep[:cap]
-    return FitResults(**{k: v[keep] for k, v in vars(fit).items()}), det.snr[keep], dt, notes
+        self.fit, self.keep = fit, keep[~_repeats(fit.x[keep], fit.y[keep])]
+        self.fit_s += time.perf_counter() - t0
+
+    def _fit_while(self, more) -> None:
+        """Fit further candidates while ``more()`` and fewer than the cap are kept: the first chunk
+        up to :data:`FIT_FIRST_FACTOR` x the cap, then twice the shortfall, at least 8."""
+        first = max(int(np.ceil(FIT_FIRST_FACTOR * self.cap)), 1)
+        while self.stop < len(self.det) and len(self.keep) < self.cap and more():
+            self._fit_next(first if self.stop < first else self.stop + max(2 * (self.cap - len(self.keep)), 8))
+
+    def fit_to_cap(self) -> None:
+        """Fit until the cap's worth of candidates is kept or none is left."""
+        self._fit_while(lambda: True)
+
+    def fit_to_keep(self, n: int) -> None:
+        """Fit until ``n`` candidates are kept (or the cap's worth, or none is left)."""
+        self._fit_while(lambda: len(self.keep) < n)
+
+    def fit_for_psf(self) -> None:
+        """Fit until :data:`PSF_SAMPLE_STARS` kept candidates are measurable (or the cap's worth is
+        kept, or none is left), the first :data:`PSF_FIT_FIRST_FACTOR` x that many at once."""
+        if self.stop == 0 and len(self.det):
+            self._fit_next(
+                min(int(np.ceil(PSF_FIT_FIRST_FACTOR * PSF_SAMPLE_STARS)), int(np.ceil(FIT_FIRST_FACTOR * self.cap)))
+            )
+        self._fit_while(lambda: np.count_nonzero(_measurable(self.sample()[0])) < PSF_SAMPLE_STARS)
+
+    def kept(self) -> int:
+        """Candidates kept so far, at most the cap."""
+        return min(len(self.keep), self.cap)
+
+    def _kept(self) -> FitResults:
+        keep = self.keep[: self.cap]
+        return FitResults(**{k: v[keep] for k, v in vars(self.fit).items()})
+
+    def sample(self) -> tuple[FitResults, np.ndarray]:
+        """The kept candidates fitted so far (at most the cap) and their detection SNR."""
+        return self._kept(), self.det.snr[self.keep[: self.cap]]
+
+    def result(self) -> tuple[FitResults, np.ndarray, list[str]]:
+        """The fit of the cap's worth of kept candidates (:meth:`fit_to_cap` first), their
+        detection SNR and notes on what was left out (candidates never fitted count as dropped
+        by the cap)."""
+        self.fit_to_cap()
+        if not len(self.det):
+            return self.fit, self.det.snr, [self.det.reason]
+        n = len(self.det)
+        notes = bound_notes(
+            self.det, self.det.n_dropped_cap + max(len(self.keep) - self.cap, 0) + (n - self.stop), self.cap
+        )
+        n_sharp = int(np.count_nonzero(self.fit.sharp))
+        if n_sharp:
+            notes.append(f"{n_sharp} candidate(s) sharper than the PSF rejected by the fit (hot pixels / cosmic rays)")
+        fit, snr = self.sample()
+        return fit, snr, notes
+
+
+def _lost_most(new: _Pass, old: _Pass) -> bool:
+    """True when ``new`` keeps fewer than half as many stars as ``old`` (each at most the cap),
+    fitting only as far as that takes."""
+    new.fit_to_keep(int(np.ceil(0.5 * new.cap)))
+    if new.kept() >= 0.5 * old.cap:
+        return False
+    old.fit_to_cap()
+    return new.kept() < 0.5 * old.kept()
 
 
 def _concat(parts: list[FitResults]) -> FitResults:
@@ -233,41 +295,43 @@ def extract_stars(frame: Frame, camera: CameraModel | None = None, params: Extra
     """Detect and fit stars in ``frame``; ``camera`` (or ``frame.camera``) adds unit vectors."""
     t0 = time.perf_counter()
     sigma = params.psf_sigma_px if params.psf_sigma_px is not None else params.psf_start_px
-    fit_s = 0.0
-
     prepared = prepare_detection(frame, params.detect)  # shared by the passes
+    passes_run: list[_Pass] = []
 
-    def one_pass(width):
-        nonlocal fit_s
-        fit, snr, dt, notes = _detect_and_fit(frame, params, width, prepared)
-        fit_s += dt
-        return fit, snr, notes, width
+    def one_pass(width: float) -> _Pass:
+        p = _Pass(frame, params, width, prepared)
+        passes_run.append(p)
+        if params.psf_sigma_px is None:
+            p.fit_for_psf()
+        return p
 
     current, passes = one_pass(sigma), 1
     source, measured = "setting", float("nan")
     if params.psf_sigma_px is None:
-        failed = failed_fit_fraction(*current[:2])
+        failed = failed_fit_fraction(*current.sample())
         if failed > PSF_FAIL_FRACTION and passes < params.psf_max_passes:
             # most fits failed: either the guess is far too narrow for the PSF, or the few
             # converged fits are right that it is narrower; a wide pass tells which
-            m = measure_psf_sigma(*current[:2])
+            m = measure_psf_sigma(*current.sample())
             wide, passes = one_pass(PSF_WIDEN_FACTOR * max(sigma, m if np.isfinite(m) else 0.0)), passes + 1
-            if failed_fit_fraction(*wide[:2]) < failed and len(wide[0].x) >= 0.5 * len(current[0].x):
+            if failed_fit_fraction(*wide.sample()) < failed and not _lost_most(wide, current):
                 current = wide
         while True:
-            measured = measure_psf_sigma(*current[:2])
+            measured = measure_psf_sigma(*current.sample())
             source = "measured" if np.isfinite(measured) else "start"
             if (
                 not np.isfinite(measured)
-                or abs(measured / current[3] - 1.0) <= params.psf_tolerance
+                or abs(measured / current.sigma - 1.0) <= params.psf_tolerance
                 or passes >= params.psf_max_passes
             ):
                 break
             nxt, passes = one_pass(measured), passes + 1
-            if len(nxt[0].x) < 0.5 * len(current[0].x):
+            if _lost_most(nxt, current):
                 break  # the measured width lost most of the stars (a PSF far from Gaussian): keep this pass
             current = nxt
-    fit, snr, notes, sigma = current
+    fit, snr, notes = current.result()
+    sigma = current.sigma
+    fit_s = sum(p.fit_s for p in passes_run)
     t2 = time.perf_counter()
     t1 = t2 - fit_s
     reason = "; ".join(notes)
