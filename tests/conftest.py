@@ -93,6 +93,7 @@ LONG_TESTS = {
     # the closed loop through a paced device in real time
     "tests/test_hil.py::test_short_closed_loop_through_the_paced_device": "hil",  # 11 + 3 s
     "tests/test_hil_scenarios.py::test_short_moon_slew_through_the_paced_device": "hil",  # 58 s
+    "tests/test_two_heads_loop.py::test_the_two_head_loop_through_the_device": "hil",
     # long end-to-end runs of device processes
     "tests/test_attitude_feed.py::test_device_cli_solves_along_a_fed_path": "slow",  # 31 s
     "tests/test_link_pty.py::test_ctrl_c_during_an_upload_keeps_what_was_sent_and_the_next_upload_resumes": "slow",

@@ -103,7 +103,7 @@ def _synthetic_run(sc, statuses):
     for t in np.arange(0.25, sc.duration_s - 0.5, 0.5):
         status = statuses(t)
         q = [float(v) for v in sc.slew.target(t)] if status == "OK" else None
-        log.updates.append(Update(t0 + t - 0.1, t0 + t + 0.1, status, q, t0 + t))
+        log.updates.append(Update(t0 + t - 0.1, t0 + t + 0.1, status, q, t0 + t, q_body=q, used=q is not None))
     return log
 
 

@@ -197,22 +197,18 @@ def load_params(path: str) -> DeviceParams:
         raise ValueError(f"--params {path}: {exc.message}") from None
 
 
-def build_device(args: argparse.Namespace) -> Device:
+def build_device(args: argparse.Namespace, shared_source: Callable[[SolveContext], Any] | None = None) -> Device:
     """The device the options describe: slots for catalog (0), frame (1) and parameters (2), the
     pipeline solver on the camera model, the capture source if one is given, and the ``--params``
     set's settings as the defaults (pipeline, ``quaternion_order``) until a set is uploaded. It is
-    ready when this returns: kernels loaded, the stored catalog's pattern index built."""
+    ready when this returns: kernels loaded, the stored catalog's pattern index built.
+    ``shared_source``: a capture source several heads share (made ready by their bus), used in
+    place of the options' own, its simulated clocks included."""
     if not 0 <= args.address <= 0xFF:
         raise ValueError(f"address 0x{args.address:X} outside 0x00-0xFF")
     camera = load_camera(args.camera)
     device_params = load_params(args.params) if args.params else DeviceParams()
-    source: Callable[[SolveContext], Any] | None = None
-    if args.frames:
-        source = FileFrames(args.frames, camera, loop=args.loop)
-    elif args.sky:
-        source = _named(f"--sky {args.sky}", lambda: load_frame_source("sky", args.sky, camera))
-    elif args.attitude_feed:
-        source = load_frame_source("attitude_feed", args.attitude_feed, camera)
+    source = shared_source if shared_source is not None else _capture_source(args, camera)
     store = SlotStore(args.state, volatile={Slot.FRAME}) if args.state else None
     clock = clock_model(args, device_params)
     solver = PipelineSolver(
@@ -245,10 +241,21 @@ def build_device(args: argparse.Namespace) -> Device:
         deadline = DEFAULT_DEADLINE_MS if args.deadline_ms is None else args.deadline_ms
         solver.params = replace(solver.params, flight_deadline_s=deadline / 1000.0)
     solver.serving()  # the stored catalog's index is built; a COMMIT's is built in another process
-    ready = getattr(source, "ready", None)
+    ready = None if shared_source is not None else getattr(source, "ready", None)
     if ready is not None:  # a capture source's own start-up (a rendering source's noise), drawn meanwhile
         ready()
     return device
+
+
+def _capture_source(args: argparse.Namespace, camera: CameraModel) -> Callable[[SolveContext], Any] | None:
+    """The capture source the options name (``--frames``, ``--sky``, ``--attitude-feed``), or None."""
+    if args.frames:
+        return FileFrames(args.frames, camera, loop=args.loop)
+    if args.sky:
+        return _named(f"--sky {args.sky}", lambda: load_frame_source("sky", args.sky, camera))
+    if args.attitude_feed:
+        return load_frame_source("attitude_feed", args.attitude_feed, camera)
+    return None
 
 
 def _simulated_clocks(source: Any) -> dict[str, Any]:

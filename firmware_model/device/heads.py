@@ -172,10 +172,13 @@ def build_bus(args: argparse.Namespace, heads: tuple[HeadSpec, ...]) -> Bus:
     from firmware_model.device import cli  # the one device builder
 
     shared = None
-    if args.attitude_feed:
+    if args.attitude_feed:  # one listener for every head: their clocks follow its simulated time
+        from firmware_model.device.sensor_input import load_frame_source
+
         cameras = {h.camera or args.camera for h in heads}
         if len(cameras) > 1:
             raise ValueError("--attitude-feed with --heads: the heads share one feed, so one camera (drop 'camera')")
+        shared = load_frame_source("attitude_feed", args.attitude_feed, cli.load_camera(cameras.pop()))
     devices: list[Device] = []
     for head in heads:
         ns = argparse.Namespace(**vars(args))
@@ -183,15 +186,7 @@ def build_bus(args: argparse.Namespace, heads: tuple[HeadSpec, ...]) -> Bus:
         ns.camera = head.camera or args.camera
         ns.params = head.params or args.params
         ns.state = None if args.state is None else str(Path(args.state) / f"head-0x{head.address:02X}")
-        if args.attitude_feed:
-            ns.attitude_feed = None  # built once below and shared
-        device = cli.build_device(ns)
-        if args.attitude_feed:
-            if shared is None:
-                from firmware_model.device.sensor_input import load_frame_source
-
-                shared = load_frame_source("attitude_feed", args.attitude_feed, cli.load_camera(ns.camera))
-            device.frame_source = shared
+        device = cli.build_device(ns, shared_source=shared)
         if args.sky or args.attitude_feed:
             device.frame_source = MountedSource(device.frame_source, head.mount)  # type: ignore[arg-type]
         devices.append(device)

@@ -69,9 +69,10 @@ def _demo(args) -> int:
         print(f"st16-ground: hil demo failed: {why}", file=sys.stderr)
         return 1
     if args.scenario != "none":
-        from ground.hil.scenario_report import scenario_failure
+        from ground.hil.run import parse_epoch
+        from ground.hil.scenarios import plan
 
-        why = scenario_failure(summary, PASS_MARK_DEG)
+        why = plan(args.scenario, parse_epoch(args.epoch)).failure(summary, PASS_MARK_DEG, FRESH_FIX_S)
         if why is not None:
             print(f"st16-ground: hil demo failed: {why}", file=sys.stderr)
             return 1
@@ -122,10 +123,11 @@ def register(sub) -> None:
     )
     d.add_argument(
         "--scenario",
-        choices=("none", "eclipse-exit", "moon-slew"),
+        choices=("none", "eclipse-exit", "moon-slew", "two-heads"),
         default="none",
         help="none: a random target 4 deg off; eclipse-exit: sunrise, then a slew past the Sun; "
-        "moon-slew: a slew through the Moon (docs/hil.md Scenarios)",
+        "moon-slew: a slew through the Moon; two-heads: two heads, one swept past the Sun, the flight "
+        "side selecting (docs/hil.md Scenarios)",
     )
     d.add_argument(
         "--dynamics",

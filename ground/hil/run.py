@@ -87,12 +87,15 @@ def run_hil(
     speed: float = 0.0,
     gyro_spec=None,
     tracker_off_after: float | None = None,
+    read_heads: tuple[int, ...] | None = None,
 ) -> dict:
     """The closed loop of the module docstring; returns the summary (also written to ``out``).
     ``duration_s`` None: 30 s, or the scenario's own length; ``limits_deg`` a scenario's exclusion
     angles (default ``scenarios.LIMITS_DEG``); ``epoch_utc`` the simulated start; ``speed`` simulated
     s per real s (0: unpaced); ``gyro_spec`` the gyro class (``ground.sim.gyro.DEFAULT``);
-    ``tracker_off_after`` s of simulated time after which the flight side gets no answer."""
+    ``tracker_off_after`` s of simulated time after which the flight side gets no answer;
+    ``read_heads`` the addresses the flight side reads in a scenario with heads (default all: the
+    control run reads one)."""
     import json
     import tempfile
     from pathlib import Path
@@ -102,15 +105,15 @@ def run_hil(
 
     from firmware_model.camera import CameraModel
     from firmware_model.catalog.image_io import catalog_to_image
-    from firmware_model.reference_frames import matrix_to_quat
+    from firmware_model.reference_frames import matrix_to_quat, quat_to_matrix
     from ground.atomic_write import write_text
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
-    from ground.hil import scenario_report, scenarios
+    from ground.hil import scenarios
     from ground.link.client import Client
     from ground.sim.device_process import pick_attitudes, start_device, stop_device
     from ground.sim.gyro import DEFAULT, Gyro
-    from ground.sim.hil_loop import MINIMAL_MASK, run_closed_loop
+    from ground.sim.hil_loop import MINIMAL_MASK, Head, run_closed_loop
     from protocol.commands import Slot
 
     start_posix = parse_epoch(epoch_utc)
@@ -140,21 +143,33 @@ def run_hil(
     dynamics, note = make_dynamics(dynamics_kind, q0, w0, q_target, dt)
     print(f"hil: dynamics {dynamics.label}{note}", flush=True)
     url = f"tcp://127.0.0.1:{free_tcp_port()}?clock=sim"  # lockstep: the device on simulated time
+    heads = [] if plan is None else [Head(a, quat_to_matrix(q)) for a, q in plan.heads]
     with tempfile.TemporaryDirectory() as state:
-        proc, pty = start_device(Path(state))  # the catalog goes up unpaced, persisted in the state
+        bus: list[str] = []
+        if heads:  # one device process, a head per address (st16-device --heads)
+            heads_file = Path(state) / "heads.json"
+            heads_file.write_text(
+                json.dumps({"heads": [{"address": h.address, "mount_q": list(matrix_to_quat(h.mount))} for h in heads]})
+            )
+            bus = ["--heads", str(heads_file)]
+        proc, pty = start_device(Path(state) / "device", *bus)  # the catalog goes up unpaced, persisted
         try:
             with Client(pty, timeout=5.0) as c:
-                c.init()
-                c.upload(0, catalog_to_image(catalog), progress=progress)
-                if plan is not None:
-                    c.upload(Slot.PARAMS, json.dumps(plan.params()).encode(), progress=False)
+                for address in [h.address for h in heads] or [c.device_address]:
+                    c.device_address = address
+                    c.init()
+                    c.upload(0, catalog_to_image(catalog), progress=progress)
+                    if plan is not None:
+                        c.upload(Slot.PARAMS, json.dumps(plan.params()).encode(), progress=False)
         finally:
             stop_device(proc)
         # unpaced: a paced link stamps arrivals with the machine's clock, simulated time with the feed's
-        proc, pty = start_device(Path(state), "--attitude-feed", url)
+        proc, pty = start_device(Path(state) / "device", *bus, "--attitude-feed", url)
         try:
             with Client(pty, timeout=5.0) as c:
-                c.init()
+                for address in [h.address for h in heads] or [c.device_address]:
+                    c.device_address = address
+                    c.init()
                 log = run_closed_loop(
                     dynamics,
                     c,
@@ -166,12 +181,13 @@ def run_hil(
                     dt=dt,
                     progress=progress,
                     target_at=None if plan is None else plan.slew.target,
-                    position_at=None if plan is None else plan.position_km,
+                    position_at=None if plan is None else plan.position_at,
                     start_posix=start_posix,
                     speed=speed,
                     gyro_spec=gyro_spec,
                     gyro_seed=seed,
                     tracker_off_after=tracker_off_after,
+                    heads=[h for h in heads if read_heads is None or h.address in read_heads],
                 )
         finally:
             stop_device(proc)
@@ -186,9 +202,7 @@ def run_hil(
     if plan is None:
         _plot(log, rows, out / "hil.png")
     else:
-        tr = scenario_report.track(log)
-        summary |= scenario_report.summarise_scenario(plan, log, rows, tr)
-        scenario_report.plot_scenario(plan, log, rows, tr, out / "hil.png")
+        summary |= plan.report(log, rows, out / "hil.png")
     write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary
 
@@ -222,7 +236,7 @@ def summarise(log, rows: list[dict], duration_s: float, mask: int) -> dict:
         est_err = (
             math.degrees(rotation_angle(quat_to_matrix(log.estimate_q[-1]), quat_to_matrix(log.truth_q[-1]))) * 3600
         )
-    oks = [u.received for u in log.updates if u.status == "OK"]
+    oks = [u.received for u in log.updates if u.used]
     end = log.truth_t[-1] if log.truth_t else t0
     return {
         "dynamics": log.dynamics,

@@ -36,7 +36,7 @@ from firmware_model.pipeline.sky_bodies import sky_bodies
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, quat_to_matrix
 from ground.sim.orbit import CircularOrbit, in_earth_shadow, utc_iso
 
-NAMES = ("none", "eclipse-exit", "moon-slew")
+NAMES = ("none", "eclipse-exit", "moon-slew", "two-heads")  #: two-heads: ground.hil.two_heads_scenario
 
 #: Exclusion angles the scenarios give the device, deg (edge of the disc to the boresight): the
 #: device's defaults (``pipeline.exclusion.ExclusionLimits``: Sun 30 and Moon 25 from CryoSat's
@@ -105,12 +105,34 @@ class Scenario:
         """The device's slot-2 parameters for the run."""
         return {f"{b}_exclusion_deg": v for b, v in self.limits_deg.items()}
 
+    heads = ()  #: one head: the device's own, mounted at the identity
+
     def position_km(self, t: float) -> np.ndarray:
         """GCRS position (km) ``t`` s after the start, whenever the run starts."""
         return self.orbit.position_gcrs_km(self.start_posix + t)
 
+    @property
+    def position_at(self):
+        """What the feed's samples carry as ``r`` (s since the start -> GCRS km)."""
+        return self.position_km
 
-def plan(name: str, start_posix: float, limits_deg: dict[str, float] | None = None) -> Scenario:
+    def report(self, log, rows: list[dict], plot_path) -> dict:
+        """The summary's scenario figures; the plot written to ``plot_path``."""
+        from ground.hil import scenario_report
+
+        tr = scenario_report.track(log)
+        scenario_report.plot_scenario(self, log, rows, tr, plot_path)
+        return scenario_report.summarise_scenario(self, log, rows, tr)
+
+    def failure(self, summary: dict, pass_mark_deg: float, fresh_fix_s: float) -> str | None:
+        """Why the run fails the scenario's pass mark, or None."""
+        from ground.hil import scenario_report
+
+        del fresh_fix_s  # one head: the demo's own fresh-fix check applies
+        return scenario_report.scenario_failure(summary, pass_mark_deg)
+
+
+def plan(name: str, start_posix: float, limits_deg: dict[str, float] | None = None):
     """Scenario ``name`` (not ``none``) for a run starting at POSIX ``start_posix``; ValueError
     with a one-line reason when the day's geometry does not allow it."""
     limits = dict(LIMITS_DEG if limits_deg is None else limits_deg)
@@ -118,6 +140,10 @@ def plan(name: str, start_posix: float, limits_deg: dict[str, float] | None = No
         return _checked(_eclipse_exit(start_posix, limits))
     if name == "moon-slew":
         return _checked(_moon_slew(start_posix, limits))
+    if name == "two-heads":
+        from ground.hil import two_heads_scenario
+
+        return two_heads_scenario.plan(start_posix, limits)
     raise ValueError(f"unknown scenario {name!r}; known: {', '.join(NAMES)}")
 
 

@@ -14,8 +14,8 @@ the gyro of ``ground.sim.gyro``, updated with the tracker's answers and their re
   the innovation is taken against the estimate at ``t_mid`` (kept per step), rotated to the
   present by the estimate's own rotation since, and applied to the present estimate (the delay is
   a few tenths of a second: the error rotated, the covariance not re-propagated; our
-  simplification). ``R`` is the answer's ``attitude_covariance`` (rad^2, sensor axes = body axes
-  here); an answer without one (all zero) is given :data:`FALLBACK_SIGMA_RAD`.
+  simplification). ``R`` is the answer's ``attitude_covariance`` (rad^2, sensor axes; a head mounted
+  at ``M`` gives ``M.T R M`` in the body's, :func:`upper_in_body_axes`); an answer without one (all zero) is given :data:`FALLBACK_SIGMA_RAD`.
 """
 
 from __future__ import annotations
@@ -45,6 +45,13 @@ def covariance_from_upper(six) -> np.ndarray:
     """3x3 covariance from the result's upper triangle, row by row (xx, xy, xz, yy, yz, zz)."""
     xx, xy, xz, yy, yz, zz = (float(v) for v in six)
     return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+
+
+def upper_in_body_axes(six, mount: np.ndarray) -> list[float]:
+    """A head's attitude covariance (the result's six numbers, sensor axes) in the body's axes,
+    ``mount`` the head's body-to-sensor matrix: ``P_body = M.T P M`` (the error ``e_body = M.T e``)."""
+    p = mount.T @ covariance_from_upper(six) @ mount
+    return [float(p[i, j]) for i in range(3) for j in range(i, 3)]
 
 
 class Mekf:

@@ -19,6 +19,11 @@ feeds its own estimate to the controller. Lockstep, in simulated time:
   The run's statuses, attitudes and time tags are the same at any speed (docs/hil.md "Lockstep").
 * ``tracker_off_after`` (s): no GO after that much simulated time; the flight side coasts on the
   gyro (the control run: at 0 it never gets a fix).
+* ``heads``: the tracker heads the flight side reads (:class:`Head`: address and mounting, the
+  device serving ``--heads``); each GO cycle goes to every head, and the flight side's selection
+  (:func:`prefer_last`: an OK head, the one it used last while it stays OK) picks the answer
+  it uses, turned into the body's attitude and axes. Without heads: the client's one head, mounted
+  at the identity.
 
 A scenario (``ground.hil.scenarios``) adds a moving target (``target_at``: s since the start -> q)
 and an orbit (``position_at``: s -> GCRS km, sent as each sample's ``r``); both are logged per step.
@@ -31,7 +36,7 @@ from __future__ import annotations
 import math
 import struct
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,7 +45,7 @@ from tqdm import tqdm
 from firmware_model.reference_frames import matrix_to_quat, quat_to_matrix, rotation_angle
 from ground.sim.attitude_feed import slerp
 from ground.sim.feed_wire import Sample, Sender
-from ground.sim.flight_estimator import Mekf
+from ground.sim.flight_estimator import Mekf, upper_in_body_axes
 from ground.sim.gyro import DEFAULT, Gyro, GyroSpec
 from protocol import result
 
@@ -54,20 +59,33 @@ RESULT_DELAY_S = 0.5
 WALL_GUARD_S = 60.0  #: real seconds the loop waits for the device at most (a hang guard)
 
 
+@dataclass(frozen=True)
+class Head:
+    """A tracker head the flight side reads: its NSP address and mounting, the body-to-sensor
+    matrix ``M`` (``v_sensor = M v_body``, docs/CONVENTIONS.md)."""
+
+    address: int
+    mount: np.ndarray
+
+
 @dataclass
 class Update:
     """One answer of the tracker: simulated times (POSIX s) of the GO and of its use, the answer,
     the exposure mid-time (its epoch mapped to simulated time), the device's epoch as reported, the
-    attitude covariance, and the real seconds from GO to the result ready."""
+    attitude covariance, the real seconds from GO to the result ready, the head that answered
+    and whether the flight side used this answer."""
 
     sent: float
     received: float
     status: str
-    q: list[float] | None  #: the attitude, OK answers only
+    q: list[float] | None  #: the attitude, OK answers only (the head's sensor frame)
     t_mid: float | None  #: exposure mid-time (simulated POSIX s, mapped from the device clock), every status
     epoch: float | None = None  #: the result's epoch, device clock s
     cov: list[float] | None = None
     wall_latency_s: float | None = None
+    address: int | None = None
+    q_body: list[float] | None = None  #: the body's attitude by this answer (M.T A_sensor), OK answers only
+    used: bool = False
 
 
 @dataclass
@@ -85,8 +103,8 @@ class HilLog:
     first_fix_t: float | None = None  #: simulated POSIX s the estimator took its first attitude
 
     def ok_updates(self) -> int:
-        """Updates that brought an OK attitude."""
-        return sum(u.status == "OK" for u in list(self.updates))
+        """Updates whose OK attitude the flight side used."""
+        return sum(u.used for u in list(self.updates))
 
     def _at(self, qs: list[list[float]], t: float) -> np.ndarray:
         k = int(np.clip(np.searchsorted(self.truth_t, t), 1, len(self.truth_t) - 1))
@@ -109,7 +127,7 @@ class HilLog:
         out = []
         for u in self.updates:
             row: dict = {"t": u.received - t0, "status": u.status, "sent": u.sent, "received": u.received}
-            row |= {"epoch": u.epoch, "q": u.q}
+            row |= {"epoch": u.epoch, "q": u.q, "address": u.address, "used": u.used}
             if u.t_mid is not None and u.t_mid > t0:
                 a_true = quat_to_matrix(self.truth_at(u.t_mid))
                 row |= {
@@ -117,14 +135,21 @@ class HilLog:
                     "q_truth": [float(v) for v in matrix_to_quat(a_true)],
                     "pointing_error_deg": math.degrees(rotation_angle(a_true, quat_to_matrix(self.target_at(u.t_mid)))),
                 }
-                if u.q is not None:
+                if u.q_body is not None:
                     row |= {
                         "latency_s": u.received - u.t_mid,
-                        "q_measured": u.q,
-                        "measured_error_arcsec": math.degrees(rotation_angle(quat_to_matrix(u.q), a_true)) * 3600,
+                        "q_measured": u.q_body,
+                        "measured_error_arcsec": math.degrees(rotation_angle(quat_to_matrix(u.q_body), a_true)) * 3600,
                     }
             out.append(row)
         return out
+
+
+def prefer_last(answers: list[Update], last: int | None) -> Update | None:
+    """The flight side's choice among one GO cycle's answers: an OK one, from the head it used
+    last while that head stays OK, else the first OK head in the order the heads were given."""
+    ok = [u for u in answers if u.q_body is not None]
+    return next((u for u in ok if u.address == last), ok[0] if ok else None)
 
 
 def _epoch_of(head: bytes) -> tuple[str, list[float] | None, float | None, np.ndarray | None]:
@@ -157,6 +182,11 @@ class DeviceLink:
 
     def go(self) -> None:
         self.client.go(GO_CODE)
+
+    def to(self, head: Head) -> DeviceLink:
+        """Address ``head`` from now on (the heads share one line); this link."""
+        self.client.device_address = head.address
+        return self
 
     def answer(self) -> tuple[bytes, bytes]:
         """The result head and covariance, waiting for the sequence to finish."""
@@ -194,6 +224,7 @@ def run_closed_loop(
     sleep: Callable[[float], None] = time.sleep,
     target_at: Callable[[float], np.ndarray] | None = None,
     position_at: Callable[[float], np.ndarray] | None = None,
+    heads: Sequence[Head] | None = None,
 ) -> HilLog:
     """Run the lockstep loop of the module docstring from simulated POSIX ``start_posix``;
     ``client`` is a connected ``ground.link.client.Client`` of a device serving ``--attitude-feed
@@ -224,37 +255,42 @@ def run_closed_loop(
     off_at = math.inf if tracker_off_after is None else start + tracker_off_after
     gyro = Gyro(gyro_spec, gyro_seed)
     est = Mekf(start, gyro_spec)
+    heads = tuple(heads) if heads else (Head(client.device_address, np.eye(3)),)
     with Sender(feed_url) as sender:
-        send(start - dt, q, w, logged=False)  # the device clock counts from this sample
+        send(start - dt, q, w, logged=False)  # the device clocks count from this sample
         send(start, q, w)
-        offset = start - dev.wait_device_time(dt)  # simulated POSIX s = device clock s + offset
+        #: per head: simulated POSIX s = its device clock s + offset
+        offset = {h.address: start - dev.to(h).wait_device_time(dt) for h in heads}
         wall0 = wall()
-        pending: tuple[float, float] | None = None  #: (simulated GO time, real GO time)
+        pending: dict[int, tuple[float, float]] = {}  #: address -> (simulated GO time, real GO time)
+        last_used: int | None = None
         next_go = start
         bar = tqdm(total=n, desc="closed loop", unit="step", disable=not progress)
         k = 0
         try:
             while True:
                 t = start + k * dt
-                if pending is not None and t >= pending[0] + result_delay_s - 1e-9:
-                    head, cov_bytes = dev.answer()
-                    latency = wall() - pending[1]
-                    status, qm, epoch, _ = _epoch_of(head)
-                    cov = list(struct.unpack("<6d", cov_bytes))
-                    t_mid = None if epoch is None else epoch + offset
-                    log.updates.append(Update(pending[0], t, status, qm, t_mid, epoch, cov, latency))
-                    if qm is not None and t_mid is not None:
-                        est.update(quat_to_matrix(qm), t_mid, cov)
+                if pending and t >= min(p[0] for p in pending.values()) + result_delay_s - 1e-9:
+                    answers = [_answer(dev.to(h), h, pending[h.address], t, offset[h.address], wall) for h in heads]
+                    log.updates.extend(answers)
+                    chosen = prefer_last(answers, last_used)
+                    if chosen is not None and chosen.q_body is not None and chosen.t_mid is not None:
+                        head = next(h for h in heads if h.address == chosen.address)
+                        est.update(
+                            quat_to_matrix(chosen.q_body), chosen.t_mid, upper_in_body_axes(chosen.cov, head.mount)
+                        )
+                        chosen.used, last_used = True, chosen.address
                         if log.first_fix_t is None:
                             log.first_fix_t = t
-                    pending = None
+                    pending = {}
                 done = k >= n and (log.ok_updates() >= min_ok_updates or t >= start + duration_s + overrun_s)
-                if done and pending is None:
+                if done and not pending:
                     break
-                if pending is None and not done and t >= next_go - 1e-9 and t < off_at:
-                    dev.wait_device_time(t - offset)  # the device has taken the sample at t
-                    pending = (t, wall())
-                    dev.go()
+                if not pending and not done and t >= next_go - 1e-9 and t < off_at:
+                    for h in heads:
+                        dev.to(h).wait_device_time(t - offset[h.address])  # it has taken the sample at t
+                        pending[h.address] = (t, wall())
+                        dev.go()
                     next_go += go_period_s
                 log.estimate_q.append(None if est.lost else [float(v) for v in matrix_to_quat(est.a)])
                 q_ctl = target(t) if est.lost else matrix_to_quat(est.a)  # lost: damp the rate only
@@ -274,3 +310,13 @@ def run_closed_loop(
             bar.close()
     log.estimate_q.append(None if est.lost else [float(v) for v in matrix_to_quat(est.a)])
     return log
+
+
+def _answer(dev: DeviceLink, head: Head, sent: tuple[float, float], t: float, offset: float, wall) -> Update:
+    """``head``'s answer to the GO ``sent`` (simulated, real s), read at simulated ``t``."""
+    result_head, cov_bytes = dev.answer()
+    status, qm, epoch, _ = _epoch_of(result_head)
+    q_body = None if qm is None else [float(v) for v in matrix_to_quat(head.mount.T @ quat_to_matrix(qm))]
+    cov = list(struct.unpack("<6d", cov_bytes))
+    t_mid = None if epoch is None else epoch + offset
+    return Update(sent[0], t, status, qm, t_mid, epoch, cov, wall() - sent[1], head.address, q_body)
