@@ -372,3 +372,14 @@ def test_a_catalog_is_programmed_with_one_write_per_block_and_its_header_last(tm
     assert nand.read_page(first).startswith(CATALOG_MAGIC)
     assert nand.read_page(first + 8 * PAGES_PER_BLOCK)[:256] == bytes(range(256))
     assert catalog_files[-1] == f"block-{nand.physical_block(CATALOG_BLOCK):05x}.bin"
+
+
+def test_realistic_timing_runs_the_read_disturbance_test_at_the_real_unit_s_pace():
+    """``--timing realistic`` reads at the ICD's ~9000 pages/s (the functional processor is silent
+    as long as the real one); the default fast timing at compute speed."""
+    from firmware_model.device.cli import build_device, build_parser
+    from firmware_model.device.nand import ICD_PAGE_READ_S
+
+    assert build_device(build_parser().parse_args(["--pty"])).maintenance.pace_s == 0.0
+    realistic = build_device(build_parser().parse_args(["--pty", "--timing", "realistic"]))
+    assert realistic.maintenance.pace_s == ICD_PAGE_READ_S

@@ -240,6 +240,9 @@ def build_device(args: argparse.Namespace, shared_source: Callable[[SolveContext
         device.runner.timing = replace(DEFAULT_TIMING, **{k: v / 1000.0 for k, v in ms.items() if v is not None})
         deadline = DEFAULT_DEADLINE_MS if args.deadline_ms is None else args.deadline_ms
         solver.params = replace(solver.params, flight_deadline_s=deadline / 1000.0)
+        from firmware_model.device.nand import ICD_PAGE_READ_S
+
+        device.maintenance.pace_s = ICD_PAGE_READ_S  # the read disturbance test at the real unit's pace
     solver.serving()  # the stored catalog's index is built; a COMMIT's is built in another process
     ready = None if shared_source is not None else getattr(source, "ready", None)
     if ready is not None:  # a capture source's own start-up (a rendering source's noise), drawn meanwhile

@@ -67,6 +67,7 @@ BOOT_HEADER = b"ST16BOOT"  #: ours: the Configuration Header's magic (its conten
 MAINTENANCE_ADDRESS = 0x00004000  #: ours: INIT with this address enters maintenance mode
 ERASED = b"\xff" * PAGE_BYTES
 DISTURB_MESSAGE_CYCLES = 1000  #: a progress message in EDAC every 1000 read cycles (page 1-35915)
+ICD_PAGE_READ_S = 1.0 / 9000.0  #: the read disturbance test's pace on the real unit (page 1-35915)
 
 
 def _image(name: bytes, n: int) -> bytes:
@@ -403,7 +404,7 @@ class Maintenance:
         self._message = message
         self.busy = False  #: a read disturbance test runs: the functional processor does not answer
         self.aborted = False
-        self.pace_s = 0.0  #: seconds per page read in the disturbance test (the ICD: ~1/9000; 0: compute speed)
+        self.pace_s = 0.0  #: seconds per page read in the disturbance test (0: compute speed; ICD_PAGE_READ_S)
 
     def reset(self) -> None:
         """A reset of the functional processor: maintenance mode left, a disturbance test aborted."""
