@@ -89,7 +89,8 @@ def _outcome(out, a_true: np.ndarray) -> dict:
 def run_frame(job: tuple) -> dict:
     """One frame: (seed, limit index, limit deg, factor index, k) -> its outcome with and without the check."""
     from firmware_model.device.sensor_input import DeviceParams
-    from firmware_model.pipeline.run import PipelineParams, run_pipeline
+    from firmware_model.pipeline.run import run_pipeline
+    from firmware_model.pipeline.solve_types import PipelineParams
 
     seed, li, limit, fi, k = job
     ctx = _context()

@@ -8,7 +8,14 @@ shared machine) and by the wall clock; the baseline, measured in the same loop o
 is one ``np.sum`` pass over the raw pixels (memory speed): "x sum" is the stage over it.
 Targets: full frame detect + fit <= 15 ms, tetra3 <= 10 ms (median).
 
+``--files NAME ...``: instead, a per-stage profile of the file solve of the real frames whose names
+contain NAME (../shared/data/frames), as ``bench_peers.py`` runs ours: reading, detection, fit and
+identification (the rest of ``run_pipeline``: identification, attitude, optics search), thread
+CPU time, median and 90th percentile of ``--repeats`` after one untimed solve. Run with
+``PYTHONPATH=DIR`` (an export of an earlier commit) it profiles that code the same way.
+
     .venv/bin/python bench/bench_extract_speed.py [--rggb-frames 6] [--repeats 5]
+    .venv/bin/python bench/bench_extract_speed.py --files pifinder_debug_01 openstartracker_img0 [--repeats 9]
 """
 
 from __future__ import annotations
@@ -125,13 +132,62 @@ def report(name: str, r: dict, target_ms: float) -> None:
     print(f"  target detect+fit <= {target_ms:.0f} ms: {'met' if cpu_total <= target_ms else 'NOT met'} (CPU median)")
 
 
+def profile_files(names: list[str], repeats: int, clock: _StageClock) -> None:
+    """Per-stage CPU profile of the file solve of each real frame named (module docstring)."""
+    import sys
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    from bench_realframes import frames
+
+    from firmware_model.camera import CameraModel
+    from firmware_model.pipeline.frame_readers import read_frame
+    from firmware_model.pipeline.run import run_pipeline
+    from ground.catalog.build import build_catalog
+    from ground.catalog.design import CatalogDesign
+
+    print(f"code from {Path(extract_mod.__file__).parents[2]}")
+    print(f"  {'frame':<30}{'stage':<16}{'CPU ms':>8}{'p90':>8}")
+    for job in [j for j in frames() if any(n in j["path"].name for n in names)]:
+        frame = read_frame(job["path"])
+        if job.get("datasheet"):
+            camera = CameraModel.from_focal(frame.width, frame.height, *job["datasheet"])
+        else:
+            camera = CameraModel.from_horizontal_fov(frame.width, frame.height, job["fov"])
+        catalog = build_catalog(CatalogDesign.for_field(frame.width, frame.height, job["fov"]))
+        run_pipeline(frame, camera, catalog)  # warm
+        rows: dict[str, list[float]] = {k: [] for k in ("read", "detect", "fit", "identification", "total")}
+        status = ""
+        for _ in range(repeats):
+            c0 = time.thread_time()
+            frame = read_frame(job["path"])
+            c1 = time.thread_time()
+            clock.reset()
+            out = run_pipeline(frame, camera, catalog)
+            c2 = time.thread_time()
+            status = out.status.name
+            rows["read"].append(c1 - c0)
+            rows["detect"].append(clock.cpu["detect"])
+            rows["fit"].append(clock.cpu["fit"])
+            rows["identification"].append(c2 - c1 - clock.cpu["detect"] - clock.cpu["fit"])
+            rows["total"].append(c2 - c0)
+        label = f"{job['path'].name[:22]} {frame.width}x{frame.height} {frame.pattern}"
+        for k, (st, v) in enumerate(rows.items()):
+            name = label if k == 0 else (status if k == 1 else "")
+            print(f"  {name[:29]:<30}{st:<16}{np.median(v) * 1e3:8.2f}{np.percentile(v, 90) * 1e3:8.2f}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rggb-frames", type=int, default=6, help="full-size rendered RGGB frames")
     ap.add_argument("--repeats", type=int, default=5, help="timed extractions per frame")
+    ap.add_argument("--files", nargs="+", metavar="NAME", help="profile the file solve of these real frames")
     args = ap.parse_args(argv)
     clock = _StageClock()
     print(f"extract_stars, single-threaded; 1-min load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
+    if args.files:
+        profile_files(args.files, args.repeats, clock)
+        print(f"1-min load average at the end {os.getloadavg()[0]:.2f}")
+        return 0
     report(
         "2592 x 1944 RGGB, real sky, reference design",
         measure(rggb_frames(args.rggb_frames), args.repeats, clock),

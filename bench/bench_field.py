@@ -134,8 +134,9 @@ def belt_table5(paths, camera, catalog, beta, params) -> dict:
     belt stars were detected counts as no match. Counts per mode: correct / incorrect / no match
     (the replay's scoring) and ``three_matched``, answers naming all three stars rightly."""
     from firmware_model.pipeline.extract import extract_stars
+    from firmware_model.pipeline.frame_identification import apply_colour_correction
     from firmware_model.pipeline.frame_readers import read_frame
-    from firmware_model.pipeline.run import apply_colour_correction, identify_stars
+    from firmware_model.pipeline.run import identify_stars
     from ground.analysis.replay import TABLE5_MODES, Truth, _associate, score
     from ground.link.solve_report import matched_stars, record_from_output
 
@@ -207,7 +208,7 @@ def main(argv=None) -> int:
 
     from firmware_model.camera import CameraModel
     from firmware_model.pipeline.frame_readers import frame_files
-    from firmware_model.pipeline.run import PipelineParams
+    from firmware_model.pipeline.solve_types import PipelineParams
     from ground.analysis.replay import TABLE5_MODES, OfflineSolver, replay, table5
     from ground.calibration.corrections import ColourCorrection
     from ground.catalog.build import build_catalog

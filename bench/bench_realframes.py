@@ -149,7 +149,8 @@ def calibrated_identification(out, catalog) -> dict:
     matched / in view (catalog stars predicted on the array within 2 px of a detection)."""
     from dataclasses import replace
 
-    from firmware_model.pipeline.run import PipelineParams, identify_stars
+    from firmware_model.pipeline.run import identify_stars
+    from firmware_model.pipeline.solve_types import PipelineParams
 
     if out.stars is None or out.camera is None or out.solution is None or out.solution.q_icrs_to_sensor is None:
         return {"cal_s": None, "cal_cpu_s": None, "cal_status": None, "in_view": None, "cal_matched": None}
@@ -211,7 +212,8 @@ def perturbed_run(jobs, catalogs, reps: int, seed: int = 12) -> int:
     """The ``--perturbed`` table (module docstring)."""
     from dataclasses import replace
 
-    from firmware_model.pipeline.run import PipelineParams, identify_stars
+    from firmware_model.pipeline.run import identify_stars
+    from firmware_model.pipeline.solve_types import PipelineParams
     from firmware_model.reference_frames import quat_to_matrix
 
     rng = np.random.default_rng(seed)

@@ -35,7 +35,8 @@ from firmware_model.camera import CameraModel  # noqa: E402
 from firmware_model.ident.attitude import quat_matrix  # noqa: E402
 from firmware_model.ident.tracking import TrackParams, TrackState, track  # noqa: E402
 from firmware_model.pipeline.extract import extract_stars  # noqa: E402
-from firmware_model.pipeline.run import PipelineParams, identify_stars  # noqa: E402
+from firmware_model.pipeline.run import identify_stars
+from firmware_model.pipeline.solve_types import PipelineParams  # noqa: E402
 from firmware_model.reference_frames import attitude_from_radec_roll, rotation_angle  # noqa: E402
 from ground.catalog.build import build_catalog  # noqa: E402
 from ground.catalog.design import CatalogDesign  # noqa: E402

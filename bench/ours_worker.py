@@ -32,7 +32,8 @@ from jsonl_worker import Clock, serve
 
 from firmware_model.camera import CameraModel
 from firmware_model.pipeline.frame_readers import read_frame
-from firmware_model.pipeline.run import PipelineOutput, PipelineParams, identify_stars, run_pipeline
+from firmware_model.pipeline.run import identify_stars, run_pipeline
+from firmware_model.pipeline.solve_types import PipelineOutput, PipelineParams
 from firmware_model.reference_frames import quat_to_matrix, vec_to_radec
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign

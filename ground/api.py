@@ -42,7 +42,7 @@ if TYPE_CHECKING:
     from firmware_model.camera import CameraModel
     from firmware_model.catalog.onboard import OnboardCatalog
     from firmware_model.pipeline.raw_frame import Frame
-    from firmware_model.pipeline.run import PipelineOutput, PipelineParams
+    from firmware_model.pipeline.solve_types import PipelineOutput, PipelineParams
 
 _log = logging.getLogger(__name__)
 
@@ -113,7 +113,8 @@ def solve_image(
     read_s = time.perf_counter() - t0  # the image's reading: no stage of the solve
     if camera is not None:
         _check_size(frame, camera)
-    from firmware_model.pipeline.run import PipelineParams, run_pipeline
+    from firmware_model.pipeline.run import run_pipeline
+    from firmware_model.pipeline.solve_types import PipelineParams
     from ground.analysis.replay import warm_up_kernels
 
     loaded = warm_up_kernels() > 0  # the first call: the pipeline's modules and kernels loaded now

@@ -62,11 +62,6 @@ ANGLE_DEG = ranged(float, -360.0, 360.0, "an angle in degrees")
 FLUX_PER_CM2_S = ranged(float, 0.0, 1e6, "a particle flux per cm^2 per s")
 HITS_PER_FRAME = ranged(float, 0.0, 1e5, "a number of hits per frame")
 DOSE_KRAD = ranged(float, 0.0, 1e4, "a dose in krad")
-#: ``--fov-deg`` / ``--fov-range`` everywhere: a horizontal field of view, deg; the options' help
-#: states it, their checks read it (``firmware_model.pipeline.sky_search.FOV_LIMITS_DEG``, kept
-#: equal by a test): the whole-sky search covers it, and a field catalog's half-angle on the short
-#: side of a landscape frame stays under 45 deg.
-FOV_LIMITS_DEG = (1.0, 90.0)
 
 
 def progress_on(args) -> bool:

@@ -198,7 +198,7 @@ DEADLINE_MISSED = 0x02  #: flight timing only: the deadline stopped a search (th
 #: ``colour_rms`` RMS of (rg, bg) minus the catalog's over the matched stars, after the device's
 #: colour correction (the stars' ``rg``, ``bg`` are the raw measurements);
 #: ``stage_times`` seconds for detect, fit, vectors, identify, attitude, total
-#: (``firmware_model.pipeline.run.STAGES``); ``method`` a :class:`MethodCode`: 0 none, 1 colour, 2 geometric (4-star), 3 geometric
+#: (``firmware_model.pipeline.solve_types.STAGES``); ``method`` a :class:`MethodCode`: 0 none, 1 colour, 2 geometric (4-star), 3 geometric
 #: consensus, 4 scale-free pattern (uncalibrated optics), 5 tracking; ``reason``
 #: why the status is what it is (UTF-8, truncated to EXT_REASON_BYTES). Optics block: ``psf_sigma``
 #: PSF Gaussian sigma used (px); ``focal_px`` / ``focal_sigma`` fitted focal length and 1-sigma (px),

@@ -248,10 +248,6 @@ def test_a_cut_device_reason_ends_at_a_whole_word_and_says_so():
 
 
 def test_the_field_of_view_range_is_stated_once():
-    from firmware_model.pipeline.sky_search import FOV_LIMITS_DEG
-    from ground import arg_types
-
-    assert arg_types.FOV_LIMITS_DEG == FOV_LIMITS_DEG
     help_text = build_parser()._subparsers._group_actions[0].choices["solve-file"].format_help()
     assert help_text.count("(1-90)") == 2  # --fov-deg and --fov-range, from the one constant
 

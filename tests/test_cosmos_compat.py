@@ -23,7 +23,8 @@ from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.solver import SolveResult
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.pipeline.result_fields import result_fields, return_bits
-from firmware_model.pipeline.run import PipelineOutput, PipelineParams, run_pipeline
+from firmware_model.pipeline.run import run_pipeline
+from firmware_model.pipeline.solve_types import PipelineOutput, PipelineParams
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, quat_to_matrix
 from ground.cli.main import main as ground_main
 from ground.link.client import Client

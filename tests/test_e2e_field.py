@@ -204,7 +204,7 @@ def test_the_papers_three_star_run_on_two_belt_frames(catalog, tmp_path):
     the exact inverse of the bench's atmosphere, the coverage test off as for the paper's cut field."""
     from dataclasses import replace
 
-    from firmware_model.pipeline.run import PipelineParams
+    from firmware_model.pipeline.solve_types import PipelineParams
 
     bf = _bench_field()
     bf.render_orion(tmp_path, 2, CAMERA)

@@ -26,8 +26,9 @@ from firmware_model.pipeline.exclusion import (
 )
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.pipeline.result_fields import result_fields
-from firmware_model.pipeline.run import PipelineParams, run_pipeline
+from firmware_model.pipeline.run import run_pipeline
 from firmware_model.pipeline.sky_bodies import ATMOSPHERE_KM, EARTH_RADIUS_KM, sky_bodies
+from firmware_model.pipeline.solve_types import PipelineParams
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, quat_to_matrix, rotation_angle
 from ground.cli.main import main as ground_main
 from ground.link.solve_report import format_record, record_from_output
@@ -447,10 +448,13 @@ def test_a_negative_centroid_variance_is_not_used(scene):
     from dataclasses import replace
 
     from firmware_model.pipeline.extract import extract_stars
-    from firmware_model.pipeline.run import _usable
+    from firmware_model.pipeline.frame_identification import usable_rows
 
     stars = extract_stars(scene[1], NOMINAL)
-    assert len(_usable(stars)) == len(stars)
+    assert len(usable_rows(stars)) == len(stars)
     cov = stars.cov_xy.copy()
     cov[0, 0, 0] = -8e17
-    assert 0 not in _usable(replace(stars, cov_xy=cov)) and len(_usable(replace(stars, cov_xy=cov))) == len(stars) - 1
+    assert (
+        0 not in usable_rows(replace(stars, cov_xy=cov))
+        and len(usable_rows(replace(stars, cov_xy=cov))) == len(stars) - 1
+    )

@@ -41,14 +41,14 @@ def test_a_pass_that_only_measures_the_psf_fits_few_candidates(monkeypatch):
     first_pass = int(np.ceil(PSF_FIT_FIRST_FACTOR * PSF_SAMPLE_STARS))
     assert first_pass < FIT_FIRST_FACTOR * cap
     fitted = [n for n in sizes if n]
-    # measuring pass: one chunk; kept pass: the same chunk, then on to the cap
+    # the first pass measures the PSF on one small chunk; the kept one is fitted to the cap
     assert fitted[0] == first_pass and sum(fitted[1:]) >= cap, fitted
 
 
 def test_fitting_only_what_is_needed_keeps_the_same_stars(monkeypatch):
     _, r = render(WIDE, POINTINGS[1], psf_sigma=1.6)
     fast = extract_stars(r.frame, WIDE)
-    monkeypatch.setattr(_Pass, "fit_for_psf", _Pass.fit_to_cap)  # every pass fitted to the cap
+    monkeypatch.setattr(_Pass, "fit_for_psf", lambda p, likely_kept: p.fit_to_cap())  # every pass fitted to the cap
     full = extract_stars(r.frame, WIDE)
     assert fast.psf_passes == full.psf_passes and fast.reason == full.reason
     for name in ("x", "y", "flux", "rg", "cov_xy", "sigma", "flags"):

@@ -12,19 +12,19 @@ from firmware_model.device.sensor_input import DeviceParams
 from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.solver import Method, Mode, SolveParams, SolveTimings, method_code
 from firmware_model.ident.strategy import (
-    Detections,
+    IdentificationInput,
     IdentifyTimings,
     SolveResult,
     StrategyParams,
     bound_roll,
     brightest_eta,
     geometric_fallback,
-    geometric_sizes,
+    geometric_route,
     identify,
     solve,
 )
 from firmware_model.ident.verify import FieldOfView
-from firmware_model.pipeline.run import STAGES, PipelineOutput, PipelineParams, StageTimings
+from firmware_model.pipeline.solve_types import STAGES, PipelineOutput, PipelineParams, StageTimings
 from firmware_model.reference_frames import attitude_from_radec_roll
 from ground.link.solve_report import METHODS, record_from_output
 from ground.sim import whole_sky as skysim
@@ -104,15 +104,27 @@ def test_outcome_prints_its_value():
     assert json.dumps({"status": Outcome.LOW_CONFIDENCE}) == '{"status": "LOW_CONFIDENCE"}'
 
 
-def test_geometric_route_is_one_solve_up_to_the_cap():
-    # no 4/6/8 ladder by default; explicit steps still widen to the cap
-    assert geometric_sizes(30, 12) == [12]
-    assert geometric_sizes(5, 12) == [5]
-    assert geometric_sizes(30, 12, (4, 6, 8)) == [4, 6, 8, 12]
-    assert geometric_sizes(5, 12, (4, 6, 8)) == [4, 5]
-    assert geometric_sizes(7, 6, (4, 6, 8)) == [4, 6]
-    assert geometric_sizes(10, None, ()) == [10]  # every detection at once (the whole-sky simulation)
-    assert geometric_sizes(0, None, ()) == [0]
+def test_geometric_route_is_one_solve_up_to_the_cap(catalog, monkeypatch):
+    """No ladder of smaller solves: one solve on the brightest detections up to the density cap,
+    every detection without a cap (the whole-sky simulation)."""
+    from firmware_model.ident import strategy
+
+    scene = _scene(catalog, colour=False)
+    det = IdentificationInput(scene.vectors, scene.rg, scene.bg)
+    sizes: list[int] = []
+    real = strategy.solve_rows
+
+    def counted(det, rows, *args):
+        sizes.append(len(rows))
+        return real(det, rows, *args)
+
+    monkeypatch.setattr(strategy, "solve_rows", counted)
+    for cap, given in ((12, 12), (len(det) + 5, len(det)), (None, len(det))):
+        sizes.clear()
+        found = geometric_route(
+            det, catalog, StrategyParams(solve=_params(Mode.GEOMETRIC), geometric_cap=cap), IdentifyTimings()
+        )
+        assert sizes == [given] and found.status is not Outcome.NO_MATCH
 
 
 def test_timings_are_records_with_the_reported_stages():
@@ -142,9 +154,9 @@ def test_identify_on_every_detection_is_the_solver(catalog, mode):
     scene = _scene(catalog, colour=mode is not Mode.GEOMETRIC)
     params = _params(mode)
     one = solve(scene.vectors, scene.rg, scene.bg, catalog, params)
-    strategy = StrategyParams(solve=params, geometric_steps=(), geometric_fallback=False, colour_fallback=False)
+    strategy = StrategyParams(solve=params, geometric_fallback=False, colour_fallback=False)
     timings = IdentifyTimings()
-    found = identify(Detections(scene.vectors, scene.rg, scene.bg), catalog, strategy, timings)
+    found = identify(IdentificationInput(scene.vectors, scene.rg, scene.bg), catalog, strategy, timings)
     assert found.status is one.status is Outcome.HIGH_CONFIDENCE
     assert np.array_equal(found.rows, np.arange(len(scene.vectors)))
     assert np.array_equal(found.solution.matched_star_id, one.matched_star_id)
@@ -165,20 +177,32 @@ def test_mono_fallback_runs_consensus_on_geometry_when_geometry_finds_nothing(ca
     scene = skysim.observe(
         catalog, attitude_from_radec_roll(float(ra), float(dec), roll), CAM, cfg.model, rng, colour=False
     )
-    det = Detections(scene.vectors, scene.rg, scene.bg)
+    det = IdentificationInput(scene.vectors, scene.rg, scene.bg)
     params = _params(Mode.GEOMETRIC)
-    off = identify(det, catalog, StrategyParams(solve=params, geometric_steps=(), geometric_fallback=False))
+    off = identify(det, catalog, StrategyParams(solve=params, geometric_fallback=False))
     assert off.status is Outcome.NO_MATCH and off.solution.method is Method.GEOMETRIC
-    found = identify(det, catalog, StrategyParams(solve=params, geometric_steps=()))
+    found = identify(det, catalog, StrategyParams(solve=params))
     assert found.status is Outcome.HIGH_CONFIDENCE and found.solution.method is Method.GEOMETRIC_CONSENSUS
     assert np.all(scene.truth[found.rows[found.solution.matched_det]] == found.solution.matched_cat)
     assert not off.fallback_due and not found.fallback_due
     # deferred (the pipeline's optics search goes first): the route's answer says the fallback is due,
     # and the fallback run afterwards is the answer identify would have given
-    deferred = StrategyParams(solve=params, geometric_steps=(), defer_fallback=True)
+    deferred = StrategyParams(solve=params, defer_fallback=True)
     due = identify(det, catalog, deferred)
     assert due.status is Outcome.NO_MATCH and due.fallback_due
     late = geometric_fallback(det, catalog, deferred, IdentifyTimings())
-    assert late is not None and late.solution.method is Method.GEOMETRIC_CONSENSUS
+    assert late.status is Outcome.HIGH_CONFIDENCE and late.solution.method is Method.GEOMETRIC_CONSENSUS
     assert np.array_equal(late.solution.matched_star_id, found.solution.matched_star_id)
     assert np.array_equal(late.solution.q_icrs_to_sensor, found.solution.q_icrs_to_sensor)
+
+
+def test_a_deferred_fallback_that_finds_nothing_says_why_on_no_detection(catalog):
+    """The mono fallback its caller runs (deferred) answers NO_MATCH with its own reason and no
+    detection rows when its consensus finds nothing (a frame of scattered hot pixels)."""
+    rng = np.random.default_rng(5)
+    n = 12
+    vectors = CAM.pixel_to_vector(rng.uniform(0, CAM.width, n), rng.uniform(0, CAM.height, n))
+    nothing = IdentificationInput(vectors, np.full(n, np.nan), np.full(n, np.nan))
+    late = geometric_fallback(nothing, catalog, StrategyParams(solve=_params(Mode.GEOMETRIC)), IdentifyTimings())
+    assert late.status is Outcome.NO_MATCH and late.solution.reason.startswith("mono consensus fallback: ")
+    assert len(late.rows) == 0

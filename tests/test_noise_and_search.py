@@ -1,7 +1,7 @@
 """The frame's own centroid noise (strategy.adapt_noise, extra_noise,
 noise_rejected), high confidence of search-chosen patterns (searched_confident), the fit's
 Rodrigues rotation (camera_fit.rotvec_matrix) and the optics search going first when the best
-pattern's refined optics say the nominal focal length is off (run._nominal_off)."""
+pattern's refined optics say the nominal focal length is off (optics_search.nominal_off)."""
 
 from dataclasses import replace
 
@@ -15,7 +15,7 @@ from firmware_model.camera import CameraModel
 from firmware_model.ident.consensus import ConsensusParams, Outcome
 from firmware_model.ident.solver import Method, Mode, SolveParams
 from firmware_model.ident.strategy import (
-    Detections,
+    IdentificationInput,
     StrategyParams,
     extra_noise,
     identify,
@@ -26,7 +26,8 @@ from firmware_model.ident.verify import FieldOfView, VerifyParams, verify
 from firmware_model.pipeline import scale_free
 from firmware_model.pipeline.camera_fit import rotvec_matrix
 from firmware_model.pipeline.extract import extract_stars
-from firmware_model.pipeline.run import OpticsSearch, StageTimings, run_pipeline
+from firmware_model.pipeline.run import run_pipeline
+from firmware_model.pipeline.solve_types import OpticsSearch, SolveInput, StageTimings
 from firmware_model.reference_frames import quat_to_matrix, rotation_angle
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
@@ -103,7 +104,7 @@ def _noisy_geometric_frame(catalog, seed=1, noise_px=1.0):
 def _identify_announcing(catalog, vectors, sigma_px):
     nan = np.full(len(vectors), np.nan)
     params = SolveParams(mode=Mode.GEOMETRIC, sigma_vec=sigma_px / CAM.f, fov=FieldOfView.from_camera(CAM, 0.0))
-    det = Detections(vectors, nan, nan, sigma_px=np.full(len(vectors), sigma_px), focal_px=CAM.f)
+    det = IdentificationInput(vectors, nan, nan, sigma_px=np.full(len(vectors), sigma_px), focal_px=CAM.f)
     return identify(det, catalog, StrategyParams(solve=params))
 
 
@@ -182,13 +183,13 @@ def tetra_frame():
 
 
 def _first_pattern_says_off(frame, camera, catalog):
-    from firmware_model.pipeline.run import _first_seed, _first_tier, _nominal_off
+    from firmware_model.pipeline.optics_search import first_seed, first_tier, nominal_off
 
-    stars = extract_stars(frame, camera)
+    seen = SolveInput(extract_stars(frame, camera), camera, catalog)
     timings = StageTimings()
-    peek = _first_tier(stars, camera, catalog, OpticsSearch(), timings)
-    seed = _first_seed(stars, camera, catalog, OpticsSearch(), timings, peek)
-    return _nominal_off(peek, seed, stars, camera, catalog, OpticsSearch())
+    peek = first_tier(seen, OpticsSearch(), timings)
+    seed = first_seed(seen, OpticsSearch(), timings, peek)
+    return nominal_off(peek, seed, seen, OpticsSearch())
 
 
 def test_search_goes_first_when_the_nominal_focal_length_is_one_percent_off(wide_catalog, tetra_frame):

@@ -22,7 +22,8 @@ from firmware_model.pipeline.extract import (
     failed_fit_fraction,
 )
 from firmware_model.pipeline.raw_frame import Frame
-from firmware_model.pipeline.run import PipelineParams, run_pipeline
+from firmware_model.pipeline.run import run_pipeline
+from firmware_model.pipeline.solve_types import PipelineParams
 from firmware_model.reference_frames import attitude_from_radec_roll, quat_to_matrix, rotation_angle, vec_to_radec
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
@@ -167,7 +168,7 @@ def test_bad_frames_get_a_status_never_a_confident_answer(catalog, name, frame):
 def test_search_goes_before_the_mono_consensus_with_the_nominal_camera(catalog, monkeypatch):
     """When the nominal camera finds nothing, the optics search's pattern hypotheses run
     before the mono consensus fallback with that camera, which is not run when the search answers."""
-    from firmware_model.pipeline import run
+    from firmware_model.pipeline import frame_identification, run
 
     calls = []
 
@@ -175,14 +176,14 @@ def test_search_goes_before_the_mono_consensus_with_the_nominal_camera(catalog, 
         calls.append(args)
         return original(*args, **kw)
 
-    original = run.geometric_fallback
-    monkeypatch.setattr(run, "geometric_fallback", fallback)
+    original = frame_identification.geometric_fallback
+    monkeypatch.setattr(frame_identification, "geometric_fallback", fallback)
     true = replace(NOMINAL, f=NOMINAL.f * 1.025, k1=0.25)
     a, r = render(true, POINTINGS[0], seed=10)
     out = run_pipeline(r.frame, NOMINAL, catalog)
     assert out.status is Status.OK and np.isfinite(out.optics.focal_scale) and not calls
     assert centre_pointing_error_px(out, a, true) < 1.0
-    monkeypatch.setattr(run, "_search_optics", lambda *args: None)  # a search that finds nothing
+    monkeypatch.setattr(run, "search_optics", lambda *args: None)  # a search that finds nothing
     run_pipeline(r.frame, NOMINAL, catalog)
     assert len(calls) == 1  # then the deferred fallback runs
 

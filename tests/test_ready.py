@@ -169,7 +169,8 @@ def test_a_commit_builds_the_index_elsewhere_the_link_answers_and_a_go_waits_for
     from firmware_model.device.device import Device
     from firmware_model.device.link import PtyLink, serve
     from firmware_model.device.sensor_input import PipelineSolver
-    from firmware_model.pipeline.run import PipelineParams, run_pipeline
+    from firmware_model.pipeline.run import run_pipeline
+    from firmware_model.pipeline.solve_types import PipelineParams
     from ground.link.client import Client
     from ground.link.solve_report import record_from_output, solve_record
     from protocol.commands import Slot

@@ -18,10 +18,10 @@ from firmware_model.device.sensor_input import DeviceParams
 from firmware_model.ident.budget import SearchBudget, Stop
 from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.solver import SolveParams
-from firmware_model.ident.strategy import Detections, IdentifyTimings, StrategyParams, identify, solve
+from firmware_model.ident.strategy import IdentificationInput, IdentifyTimings, StrategyParams, identify, solve
 from firmware_model.ident.verify import FieldOfView
 from firmware_model.pipeline.result_fields import result_fields
-from firmware_model.pipeline.run import PipelineOutput, PipelineParams
+from firmware_model.pipeline.solve_types import PipelineOutput, PipelineParams
 from ground.link.solve_report import solve_record
 from protocol import result
 from protocol.commands import SlotRejected
@@ -65,7 +65,7 @@ def test_a_budget_reached_is_a_no_match_naming_the_count(catalogs):
     assert cut.reason == "search budget of 3 verifications reached"
     ledger = IdentifyTimings()
     found = identify(
-        Detections(v, rg, bg), catalogs[0], StrategyParams(solve=replace(PARAMS, max_verifications=3)), ledger
+        IdentificationInput(v, rg, bg), catalogs[0], StrategyParams(solve=replace(PARAMS, max_verifications=3)), ledger
     )
     assert found.status is Outcome.NO_MATCH and ledger.stopped is Stop.COUNT and ledger.verifications >= 3
 

@@ -13,7 +13,7 @@ from firmware_model.device.device import Device
 from firmware_model.device.sensor_input import REJECT_PARAMS_VALUE, DeviceParams, PipelineSolver
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.pipeline.result_fields import omega_fields
-from firmware_model.pipeline.run import PipelineParams
+from firmware_model.pipeline.solve_types import PipelineParams
 from firmware_model.pipeline.tracking_run import frame_time
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign

@@ -46,7 +46,7 @@ from firmware_model.device.sensor_input import (
 from firmware_model.device.sequence import Timing
 from firmware_model.device.slots import SlotStore
 from firmware_model.pipeline import scale_free
-from firmware_model.pipeline.run import PipelineParams
+from firmware_model.pipeline.solve_types import PipelineParams
 from protocol import nsp
 from protocol.commands import MAX_FAULT_SCRIPT, Slot, SlotRejected
 from protocol.result import QuaternionOrder

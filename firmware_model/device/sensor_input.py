@@ -44,7 +44,8 @@ from firmware_model.pipeline.extract import PSF_SIGMA_RANGE_PX
 from firmware_model.pipeline.frame_readers import FrameReadError, frame_files, read_frame
 from firmware_model.pipeline.raw_frame import Frame, frame_from_bytes
 from firmware_model.pipeline.result_fields import result_fields
-from firmware_model.pipeline.run import PipelineParams, run_pipeline, warm_up, with_psf_sigma
+from firmware_model.pipeline.run import run_pipeline, warm_up
+from firmware_model.pipeline.solve_types import PipelineParams, with_psf_sigma
 from firmware_model.pipeline.tracking_run import Tracker, frame_time
 from protocol.commands import GoBits, SlotRejected
 from protocol.result import QuaternionOrder, Status

@@ -4,8 +4,8 @@ detections (:func:`identify`). The matchers themselves live in their modules (``
 ``four_star``, ``triangle``, ``verify``, ``attitude``); each stage here is a small function with
 typed inputs and outputs, composed top-down:
 
-``identify(detections, catalog, StrategyParams) -> Identification`` (the device pipeline, the
-whole-sky simulation), steps 1-5:
+``identify(IdentificationInput, catalog, StrategyParams) -> Identification`` (the device
+pipeline, the whole-sky simulation), steps 1-5:
 
 1. route: geometric when the mode says so, or in ``auto`` mode when the catalog or the frame has no
    colour; else colour (:func:`colour_route`).
@@ -20,8 +20,9 @@ whole-sky simulation), steps 1-5:
 4. mono fallback: a geometric route that found nothing runs the consensus matcher on geometry
    alone (``geometric_fallback``; method ``geometric-consensus``). With ``defer_fallback`` the
    answer instead comes back with ``fallback_due`` set and the caller runs the fallback itself
-   (:func:`geometric_fallback`) when its cheaper methods fail: the pipeline's optics search tries
-   its pattern hypotheses first when the nominal camera fails.
+   (:func:`geometric_fallback`, which answers NO_MATCH with its own reason when it finds nothing)
+   when its cheaper methods fail: the pipeline's optics search tries its pattern hypotheses first
+   when the nominal camera fails.
 5. every star in view and the frame's own noise (:func:`finish`): a high-confidence answer is
    verified again against every catalog star, the verification-only stars fainter than the
    pattern stars included (:func:`match_deep`); one whose stars, looked for with wider gates,
@@ -42,10 +43,13 @@ the first confident set) or geometric matching (:func:`match_geometric`: 4-star 
 triangle fallback when that is not conclusive), and the geometric confidence
 (:func:`decide_geometric`). It never raises on bad input: it answers NO_MATCH with a reason.
 
-The pipeline's optics search (``firmware_model.pipeline.run``) judges its refined pattern matches
-with :func:`verify_pattern` and answers found with a camera fitted to one with
+The pipeline's optics search (``firmware_model.pipeline.optics_search``) judges its refined
+pattern matches with :func:`verify_pattern` and answers found with a camera fitted to one with
 :func:`hold_searched` (both by :func:`searched_confident`), calling :func:`identify` with the
-fitted camera when the pattern alone is not high-confidence.
+fitted camera when the pattern alone is not high-confidence; an answer identified with a noise
+floor estimated from its own stars has its covariance widened (:func:`widen_for_estimated_noise`),
+and the search and the solve plan prefer one answer short of high confidence to another by
+:func:`ranks_above`.
 """
 
 from __future__ import annotations
@@ -89,11 +93,6 @@ from firmware_model.reference_frames import rotation_angle
 
 #: Fewest detections given to the geometric matcher by :func:`geometric_detection_cap`.
 MIN_GEOMETRIC_DETECTIONS = 8
-#: Brightest-detection counts the geometric route may try before the density cap (none by default:
-#: the old 4, 6, 8 ladder was measured spending 84-98 % of identification time on steps that
-#: failed; the matchers rank their own hypotheses brightest first and stop at the first decisive
-#: verified one, with every detection of the cap available to verification).
-GEOMETRIC_STEPS: tuple[int, ...] = ()
 
 #: A hypothesis check: detection indices and catalog indices -> (verified match or None, reason).
 Check = Callable[[np.ndarray, np.ndarray], tuple[VerifiedMatch | None, str]]
@@ -101,7 +100,7 @@ Check = Callable[[np.ndarray, np.ndarray], tuple[VerifiedMatch | None, str]]
 
 # ------------------------------------------------------------------ inputs and outputs
 @dataclass(frozen=True)
-class Detections:
+class IdentificationInput:
     """One frame's detections as identification sees them, brightest first.
 
     vectors (N, 3) sensor-frame directions; rg, bg (N,) colour ratios (NaN: no usable colour);
@@ -136,15 +135,13 @@ class StrategyParams:
     """How :func:`identify` orders the methods.
 
     solve: the solver configuration (``mode`` picks the route); photometric_gate: margin (mag)
-    beyond the catalog limit for the gate, None to disable; geometric_steps and geometric_cap:
-    the brightest-detection counts of the geometric route (:func:`geometric_sizes`; cap None:
-    every detection); geometric_fallback: consensus on geometry alone when the geometric route
+    beyond the catalog limit for the gate, None to disable; geometric_cap: the brightest detections
+    the geometric route gives its matchers (None: every detection); geometric_fallback: consensus on geometry alone when the geometric route
     finds nothing; colour_fallback: in ``auto`` mode, the geometric route when colour is not
     high-confidence; defer_fallback: leave that consensus to the caller (``Identification.fallback_due``)."""
 
     solve: SolveParams = SolveParams()
     photometric_gate: float | None = None
-    geometric_steps: tuple[int, ...] = GEOMETRIC_STEPS
     geometric_cap: int | None = None
     geometric_fallback: bool = True
     colour_fallback: bool = True
@@ -182,7 +179,7 @@ class IdentifyTimings:
 @dataclass
 class Identification:
     """The answer of :func:`identify`: the solution (status NO_MATCH when none) and the detections
-    (indices into :class:`Detections`) its ``matched_det`` refers to. ``fallback_due``: the mono
+    (indices into :class:`IdentificationInput`) its ``matched_det`` refers to. ``fallback_due``: the mono
     fallback would have run but was deferred (``StrategyParams.defer_fallback``)."""
 
     solution: SolveResult
@@ -202,7 +199,7 @@ def routes_geometric(mode: str, catalog: OnboardCatalog, measured_colour: bool) 
 
 
 def identify(
-    det: Detections, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings | None = None
+    det: IdentificationInput, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings | None = None
 ) -> Identification:
     """The order of methods and fallbacks for one frame (module docstring, steps 1-5)."""
     timings = timings if timings is not None else IdentifyTimings()
@@ -223,57 +220,45 @@ def identify(
         if params.defer_fallback:
             found.fallback_due = True
         else:
-            found = geometric_fallback(det, catalog, params, timings) or found
+            fallback = geometric_fallback(det, catalog, params, timings)
+            if fallback.status is not Outcome.NO_MATCH:
+                found = fallback
     return finish(found, det, catalog, params.solve, timings)
 
 
 def geometric_fallback(
-    det: Detections, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings
-) -> Identification | None:
+    det: IdentificationInput, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings
+) -> Identification:
     """Step 4, the mono fallback: the consensus matcher on every detection's geometry alone
-    (method ``geometric-consensus``); None when it finds nothing."""
+    (method ``geometric-consensus``). When it finds nothing, a NO_MATCH answer on no detection
+    whose reason is the fallback's (a "not a star field" refusal is told)."""
     again = solve_rows(det, np.arange(len(det)), catalog, params, Mode.COLOUR, False, timings)
     if again.status is Outcome.NO_MATCH:
-        return None
+        return Identification(SolveResult(Outcome.NO_MATCH, f"mono consensus fallback: {again.solution.reason}"))
     again.solution.method = Method.GEOMETRIC_CONSENSUS
     return again
 
 
-def colour_route(det: Detections, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings):
+def colour_route(det: IdentificationInput, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings):
     """Every detection with its colour, in the configured mode (the solver picks the method)."""
     return solve_rows(det, np.arange(len(det)), catalog, params, params.solve.mode, True, timings)
 
 
-def geometric_sizes(n: int, cap: int | None, steps: tuple[int, ...] = GEOMETRIC_STEPS) -> list[int]:
-    """Brightest-detection counts the geometric route tries in turn: ``steps`` (none by default),
-    then ``cap`` (None: all ``n``), none beyond ``n`` or the cap."""
-    top = n if cap is None else cap
-    return sorted({min(k, top, n) for k in (*steps, top)})
-
-
 def geometric_route(
-    det: Detections, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings
+    det: IdentificationInput, catalog: OnboardCatalog, params: StrategyParams, timings: IdentifyTimings
 ) -> Identification:
     """Geometric matching on the brightest detections up to the density cap, in one solve: the
     matchers rank their hypotheses themselves (4-star groups, then triads brightest first, each
     verified over every detection given, the search ending at the first decisive set), so a
-    hypothesis from the brightest stars is tried first without a ladder of smaller solves. Any
-    ``geometric_steps`` run first (none by default), the first high-confidence answer ending
-    the route. The answer is then matched over every detection (:func:`match_all`)."""
-    everything = np.arange(len(det))
-    best: Identification | None = None
-    for k in geometric_sizes(len(det), params.geometric_cap, params.geometric_steps):
-        found = solve_rows(det, everything[:k], catalog, params, params.solve.mode, False, timings)
-        if found.status is Outcome.HIGH_CONFIDENCE or found.solution.roll_limited:
-            return match_all(found, det, catalog, params.solve, timings)
-        if best is None or (best.status is Outcome.NO_MATCH and found.status is not Outcome.NO_MATCH):
-            best = found
-    assert best is not None  # geometric_sizes is never empty
-    return best if best.status is Outcome.NO_MATCH else match_all(best, det, catalog, params.solve, timings)
+    hypothesis from the brightest stars is tried first without a ladder of smaller solves. An
+    answer is then matched over every detection (:func:`match_all`)."""
+    n = len(det) if params.geometric_cap is None else min(params.geometric_cap, len(det))
+    found = solve_rows(det, np.arange(n), catalog, params, params.solve.mode, False, timings)
+    return found if found.status is Outcome.NO_MATCH else match_all(found, det, catalog, params.solve, timings)
 
 
 def solve_rows(
-    det: Detections,
+    det: IdentificationInput,
     rows: np.ndarray,
     catalog: OnboardCatalog,
     params: StrategyParams,
@@ -302,10 +287,11 @@ def solve_rows(
     return Identification(sol, rows)
 
 
-def _rows_inputs(det: Detections, rows: np.ndarray, base: SolveParams, mode: Mode | str, use_colour: bool):
+def _rows_inputs(det: IdentificationInput, rows: np.ndarray, base: SolveParams, mode: Mode | str, use_colour: bool):
     """Colours and solver parameters for ``rows``: the per-detection direction noise, and the
-    colour noise raised to the median colour sigma measured on these detections (a small aperture
-    leaves 4th-magnitude stars with ~0.1 colour noise; matching them at 0.05 rejects true matches)."""
+    colour noise raised to the median colour sigma measured on these detections (faint stars
+    through a small aperture are noisier in colour than the catalog's design value, and matching
+    them at that value rejects true matches; docs/identification.md)."""
     n = len(rows)
     rg = det.rg[rows] if use_colour else np.full(n, np.nan)
     bg = det.bg[rows] if use_colour else np.full(n, np.nan)
@@ -325,7 +311,7 @@ def _rows_inputs(det: Detections, rows: np.ndarray, base: SolveParams, mode: Mod
     return rg, bg, sp
 
 
-def _tolerance(det: Detections, rows: np.ndarray, sp: SolveParams) -> float:
+def _tolerance(det: IdentificationInput, rows: np.ndarray, sp: SolveParams) -> float:
     """Attitude agreement between two answers on the same stars: 5 x the largest centroid noise."""
     if det.sigma_px is not None:
         return 5 * float(np.max(det.sigma_px[rows])) / det.focal_px
@@ -333,7 +319,11 @@ def _tolerance(det: Detections, rows: np.ndarray, sp: SolveParams) -> float:
 
 
 def match_all(
-    found: Identification, det: Detections, catalog: OnboardCatalog, base: SolveParams, timings: IdentifyTimings
+    found: Identification,
+    det: IdentificationInput,
+    catalog: OnboardCatalog,
+    base: SolveParams,
+    timings: IdentifyTimings,
 ) -> Identification:
     """An answer found on the brightest detections verified again over every detection, so every
     star in view is matched and the final attitude uses them all; the answer stands if that
@@ -357,7 +347,11 @@ def match_all(
 
 
 def finish(
-    found: Identification, det: Detections, catalog: OnboardCatalog, base: SolveParams, timings: IdentifyTimings
+    found: Identification,
+    det: IdentificationInput,
+    catalog: OnboardCatalog,
+    base: SolveParams,
+    timings: IdentifyTimings,
 ) -> Identification:
     """A decided answer matched against every catalog star (:func:`match_deep`), then held to
     the noise its stars show (:func:`adapt_noise`), both verifications over every catalog star."""
@@ -371,7 +365,11 @@ def _deep(base: SolveParams, catalog: OnboardCatalog) -> SolveParams:
 
 
 def match_deep(
-    found: Identification, det: Detections, catalog: OnboardCatalog, base: SolveParams, timings: IdentifyTimings
+    found: Identification,
+    det: IdentificationInput,
+    catalog: OnboardCatalog,
+    base: SolveParams,
+    timings: IdentifyTimings,
 ) -> Identification:
     """A decided answer (high confidence, or held low by the roll bound alone) verified again over
     every detection against every catalog star, the verification-only stars below the pattern
@@ -407,7 +405,11 @@ _TAIL_CHI2 = float(-2.0 * np.log(NOISE_TAIL))
 
 
 def adapt_noise(
-    found: Identification, det: Detections, catalog: OnboardCatalog, base: SolveParams, timings: IdentifyTimings
+    found: Identification,
+    det: IdentificationInput,
+    catalog: OnboardCatalog,
+    base: SolveParams,
+    timings: IdentifyTimings,
 ) -> Identification:
     """An answer held to the noise its own stars show, when that is more than announced (a
     defocused or smeared frame, centroids from another extractor, a wrong noise model): the
@@ -433,7 +435,7 @@ def adapt_noise(
     exceeds twice the probe (residuals the probe did not look for: a wrong match's). When the
     verification with the estimated noise fails or does not keep all the answer's stars
     (:func:`keeps_stars`), the answer keeps its stars, re-solved and its covariance widened with the
-    estimated noise: the rejected one would leave it too tight (measured: 5.9 sigma off)."""
+    estimated noise: the rejected one would leave it too tight (docs/identification.md)."""
     sol = found.solution
     probe = base.noise_probe_px
     high = sol.status is Outcome.HIGH_CONFIDENCE or sol.roll_limited
@@ -477,10 +479,12 @@ def adapt_noise(
     return Identification(bound_roll(out, base.max_roll_sigma), everything, found.fallback_due)
 
 
-def _probe_cannot_reject(found: Identification, det: Detections, catalog: OnboardCatalog, base: SolveParams) -> bool:
+def _probe_cannot_reject(
+    found: Identification, det: IdentificationInput, catalog: OnboardCatalog, base: SolveParams
+) -> bool:
     """Whether the probe's verification (:func:`adapt_noise` step 1) could not reject the announced
-    noise, read from the answer without running it (~0.4 ms of a frame's identification, issue
-    12): the answer's stars beyond 80 % of the tail quantile, plus every free detection the probe's
+    noise, read from the answer without running it (docs/identification.md gives what the probe
+    costs): the answer's stars beyond 80 % of the tail quantile, plus every free detection the probe's
     wider gate could take in (110 % of it, about the answer's attitude, with the covariance of the
     answer's stars at the probe's noise), all counted beyond, over the answer's stars alone, still
     give a binomial tail of at least :data:`NOISE_TEST_ALPHA`. The probe's own count has at least
@@ -613,7 +617,7 @@ def bound_roll(sol: SolveResult, max_roll_sigma: float) -> SolveResult:
 
 
 def verify_over(
-    det: Detections,
+    det: IdentificationInput,
     rows: np.ndarray,
     cat: np.ndarray,
     catalog: OnboardCatalog,
@@ -651,9 +655,8 @@ def searched_confident(n: int, coverage: float, chance: float, cp: ConsensusPara
     attempt ``attempts`` of the search: :func:`consensus.confident`'s rule (a large set, or at
     least ``chance_stars`` whose stars beyond two line up by chance with probability below
     ``chance_alpha``) with the chance multiplied by the attempts (each pattern the search refines
-    and verifies is one more chance for a coincidence; measured: with 1 px noise, 3 false stars
-    and 20 % dropped, a wrong pattern with its fitted focal length verified 4 of 54 detections at
-    chance 1e-4 to 3e-6, 24 deg off)."""
+    and verifies is one more chance for a coincidence: a wrong pattern with its fitted focal
+    length can verify a few stars at a small chance; docs/identification.md)."""
     cov = coverage if np.isfinite(coverage) else 0.0
     if n >= cp.chance_stars and chance * max(attempts, 1) <= cp.chance_alpha:
         return True
@@ -671,6 +674,29 @@ def hold_searched(sol: SolveResult, cp: ConsensusParams, attempts: int = 1) -> S
     return sol
 
 
+def widen_for_estimated_noise(sol: SolveResult, max_roll_sigma: float) -> SolveResult:
+    """``sol``, identified with a centroid-noise floor estimated from its own matched stars (the
+    residuals of a pattern's refinement), its covariance widened by the Student t factor of a noise
+    estimated with ``2n - 3`` degrees of freedom over its ``n`` stars (:func:`estimated_noise_factor`)
+    and held to the roll bound again; unchanged without a covariance or when :func:`adapt_noise`
+    estimated the noise itself (its own factor applied)."""
+    if sol.covariance is None or sol.noise_extra > 0:
+        return sol
+    sol.covariance = np.asarray(sol.covariance) * estimated_noise_factor(2 * len(sol.matched_det) - 3)
+    return bound_roll(sol, max_roll_sigma)
+
+
+def ranks_above(a: SolveResult | None, b: SolveResult | None) -> bool:
+    """Whether answer ``a`` is preferred to ``b`` among answers short of a decision (a search's
+    candidates): more stars matched, then the higher confidence (coverage of the predicted stars
+    times the share of detections explained); no answer ranks lowest."""
+    return _rank(a) > _rank(b)
+
+
+def _rank(sol: SolveResult | None) -> tuple[int, float]:
+    return (0, 0.0) if sol is None else (len(sol.matched_det), sol.confidence)
+
+
 def _searched_reason(n: int, coverage: float, chance: float, cp: ConsensusParams, attempts: int) -> str:
     return (
         f"{n} stars (coverage {coverage:.2f}, chance {chance:.1g} at search attempt {attempts}) with optics "
@@ -680,7 +706,7 @@ def _searched_reason(n: int, coverage: float, chance: float, cp: ConsensusParams
 
 
 def verify_pattern(
-    det: Detections,
+    det: IdentificationInput,
     rows: np.ndarray,
     cat: np.ndarray,
     catalog: OnboardCatalog,

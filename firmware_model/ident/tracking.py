@@ -29,8 +29,8 @@ successive attitudes.
 uncertainty seen at that star (``f sqrt((tr P_aa - b^T P_aa b) / 2)``, as ``verify``'s gate) and
 ``sigma_meas`` the centroid noise and, in quadrature, ``smear_sigma_coeff L^2`` for a star whose
 smear track over the exposure is ``L`` px long (``L = f |omega x b| t_exp``): the along-track
-scatter of the extractor's centroids on smeared stars grows faster than the track (0.27 px at
-6.4 px, 1.3 px at 12.9 px, ``docs/tracking.md``). The matched stars are solved, stars beyond ``gate_k`` sigma of their own noise
+scatter of the extractor's centroids on smeared stars grows faster than the track
+(``docs/tracking.md``). The matched stars are solved, stars beyond ``gate_k`` sigma of their own noise
 dropped, and the stars matched again around the solved attitude. The update is refused (the
 caller falls back to lost in space) when fewer than ``min_stars`` stars match, when the
 normalised RMS residual exceeds ``max_normalised_rms``, or when the innovation's chi-square

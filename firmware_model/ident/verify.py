@@ -40,9 +40,8 @@ explains the whole frame:
    three stars keep the fixed ``min_coverage`` floor: with so few stars the coverage is most of
    the evidence against a coincidental match. A match whose stars line up by chance with
    probability at most ``coverage_chance`` (:func:`chance_alignment`) stands whatever its coverage,
-   flagged ``low_coverage``: a frame that lost stars (a cloud, a baffle edge, the perturbed real-frame set with
-   20 % of the stars dropped: 10 of 17 predicted stars matched) keeps an identification the
-   geometry has already decided.
+   flagged ``low_coverage``: a frame that lost stars (a cloud, a baffle edge; docs/identification.md
+   gives the perturbed real frames' case) keeps an identification the geometry has already decided.
 """
 
 from __future__ import annotations

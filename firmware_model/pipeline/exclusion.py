@@ -161,7 +161,7 @@ def _joined(*parts: str) -> str:
 
 
 def check_exclusion(out, frame: Frame, limits: ExclusionLimits | None, recall: Recall | None = None):
-    """``out`` (a ``run.PipelineOutput`` of ``frame``) after the exclusion check (module docstring):
+    """``out`` (a ``solve_types.PipelineOutput`` of ``frame``) after the exclusion check (module docstring):
     a body inside its limit turns it into SUN_IN_FOV / EARTH_IN_FOV / MOON_IN_FOV without an
     attitude; a blinded frame without an attitude into BLINDED. ``limits`` None: no check;
     ``recall``: the device's remembered attitude at this frame's time."""

@@ -238,10 +238,12 @@ class _Pass:
         """Fit until ``n`` candidates are kept (or the cap's worth, or none is left)."""
         self._fit_while(lambda: len(self.keep) < n)
 
-    def fit_for_psf(self) -> None:
+    def fit_for_psf(self, likely_kept: bool) -> None:
         """Fit until :data:`PSF_SAMPLE_STARS` kept candidates are measurable (or the cap's worth is
-        kept, or none is left), the first :data:`PSF_FIT_FIRST_FACTOR` x that many at once."""
-        if self.stop == 0 and len(self.det):
+        kept, or none is left). The first :data:`PSF_FIT_FIRST_FACTOR` x that many at once, unless
+        the pass is ``likely_kept``: then the first chunk :meth:`fit_to_cap` would fit (each call
+        of the fit has a set-up cost of its own)."""
+        if self.stop == 0 and len(self.det) and not likely_kept:
             self._fit_next(
                 min(int(np.ceil(PSF_FIT_FIRST_FACTOR * PSF_SAMPLE_STARS)), int(np.ceil(FIT_FIRST_FACTOR * self.cap)))
             )
@@ -302,7 +304,8 @@ def extract_stars(frame: Frame, camera: CameraModel | None = None, params: Extra
         p = _Pass(frame, params, width, prepared)
         passes_run.append(p)
         if params.psf_sigma_px is None:
-            p.fit_for_psf()
+            # a pass at a measured width is usually the one kept; the starting guess seldom is
+            p.fit_for_psf(likely_kept=len(passes_run) > 1)
         return p
 
     current, passes = one_pass(sigma), 1

@@ -96,16 +96,16 @@ FITS_CAMERA_KEYS = ("f", "cx", "cy", "k1", "k2", "k3", "p1", "p2")
 FRAME_SUFFIXES = RAW_EXTENSIONS | {".fits", ".fit", ".fts", ".tif", ".tiff", ".npy", ".png", ".jpg", ".jpeg"}
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 #: Largest frame read (pixels, 134 Mpx: above a 102-Mpx medium-format sensor); every reader
-#: refuses a header claiming more before it decodes or allocates anything (a damaged TIFF asked for
-#: 464 GiB; a 335-byte JPEG claiming 13 000 x 13 000 px used to be decoded, 790 MB and 88 s).
+#: refuses a header claiming more before it decodes or allocates anything (an image bomb: a small
+#: file claiming a huge image; docs/bad_input.md).
 MAX_FRAME_PIXELS = 1 << 27
 #: A TIFF's strips are read this many bytes at a time: tifffile's default reads a whole file in
-#: one buffer (198 MB for an 11 000**2 zlib frame), whose allocation and release held the GIL for
-#: ~25 ms at a time, stalling the device's link thread during a GO (bench/bench_link_during_go.py)
+#: one buffer, whose allocation and release hold the GIL, stalling the device's link thread during
+#: a GO (docs/bad_input.md, ``bench/bench_link_during_go.py``)
 TIFF_READ_BYTES = 8 << 20
 JPEG_SIGNATURE = b"\xff\xd8\xff"
 #: Widest or tallest frame (px): the result's fields hold a frame's rows in 16 bits (``good_rows``),
-#: so a 1 x 100 000 TIFF raised OverflowError after its solve (issue 40).
+#: so a wider frame is refused before its solve (it raised OverflowError after it).
 MAX_FRAME_SIDE = 0xFFFF
 
 

@@ -98,7 +98,7 @@ class PatternIndex:
     @cached_property
     def _prefix_starts(self) -> np.ndarray:
         """The first pattern row of each cell prefix (the first three axes' bins): a lookup then
-        searches only its prefix's few rows, which stay in the processor's cache (10-20 ms once)."""
+        searches only its prefix's few rows, which stay in the processor's cache (built once)."""
         return np.searchsorted(self.codes, np.arange(_BINS**3 + 1, dtype=np.int64) * _BINS**2).astype(np.int64)
 
 

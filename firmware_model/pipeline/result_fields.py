@@ -11,7 +11,8 @@ import numpy as np
 
 from firmware_model.ident.budget import Stop
 from firmware_model.ident.solver import method_code
-from firmware_model.pipeline.run import STAGES, PipelineOutput, apply_colour_correction
+from firmware_model.pipeline.frame_identification import apply_colour_correction
+from firmware_model.pipeline.solve_types import STAGES, PipelineOutput
 from protocol import result
 from protocol.result import ReturnBits, Status
 from protocol.star_flags import StarFlag

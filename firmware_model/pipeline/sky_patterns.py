@@ -50,8 +50,8 @@ def sky_pattern_index(
     vec: np.ndarray, mag: np.ndarray, progress: Callable[[int, int], None] | None = None
 ) -> PatternIndex:
     """The whole-sky table of the stars ``vec`` (N, 3), ``mag`` (N,) (brightest first):
-    ``progress(done, total)`` after each rung of the ladder. ~15 s and ~2.3e6 patterns for the
-    bundled Hipparcos to V 7.5 (docs/identification.md)."""
+    ``progress(done, total)`` after each rung of the ladder (its size and build time for the
+    bundled Hipparcos: docs/identification.md, "Blind and wide")."""
     if np.any(np.diff(mag) < 0):
         raise ValueError("sky pattern stars must come brightest first")
     parts, total = [], len(HALF_FIELDS_DEG)

@@ -32,15 +32,9 @@ from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.ident.attitude import quat_matrix
 from firmware_model.ident.solver import Mode
 from firmware_model.pipeline.exclusion import check_exclusion
+from firmware_model.pipeline.optics_search import pattern_rows
 from firmware_model.pipeline.raw_frame import Frame
-from firmware_model.pipeline.run import (
-    PipelineOutput,
-    PipelineParams,
-    frame_stars,
-    identify_stars,
-    label_planets_of,
-    pattern_rows,
-)
+from firmware_model.pipeline.run import frame_stars, identify_stars, label_planets_of
 from firmware_model.pipeline.sky_search import (
     DISTINCT_F,
     FIRST_CHECKS,
@@ -50,6 +44,7 @@ from firmware_model.pipeline.sky_search import (
     SkyResult,
     SkySearch,
 )
+from firmware_model.pipeline.solve_types import PipelineOutput, PipelineParams
 from protocol.result import Status
 
 #: An answer and the hypothesis it came from agree when their boresights are this close (px).
@@ -137,8 +132,8 @@ def run_pipeline_sky(
             if tried.status is not Status.OK and solve_params is not params:  # the colour route after all
                 again = identify_stars(seen, camera, field, params)
                 again.timings.identify += tried.timings.identify + tried.timings.attitude
-                tried = again if _better(again, tried) else tried
-            if out is None or _better(tried, out):
+                tried = again if _higher_tier(again, tried) else tried
+            if out is None or _higher_tier(tried, out):
                 loser, out, used = out, tried, fit
             else:
                 loser = tried
@@ -152,7 +147,7 @@ def run_pipeline_sky(
         out = _no_match(stars, found)
     else:
         assert used is not None
-        _agree(out, used, w)
+        _held_to_hypothesis(out, used)
         if frame.timestamp and out.solution is not None and out.solution.q_icrs_to_sensor is not None:
             assert out.camera is not None
             out = label_planets_of(out, frame, catalog(out.camera), params)
@@ -173,23 +168,24 @@ def run_pipeline_sky(
     return out, report
 
 
-def _better(a: PipelineOutput, b: PipelineOutput) -> bool:
-    """Whether answer ``a`` ranks above ``b`` (OK, then an attitude, then the rest)."""
-
-    def rank(o: PipelineOutput) -> int:
-        return (
-            2
-            if o.status is Status.OK
-            else 1
-            if o.solution is not None and o.solution.q_icrs_to_sensor is not None
-            else 0
-        )
-
-    return rank(a) > rank(b)
+def _higher_tier(a: PipelineOutput, b: PipelineOutput) -> bool:
+    """Whether candidate camera ``a``'s answer is in a higher tier than ``b``'s: high confidence,
+    then any attitude, then none. Within a tier the earlier candidate stays (the sky search ranked
+    its hypotheses already), unlike ``strategy.ranks_above``, which prefers more matched stars
+    among one camera's answers."""
+    return _tier(a) > _tier(b)
 
 
-def _agree(out: PipelineOutput, fit: SkyFit, width: int) -> None:
-    """Demote a high-confidence answer whose boresight is not the hypothesis' (in place)."""
+def _tier(out: PipelineOutput) -> int:
+    if out.status is Status.OK:
+        return 2
+    return 1 if out.solution is not None and out.solution.q_icrs_to_sensor is not None else 0
+
+
+def _held_to_hypothesis(out: PipelineOutput, fit: SkyFit) -> None:
+    """Demote a high-confidence answer whose boresight is more than :data:`AGREE_PX` from the sky
+    search hypothesis it came from (in place): identification judged the field's catalog alone,
+    this judges the answer against the search that chose the camera."""
     sol = out.solution
     if out.status is not Status.OK or sol is None or sol.q_icrs_to_sensor is None:
         return

@@ -31,12 +31,12 @@ from scipy.special import betainc
 from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import chord_of_angle
 from firmware_model.pipeline import scale_free
+from firmware_model.pipeline.field_of_view_limits import FOV_LIMITS_DEG
 from firmware_model.pipeline.pattern_index import PatternIndex
 from firmware_model.pipeline.sky_patterns import magnitude_limit
 
-#: Horizontal fields of view (deg) a range or hint may name; the whole-sky table serves 5-60.
-FOV_LIMITS_DEG = (1.0, 90.0)
-#: Fields of view a blind search spans (deg): the whole-sky table's.
+#: Fields of view a blind search spans (deg): the whole-sky table's (a range or hint may name any of
+#: ``field_of_view_limits.FOV_LIMITS_DEG``).
 BLIND_FOV_DEG = (5.0, 60.0)
 #: A field-of-view hint's tolerance: ``F`` searches ``F / (1 + t)`` to ``F * (1 + t)`` (a hint
 #: 25 % too wide or too narrow is well inside).

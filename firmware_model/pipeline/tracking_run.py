@@ -26,7 +26,8 @@ from firmware_model.ident.tracking import TrackParams, TrackResult, TrackState, 
 from firmware_model.pipeline.exclusion import Recall, check_exclusion
 from firmware_model.pipeline.extract import StarList
 from firmware_model.pipeline.raw_frame import Frame
-from firmware_model.pipeline.run import PipelineOutput, PipelineParams, frame_stars, identify_stars, run_pipeline
+from firmware_model.pipeline.run import frame_stars, identify_stars, run_pipeline
+from firmware_model.pipeline.solve_types import PipelineOutput, PipelineParams
 from protocol.result import Status
 
 

@@ -37,7 +37,8 @@ from firmware_model.catalog.onboard import OnboardCatalog
 from firmware_model.pipeline.extract import StarList, extract_stars
 from firmware_model.pipeline.frame_readers import frame_files, read_frame
 from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes
-from firmware_model.pipeline.run import PipelineParams, identify_stars, run_pipeline, warm_up
+from firmware_model.pipeline.run import identify_stars, run_pipeline, warm_up
+from firmware_model.pipeline.solve_types import PipelineParams
 from firmware_model.reference_frames import quat_to_matrix
 from ground.analysis.results_log import ResultsLog, plot_summary, summarize
 from ground.arg_types import InputError

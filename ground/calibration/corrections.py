@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_model.pipeline.run import apply_colour_correction
+from firmware_model.pipeline.frame_identification import apply_colour_correction
 from ground.atomic_write import write_text
 from ground.sim import earth_orientation
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from firmware_model.pipeline.run import apply_colour_correction
+from firmware_model.pipeline.frame_identification import apply_colour_correction
 from protocol.catalog_image import parse_image, with_star_colours
 
 PRIOR_REL = 0.05  #: prior sigma of a catalog colour ratio, relative to the ratio

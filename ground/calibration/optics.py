@@ -26,7 +26,8 @@ from firmware_model.ident.consensus import Outcome
 from firmware_model.pipeline.camera_fit import CalibrationResult, StarObservations, calibrate
 from firmware_model.pipeline.extract import StarList, extract_stars
 from firmware_model.pipeline.raw_frame import Frame
-from firmware_model.pipeline.run import OpticsSearch, PipelineOutput, PipelineParams, identify_stars
+from firmware_model.pipeline.run import identify_stars
+from firmware_model.pipeline.solve_types import OpticsSearch, PipelineOutput, PipelineParams
 
 
 @dataclass

@@ -22,7 +22,7 @@ def _calibrate(args) -> int:
     from firmware_model.catalog.image_io import catalog_from_image
     from firmware_model.device.cli import load_camera
     from firmware_model.pipeline.frame_readers import read_frame
-    from firmware_model.pipeline.run import PipelineParams, with_psf_sigma
+    from firmware_model.pipeline.solve_types import PipelineParams, with_psf_sigma
     from ground.calibration.optics import calibrate_from_frames
 
     if args.camera:

@@ -21,12 +21,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ground.arg_types import FOV_LIMITS_DEG, InputError, progress_on
+from firmware_model.pipeline.field_of_view_limits import FOV_LIMITS_DEG
+from ground.arg_types import InputError, progress_on
 
 if TYPE_CHECKING:  # the pipeline imports scipy: only when a command runs
     from firmware_model.camera import CameraModel
     from firmware_model.pipeline.raw_frame import Frame
-    from firmware_model.pipeline.run import PipelineParams
+    from firmware_model.pipeline.solve_types import PipelineParams
 
 
 _FOV_TEXT = "{:g}-{:g}".format(*FOV_LIMITS_DEG)
@@ -93,7 +94,7 @@ def add_params_option(parser) -> None:
 def load_params(path: str | None) -> PipelineParams:
     """Pipeline parameters from a slot-2 parameter file (defaults without one)."""
     from firmware_model.device.cli import load_params as load_device_params
-    from firmware_model.pipeline.run import PipelineParams
+    from firmware_model.pipeline.solve_types import PipelineParams
 
     if path is None:
         return PipelineParams()

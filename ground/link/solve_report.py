@@ -20,7 +20,7 @@ import numpy as np
 
 from firmware_model.ident.solver import Method
 from firmware_model.pipeline.result_fields import result_fields, star_entries
-from firmware_model.pipeline.run import STAGES, PipelineOutput
+from firmware_model.pipeline.solve_types import STAGES, PipelineOutput
 from firmware_model.reference_frames import quat_to_matrix, radec_roll_from_attitude
 from protocol import result
 

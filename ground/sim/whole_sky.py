@@ -38,7 +38,13 @@ from firmware_model.ident.budget import Stop
 from firmware_model.ident.consensus import Outcome
 from firmware_model.ident.four_star import FourStarParams, match_four_star
 from firmware_model.ident.solver import Mode, SolveParams
-from firmware_model.ident.strategy import Detections, IdentifyTimings, StrategyParams, check_hypothesis, identify
+from firmware_model.ident.strategy import (
+    IdentificationInput,
+    IdentifyTimings,
+    StrategyParams,
+    check_hypothesis,
+    identify,
+)
 from firmware_model.ident.verify import FieldOfView
 from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_quat, vec_to_radec
 from ground.atomic_write import save_figure
@@ -239,7 +245,6 @@ def _strategy(params: SolveParams, cfg: ColourSimConfig) -> StrategyParams:
     return StrategyParams(
         solve=params,
         photometric_gate=None,
-        geometric_steps=(),
         geometric_cap=None,
         geometric_fallback=cfg.geometric_fallback,
         colour_fallback=cfg.colour_fallback,
@@ -276,7 +281,7 @@ def run_poses(catalog: OnboardCatalog, camera: CameraModel, cfg: ColourSimConfig
         a, roll, scene = pose_scene(catalog, camera, cfg, int(pid), boresights, table)
         t = time.perf_counter()
         ledger = IdentifyTimings()
-        found = identify(Detections(scene.vectors, scene.rg, scene.bg), catalog, strategy, ledger)
+        found = identify(IdentificationInput(scene.vectors, scene.rg, scene.bg), catalog, strategy, ledger)
         res = found.solution
         dt = time.perf_counter() - t
         rec = out[row]
