@@ -25,31 +25,22 @@ import sys
 import threading
 from collections.abc import Callable
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import protocol
 from firmware_model import user_cache_dir, user_files
-from firmware_model.camera import CameraModel
-from firmware_model.device.catalog_slot import catalog_slot_handler
 from firmware_model.device.clock import ClockModel
-from firmware_model.device.device import Device, SlotHandler, SolveContext
 from firmware_model.device.faults import Fault, parse_script
 from firmware_model.device.link import DEFAULT_IDLE_TIMEOUT, Link, open_link, serve
-from firmware_model.device.sensor_input import (
-    DeviceParams,
-    FileFrames,
-    PipelineSolver,
-    frame_slot_handler,
-    load_frame_source,
-    params_slot_handler,
-)
 from firmware_model.device.sequence import Timing
-from firmware_model.device.slots import SlotStore
-from firmware_model.pipeline import scale_free
-from firmware_model.pipeline.solve_types import PipelineParams
 from protocol import nsp
 from protocol.commands import MAX_FAULT_SCRIPT, Slot, SlotRejected
 from protocol.result import QuaternionOrder
+
+if TYPE_CHECKING:  # the device's heavy modules load when it is built (a spawned helper process imports this module)
+    from firmware_model.camera import CameraModel
+    from firmware_model.device.device import Device, SolveContext
+    from firmware_model.device.sensor_input import DeviceParams
 
 DEFAULT_PACED_TURNAROUND_MS = 1.0  #: ours; the research documents no turnaround
 DEFAULT_TIMING = Timing()  #: --timing realistic's defaults: about 2 Hz, the real unit's cadence
@@ -174,6 +165,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def load_camera(path: str | None) -> CameraModel:
+    from firmware_model.camera import CameraModel
+
     if path is None:
         return CameraModel.reference_design()
     try:
@@ -187,6 +180,8 @@ def load_camera(path: str | None) -> CameraModel:
 def load_params(path: str) -> DeviceParams:
     """The ``--params`` file (a regular file of at most ``user_files.MAX_JSON_BYTES``, JSON of
     bounded depth); ValueError naming the file."""
+    from firmware_model.device.sensor_input import DeviceParams
+
     try:
         data = user_files.read_bytes(path, user_files.MAX_JSON_BYTES)
     except user_files.UserFileError as exc:
@@ -204,6 +199,18 @@ def build_device(args: argparse.Namespace, shared_source: Callable[[SolveContext
     ready when this returns: kernels loaded, the stored catalog's pattern index built.
     ``shared_source``: a capture source several heads share (made ready by their bus), used in
     place of the options' own, its simulated clocks included."""
+    from firmware_model.device.catalog_slot import catalog_slot_handler
+    from firmware_model.device.device import Device, SlotHandler
+    from firmware_model.device.sensor_input import (
+        DeviceParams,
+        PipelineSolver,
+        frame_slot_handler,
+        params_slot_handler,
+    )
+    from firmware_model.device.slots import SlotStore
+    from firmware_model.pipeline import scale_free
+    from firmware_model.pipeline.solve_types import PipelineParams
+
     if not 0 <= args.address <= 0xFF:
         raise ValueError(f"address 0x{args.address:X} outside 0x00-0xFF")
     camera = load_camera(args.camera)
@@ -217,6 +224,7 @@ def build_device(args: argparse.Namespace, shared_source: Callable[[SolveContext
         tracking=bool(device_params.tracking),
         # a catalog seen before (by this install) loads its index in a few hundredths of a second
         build_index=functools.partial(scale_free.cached_pattern_index, user_cache_dir() / "pattern-index"),
+        ephemerides=getattr(source, "timestamps", True),  # a source's frames without a time need none
     )
     slots: dict[int, SlotHandler] = {
         Slot.CATALOG: catalog_slot_handler(prepare=solver.prepare),
@@ -252,6 +260,8 @@ def build_device(args: argparse.Namespace, shared_source: Callable[[SolveContext
 
 def _capture_source(args: argparse.Namespace, camera: CameraModel) -> Callable[[SolveContext], Any] | None:
     """The capture source the options name (``--frames``, ``--sky``, ``--attitude-feed``), or None."""
+    from firmware_model.device.sensor_input import FileFrames, load_frame_source
+
     if args.frames:
         return FileFrames(args.frames, camera, loop=args.loop)
     if args.sky:
@@ -338,6 +348,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--exposure-ms, --processing-ms, --deadline-ms and --boot-ms need --timing realistic")
     if any(v is not None and not 0 <= v <= 60_000 for v in timed):
         parser.error("--exposure-ms, --processing-ms, --deadline-ms and --boot-ms must be 0..60000")
+    from firmware_model.device.sensor_input import DeviceParams
+
     try:
         clock_model(args, DeviceParams())  # the options alone, before the slow start (the --params file's later)
     except ValueError as exc:

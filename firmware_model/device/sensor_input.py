@@ -18,8 +18,6 @@ import json
 import logging
 import math
 import multiprocessing
-import multiprocessing.connection
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -35,6 +33,7 @@ import numpy as np
 from firmware_model import user_files
 from firmware_model.camera import CameraModel
 from firmware_model.catalog.onboard import OnboardCatalog
+from firmware_model.device import index_process
 from firmware_model.device.clock import MAX_DRIFT_PPM, MAX_JITTER_US, ROLLOVER_US, ClockModel
 from firmware_model.device.device import FrameUnavailable, SlotHandler, SolveContext
 from firmware_model.ident.solver import Mode
@@ -66,8 +65,16 @@ REJECT_PARAMS_KEY = 0x0401
 REJECT_PARAMS_VALUE = 0x0402
 
 
+def load_ephemerides() -> None:
+    """Import the ephemerides (``planets``: astropy, slow to import), which a GO on a frame with a
+    time needs (planet labels, the bright-body check): at start-up or at the frame's COMMIT, not
+    inside the GO."""
+    importlib.import_module("firmware_model.pipeline.planets")
+
+
 def frame_slot_handler(camera: CameraModel) -> SlotHandler:
-    """Slot 1: a serialised frame whose size matches the device's camera."""
+    """Slot 1: a serialised frame whose size matches the device's camera (one with a time loads
+    the ephemerides when it is activated: :func:`load_ephemerides`)."""
 
     def load(data: bytes) -> Frame:
         try:
@@ -79,6 +86,8 @@ def frame_slot_handler(camera: CameraModel) -> SlotHandler:
                 REJECT_FRAME_SIZE,
                 f"frame is {frame.width} x {frame.height}, the device's camera is {camera.width} x {camera.height}",
             )
+        if frame.timestamp:
+            load_ephemerides()
         return frame
 
     def info(data: bytes, frame: Frame) -> bytes:
@@ -403,26 +412,6 @@ def load_frame_source(name: str, spec: str, camera: CameraModel) -> Callable[[So
     return found[name].load()(spec, camera)
 
 
-def _builder_ready() -> bool:
-    """The index-building process' first task: it has imported the pipeline once this returns."""
-    return True
-
-
-def _builder_init() -> None:
-    """The index-building process ends with the device, however the device ends (a device killed
-    outright would otherwise leave it waiting for work for ever): a thread waits for the parent's
-    end and exits."""
-    parent = multiprocessing.parent_process()
-    if parent is None:
-        return
-
-    def watch() -> None:
-        multiprocessing.connection.wait([parent.sentinel])
-        os._exit(0)
-
-    threading.Thread(target=watch, daemon=True, name="parent-watch").start()
-
-
 class PipelineSolver:
     """GO solver: runs :func:`~firmware_model.pipeline.run.run_pipeline` on the sequence's frame,
     or, with the parameter ``tracking`` (the slot-2 set's, else ``tracking`` here: ``--params``),
@@ -437,8 +426,11 @@ class PipelineSolver:
     called (a catalog COMMIT: a thread here would hold the GIL for much of the build and starve
     the link thread); a GO that comes while it is built waits for it. ``build_index`` builds it
     (``scale_free.pattern_index``'s arguments and answer; picklable: it runs in a spawned process).
-    :meth:`serving` spawns that process, whose imports (~0.6 s) then run beside the link's first
-    minutes rather than in the start-up or in the first COMMIT's build."""
+    ``ephemerides``: load them now (:func:`load_ephemerides`); False when the capture source's
+    frames carry no time (an uploaded frame with one loads them at its COMMIT).
+    :meth:`serving` spawns that process, whose imports (those of ``index_process`` and of the
+    index build alone) then run beside the link's first minutes rather than in the start-up or in
+    the first COMMIT's build."""
 
     def __init__(
         self,
@@ -446,6 +438,7 @@ class PipelineSolver:
         params: PipelineParams = PipelineParams(),
         tracking: bool = False,
         build_index: Callable[..., Any] = scale_free.pattern_index,
+        ephemerides: bool = True,
     ):
         self.camera = camera
         self.params = params
@@ -456,18 +449,19 @@ class PipelineSolver:
         self._pool: ProcessPoolExecutor | None = None  # the index-building process
         self._serving = False
         self._lock = threading.Lock()
-        # the planet check imports astropy (~0.3 s) and the pipeline's kernels load (numba, cached
-        # on disk; compiled once per install): at start-up, not inside the first GO
-        importlib.import_module("firmware_model.pipeline.planets")
+        # the pipeline's kernels load (numba, cached on disk; compiled once per install) and, unless
+        # no frame is expected to carry a time, the ephemerides: at start-up, not inside the first GO
+        if ephemerides:
+            load_ephemerides()
         log.info("pipeline kernels ready in %.2f s", warm_up())
 
     def _builder(self) -> ProcessPoolExecutor:
         """The index-building process (one, kept: it waits for catalogs), spawned if need be."""
         if self._pool is None:
             self._pool = ProcessPoolExecutor(
-                max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_builder_init
+                max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=index_process.init
             )
-            self._pool.submit(_builder_ready)
+            self._pool.submit(index_process.ready)
         return self._pool
 
     def serving(self) -> None:

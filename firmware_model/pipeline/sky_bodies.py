@@ -20,8 +20,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_model.pipeline.planets import RADIUS_KM, _as_time, astrometric_positions
-
 EARTH_RADIUS_KM = 6378.137  #: WGS84 equatorial radius
 ATMOSPHERE_KM = 100.0  #: height of the bright limb above the surface (assumption, module docstring)
 NAMES = ("sun", "moon", "earth")
@@ -47,6 +45,9 @@ class SkyBody:
 def sky_bodies(epoch, sc_position_km=None) -> dict[str, SkyBody]:
     """The Sun and the Moon (and the Earth when ``sc_position_km``, the observer's GCRS position
     in km, is given) at ``epoch`` (ISO-8601 UTC string or astropy Time)."""
+    # the ephemerides import astropy, slow: only when bodies are placed
+    from firmware_model.pipeline.planets import RADIUS_KM, _as_time, astrometric_positions
+
     t = _as_time(epoch)
     observer = None if sc_position_km is None else np.asarray(sc_position_km, dtype=float).reshape(3)
     out = {}

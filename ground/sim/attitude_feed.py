@@ -60,7 +60,7 @@ from ground.sim.detector_effects import (
     check_hits,
     effects_from_options,
 )
-from ground.sim.exposure import ExposureRenderer
+from ground.sim.exposure import ExposureRenderer, noise_cache_dir
 from ground.sim.feed_clock import WALL_GUARD_S, FeedClock
 from ground.sim.feed_wire import IDLE_S, FeedUrl, Listener, Sample
 from ground.sim.nasa42 import Nasa42Options, Reader
@@ -285,7 +285,7 @@ class AttitudeFeedSource:
         except ValueError as exc:
             raise ValueError(f"attitude feed {spec!r}: {exc}") from None
         self.camera = camera
-        self.renderer = renderer or ExposureRenderer(camera)
+        self.renderer = renderer or ExposureRenderer(camera, cache_dir=noise_cache_dir())
         # at start-up, not inside the first GO
         # glare: samples may carry a position, which renders the bright bodies
         self._drawing = self.renderer.draw_bank(self.renderer.effective_detector(self.det, self.effects), glare=True)

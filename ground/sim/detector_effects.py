@@ -31,7 +31,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.stats import landau
 
 from firmware_model.device.housekeeping import AMBIENT_C, DETECTOR, ThermalNode
 from ground.sim.orbit import CircularOrbit
@@ -154,6 +153,8 @@ class CosmicRays:
         self, detector: DetectorModel, camera, rng: np.random.Generator, where: tuple[float, float] | None = None
     ) -> tuple[list[FalseObject], list[dict]]:
         """The hits of one exposure: (false objects for ``render_frame``, truth rows)."""
+        from scipy.stats import landau  # scipy.stats is slow to import: only when hits are drawn
+
         n = int(rng.poisson(self.mean_hits(detector, camera, where)))
         w, h = camera.width, camera.height
         x, y = rng.uniform(-0.5, w - 0.5, n), rng.uniform(-0.5, h - 0.5, n)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+from pathlib import Path
 
 import numpy as np
 
@@ -93,40 +94,62 @@ class GlareNoise:
         return np.minimum(out, np.float32(self.bank.det.full_well_e), out=out)
 
 
-class ExposureRenderer:
-    """Renders exposures of ``camera`` from ``stars`` (default: the real sky to V 6.5)."""
+def noise_cache_dir() -> Path:
+    """Where the capture sources keep their noise banks: the user's cache directory."""
+    from firmware_model import user_cache_dir
 
-    def __init__(self, camera: CameraModel, stars: Stars | None = None):
+    return user_cache_dir() / "noise-bank"
+
+
+class ExposureRenderer:
+    """Renders exposures of ``camera`` from ``stars`` (default: the real sky to V 6.5, read on first
+    use or by :meth:`draw_bank`'s thread); noise banks kept in ``cache_dir`` when given
+    (:class:`~ground.sim.noise_bank.NoiseBank`)."""
+
+    def __init__(self, camera: CameraModel, stars: Stars | None = None, cache_dir: Path | None = None):
         self.camera = camera
-        self.stars = sky_stars() if stars is None else stars
+        self.cache_dir = cache_dir
+        self._stars = stars
+        self._stars_lock = threading.Lock()
         self._banks: dict[DetectorModel, NoiseBank] = {}
         self._prnu: dict[int, np.ndarray] = {}
         self._unit: np.ndarray | None = None
         self._lock = threading.Lock()
 
+    @property
+    def stars(self) -> Stars:
+        """The stars rendered."""
+        with self._stars_lock:
+            if self._stars is None:
+                self._stars = sky_stars()
+            return self._stars
+
     def draw_bank(self, det: DetectorModel, glare: bool = False) -> threading.Thread:
-        """Start drawing the noise bank of ``det`` in a thread (numpy draws large arrays without the
-        GIL, so a device's kernel loading goes on beside it) and return the thread; a render that
-        comes first waits for it (:meth:`bank`'s lock). Capture sources call it at start-up and
-        join it in ``ready`` before the device says it is listening; with ``glare`` (a source that
-        may render bright bodies) one glare map is made too, so the first GO pays no first-use cost."""
+        """Start reading the stars and drawing (or loading) the noise bank of ``det`` in a thread
+        (numpy draws large arrays without the GIL, so a device's kernel loading goes on beside it)
+        and return the thread; a render that comes first waits for it (:meth:`bank`'s lock).
+        Capture sources call it at start-up and join it in ``ready`` before the device says it is
+        listening; one exposure is rendered and dropped, and with ``glare`` (a source that may
+        render bright bodies) one glare map is made too, so the first GO pays no first-use cost."""
 
         def draw() -> None:
+            self.stars  # noqa: B018 - the real sky read here, beside the device's kernel loading
             self.bank(det)
             self._unit_normal()
             if glare:  # the ephemerides' and the camera's first-use costs (~0.35 s), not in a GO
                 Glare("2026-01-01T00:00:00", np.array([7000.0, 0.0, 0.0])).background_e(np.eye(3), self.camera, det)
+            self.render(np.eye(3), det, 0)  # a render's own first-use costs (memory, kernels), not in a GO
 
         thread = threading.Thread(target=draw, name="noise-bank", daemon=True)
         thread.start()
         return thread
 
     def bank(self, det: DetectorModel) -> NoiseBank:
-        """The noise bank of ``det`` (drawn on first use: ~1 s for the reference design)."""
+        """The noise bank of ``det`` (drawn, or loaded from ``cache_dir``, on first use)."""
         key = dataclasses.replace(det, pattern="MONO")  # the noise does not depend on the CFA
         with self._lock:
             if key not in self._banks:
-                self._banks[key] = NoiseBank(det, (self.camera.height, self.camera.width))
+                self._banks[key] = NoiseBank(det, (self.camera.height, self.camera.width), cache_dir=self.cache_dir)
             return self._banks[key]
 
     def _unit_normal(self) -> np.ndarray:

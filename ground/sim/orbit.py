@@ -13,9 +13,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from astropy.time import Time
+
+if TYPE_CHECKING:
+    from astropy.time import Time
 
 MU_EARTH_KM3_S2 = 398600.4418  #: WGS84 / EGM96 gravitational parameter
 EARTH_RADIUS_KM = 6378.137
@@ -53,6 +56,8 @@ class CircularOrbit:
 
     @property
     def epoch_posix(self) -> float:
+        from astropy.time import Time  # astropy is slow to import: only when a time is converted
+
         return float(Time(self.epoch_utc, scale="utc").unix)
 
     def _frame(self) -> tuple[np.ndarray, np.ndarray]:
@@ -109,6 +114,7 @@ def parse_utc(text: str) -> Time:
     (a second 60 on a day without a leap second, a year beyond the leap-second table's reach)."""
     import warnings
 
+    from astropy.time import Time
     from erfa import ErfaWarning
 
     early = f"is before {EARLIEST_UTC[:10]}: UTC as it is (with leap seconds) began in 1972"
@@ -137,6 +143,8 @@ def parse_utc(text: str) -> Time:
 
 def utc_iso(t_posix: float) -> str:
     """ISO-8601 UTC string (ms) of POSIX time ``t_posix`` (s), as astropy writes it."""
+    from astropy.time import Time
+
     return str(Time(t_posix, format="unix", scale="utc").isot)
 
 

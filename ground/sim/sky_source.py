@@ -21,8 +21,8 @@ mission (``ground.sim.detector_effects.SOURCE_OPTIONS``: ``cosmic_rate``, ``hits
 ``saa`` (with the orbit), ``dose_krad``, ``temperature_c`` or ``duty``), drawn from the row's seed.
 Registered as the ``sky`` entry point of ``st16.frame_sources`` (the device
 never imports ``ground``; the entry point plugs it in). Exposures render only the stars in view
-with the noise from a bank drawn at start-up (``ground.sim.exposure``), so GO -> result stays
-within the device's budget (docs/hil.md).
+with the noise from a bank drawn at start-up, once per install (kept in the user cache, then
+loaded: ``ground.sim.exposure``), so GO -> result stays within the device's budget (docs/hil.md).
 """
 
 from __future__ import annotations
@@ -34,7 +34,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from astropy.time import Time
 
 from firmware_model.camera import CameraModel
 from firmware_model.device.device import FrameUnavailable
@@ -47,7 +46,7 @@ from ground.sim.detector_effects import (
     effects_from_options,
     parse_option_pairs,
 )
-from ground.sim.exposure import ExposureRenderer
+from ground.sim.exposure import ExposureRenderer, noise_cache_dir
 from ground.sim.orbit import CircularOrbit, parse_utc, utc_iso
 from ground.sim.sensor_sim import DetectorModel
 
@@ -263,9 +262,10 @@ class SkySource:
                 check_hits(self.effects, DetectorModel(pattern=pattern), camera, MAX_SOURCE_HITS_PER_FRAME)
         except ValueError as exc:
             raise ValueError(f"{spec}: {exc}") from None
-        self.renderer = ExposureRenderer(camera)
+        self.renderer = ExposureRenderer(camera, cache_dir=noise_cache_dir())
         # at start-up, not inside the first GO
         bodies = self.orbit is not None or any(e.time_utc or e.position_km is not None for e in self.schedule)
+        self.timestamps = bodies  #: whether a frame may carry a time (the device loads its ephemerides then)
         self._drawing = self.renderer.draw_bank(
             self.renderer.effective_detector(DetectorModel(), self.effects), glare=bodies
         )
@@ -284,6 +284,8 @@ class SkySource:
         started = getattr(ctx, "started", None)
         epoch, t_posix = None, None
         if exp.time_utc is not None:
+            from astropy.time import Time  # astropy is slow to import: only for a row with a time
+
             t_posix = float(Time(exp.time_utc, scale="utc").unix) + det.exposure_s / 2.0
         elif started is not None and (exp.position_km is not None or self.orbit is not None):
             t_posix = started + det.exposure_s / 2.0
