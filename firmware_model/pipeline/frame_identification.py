@@ -21,7 +21,6 @@ from firmware_model.ident.strategy import (
     geometric_detection_cap,
     geometric_fallback,
     identify,
-    verify_pattern,
 )
 from firmware_model.ident.verify import FieldOfView
 from firmware_model.pipeline.extract import StarList
@@ -87,35 +86,6 @@ def identify_with_camera(
         )
     return PipelineOutput(
         output_status(sol), sol.reason, stars, rows, sol, colour_beta=params.colour_beta, camera=camera
-    )
-
-
-def verify_pattern_match(
-    seen: SolveInput, rows, cat, params: PipelineParams, timings: StageTimings, attempts: int
-) -> PipelineOutput | None:
-    """A refined pattern match (detection ``rows`` on catalog stars ``cat``, a search's attempt
-    ``attempts``), verified over every usable detection with the camera and noise model of
-    ``seen`` and ``params`` and judged by ``strategy.verify_pattern`` (method "pattern"), or None
-    when verification refuses it."""
-    stars = seen.stars
-    used = usable_rows(stars)
-    rows, cat = np.asarray(rows), np.asarray(cat)
-    usable = np.zeros(len(stars), bool)
-    usable[used] = True
-    inside = usable[rows]
-    sol = verify_pattern(
-        identification_input(used, stars, seen.camera.f, params),
-        np.searchsorted(used, rows[inside]),
-        cat[inside],
-        seen.catalog,
-        solve_params(seen, params),
-        timings,
-        attempts,
-    )
-    if sol is None:
-        return None
-    return PipelineOutput(
-        output_status(sol), sol.reason, stars, used, sol, colour_beta=params.colour_beta, camera=seen.camera
     )
 
 

@@ -48,6 +48,7 @@ from firmware_model.ident.strategy import (
     bound_roll,
     hold_searched,
     ranks_above,
+    verify_pattern,
     widen_for_estimated_noise,
 )
 from firmware_model.pipeline import scale_free
@@ -56,8 +57,11 @@ from firmware_model.pipeline.extract import StarList
 from firmware_model.pipeline.frame_fit import fit_frame
 from firmware_model.pipeline.frame_identification import (
     centroid_sigma_px,
+    identification_input,
     identify_with_camera,
-    verify_pattern_match,
+    output_status,
+    solve_params,
+    usable_rows,
     with_solution_confidence,
 )
 from firmware_model.pipeline.solve_types import (
@@ -196,10 +200,39 @@ def verify_seed(
 ) -> PipelineOutput | None:
     """The first pattern match's refinement (:func:`first_seed`): its stars verified over the frame
     with the nominal camera of ``seen`` and the refinement's noise floor
-    (``frame_identification.verify_pattern_match``, the search's first attempt)."""
+    (:func:`verify_refinement`, the search's first attempt)."""
     noise = refined_noise(params, refined.fit)
-    out = verify_pattern_match(seen, refined.rows, refined.cat, noise, timings, 1)
+    out = verify_refinement(seen, refined, noise, timings, 1)
     return None if out is None else with_estimated_floor(out, noise, params)
+
+
+def verify_refinement(
+    seen: SolveInput, refined: Refinement, params: PipelineParams, timings: StageTimings, attempts: int
+) -> PipelineOutput | None:
+    """A refined pattern match (its detection rows on its catalog stars, the search's attempt
+    ``attempts``), verified over every usable detection with the camera of ``seen`` and the noise
+    model of ``params`` and judged by ``strategy.verify_pattern`` (method "pattern"), or None when
+    verification refuses it."""
+    stars = seen.stars
+    used = usable_rows(stars)
+    rows, cat = np.asarray(refined.rows), np.asarray(refined.cat)
+    usable = np.zeros(len(stars), bool)
+    usable[used] = True
+    inside = usable[rows]
+    sol = verify_pattern(
+        identification_input(used, stars, seen.camera.f, params),
+        np.searchsorted(used, rows[inside]),
+        cat[inside],
+        seen.catalog,
+        solve_params(seen, params),
+        timings,
+        attempts,
+    )
+    if sol is None:
+        return None
+    return PipelineOutput(
+        output_status(sol), sol.reason, stars, used, sol, colour_beta=params.colour_beta, camera=seen.camera
+    )
 
 
 def search_optics(
@@ -219,7 +252,7 @@ def search_optics(
     assert search is not None  # called with the optics search on (the caller built its patterns)
     camera = seen.camera
     tried: list[np.ndarray] = []
-    best: _SearchAnswer | None = None
+    best: SearchAnswer | None = None
     for hyp in pattern_seeds(seen, search, timings, peek):
         if search_spent(search, params.solve.deadline, timings):
             break
@@ -236,7 +269,7 @@ def search_optics(
         tight = refined_noise(params, refined.fit)
         # the refined pattern match verified over the frame first (one verification); the frame
         # identified from scratch with the fitted camera only when that is not high-confidence
-        pattern = verify_pattern_match(fitted, refined.rows, refined.cat, tight, timings, len(tried))
+        pattern = verify_refinement(fitted, refined, tight, timings, len(tried))
         if pattern is not None and pattern.status is Status.OK:
             out = pattern
         else:
@@ -247,17 +280,17 @@ def search_optics(
             if pattern is not None and ranks_above(pattern.solution, out.solution):
                 out = pattern
         if out.status is Status.OK:
-            return with_optics(out, hyp.f / camera.f, seen.catalog, params, tight, refined)
+            return with_optics(SearchAnswer(out, hyp.f / camera.f, tight), seen.catalog, params, refined)
         if out.solution is not None and ranks_above(out.solution, best.answer.solution if best else None):
-            best = _SearchAnswer(out, hyp.f / camera.f, tight)
+            best = SearchAnswer(out, hyp.f / camera.f, tight)
     if best is None:
         return None
-    return with_optics(best.answer, best.focal_scale, seen.catalog, params, best.noise)  # the optics of the answer only
+    return with_optics(best, seen.catalog, params)  # the optics of the answer only
 
 
-class _SearchAnswer(NamedTuple):
-    """The search's best answer short of high confidence so far: the answer, its pattern's focal
-    length over the nominal one, and the parameters (noise floor) it was identified with."""
+class SearchAnswer(NamedTuple):
+    """An answer of the search: the answer, its pattern's focal length over the nominal one, and
+    the parameters (noise floor) it was identified with."""
 
     answer: PipelineOutput
     focal_scale: float
@@ -280,21 +313,17 @@ def search_spent(search: OpticsSearch, deadline: float | None, timings: StageTim
 
 
 def with_optics(
-    out: PipelineOutput,
-    focal_scale: float,
-    catalog: OnboardCatalog,
-    params: PipelineParams,
-    noise: PipelineParams,
-    known: Refinement | None = None,
+    found: SearchAnswer, catalog: OnboardCatalog, params: PipelineParams, known: Refinement | None = None
 ) -> PipelineOutput:
-    """``out`` with the optics fitted to its matched stars and the search's focal scale, its
-    covariance widened by their uncertainty (:func:`with_fitted_camera_uncertainty`, with
-    ``noise``, the parameters it was identified with) and for its estimated noise floor
+    """The search's answer with the optics fitted to its matched stars and its focal scale, its
+    covariance widened by their uncertainty (:func:`with_fitted_camera_uncertainty`, with the
+    parameters it was identified with) and for its estimated noise floor
     (:func:`with_estimated_floor`); ``known``: a refinement of some stars already made."""
     assert params.optics is not None  # the search's answers
+    out, noise = found.answer, found.noise
     out.optics = fit_optics(out, catalog, params.optics, known)
     if out.optics is not None:
-        out.optics.focal_scale = focal_scale
+        out.optics.focal_scale = found.focal_scale
     return with_estimated_floor(with_fitted_camera_uncertainty(out, catalog, noise), noise, params)
 
 
