@@ -136,9 +136,10 @@ class StrategyParams:
 
     solve: the solver configuration (``mode`` picks the route); photometric_gate: margin (mag)
     beyond the catalog limit for the gate, None to disable; geometric_cap: the brightest detections
-    the geometric route gives its matchers (None: every detection); geometric_fallback: consensus on geometry alone when the geometric route
-    finds nothing; colour_fallback: in ``auto`` mode, the geometric route when colour is not
-    high-confidence; defer_fallback: leave that consensus to the caller (``Identification.fallback_due``)."""
+    the geometric route gives its matchers (None: every detection); geometric_fallback: consensus
+    on geometry alone when the geometric route finds nothing; colour_fallback: in ``auto`` mode,
+    the geometric route when colour is not high-confidence; defer_fallback: leave that consensus
+    to the caller (``Identification.fallback_due``)."""
 
     solve: SolveParams = SolveParams()
     photometric_gate: float | None = None
