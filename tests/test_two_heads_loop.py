@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 
+import guards
 import numpy as np
 import pytest
 
@@ -30,7 +31,9 @@ def test_the_plan_sweeps_head_a_inside_the_sun_limit_while_head_b_and_the_other_
         sun_a.append(math.degrees(bodies["sun"].edge_angle(a)))
         sun_b.append(math.degrees(bodies["sun"].edge_angle(b)))
         others += [math.degrees(bodies[n].edge_angle(v)) - sc.limits_deg[n] for n in ("moon", "earth") for v in (a, b)]
-    assert min(sun_a) < sc.limits_deg["sun"] - 15.0 < sc.limits_deg["sun"] < sun_a[0] and sun_a[-1] > sc.limits_deg["sun"]
+    assert (
+        min(sun_a) < sc.limits_deg["sun"] - 15.0 < sc.limits_deg["sun"] < sun_a[0] and sun_a[-1] > sc.limits_deg["sun"]
+    )
     assert min(sun_b) > sc.limits_deg["sun"] + 30.0
     assert min(others) > 1.0
     # head B's boresight does not move: the body turns about the axis it looks along
@@ -101,6 +104,7 @@ def test_the_pass_mark_holds_with_selection_and_fails_when_the_flight_side_reads
     assert summary["sun_excluded_updates"] > 0 and summary["used_not_ok"] == 0
 
 
+@pytest.mark.timeout(20 * guards.HANG_S)  # a hang guard: 466 GOs of two heads, rendered and solved
 @pytest.mark.parametrize("read", ["both", "blinded-head-alone"])
 def test_the_two_head_loop_through_the_device(tmp_path, read):
     """The whole scenario through ``st16-device --heads --attitude-feed``; the control reads head
