@@ -105,9 +105,10 @@ class PatternIndex:
 @njit(cache=True, nogil=True)
 def _within_kernel(codes, prefix_starts, table, keys, tolerance, cell, bins):  # pragma: no cover - compiled
     """:meth:`PatternIndex.within`'s numbers: for each query, every cell its tolerance box
-    touches (at most 2 an axis while the tolerance is under half a cell), the cell's patterns
-    found by binary search among its prefix's rows of the sorted ``codes``, those within the
-    tolerance kept."""
+    touches (at most 2 an axis while the tolerance is under half a cell), the cells' patterns
+    found by binary search among their prefix's rows of the sorted ``codes`` (the cells that
+    differ only on the last axis hold one run of rows: one search for its start, one for its
+    end), those within the tolerance kept."""
     n_q = len(keys)
     lo = np.empty(5, np.int64)
     hi = np.empty(5, np.int64)
@@ -123,10 +124,10 @@ def _within_kernel(codes, prefix_starts, table, keys, tolerance, cell, bins):  #
         first = n
         while True:
             prefix = (cur[0] * bins + cur[1]) * bins + cur[2]
-            code = (prefix * bins + cur[3]) * bins + cur[4]
+            code = (prefix * bins + cur[3]) * bins
             a0, b0 = prefix_starts[prefix], prefix_starts[prefix + 1]
-            start = a0 + np.searchsorted(codes[a0:b0], code, "left")
-            stop = a0 + np.searchsorted(codes[a0:b0], code, "right")
+            start = a0 + np.searchsorted(codes[a0:b0], code + lo[4], "left")
+            stop = a0 + np.searchsorted(codes[a0:b0], code + hi[4], "right")
             for p in range(start, stop):
                 close = True
                 for a in range(5):
@@ -140,7 +141,7 @@ def _within_kernel(codes, prefix_starts, table, keys, tolerance, cell, bins):  #
                     out_q[n] = q
                     out_p[n] = p
                     n += 1
-            a = 4  # the next cell of the box, last axis fastest
+            a = 3  # the next run of cells of the box (the last axis is within the run)
             while a >= 0 and cur[a] == hi[a]:
                 cur[a] = lo[a]
                 a -= 1
