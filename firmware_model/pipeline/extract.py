@@ -241,12 +241,12 @@ class _Pass:
     def fit_for_psf(self, likely_kept: bool) -> None:
         """Fit until :data:`PSF_SAMPLE_STARS` kept candidates are measurable (or the cap's worth is
         kept, or none is left). The first :data:`PSF_FIT_FIRST_FACTOR` x that many at once, unless
-        the pass is ``likely_kept``: then the first chunk :meth:`fit_to_cap` would fit (each call
-        of the fit has a set-up cost of its own)."""
-        if self.stop == 0 and len(self.det) and not likely_kept:
-            self._fit_next(
-                min(int(np.ceil(PSF_FIT_FIRST_FACTOR * PSF_SAMPLE_STARS)), int(np.ceil(FIT_FIRST_FACTOR * self.cap)))
-            )
+        the pass is ``likely_kept`` or that chunk would leave out fewer candidates than it holds:
+        then the first chunk :meth:`fit_to_cap` would fit (each call of the fit has a set-up cost
+        of its own)."""
+        small = min(int(np.ceil(PSF_FIT_FIRST_FACTOR * PSF_SAMPLE_STARS)), int(np.ceil(FIT_FIRST_FACTOR * self.cap)))
+        if self.stop == 0 and len(self.det) >= 2 * small and not likely_kept:
+            self._fit_next(small)
         self._fit_while(lambda: np.count_nonzero(_measurable(self.sample()[0])) < PSF_SAMPLE_STARS)
 
     def kept(self) -> int:
