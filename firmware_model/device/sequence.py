@@ -12,6 +12,7 @@ scripted reset (:meth:`SequenceRunner.reset`) clears the result."""
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -152,6 +153,9 @@ class SequenceRunner:
         self.done = threading.Condition(lock)
         self.timing: Timing | None = None  #: --timing realistic; None: a result as soon as computed
         self._epoch = 0  #: bumped by a reset or a terminate: a sequence started before publishes nothing
+        #: inboxes of the worker threads free for the next sequence, the last freed at the end
+        self._free: list[queue.SimpleQueue[tuple[Any, ...]]] = []
+        self.workers = 0  #: worker threads started (the sequences run on them, kept between sequences)
         self._clear()
 
     def _clear(self) -> None:
@@ -163,7 +167,7 @@ class SequenceRunner:
         self.result = result.build(finish(no_result, self.settings.quaternion_order), 0)
         self.result_ready = False
         self.sequence = 0
-        self._busy: threading.Thread | None = None
+        self._busy = False  #: a sequence runs (until it publishes, or a reset or a terminate abandons it)
         self.dark: dict[int, list[DarkWindow]] = {0: [], 1: []}
         self.buffers: dict[int, np.ndarray] = {}  #: image buffers written by Rectangular Poke (zero until then)
         self.last_capture: Any = None  #: the detector's last frame (a frozen detector returns it)
@@ -184,7 +188,7 @@ class SequenceRunner:
 
     @property
     def busy(self) -> bool:
-        return self._busy is not None or self.booting
+        return self._busy or self.booting
 
     # ------------------------------------------------------------------ commands
 
@@ -213,7 +217,7 @@ class SequenceRunner:
     def _terminate(self, code: int) -> None:
         """A GO without COMMAND: a running sequence ends now, its result TERMINATED (sequence
         number and epoch of that GO, no attitude); nothing when none runs."""
-        if self._busy is None:
+        if not self._busy:
             return
         self._epoch += 1  # its worker's result is dropped
         fields = {
@@ -379,13 +383,29 @@ class SequenceRunner:
         self._running_epoch, self._running_utc = ctx.device_time, ctx.started
         hold = 0.0 if self.timing is None else self.timing.hold(self._table(code, params))
         uploaded, tr.frame_pending = tr.frame_pending, False
-        self._busy = threading.Thread(
-            target=self._run,
-            args=(ctx, uploaded, self._epoch, now + hold),
-            name=f"sequence-{ctx.sequence}",
-            daemon=True,
-        )
-        self._busy.start()
+        self._busy = True
+        inbox = self._free.pop() if self._free else self._worker()
+        inbox.put((ctx, uploaded, self._epoch, now + hold, inbox))
+
+    def _worker(self) -> queue.SimpleQueue[tuple[Any, ...]]:
+        """A new worker thread; the inbox it takes sequences from. A worker is kept for the next
+        sequence once its own publishes or is abandoned, so sequences run on one thread while none
+        is abandoned: a thread per sequence took whatever malloc arena the thread that ended last
+        left (after a COMBINATION, its reply thread's), and the capture's arrays page-faulted into
+        new memory, a GO after a COMBINATION computing slower than one after a GO."""
+        inbox: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
+        self.workers += 1
+        threading.Thread(target=self._serve, args=(inbox,), name=f"sequence-worker-{self.workers}", daemon=True).start()
+        return inbox
+
+    def _serve(self, inbox: queue.SimpleQueue[tuple[Any, ...]]) -> None:
+        """A worker thread: the sequences put in ``inbox``, one after another, for ever."""
+        while True:
+            job = inbox.get()
+            try:
+                self._run(*job)
+            except Exception:  # logged as a command's bug is; the thread lives on
+                log.exception("device: bug while handling a command or sequence")
 
     def _table(self, code: int, params: Any) -> str:
         """How this GO's triangle table comes (:meth:`Timing.hold`): ``built`` without the cache
@@ -465,7 +485,14 @@ class SequenceRunner:
             return ctx.device_time
         return ctx.device_time + since * (1.0 + self.settings.device_clock.model.drift_ppm * 1e-6)
 
-    def _run(self, ctx: SolveContext, uploaded: bool, epoch: int, ready_at: float) -> None:
+    def _run(
+        self, ctx: SolveContext, uploaded: bool, epoch: int, ready_at: float, inbox: queue.SimpleQueue[tuple[Any, ...]]
+    ) -> None:
+        """Sequence ``ctx`` on the worker whose ``inbox`` it came from: compute its result, hold it
+        until ``ready_at`` (the clock source's s), publish it unless ``epoch`` has passed; the
+        worker is free for the next sequence from then (under the lock, before a waiting
+        COMBINATION can answer and its host send the next GO)."""
+        started = time.perf_counter()
         try:
             fields = {**self.settings.housekeeping.result_fields(), **self._fields(ctx, uploaded)}
             data = result.build(finish(fields, ctx.quaternion_order), ctx.sequence)
@@ -479,15 +506,24 @@ class SequenceRunner:
                 "ext.reason": f"{type(exc).__name__}: {exc}".encode()[: result.EXT_REASON_BYTES],
             }
             data = result.build(finish(failed, ctx.quaternion_order), ctx.sequence)
+        computed = time.perf_counter() - started
         held = ready_at - self.settings.device_clock.source()
         if held > 0:
             time.sleep(held)
         with self._lock:
+            self._free.append(inbox)
             if epoch != self._epoch:  # a reset or a terminate came first: the sequence never ends
                 return
             self.result = data
             self.settings.faults.written("result")
             self._finish(SequenceState.DONE)
+            late = self.settings.device_clock.source() - ready_at
+        log.debug(
+            "device: sequence %d computed in %.1f ms, published %.1f ms after its hold",
+            ctx.sequence,
+            computed * 1e3,
+            late * 1e3,
+        )
         if log.isEnabledFor(logging.INFO):
             status = result.status_of(int(result.parse(data)["return_code"]))
             name = status.name if isinstance(status, result.Status) else f"status {status}"
@@ -496,7 +532,7 @@ class SequenceRunner:
     def _finish(self, state: SequenceState) -> None:
         """The running sequence ends in ``state`` (lock held): its result is ready."""
         self.result_ready = True
-        self._busy = None
+        self._busy = False
         self.state = state
         self.settings.housekeeping.set_busy(False)
         self.done.notify_all()
