@@ -137,7 +137,8 @@ def belt_table5(paths, camera, catalog, beta, params) -> dict:
     from firmware_model.pipeline.frame_identification import apply_colour_correction
     from firmware_model.pipeline.frame_readers import read_frame
     from firmware_model.pipeline.run import identify_stars
-    from ground.analysis.replay import TABLE5_MODES, Truth, _associate, score
+    from ground.analysis.replay import Truth, score
+    from ground.analysis.table5 import TABLE5_MODES, _associate
     from ground.link.solve_report import matched_stars, record_from_output
 
     order = list(BELT.values())
@@ -209,10 +210,12 @@ def main(argv=None) -> int:
     from firmware_model.camera import CameraModel
     from firmware_model.pipeline.frame_readers import frame_files
     from firmware_model.pipeline.solve_types import PipelineParams
-    from ground.analysis.replay import TABLE5_MODES, OfflineSolver, replay, table5
+    from ground.analysis.replay import replay
+    from ground.analysis.table5 import TABLE5_MODES, table5
     from ground.calibration.corrections import ColourCorrection
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
+    from ground.solver import in_process_solver
 
     out = Path(args.out)
     frames_dir = out / "frames"
@@ -226,7 +229,7 @@ def main(argv=None) -> int:
         f"c = {ATMOSPHERE[1].tolist()}, scintillation {SCINTILLATION:.0%}, chromatic {CHROMATIC_PX_PER_BG} px per unit bg"
     )
     shutil.rmtree(out / "run", ignore_errors=True)  # the results log appends
-    summary = replay(frames_dir, OfflineSolver(camera, catalog), out / "run", progress=True)
+    summary = replay(frames_dir, in_process_solver(camera=camera, catalog=catalog), out / "run", progress=True)
     index = {int(s): k for k, s in enumerate(catalog.star_id)}
     obs, ref = [], []
     for rec in (json.loads(line) for line in (out / "run" / "results.jsonl").read_text().splitlines()):

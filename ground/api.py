@@ -22,7 +22,7 @@ or a catalog image path (``st16-ground catalog build``); without one, each field
 built from the bundled Hipparcos once and kept (``ground.catalog.field_catalogs``). ``params`` are the
 pipeline's parameters (the device's slot-2 settings).
 
-The first solve in a process loads the compiled kernels (``replay.warm_up_kernels``); its record's
+The first solve in a process loads the compiled kernels (``ground.kernels.warm_up_kernels``); its record's
 ``timings_s`` count that as ``compile``, the database's loading as ``database`` and the catalog's
 building or loading as ``catalog``, and their ``total`` is the whole time the call took past
 reading the image.
@@ -42,7 +42,8 @@ if TYPE_CHECKING:
     from firmware_model.camera import CameraModel
     from firmware_model.catalog.onboard import OnboardCatalog
     from firmware_model.pipeline.raw_frame import Frame
-    from firmware_model.pipeline.solve_types import PipelineOutput, PipelineParams
+    from firmware_model.pipeline.solve_types import PipelineParams
+    from ground.solver import Solve
 
 _log = logging.getLogger(__name__)
 
@@ -101,71 +102,34 @@ def solve_image(
     fov_range: tuple[float, float] | None = None,
     database: str | Path | None = None,
 ) -> SolvedImage:
-    """Detect, identify and solve one image (module docstring); bad input raises ValueError."""
-    start = time.perf_counter()
-    from firmware_model.pipeline.sky_search import FieldRange
-
-    fov = FieldRange.of(fov_deg, fov_range) if camera is None else None  # checked before any work
-    if camera is not None and (fov_deg is not None or fov_range is not None):
-        raise ValueError("give camera= or a field of view (fov_deg= / fov_range=), not both")
-    t0 = time.perf_counter()
+    """Detect, identify and solve one image (module docstring) with ``ground.solver``'s one
+    in-process solver; bad input raises ValueError."""
     frame = _frame(image)
-    read_s = time.perf_counter() - t0  # the image's reading: no stage of the solve
     if camera is not None:
         _check_size(frame, camera)
-    from firmware_model.pipeline.run import run_pipeline
-    from firmware_model.pipeline.solve_types import PipelineParams
-    from ground.analysis.replay import warm_up_kernels
-
-    loaded = warm_up_kernels() > 0  # the first call: the pipeline's modules and kernels loaded now
-    compile_s = time.perf_counter() - start - read_s if loaded else 0.0
-    params = params or PipelineParams()
     t0 = time.perf_counter()
-    given = _catalog(catalog)
-    catalog_s = time.perf_counter() - t0  # a catalog image read now
-    if camera is not None and given is not None:  # the device's twin: its catalog, its own index
-        out = run_pipeline(frame, camera, given, params)
-        return solved_image(out, camera, {"catalog": catalog_s, "compile": compile_s})
-    db = _database(database)
-    setup = {"compile": compile_s, "database": db.load_s, "catalog": catalog_s}
-    if camera is None:
-        assert isinstance(fov, FieldRange)
-        from ground.analysis.replay import solve_sky
+    from ground.kernels import warm_up_kernels
+    from ground.solver import in_process_solver
 
-        out, report = solve_sky(frame, fov, db, params, given)
-        solved = solved_image(out, out.camera or _pinhole(frame), setup)
-        solved.record["sky"] = report.to_dict()
-        return solved
-    from ground.catalog.field_catalogs import sky_catalog
-
-    t0 = time.perf_counter()
-    cat = sky_catalog(camera, db)
-    setup["catalog"] += time.perf_counter() - t0
-    return solved_image(run_pipeline(frame, camera, cat, params), camera, setup)
+    solver = in_process_solver(
+        camera=camera, catalog=catalog, fov_deg=fov_deg, fov_range=fov_range, database=database, params=params
+    )
+    solver.every_star = True
+    if warm_up_kernels() > 0:  # the first call: the modules and kernels loaded now are its compile stage
+        solver.charge_setup(compile=time.perf_counter() - t0 - sum(solver.setup_s.values()))
+    return solved_image(solver.solve(frame), frame)
 
 
-def _pinhole(frame: Frame) -> CameraModel:
+def solved_image(solve: Solve, frame: Frame) -> SolvedImage:
+    """The :class:`SolvedImage` of one in-process :class:`~ground.solver.Solve` of ``frame``."""
     from firmware_model.camera import CameraModel
 
-    return CameraModel.from_horizontal_fov(frame.width, frame.height, 10.0)
-
-
-def _database(database):
-    from ground.catalog.sky_database import DatabaseError, sky_database
-
-    try:
-        return sky_database(database)
-    except DatabaseError as exc:
-        raise ValueError(str(exc)) from None
-
-
-def solved_image(out: PipelineOutput, camera: CameraModel, setup_s: dict[str, float] | None = None) -> SolvedImage:
-    """The :class:`SolvedImage` of a pipeline run made with ``camera``; ``setup_s``: set-up seconds
-    (``catalog``, ``compile``) the call paid before the frame, added to the record's timings."""
-    from ground.link.solve_report import add_setup_stages, record_from_output
-
-    rec = add_setup_stages(record_from_output(out, every_star=True), **(setup_s or {}))
-    used = out.optics.camera if out.optics is not None else (out.camera or camera)
+    rec, out = solve.record, solve.output
+    assert out is not None
+    if out.optics is not None:
+        used = out.optics.camera
+    else:  # the pipeline's camera, else the given one, else (no camera found) a stand-in
+        used = out.camera or solve.camera or CameraModel.from_horizontal_fov(frame.width, frame.height, 10.0)
     stars = tuple(
         IdentifiedStar(s["x"], s["y"], s["flux"], s["rg"], s["bg"], s["catalog_id"], s["residual_arcsec"])
         for s in rec["stars"]
@@ -210,15 +174,3 @@ def _check_size(frame: Frame, camera: CameraModel) -> None:
         raise ValueError(
             f"the camera is {camera.width} x {camera.height} px but the image is {frame.width} x {frame.height}"
         )
-
-
-def _catalog(catalog) -> OnboardCatalog | None:
-    """The given catalog (an object or an image path); None when none was given."""
-    if isinstance(catalog, (str, Path)):
-        from firmware_model.catalog.image_io import catalog_from_image
-
-        try:
-            return catalog_from_image(Path(catalog).read_bytes())
-        except (OSError, ValueError) as exc:
-            raise ValueError(f"catalog {catalog}: {exc}") from None
-    return catalog

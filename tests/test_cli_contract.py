@@ -58,9 +58,14 @@ OFFLINE_CASES = [
     (["solve-file", "{d}/f.npy", "--fov-deg", "179"], 2, r"hint 179 deg is outside 1-90 deg$"),
     (["solve-file", "{d}/f.npy", "--fov-range", "10", "150"], 2, r"high end 150 deg is outside 1-90 deg$"),
     (
-        ["solve", "--offline", "--frame", "{d}/f.npy", "--catalog", "{d}/cat.st16cat", "--fov-deg", "150"],
+        ["solve", "--offline", "--frame", "{d}/f.npy", "--catalog", "{d}/cat.st16cat", "--pinhole-fov-deg", "150"],
         2,
-        r"^st16-ground: --fov-deg 150 deg is outside 1-90 deg$",
+        r"^st16-ground: --pinhole-fov-deg 150 deg is outside 1-90 deg$",
+    ),
+    (  # a hint everywhere: where nothing is searched it is refused, naming the camera's option
+        ["solve", "--offline", "--frame", "{d}/f.npy", "--catalog", "{d}/cat.st16cat", "--fov-deg", "11.4"],
+        2,
+        r"argument --fov-deg: --fov-deg is a field-of-view hint .* give --pinhole-fov-deg 11.4 .*usage",
     ),
     (
         ["--port", "nosuch://x", "ping"],
@@ -143,22 +148,24 @@ def test_solve_file_json_is_one_document_with_the_files_written(files, capsys, m
     """``--json solve-file F --wcs W --overlay O``: the files are named inside the one document
     (they used to follow it as ``wcs: ...`` and ``overlay: ...`` lines)."""
     import ground.analysis.frame_plot as frame_plot
-    import ground.analysis.replay as replay_mod
     import ground.cli.solve as solve_cli
+    import ground.kernels as kernels
+    from ground.solver import Solve
 
     record = {"status": "NO_MATCH", "q_icrs_to_sensor": None, "reason": "test", "timings_s": {}}
 
     class Solver:
         setup_s: dict = {}
+        catalog = None
 
         def charge_setup(self, **kw):
             pass
 
-        def solve(self, frame):
-            return dict(record)
+        def solve(self, frame, say=None):
+            return Solve(dict(record))
 
-    monkeypatch.setattr(solve_cli, "offline_solver", lambda args: Solver())
-    monkeypatch.setattr(replay_mod, "warm_up_kernels", lambda progress=False: 0)
+    monkeypatch.setattr(solve_cli, "offline_solver", lambda args, search: Solver())
+    monkeypatch.setattr(kernels, "warm_up_kernels", lambda progress=False: 0)
     monkeypatch.setattr(frame_plot, "plot_identified", lambda frame, rec, path, label: path)
     argv = ["solve-file", f"{files}/f.npy", "--wcs", f"{files}/x.wcs", "--overlay", f"{files}/x.png"]
     rc, out, err = run(["--json", *argv], capsys)

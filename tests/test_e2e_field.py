@@ -14,7 +14,8 @@ from firmware_model.catalog.image_io import catalog_to_image
 from firmware_model.pipeline.frame_readers import frame_files, read_frame
 from firmware_model.pipeline.raw_frame import frame_to_bytes
 from firmware_model.reference_frames import matrix_to_quat, quat_to_matrix, rotation_angle
-from ground.analysis.replay import TABLE5_MODES, OfflineSolver, replay, table5
+from ground.analysis.replay import replay
+from ground.analysis.table5 import TABLE5_MODES, table5
 from ground.calibration.corrections import ColourCorrection
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
@@ -24,6 +25,7 @@ from ground.sim.device_process import pick_attitudes, start_device, stop_device
 from ground.sim.frame_writer import write_rendered
 from ground.sim.sensor_sim import DetectorModel, Stars, render_frame
 from ground.sim.sky_model import sky_stars
+from ground.solver import in_process_solver
 
 CAMERA = CameraModel.reference_design()
 #: The "atmosphere" of these tests: observed rg, bg are a linear map of the catalog's.
@@ -86,7 +88,13 @@ def biased_frames(catalog, tmp_path_factory):
 
 
 def test_colour_calibration_from_a_run_and_on_the_device(catalog, biased_frames, tmp_path):
-    summary = replay(biased_frames, OfflineSolver(CAMERA, catalog), tmp_path / "run", progress=False, make_plots=False)
+    summary = replay(
+        biased_frames,
+        in_process_solver(camera=CAMERA, catalog=catalog),
+        tmp_path / "run",
+        progress=False,
+        make_plots=False,
+    )
     assert summary["counts"].get("correct", 0) >= 4
     image = tmp_path / "cat.st16cat"
     image.write_bytes(catalog_to_image(catalog))
@@ -151,7 +159,7 @@ def test_offline_replay_corrects_refraction(catalog, tmp_path):
     from astropy.time import Time
 
     from firmware_model.reference_frames import attitude_from_radec_roll, radec_to_vec, vec_to_radec
-    from ground.analysis.replay import OfflineSolver, Truth, score
+    from ground.analysis.replay import Truth, score
     from ground.calibration.corrections import Site, _altaz_frames
 
     site, when = Site(43.66, -79.38, 100.0, pressure_hpa=1010, temperature_c=0), "2012-02-10T03:00:00"
@@ -172,8 +180,8 @@ def test_offline_replay_corrects_refraction(catalog, tmp_path):
     )
     frame = render_frame(stars, a, CAMERA, DetectorModel(), seed=5, timestamp=when + "Z").frame
     truth = Truth(matrix_to_quat(a), np.empty(0, np.int64), np.empty(0), np.empty(0))
-    raw = OfflineSolver(CAMERA, catalog).solve(frame)
-    fixed = OfflineSolver(CAMERA, catalog, site=site).solve(frame)
+    raw = in_process_solver(camera=CAMERA, catalog=catalog).solve(frame).record
+    fixed = in_process_solver(camera=CAMERA, catalog=catalog, site=site).solve(frame).record
     assert fixed["refraction"] == "corrected" and fixed["status"] == "OK"
     err_fixed = score(fixed, truth)["attitude_error_deg"] * 3600
     assert err_fixed < 10, err_fixed

@@ -17,11 +17,12 @@ import pytest
 from firmware_model.camera import CameraModel
 from firmware_model.catalog.image_io import catalog_to_image
 from firmware_model.pipeline.raw_frame import Frame, frame_to_bytes
-from ground.analysis.replay import LinkSolver, Truth, replay, score
+from ground.analysis.replay import Truth, replay, score
 from ground.arg_types import InputError
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
 from ground.link.client import Client, Nack
+from ground.link_solver import LinkSolver
 from ground.sim.device_process import pick_attitudes, start_device, stop_device
 from ground.sim.frame_writer import write_rendered
 from ground.sim.sensor_sim import DetectorModel, render_frame
@@ -78,7 +79,7 @@ def test_colour_and_mono_solves_over_pty(device, scene):
         from firmware_model.pipeline.frame_readers import read_frame
 
         for path in sorted(scene["frames"].glob("*.dng")):
-            rec = solver.solve(read_frame(path))
+            rec = solver.solve(read_frame(path)).record
             sc = score(rec, Truth.for_frame(path))
             assert rec["status"] == "OK", (path.name, rec["reason"])
             assert rec["method"] == ("pattern" if "mono" in path.name else "colour")  # mono: the brightest pattern
@@ -231,9 +232,9 @@ def test_refused_frame_is_an_answer_not_silence(device, scene, tmp_path):
 
 def test_replay_refuses_to_mix_runs_and_resumes_where_it_stopped(scene, tmp_path):
     from firmware_model.catalog.image_io import catalog_from_image
-    from ground.analysis.replay import OfflineSolver
+    from ground.solver import in_process_solver
 
-    solver = OfflineSolver(CAMERA, catalog_from_image(scene["image"]))
+    solver = in_process_solver(camera=CAMERA, catalog=catalog_from_image(scene["image"]))
     frames = sorted(scene["frames"].glob("*.dng"))
     out = tmp_path / "out"
     first = tmp_path / "first"
@@ -259,7 +260,7 @@ def test_frame_upload_can_show_its_progress(device, scene, capsys):
     for shown in (False, True):
         solver = LinkSolver(device, upload_progress=shown, timeout=guards.REPLY_S)
         try:
-            rec = solver.solve(frame)
+            rec = solver.solve(frame).record
         finally:
             solver.close()
         assert rec["status"] == "OK" and score(rec, Truth.for_frame(path))["outcome"] == "correct"

@@ -306,7 +306,7 @@ def test_a_replay_counts_a_frame_whose_solve_fails_and_goes_on(tmp_path):
     (frames / "d.tiff").write_bytes(b"II*\x00garbage")
 
     class Failing:
-        def solve(self, frame):
+        def solve(self, frame, say=None):
             raise OverflowError("Python integer 100000 out of bounds for uint16")
 
     summary = replay(frames, Failing(), tmp_path / "out", progress=False, make_plots=False)

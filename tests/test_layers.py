@@ -25,10 +25,12 @@ STACKS = {
         ("firmware_model.device",),
     ],
     "ground": [
-        ("ground.atomic_write", "ground.json_text", "ground.optional", "ground.arg_types"),
+        ("ground.atomic_write", "ground.json_text", "ground.optional", "ground.arg_types", "ground.kernels"),
         ("ground.link", "ground.catalog", "ground.export"),
         ("ground.sim",),
         ("ground.calibration",),
+        # the one solver face: in-process (the route chosen once) and on a device
+        ("ground.solver", "ground.link_solver"),
         ("ground.analysis", "ground.testing", "ground.hil"),
         ("ground.api",),
         ("ground.cli",),
@@ -118,6 +120,41 @@ def test_the_command_line_is_imported_by_nothing_else():
         and any(name == "ground.cli" or name.startswith("ground.cli.") for name in _imports(p))
     ]
     assert not users, users
+
+
+#: What only ``ground.solver`` may use: the sky search's pipeline and the choice of a route. The
+#: whole-sky index is bound to a catalog only by ``field_catalogs.sky_matched`` (a view, never the
+#: caller's object).
+ROUTE_NAMES = {"firmware_model.pipeline.sky_run", "choose_route", "Route", "InProcessSolver()"}
+
+
+def _names(path: Path) -> set[str]:
+    """Every name and attribute the module's source uses, every module it imports, and ``F()``
+    for each name ``F`` it calls."""
+    tree = ast.parse(path.read_text(), str(path))
+    used = {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)}
+    used |= {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)}
+    called = {n.func for n in ast.walk(tree) if isinstance(n, ast.Call)}
+    used |= {f"{f.id}()" for f in called if isinstance(f, ast.Name)}
+    used |= {f"{f.attr}()" for f in called if isinstance(f, ast.Attribute)}
+    return used | _imports(path) | {name.rsplit(".", 1)[-1] for name in _imports(path)}
+
+
+def test_only_the_solver_module_chooses_a_route():
+    """``solve_image``, ``solve-file``, ``solve --offline`` and ``replay --offline`` call
+    ``ground.solver.in_process_solver``; none picks a route or runs the sky search itself."""
+    choosers = {
+        str(p.relative_to(ROOT)): sorted(_names(p) & ROUTE_NAMES)
+        for p in sorted((ROOT / "ground").rglob("*.py"))
+        if p != ROOT / "ground" / "solver.py" and _names(p) & ROUTE_NAMES
+    }
+    assert not choosers, choosers
+    binders = [
+        str(p.relative_to(ROOT))
+        for p in sorted((ROOT / "ground").rglob("*.py"))
+        if "set_sky_patterns" in _names(p) and p != ROOT / "ground" / "catalog" / "field_catalogs.py"
+    ]
+    assert not binders, binders
 
 
 def test_the_check_sees_an_import_inside_a_function(tmp_path):

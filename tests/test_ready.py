@@ -262,14 +262,14 @@ def test_the_offline_replays_first_solve_loads_the_kernels(scene):
         import json
         from firmware_model.camera import CameraModel
         from firmware_model.pipeline.raw_frame import Frame
-        from ground.analysis.replay import OfflineSolver
         from ground.catalog.build import build_catalog
+        from ground.solver import in_process_solver
         from ground.catalog.design import CatalogDesign
         import numpy as np
         camera = CameraModel.reference_design()
-        solver = OfflineSolver(camera, build_catalog(CatalogDesign()))
+        solver = in_process_solver(camera=camera, catalog=build_catalog(CatalogDesign()))
         frame = Frame(pixels=np.zeros((camera.height, camera.width), np.uint16), pattern="MONO", white_level=65535.0)
-        print(json.dumps([solver.solve(frame)["timings_s"], solver.solve(frame)["timings_s"]]))
+        print(json.dumps([solver.solve(frame).record["timings_s"], solver.solve(frame).record["timings_s"]]))
         """
     )
     assert run.returncode == 0, run.stderr

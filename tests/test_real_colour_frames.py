@@ -1,6 +1,6 @@
 """Real colour frames from other people's cameras (../shared/data/frames/colour-real: demosaiced
 PNG/JPEG, 6-26 deg fields), solved through the documented CLI with nothing but a pinhole camera
-from the field of view: ``catalog build --fov-deg`` then ``solve --offline --fov-deg``. Frames that
+from the field of view: ``catalog build --fov-deg`` then ``solve --offline --pinhole-fov-deg``. Frames that
 do not solve must say why and never give a confident wrong answer."""
 
 import json
@@ -57,7 +57,7 @@ def test_colour_frames_solve_through_the_cli_with_fov_only(colour_real, tmp_path
                 str(folder / name),
                 "--catalog",
                 str(catalog),
-                "--fov-deg",
+                "--pinhole-fov-deg",
                 fov,
                 "--out",
                 str(tmp_path / "log"),

@@ -64,7 +64,7 @@ def test_table5_with_no_frame_to_score_says_why_and_exits_2(tmp_path, capsys):
 
     from firmware_model.catalog.image_io import catalog_to_image
     from firmware_model.pipeline.frame_readers import frame_files
-    from ground.analysis.replay import NothingToScore, table5
+    from ground.analysis.table5 import NothingToScore, table5
     from ground.arg_types import InputError
     from ground.catalog.build import build_catalog
     from ground.catalog.design import CatalogDesign
@@ -92,7 +92,7 @@ def test_a_star_never_measured_in_colour_has_no_mean_colour_error():
     star out instead of numpy's 'Mean of empty slice' warning."""
     import warnings
 
-    from ground.analysis.replay import _mean_colour_error
+    from ground.analysis.table5 import _mean_colour_error
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")

@@ -19,7 +19,7 @@ from ground.arg_types import progress_on
 def _kernels(progress: bool) -> dict:
     """Load (or compile) the kernels: how long it took and where they are cached."""
     from firmware_model import kernel_cache_dir
-    from ground.analysis.replay import warm_up_kernels
+    from ground.kernels import warm_up_kernels
 
     seconds = warm_up_kernels(progress=progress)
     where, _ = kernel_cache_dir()

@@ -16,10 +16,11 @@ import numpy as np
 
 from firmware_model.camera import CameraModel
 from firmware_model.catalog.image_io import catalog_to_image
-from ground.analysis.replay import LinkSolver, replay
+from ground.analysis.replay import replay
 from ground.atomic_write import write_bytes
 from ground.catalog.build import build_catalog
 from ground.catalog.design import CatalogDesign
+from ground.link_solver import LinkSolver
 from ground.sim.device_process import pick_attitudes, start_device, stop_device
 from ground.sim.frame_writer import write_rendered
 from ground.sim.sensor_sim import DetectorModel, render_frame

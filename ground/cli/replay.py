@@ -18,8 +18,10 @@ from ground.cli.solve import DEFAULT_RESULTS, user_camera
 
 def _replay(args) -> int:
     from firmware_model.pipeline.frame_readers import frame_files
-    from ground.analysis.replay import LinkSolver, replay
+    from ground.analysis.replay import replay
     from ground.cli.link import client_kwargs
+    from ground.link_solver import LinkSolver
+    from ground.solver import Solver
 
     # the input first: no database built, catalog loaded or port opened for a directory without frames
     where = Path(args.directory)
@@ -27,8 +29,9 @@ def _replay(args) -> int:
         raise InputError(f"{where}: {'not a directory' if where.exists() else 'no such directory'}")
     if not frame_files(where):
         raise InputError(f"{where}: no frame files (DNG/raw, FITS, TIFF, PNG, JPEG, .npy) in the directory")
+    solver: Solver
     if args.offline:
-        solver = offline_solver(args)
+        solver = offline_solver(args, search=True)
     else:
         if not args.port:
             raise InputError("--port URL is required (or use --offline)")
@@ -46,8 +49,7 @@ def _replay(args) -> int:
         print(f"st16-ground: {exc}", file=sys.stderr)
         return 4
     finally:
-        if isinstance(solver, LinkSolver):
-            solver.close()
+        solver.close()
     summary["log"] = str(Path(args.out) / "results.jsonl")
     print(json_text.dumps(summary) if args.json else _summary_text(summary))
     return 0
@@ -63,7 +65,7 @@ def _summary_text(summary: dict) -> str:
 def _table5(args) -> int:
     from firmware_model.device.cli import load_camera
     from firmware_model.pipeline.frame_readers import frame_files
-    from ground.analysis.replay import TABLE5_MODES, table5
+    from ground.analysis.table5 import TABLE5_MODES, table5
 
     out = table5(
         frame_files(args.directory), load_camera(args.camera), load_catalog(args.catalog), progress=progress_on(args)
@@ -85,7 +87,7 @@ def register(sub) -> None:
     p.add_argument("directory", help="frames (any supported format), with NAME.truth.json beside them to score")
     p.add_argument("--offline", action="store_true", help="run the pipeline in-process instead of over the link")
     p.add_argument("--catalog", help="catalog image for --offline (default: each field's, from the sky database)")
-    add_camera_options(p, sky=True)
+    add_camera_options(p, search=True)
     add_params_option(p)
     p.add_argument("--site", help="with --offline: LAT,LON[,HEIGHT] (deg, m) of a ground site: correct refraction")
     p.add_argument("--pressure", type=float, default=1013.25, help="site pressure, hPa (with --site)")

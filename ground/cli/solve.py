@@ -10,7 +10,7 @@ into the user cache); a catalog for the field found is built when ``--catalog`` 
 per field: kept in the user's cache directory); ``--wcs`` and ``--overlay`` (a PNG naming each
 identified star) as wanted. Its ``timings_s`` count the kernels' loading (``compile``), the
 database's loading (``database``) and the catalog's building or loading (``catalog``) in their
-``total``: the first run after install compiles the kernels (about a minute, said on stderr).
+``total``: the first run after install compiles the kernels (said on stderr).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ def _solve(args) -> int:
         raise InputError("solve --offline needs --frame FILE and --catalog IMAGE")
     if not args.offline and not args.port:
         raise InputError("--port URL is required for solve (or use --offline)")
-    solver = offline_solver(args) if args.offline else None
+    solver = offline_solver(args, search=False) if args.offline else None
     frame = None
     if args.frame:
         try:
@@ -51,7 +51,7 @@ def _solve(args) -> int:
             raise InputError(str(exc)) from None
     t0 = time.perf_counter()
     if solver is not None:
-        rec = solver.solve(frame)
+        rec = solver.solve(frame).record
     else:
         rec = mark_cut_reason(_solve_on_device(args, frame))
     rec["exchange_s"] = time.perf_counter() - t0
@@ -83,10 +83,9 @@ def _print_outcome(rec: dict, written: dict, as_json: bool) -> None:
 
 
 def user_camera(args, frame):
-    """The camera the options name for this frame (None: the device's or the one the record's
-    search found, which the record reports)."""
-    searched = hasattr(args, "fov_range")  # --fov-deg is a hint there: the record has the camera
-    if not (getattr(args, "camera", None) or (getattr(args, "fov_deg", None) and not searched)):
+    """The camera the options name for this frame, ``--camera`` or ``solve``'s ``--pinhole-fov-deg``
+    (None: the device's, or the one the record's search found, which the record reports)."""
+    if not (getattr(args, "camera", None) or getattr(args, "pinhole_fov_deg", None)):
         return None
     from ground.cli.offline_options import camera_for_frames
 
@@ -116,7 +115,7 @@ def _write_wcs(path, rec: dict, frame, camera) -> dict | None:
 def _solve_file(args) -> int:
     t0 = time.perf_counter()
     from firmware_model.pipeline.frame_readers import FrameReadError, read_frame
-    from ground.analysis.replay import warm_up_kernels
+    from ground.kernels import warm_up_kernels
 
     t_read = time.perf_counter()
     try:  # the input first: a directory or a bad file is one line before any database is built
@@ -124,14 +123,14 @@ def _solve_file(args) -> int:
     except FrameReadError as exc:
         raise InputError(str(exc)) from None
     read_s = time.perf_counter() - t_read
-    solver = offline_solver(args)  # options checked, the database and --catalog loaded
-    solver.every_star = True  # no result record in between: list every detection (issue 30)
+    solver = offline_solver(args, search=True)  # options checked, the database and --catalog loaded
+    solver.every_star = True  # no result record in between: list every detection
     modules_s = time.perf_counter() - t0 - read_s - sum(solver.setup_s.values())  # the rest: imports
     # the pipeline's modules and kernels, loaded now (a line and a bar when the kernels compile)
     t1 = time.perf_counter()
     loaded = warm_up_kernels(progress=progress_on(args)) > 0
     solver.charge_setup(compile=modules_s + time.perf_counter() - t1 if loaded else 0.0)
-    rec = solver.solve(frame)
+    rec = solver.solve(frame).record
     rec["frame"] = Path(args.frame).name
     camera = user_camera(args, frame)
     written = {}
@@ -141,7 +140,7 @@ def _solve_file(args) -> int:
         from ground.analysis.frame_plot import plot_identified
         from ground.optional import MissingExtra
 
-        catalog = getattr(solver, "catalog", None)
+        catalog = solver.catalog
         label = "HR" if getattr(catalog, "meta", {}).get("source") == "bsc5" else "HIP"
         try:
             written["overlay"] = {"path": str(plot_identified(frame, rec, args.overlay, label=label))}
@@ -153,13 +152,13 @@ def _solve_file(args) -> int:
 
 
 def _solve_on_device(args, frame):
-    from ground.analysis.replay import LinkSolver
     from ground.cli.link import client_kwargs
+    from ground.link_solver import LinkSolver
 
     bar = frame is not None and progress_on(args)  # a 10 MB frame is 15 min at 115 200 baud
     solver = LinkSolver(args.port, reconnect_timeout=args.reconnect_timeout, upload_progress=bar, **client_kwargs(args))
     try:  # a NACK (exit 5) or a device that does not come back (exit 4) ends in ground.cli.main.main
-        return solver.solve(frame)  # a device that stops answering: warnings through logging
+        return solver.solve(frame).record  # a device that stops answering: warnings through logging
     finally:
         solver.close()
 
@@ -185,7 +184,7 @@ def register(sub) -> None:
     p = sub.add_parser("solve-file", help="solve one image offline (no device): attitude, WCS, labelled overlay")
     p.add_argument("frame", help="image file (DNG/raw, FITS, TIFF, PNG/JPEG, .npy)")
     p.add_argument("--catalog", help="catalog image (default: built for the field found, kept in the user cache)")
-    add_camera_options(p, sky=True)
+    add_camera_options(p, search=True)
     add_params_option(p)
     p.add_argument("--wcs", type=output_file, help="write the FITS WCS (TAN-SIP) here")
     p.add_argument("--overlay", type=output_file, help="write a PNG with each identified star labelled")
