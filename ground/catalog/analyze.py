@@ -251,7 +251,7 @@ def plot_views(path: str | Path, views: np.ndarray, colour: ViewStats, mono: Vie
     plt.close(fig)
 
 
-# --- Checks of the paper's table 1 against its own definition (issue 32) ---------------------------
+# --- Checks of the paper's table 1 against its own definition ------------------------------------
 
 
 def _recoloured(cat: OnboardCatalog, rg: np.ndarray, bg: np.ndarray) -> OnboardCatalog:

@@ -11,7 +11,7 @@ fails to load, as does one of another version or recipe; all three are one line 
 fails; a file the user names is not overwritten unasked (``st16-ground database build``).
 Writing goes to a temporary file beside the target (``.NAME.PID.part.npz``) that replaces it
 only once complete, so a full disk leaves the old file as it was; a part left by a build that was
-killed (its process gone) is removed by the next save (whole or nothing, issue 40).
+killed (its process gone) is removed by the next save (whole or nothing).
 
 Reading refuses a FIFO, a device or a symlink loop in one line before opening it, and checks
 every member's header against the bytes the member holds before loading it (a crafted member

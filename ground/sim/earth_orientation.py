@@ -1,5 +1,5 @@
 """Earth orientation from tables the project controls: the one place the ground side turns UTC into
-the Earth's rotation (UT1 - UTC) and polar motion (issue 40).
+the Earth's rotation (UT1 - UTC) and polar motion.
 
 astropy's default, ``IERS_Auto``, compares the wall clock with the date of its bundled
 predictions: once those are more than 30 days older than *today*, every time past the last
