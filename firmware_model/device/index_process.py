@@ -1,6 +1,6 @@
 """The start-up of the device's index-building process (``sensor_input.PipelineSolver``): a module
 of few imports, as the spawned process imports it (and the device's main module, ``cli``, whose
-own imports are deferred to the device's build) before its first build's own."""
+own imports are deferred to the device's build) before any task, beside the device's first GOs."""
 
 from __future__ import annotations
 
@@ -8,6 +8,14 @@ import multiprocessing
 import multiprocessing.connection
 import os
 import threading
+
+
+def ready() -> bool:
+    """The process' first task: import what an index build runs (``scale_free``), so that a
+    catalog COMMIT's build starts at once."""
+    import firmware_model.pipeline.scale_free  # noqa: F401
+
+    return True
 
 
 def init() -> None:

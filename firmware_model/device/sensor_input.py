@@ -428,9 +428,9 @@ class PipelineSolver:
     (``scale_free.pattern_index``'s arguments and answer; picklable: it runs in a spawned process).
     ``ephemerides``: load them now (:func:`load_ephemerides`); False when the capture source's
     frames carry no time (an uploaded frame with one loads them at its COMMIT).
-    That process is spawned by the first COMMIT that needs it (a device that gets none runs none),
-    and imports only ``index_process`` and the build's own modules; the device's first GOs after
-    its start do not share the machine with its start-up."""
+    :meth:`serving` spawns that process, whose imports (``index_process`` and the build's own
+    modules, not the rest of the pipeline) then run beside the link's first minutes rather than in
+    the start-up or in the first COMMIT's build."""
 
     def __init__(
         self,
@@ -461,11 +461,14 @@ class PipelineSolver:
             self._pool = ProcessPoolExecutor(
                 max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=index_process.init
             )
+            self._pool.submit(index_process.ready)
         return self._pool
 
     def serving(self) -> None:
-        """From now on (the device serves its link) a catalog's index is built in another process."""
+        """From now on (the device serves its link) a catalog's index is built in another process,
+        spawned now: it imports what a build runs while the device starts serving."""
         self._serving = True
+        self._builder()
 
     def close(self) -> None:
         """End the index-building process now (a build under way, or its start-up imports, are
