@@ -332,3 +332,28 @@ def test_the_reported_false_alarm_counts_every_hypothesis_the_search_checked(syn
     frame = Frame(pixels, "MONO", white_level=65535.0)
     _, report = run_pipeline_sky(frame, FieldRange.blind(), Stub(), lambda camera: cat)  # type: ignore[arg-type]
     assert report.checks == 200 and report.false_alarm == pytest.approx(1e-5 * 200)
+
+
+def test_a_rank_is_looked_up_only_when_the_checks_reach_it(synthetic_sky, monkeypatch):
+    """A frame taken among its brightest patterns is not charged the key lookups of its fainter
+    ones (rank by rank: the patterns whose faintest member is the 4th brightest detection, then
+    the 5th, ...)."""
+    from firmware_model.pipeline import scale_free
+
+    search, vec = synthetic_sky
+    camera = CameraModel.from_horizontal_fov(1024, 768, 14.0)
+    x, y, _ = _frame_of(vec, camera, (0.4, 0.0))
+    first = search.search(x, y, 1024, 768, FieldRange.blind())
+    assert first.taken is not None and first.checks <= 10
+    looked_up: list[tuple[int, int]] = []
+    lookup = scale_free.pattern_matches_many
+
+    def counted(x, y, cameras, index, n_bright, tolerance, first=0):
+        looked_up.append((n_bright, first))
+        return lookup(x, y, cameras, index, n_bright, tolerance, first)
+
+    monkeypatch.setattr(scale_free, "pattern_matches_many", counted)
+    taken = search.search(x, y, 1024, 768, FieldRange.blind()).taken
+    assert taken is not None and (taken.f, taken.checks) == (first.taken.f, first.taken.checks)
+    ranks = len(looked_up)
+    assert looked_up == [(r + 1, r) for r in range(3, 3 + ranks)] and ranks < 5, looked_up

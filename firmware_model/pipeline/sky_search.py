@@ -43,9 +43,9 @@ BLIND_FOV_DEG = (5.0, 60.0)
 HINT_TOLERANCE = 0.4
 #: Ratio of a focal-length bracket's ends.
 BRACKET_RATIO = 1.15
-#: Brightest clean detections whose patterns the search matches, tier by tier (clutter such as hot
-#: pixels, planets or false stars can hold several of the brightest).
-TIERS = (8, 12, 20)
+#: Brightest clean detections whose patterns the search matches (clutter such as hot pixels,
+#: planets or false stars can hold several of the brightest).
+PATTERN_STARS = 20
 #: Brightest clean detections a check compares.
 CHECK_STARS = 40
 #: False-alarm probability over the whole search under which a hypothesis is taken.
@@ -209,13 +209,11 @@ class SkySearch:
         """Every hypothesis checked, in the search's order (a generator: the work as asked for)."""
         brackets = fov.focal_brackets(width)
         cameras = [(CameraModel.pinhole(width, height, f), h) for f, h in brackets]
-        checks, tried, done_rows = 0, set(), 0
-        for n in TIERS:
-            n = min(n, len(x))
-            if n < 4 or n <= done_rows:
-                break
-            matches = scale_free.pattern_matches_many(x, y, cameras, self.index, n, TOLERANCE, done_rows)
-            done_rows = n
+        checks, tried = 0, set()
+        # rank by rank (the patterns whose faintest member is the 4th brightest detection, then
+        # the 5th, ...): a rank's keys are looked up only when the checks before it are done
+        for rank in range(3, min(PATTERN_STARS, len(x))):
+            matches = scale_free.pattern_matches_many(x, y, cameras, self.index, rank + 1, TOLERANCE, rank)
             for b, m in _plate_order(matches):
                 key = (tuple(matches[b].groups[m]), matches[b].catalog_vec[m].tobytes())
                 if key in tried:  # the same match from a neighbouring bracket
