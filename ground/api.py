@@ -31,7 +31,6 @@ reading the image.
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -107,16 +106,12 @@ def solve_image(
     frame = _frame(image)
     if camera is not None:
         _check_size(frame, camera)
-    t0 = time.perf_counter()
-    from ground.kernels import warm_up_kernels
     from ground.solver import in_process_solver
 
     solver = in_process_solver(
         camera=camera, catalog=catalog, fov_deg=fov_deg, fov_range=fov_range, database=database, params=params
     )
     solver.every_star = True
-    if warm_up_kernels() > 0:  # the first call: the modules and kernels loaded now are its compile stage
-        solver.charge_setup(compile=time.perf_counter() - t0 - sum(solver.setup_s.values()))
     return solved_image(solver.solve(frame), frame)
 
 

@@ -113,8 +113,9 @@ class InProcessSolver:
     is taken as calibrated (no optics search): on one low field, refraction and a focal-length error
     are nearly degenerate.
 
-    The first solve loads the kernels (:func:`~ground.kernels.warm_up_kernels`) and reports those
-    seconds as its ``compile`` stage, with the set-up seconds charged before it (:meth:`charge_setup`).
+    The first solve reports the set-up seconds charged before it (:meth:`charge_setup`:
+    :func:`in_process_solver` charges the catalog, the database and, for the process's first
+    solver, the pipeline's modules and kernels as ``compile``) in its ``timings_s`` and their total.
     """
 
     #: list every detection in a record's ``stars``, not only the result record's brightest
@@ -168,7 +169,6 @@ class InProcessSolver:
         from ground.link.solve_report import add_setup_stages, record_from_output
 
         setup, self._setup = self._setup, {}
-        setup["compile"] = setup.get("compile", 0.0) + warm_up_kernels()
         report, note = None, None
         if self.route is Route.SKY_SEARCH:
             from firmware_model.pipeline.sky_run import run_pipeline_sky
@@ -254,10 +254,13 @@ def in_process_solver(
 ) -> InProcessSolver:
     """The solver the options describe (module docstring), checked before any work (bad options
     raise :class:`OptionsError` in one line), with the catalog and the database it needs loaded
-    and their seconds charged to its first solve. ``fov_deg`` is a hint (the field within
+    and the pipeline's kernels (:func:`~ground.kernels.warm_up_kernels`, once per process: a line
+    on stderr, and a bar with ``progress``, when they compile), their seconds charged to its first
+    solve (``catalog``, ``database``, ``compile``: the modules and kernels loaded by this call). ``fov_deg`` is a hint (the field within
     ``fov_deg / 1.4`` to ``1.4 fov_deg``, horizontal, deg), ``fov_range`` bounds the search,
     neither with no camera solves blind; ``catalog`` an object or a catalog image path;
     ``database`` a file (None: the user cache's, built once, with a bar when ``progress``)."""
+    start = time.perf_counter()
     from firmware_model.pipeline.sky_search import FieldRange
     from firmware_model.pipeline.solve_types import PipelineParams
 
@@ -286,6 +289,8 @@ def in_process_solver(
         setup["database"] = db.load_s
     solver = InProcessSolver(route, params or PipelineParams(), camera, loaded, db, fov, site)
     solver.charge_setup(**setup)
+    if warm_up_kernels(progress=progress) > 0:  # the process's first solver: its modules and kernels
+        solver.charge_setup(compile=time.perf_counter() - start - sum(setup.values()))
     return solver
 
 

@@ -149,23 +149,17 @@ def test_solve_file_json_is_one_document_with_the_files_written(files, capsys, m
     (they used to follow it as ``wcs: ...`` and ``overlay: ...`` lines)."""
     import ground.analysis.frame_plot as frame_plot
     import ground.cli.solve as solve_cli
-    import ground.kernels as kernels
     from ground.solver import Solve
 
     record = {"status": "NO_MATCH", "q_icrs_to_sensor": None, "reason": "test", "timings_s": {}}
 
     class Solver:
-        setup_s: dict = {}
         catalog = None
-
-        def charge_setup(self, **kw):
-            pass
 
         def solve(self, frame, say=None):
             return Solve(dict(record))
 
     monkeypatch.setattr(solve_cli, "offline_solver", lambda args, search: Solver())
-    monkeypatch.setattr(kernels, "warm_up_kernels", lambda progress=False: 0)
     monkeypatch.setattr(frame_plot, "plot_identified", lambda frame, rec, path, label: path)
     argv = ["solve-file", f"{files}/f.npy", "--wcs", f"{files}/x.wcs", "--overlay", f"{files}/x.png"]
     rc, out, err = run(["--json", *argv], capsys)

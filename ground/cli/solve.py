@@ -113,23 +113,15 @@ def _write_wcs(path, rec: dict, frame, camera) -> dict | None:
 
 
 def _solve_file(args) -> int:
-    t0 = time.perf_counter()
     from firmware_model.pipeline.frame_readers import FrameReadError, read_frame
-    from ground.kernels import warm_up_kernels
 
-    t_read = time.perf_counter()
     try:  # the input first: a directory or a bad file is one line before any database is built
         frame = read_frame(args.frame)
     except FrameReadError as exc:
         raise InputError(str(exc)) from None
-    read_s = time.perf_counter() - t_read
-    solver = offline_solver(args, search=True)  # options checked, the database and --catalog loaded
+    # options checked; the database, --catalog and the kernels loaded (a line and a bar when they compile)
+    solver = offline_solver(args, search=True)
     solver.every_star = True  # no result record in between: list every detection
-    modules_s = time.perf_counter() - t0 - read_s - sum(solver.setup_s.values())  # the rest: imports
-    # the pipeline's modules and kernels, loaded now (a line and a bar when the kernels compile)
-    t1 = time.perf_counter()
-    loaded = warm_up_kernels(progress=progress_on(args)) > 0
-    solver.charge_setup(compile=modules_s + time.perf_counter() - t1 if loaded else 0.0)
     rec = solver.solve(frame).record
     rec["frame"] = Path(args.frame).name
     camera = user_camera(args, frame)
