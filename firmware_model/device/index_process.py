@@ -9,6 +9,10 @@ import multiprocessing.connection
 import os
 import threading
 
+#: How much lower than the device's the process' scheduling priority is (``nice`` steps): on a busy
+#: machine its work waits for the device's, on an idle core it runs at full speed.
+NICENESS = 10
+
 
 def ready() -> bool:
     """The process' first task: import what an index build runs (``scale_free``), so that a
@@ -19,8 +23,11 @@ def ready() -> bool:
 
 
 def init() -> None:
-    """The process ends with the device, however the device ends (a device killed outright would
-    otherwise leave it waiting for work for ever): a thread waits for the parent's end and exits."""
+    """The process gives way to the device (:data:`NICENESS`: its imports at the device's start and
+    its builds never take a core from the device's GOs and link), and ends with the device, however
+    the device ends (a device killed outright would otherwise leave it waiting for work for ever):
+    a thread waits for the parent's end and exits."""
+    os.nice(NICENESS)
     parent = multiprocessing.parent_process()
     if parent is None:
         return
