@@ -19,6 +19,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse
 import functools
+import gc
 import logging
 import signal
 import sys
@@ -374,6 +375,9 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    # start-up's objects (modules, kernels, the catalog) live as long as the device: out of every
+    # full collection, which walks them holding the GIL from the link and the running sequence
+    gc.freeze()
     print(f"listening on {link.describe()}", flush=True)
     try:
         serve(device, link, stop, baud=args.baud if args.pace else None, turnaround=turnaround_ms / 1000.0)
