@@ -301,6 +301,8 @@ def _catalog(catalog) -> OnboardCatalog | None:
 
         try:
             return catalog_from_image(Path(catalog).read_bytes())
+        except FileNotFoundError:
+            raise OptionsError(f"catalog {catalog}: no such file") from None
         except (OSError, ValueError) as exc:
             raise OptionsError(f"catalog {catalog}: {exc}") from None
     return catalog

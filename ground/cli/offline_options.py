@@ -117,10 +117,23 @@ def camera_for_frames(args) -> Callable[[Frame], CameraModel]:
 
 
 def load_catalog(path):
-    """The on-board catalog from a catalog image file."""
+    """The on-board catalog from a catalog image file (``--catalog``)."""
     from firmware_model.catalog.image_io import catalog_from_image
 
-    return catalog_from_image(Path(path).read_bytes())
+    try:
+        return catalog_from_image(_catalog_path(path).read_bytes())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"--catalog {path}: {exc}") from None
+
+
+def _catalog_path(path) -> Path:
+    """``--catalog``'s path, refused in one line naming the option when it is not a file."""
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"--catalog {path}: no such file")
+    if not p.is_file():
+        raise InputError(f"--catalog {path}: not a file")
+    return p
 
 
 def offline_solver(args, search: bool) -> InProcessSolver:
@@ -138,7 +151,7 @@ def offline_solver(args, search: bool) -> InProcessSolver:
     params = load_params(args.params)
     return in_process_solver(
         camera=camera,
-        catalog=args.catalog,
+        catalog=_catalog_path(args.catalog) if args.catalog else None,
         fov_deg=args.fov_deg if search else None,
         fov_range=tuple(args.fov_range) if search and args.fov_range else None,
         database=args.database if search else None,
