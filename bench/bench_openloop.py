@@ -242,15 +242,15 @@ def _one(job):
     frame = replace(frame, camera=None)  # a user's frame does not carry the true lens
     t1 = time.perf_counter()
     if blind:  # no camera: the field of view searched over 5-60 deg, the same catalog
-        from firmware_model.pipeline.scale_free import set_sky_patterns
         from firmware_model.pipeline.sky_run import run_pipeline_sky
         from firmware_model.pipeline.sky_search import FieldRange
         from firmware_model.pipeline.solve_types import PipelineParams
         from ground.catalog.sky_database import sky_database
 
         db = sky_database()
-        set_sky_patterns(cat, db.index)
-        out, _ = run_pipeline_sky(frame, FieldRange.blind(), db.search, lambda camera: cat, PipelineParams())
+        out, _ = run_pipeline_sky(
+            frame, FieldRange.blind(), db.search, lambda camera: cat, PipelineParams(), patterns=db.index
+        )
     else:
         out = run_pipeline(frame, nominal, cat)
     t2 = time.perf_counter()

@@ -11,9 +11,8 @@ that picks a :class:`Route` from them:
   whole-sky database, with the given catalog for every frame or each field found's own.
 
 The pattern index a solve matches against is the solver's :attr:`InProcessSolver.patterns` (None:
-the catalog's own). It reaches the pipeline through a view of the catalog
-(``field_catalogs.sky_matched``), never through the caller's catalog object, which a solve leaves
-as it found it.
+the catalog's own), handed to the pipeline as an argument (``patterns=``); the catalog object a
+solve is given is never written to.
 
 Every solver, this module's and ``ground.link_solver.LinkSolver``, answers
 ``solve(frame, say=None)`` with one :class:`Solve`: the pipeline's output, the record, the field
@@ -174,7 +173,9 @@ class InProcessSolver:
             from firmware_model.pipeline.sky_run import run_pipeline_sky
 
             assert self.fov is not None
-            out, report = run_pipeline_sky(frame, self.fov, self.database.search, self._catalog_for, self.params)
+            out, report = run_pipeline_sky(
+                frame, self.fov, self.database.search, self._catalog_for, self.params, patterns=self.patterns
+            )
             camera = out.camera
         else:
             camera = self.camera_for(frame)
@@ -188,18 +189,15 @@ class InProcessSolver:
         return Solve(rec, out, report, setup, camera)
 
     def _catalog_for(self, camera: CameraModel) -> OnboardCatalog:
-        """The catalog a camera's frames are solved with, matched against :attr:`patterns`."""
-        from ground.catalog.field_catalogs import sky_catalog, sky_matched
-
-        if self.route is Route.TWIN:
-            assert self.catalog is not None
-            return self.catalog
+        """The catalog a camera's frames are solved with (matched against :attr:`patterns`): the
+        given one, else the camera's field catalog."""
         if self.catalog is not None:
-            return sky_matched(self.catalog, self.patterns)
+            return self.catalog
         from ground.catalog.design import DesignError
+        from ground.catalog.field_catalogs import catalog_for_camera
 
         try:
-            return sky_catalog(camera, self.database)
+            return catalog_for_camera(camera)
         except DesignError as exc:
             raise OptionsError(
                 f"the camera's field of view is too wide for a field catalog ({camera.width} x {camera.height} px: {exc})"
@@ -211,11 +209,11 @@ class InProcessSolver:
         from firmware_model.pipeline.run import identify_stars, run_pipeline
 
         if self.site is None:
-            return run_pipeline(frame, camera, catalog, self.params), None
+            return run_pipeline(frame, camera, catalog, self.params, patterns=self.patterns), None
         # refraction squeezes a low field like a focal-length error: with a site, the camera is
         # taken as calibrated (no optics search), so the two are not confused
         params = replace(self.params, optics=None)
-        out = run_pipeline(frame, camera, catalog, params)
+        out = run_pipeline(frame, camera, catalog, params, patterns=self.patterns)
         if out.stars is None or len(out.stars) < 2:
             return out, None
         if not frame.timestamp:
@@ -231,14 +229,16 @@ class InProcessSolver:
             # differential refraction can exceed the centroid noise: look for the approximate
             # attitude with a loose noise model (the final match below is made at full rigour); a
             # low-confidence first answer (e.g. a two-star last resort) is no approximation to trust
-            approx = identify_stars(out.stars, camera, catalog, replace(params, fixed_sigma_px=LOOSE_SIGMA_PX))
+            approx = identify_stars(
+                out.stars, camera, catalog, replace(params, fixed_sigma_px=LOOSE_SIGMA_PX), self.patterns
+            )
         q_approx = approx.solution.q_icrs_to_sensor if approx.solution is not None else None
         if q_approx is None:  # (an OK answer always has its attitude)
             return out, "not corrected: no approximate attitude"
         vec = correct_refraction(
             out.stars.vectors, quat_to_matrix(q_approx), self.site, Time(frame.timestamp, scale="utc")
         )
-        return identify_stars(replace(out.stars, vectors=vec), camera, catalog, params), "corrected"
+        return identify_stars(replace(out.stars, vectors=vec), camera, catalog, params, self.patterns), "corrected"
 
 
 def in_process_solver(

@@ -123,8 +123,7 @@ def test_the_command_line_is_imported_by_nothing_else():
 
 
 #: What only ``ground.solver`` may use: the sky search's pipeline and the choice of a route. The
-#: whole-sky index is bound to a catalog only by ``field_catalogs.sky_matched`` (a view, never the
-#: caller's object).
+#: whole-sky index reaches the pipeline as the solve's ``patterns`` argument, never on a catalog.
 ROUTE_NAMES = {"firmware_model.pipeline.sky_run", "choose_route", "Route", "InProcessSolver()"}
 
 
@@ -149,12 +148,23 @@ def test_only_the_solver_module_chooses_a_route():
         if p != ROOT / "ground" / "solver.py" and _names(p) & ROUTE_NAMES
     }
     assert not choosers, choosers
-    binders = [
-        str(p.relative_to(ROOT))
-        for p in sorted((ROOT / "ground").rglob("*.py"))
-        if "set_sky_patterns" in _names(p) and p != ROOT / "ground" / "catalog" / "field_catalogs.py"
-    ]
+    binders = [str(p.relative_to(ROOT)) for p in sorted((ROOT / "ground").rglob("*.py")) if _binds_patterns(p)]
     assert not binders, binders
+
+
+def _binds_patterns(path: Path) -> bool:
+    """Whether the module hangs a pattern index on a catalog object (``set_catalog_patterns``, or a
+    write into a catalog's ``__dict__``) instead of passing it to the solve."""
+    source = path.read_text()
+    return "set_catalog_patterns" in _names(path) or "__dict__[" in source or "__dict__.setdefault" in source
+
+
+def test_the_pattern_index_check_sees_a_catalog_written_to(tmp_path):
+    src = tmp_path / "m.py"
+    src.write_text("def f(cat, index):\n    cat.__dict__['_sky_patterns'] = index\n")
+    assert _binds_patterns(src)
+    src.write_text("def f(cat, index, frame, camera):\n    return run_pipeline(frame, camera, cat, patterns=index)\n")
+    assert not _binds_patterns(src)
 
 
 def test_the_check_sees_an_import_inside_a_function(tmp_path):

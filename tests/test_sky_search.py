@@ -3,6 +3,7 @@ search on a synthetic sky with the field of view unknown, its database file and 
 on the real frames (realdata), blind and with the field of view 25 % off."""
 
 import json
+from typing import cast
 
 import numpy as np
 import pytest
@@ -325,12 +326,10 @@ def test_the_reported_false_alarm_counts_every_hypothesis_the_search_checked(syn
     pixels = rng.normal(100, 3, (96, 128)).astype(np.float32)
     for x, y in rng.uniform(10, 80, (12, 2)):
         pixels[int(y) - 1 : int(y) + 2, int(x) - 1 : int(x) + 2] += 2000.0
-    from firmware_model.pipeline.scale_free import set_sky_patterns
-
     cat = synthetic_catalog(300)
-    set_sky_patterns(cat, search.index)
     frame = Frame(pixels, "MONO", white_level=65535.0)
-    _, report = run_pipeline_sky(frame, FieldRange.blind(), Stub(), lambda camera: cat)  # type: ignore[arg-type]
+    sky = cast(SkySearch, Stub())
+    _, report = run_pipeline_sky(frame, FieldRange.blind(), sky, lambda camera: cat, patterns=search.index)
     assert report.checks == 200 and report.false_alarm == pytest.approx(1e-5 * 200)
 
 

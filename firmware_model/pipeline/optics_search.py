@@ -64,6 +64,7 @@ from firmware_model.pipeline.frame_identification import (
     usable_rows,
     with_solution_confidence,
 )
+from firmware_model.pipeline.pattern_index import PatternIndex
 from firmware_model.pipeline.solve_types import (
     OpticsFit,
     OpticsSearch,
@@ -119,6 +120,12 @@ def refine(
     return None if refined is None else Refinement(*refined)
 
 
+def pattern_index(seen: SolveInput) -> PatternIndex:
+    """The pattern index the frame's patterns are looked up in: the solve's own
+    (``seen.patterns``), else the catalog's for the camera's field (``scale_free.catalog_patterns``)."""
+    return seen.patterns if seen.patterns is not None else scale_free.catalog_patterns(seen.catalog, seen.camera)
+
+
 def pattern_rows(stars: StarList) -> np.ndarray:
     """Rows of the detections fit to make patterns of (blended, failed-fit and edge ones left out)."""
     return np.flatnonzero((stars.flags & _PATTERN_EXCLUDE) == 0)
@@ -128,8 +135,8 @@ def first_tier(
     seen: SolveInput, search: OpticsSearch | None, timings: StageTimings
 ) -> scale_free.BrightFirstMatches | None:
     """The first pattern matches of ``search`` (the ``first_tier`` brightest clean detections,
-    rank by rank; None without one); the caller builds the catalog's patterns for the field and
-    has at least four usable detections."""
+    rank by rank; None without one); the caller has the pattern index ready (:func:`pattern_index`)
+    and at least four usable detections."""
     if search is None or search.first_tier <= 0 or search.first_tier_hypotheses <= 0:
         return None
     t1 = time.perf_counter()
@@ -139,7 +146,7 @@ def first_tier(
         stars.x[clean],
         stars.y[clean],
         seen.camera,
-        seen.catalog,
+        pattern_index(seen),
         search.first_tier,
         search.pattern_tolerance,
         search.focal_range,
@@ -348,7 +355,7 @@ def pattern_seeds(
     poor fits were among them (hot-pixel clusters and other unblurred clutter can outshine the
     stars), from the brightest detections that also fit the PSF well. ``peek``: the first tier's
     pattern matches of the first pass, already computed."""
-    stars, camera, catalog = seen.stars, seen.camera, seen.catalog
+    stars, camera, index = seen.stars, seen.camera, pattern_index(seen)
     clean = pattern_rows(stars)  # clutter is blended or badly fitted
     well = clean[(stars.flags[clean] & int(StarFlag.POOR_FIT)) == 0]
     for rows in (clean, well):
@@ -362,12 +369,12 @@ def pattern_seeds(
                 found = peek
             elif n == search.first_tier:  # rank by rank, as the hypotheses are asked for (timed there)
                 found = scale_free.BrightFirstMatches(
-                    stars.x[rows], stars.y[rows], camera, catalog, n, search.pattern_tolerance, search.focal_range
+                    stars.x[rows], stars.y[rows], camera, index, n, search.pattern_tolerance, search.focal_range
                 )
             else:
                 t1 = time.perf_counter()
                 found = scale_free.pattern_matches(
-                    stars.x[rows], stars.y[rows], camera, catalog, n, search.pattern_tolerance, search.focal_range
+                    stars.x[rows], stars.y[rows], camera, index, n, search.pattern_tolerance, search.focal_range
                 )
                 timings.identify += time.perf_counter() - t1
             # one at a time (the first is usually it); the second pass repeats the first's best:

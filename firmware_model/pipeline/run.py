@@ -7,8 +7,11 @@ the bright-body exclusion check. Identification is the stages of :data:`SOLVE_PL
 counted budget and hand-off rule (docs/identification.md, "The solve plan"): the pattern seed and
 the optics search (``optics_search``), the matchers (``frame_identification`` over
 ``firmware_model.ident.strategy``, which decides the methods, fallbacks, confidence and ranking).
-It never raises on bad frames: the output carries a :class:`protocol.result.Status` and a reason.
-The types are ``solve_types``; ``result_fields`` maps an output onto the result structure.
+The pattern index the frame's patterns are looked up in is an argument of the solve
+(``patterns``: off the device, the whole-sky one); without it, the catalog's own for the
+camera's field (``scale_free.catalog_patterns``: the device's). It never raises on bad frames:
+the output carries a :class:`protocol.result.Status` and a reason. The types are
+``solve_types``; ``result_fields`` maps an output onto the result structure.
 """
 
 from __future__ import annotations
@@ -40,10 +43,12 @@ from firmware_model.pipeline.optics_search import (
     first_seed,
     first_tier,
     nominal_off,
+    pattern_index,
     refine_optics,
     search_optics,
     verify_seed,
 )
+from firmware_model.pipeline.pattern_index import PatternIndex
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.pipeline.solve_types import (
     OpticsSearch,
@@ -61,17 +66,19 @@ def run_pipeline(
     catalog: OnboardCatalog,
     params: PipelineParams = PipelineParams(),
     recall: Recall | None = None,
+    patterns: PatternIndex | None = None,
 ) -> PipelineOutput:
     """Frame -> stars -> identification -> attitude (module docstring), then planet labelling and
     the bright-body exclusion check (``exclusion.check_exclusion``; ``recall``: the device's last
-    attitude at this frame's time, for a frame that gives none)."""
+    attitude at this frame's time, for a frame that gives none; ``patterns``: the pattern index,
+    None for the catalog's own)."""
     t0 = time.perf_counter()
     stars = frame_stars(frame, camera, params)
     if isinstance(stars, PipelineOutput):
         return stars  # a frame that does not fit the camera: nothing to check
-    out = identify_stars(stars, camera, catalog, params)
+    out = identify_stars(stars, camera, catalog, params, patterns)
     if frame.timestamp and out.solution is not None and out.solution.q_icrs_to_sensor is not None:
-        out = label_planets_of(out, frame, catalog, params)
+        out = label_planets_of(out, frame, catalog, params, patterns)
     out = check_exclusion(out, frame, params.exclusion, recall)
     out.timings.total = time.perf_counter() - t0
     return out
@@ -111,9 +118,16 @@ def frame_stars(frame: Frame, camera: CameraModel, params: PipelineParams) -> St
         return PipelineOutput(Status.BAD_FRAME, f"frame rejected: {exc}")
 
 
-def label_planets_of(out: PipelineOutput, frame: Frame, catalog: OnboardCatalog, params: PipelineParams):
+def label_planets_of(
+    out: PipelineOutput,
+    frame: Frame,
+    catalog: OnboardCatalog,
+    params: PipelineParams,
+    patterns: PatternIndex | None = None,
+):
     """Label detections on a predicted planet or the moon at the frame's epoch (``planets``); if
-    one of them was matched to a catalog star, identify again without them."""
+    one of them was matched to a catalog star, identify again without them (with ``patterns``,
+    as :func:`identify_stars`)."""
     from firmware_model.pipeline.planets import label_planets
 
     site = frame.site or {}
@@ -133,7 +147,7 @@ def label_planets_of(out: PipelineOutput, frame: Frame, catalog: OnboardCatalog,
         hidden = replace(stars, x=stars.x.copy(), y=stars.y.copy(), vectors=vectors)
         hidden.x[rows] = hidden.y[rows] = np.nan
         vectors[rows] = np.nan
-        again = identify_stars(hidden, out.camera, catalog, params)
+        again = identify_stars(hidden, out.camera, catalog, params, patterns)
         again.stars = stars
         if again.optics is None:
             again.optics = out.optics
@@ -143,13 +157,18 @@ def label_planets_of(out: PipelineOutput, frame: Frame, catalog: OnboardCatalog,
 
 
 def identify_stars(
-    stars: StarList, camera: CameraModel, catalog: OnboardCatalog, params: PipelineParams = PipelineParams()
+    stars: StarList,
+    camera: CameraModel,
+    catalog: OnboardCatalog,
+    params: PipelineParams = PipelineParams(),
+    patterns: PatternIndex | None = None,
 ) -> PipelineOutput:
     """Identification and attitude from extracted stars (``stars.vectors`` from ``camera``): the
-    stages of :data:`SOLVE_PLAN`, in its order, each handing on by its rule."""
+    stages of :data:`SOLVE_PLAN`, in its order, each handing on by its rule. ``patterns``: the
+    pattern index the stars' patterns are looked up in (None: the catalog's own for the field)."""
     t0 = time.perf_counter()
     frame = FrameSolve(
-        SolveInput(stars, camera, catalog),
+        SolveInput(stars, camera, catalog, patterns),
         params,
         StageTimings(
             detect=stars.timings.get("detect_s", 0.0),
@@ -185,7 +204,7 @@ def _chance_checked(out: PipelineOutput, timings: StageTimings) -> PipelineOutpu
 @dataclass
 class FrameSolve:
     """What the stages of one frame's solve share: the inputs (``seen``: the stars through the
-    nominal camera, the catalog), the frame's ledger (``timings``: seconds and counted work), the
+    nominal camera, the catalog, the pattern index), the frame's ledger (``timings``: seconds and counted work), the
     route, the first tier's pattern matches (``peek``) and their first refined seed, the answer so
     far (``out``) and the optics search's (``found``, once it ran: it runs at most once a frame)."""
 
@@ -227,7 +246,7 @@ def _prepare(frame: FrameSolve) -> str:
     )
     if _first_tier_search(frame) is not None:
         t1 = time.perf_counter()
-        scale_free.catalog_patterns(seen.catalog, seen.camera)  # once per catalog and field: a set-up stage
+        pattern_index(seen)  # the catalog's own is built once per catalog and field: a set-up stage
         frame.timings.index = time.perf_counter() - t1
     if frame.params.flight_deadline_s is not None:  # from the frame's extraction, set-up stages excluded
         deadline = time.perf_counter() - seen.stars.timings.get("total_s", 0.0) + frame.params.flight_deadline_s

@@ -146,16 +146,12 @@ def pattern_field(camera: CameraModel) -> int:
 
 
 def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel) -> PatternIndex:
-    """The :class:`PatternIndex` a camera's frames are matched against: the whole-sky one when the
-    catalog carries it (:func:`set_sky_patterns`: every field, no per-field index), else the
-    catalog's patterns for the camera's field (module constants), cached on the catalog object per
-    field bin (:func:`pattern_field`: every camera within :data:`PATTERN_FIELD_REUSE` of a bin's
-    centre; building another field's patterns takes ~2 s).
+    """The catalog's own :class:`PatternIndex` for the camera's field (module constants): what a
+    solve given no index of its own matches against (the device's, and its twin's), cached on the
+    catalog object per field bin (:func:`pattern_field`: every camera within
+    :data:`PATTERN_FIELD_REUSE` of a bin's centre; building another field's patterns takes ~2 s).
     :func:`pattern_index` builds them; a caller that built them elsewhere (another process: the
     device after a catalog commit) installs them with :func:`set_catalog_patterns`."""
-    sky = catalog.__dict__.get("_sky_patterns")
-    if sky is not None:
-        return sky
     mrad = pattern_field(camera)
     cache = catalog.__dict__.setdefault("_pattern_cache", {})
     if mrad not in cache:
@@ -176,12 +172,6 @@ def unique_rows(groups: np.ndarray) -> np.ndarray:
 def set_catalog_patterns(catalog: OnboardCatalog, mrad: int, index) -> None:
     """Install a :func:`pattern_index` of ``catalog`` for the field ``mrad`` (:func:`pattern_field`)."""
     catalog.__dict__.setdefault("_pattern_cache", {})[mrad] = index
-
-
-def set_sky_patterns(catalog: OnboardCatalog, index: PatternIndex) -> None:
-    """Match every frame solved with ``catalog`` against ``index`` (the whole-sky, every-field
-    patterns of ``sky_patterns``; its stars are its own, not rows of the catalog)."""
-    catalog.__dict__["_sky_patterns"] = index
 
 
 #: Pattern indexes :func:`cached_pattern_index` keeps in its folder (the most recently used).
@@ -297,17 +287,16 @@ def pattern_matches(
     x: np.ndarray,
     y: np.ndarray,
     camera: CameraModel,
-    catalog: OnboardCatalog,
+    index: PatternIndex,
     n_bright: int,
     tolerance: float,
     focal_range: float,
     first: int = 0,
 ) -> PatternMatches:
     """Pattern matches of the ``n_bright`` brightest detections (rows of ``x, y``, brightest first)
-    against the catalog's patterns (:func:`catalog_patterns`) with key distance below ``tolerance`` and focal length within ``focal_range`` (relative) of
-    the nominal camera's, best key distance first. ``first``: only patterns holding a detection
+    against the patterns of ``index`` with key distance below ``tolerance`` and focal length within
+    ``focal_range`` (relative) of the nominal camera's, best key distance first. ``first``: only patterns holding a detection
     at or beyond that rank (the caller has tried those of the ``first`` brightest already)."""
-    index = catalog_patterns(catalog, camera)
     return pattern_matches_many(x, y, [(camera, focal_range)], index, n_bright, tolerance, first)[0]
 
 
@@ -377,10 +366,10 @@ class BrightFirstMatches:
     cache on the catalog's ~8e5 keys). ``best_f``: the best key match's focal length in
     the first rank with a match (NaN for none), worked out on construction."""
 
-    def __init__(self, x, y, camera: CameraModel, catalog: OnboardCatalog, n_bright: int, tolerance, focal_range):
+    def __init__(self, x, y, camera: CameraModel, index: PatternIndex, n_bright: int, tolerance, focal_range):
         n = min(len(x), n_bright)
         self._ranks = (
-            pattern_matches(x, y, camera, catalog, k, tolerance, focal_range, first=k - 1) for k in range(4, n + 1)
+            pattern_matches(x, y, camera, index, k, tolerance, focal_range, first=k - 1) for k in range(4, n + 1)
         )
         self._done: list[PatternMatches] = []
         k = 0  # the ranks up to the first with a match, now: they give best_f

@@ -8,8 +8,9 @@ known field: the whole pipeline, off the device (``solve-file``, ``solve_image``
    ``sky_search.FALSE_ALARM`` over the search is taken, else its best candidates of distinct
    focal lengths are handed on (``sky_search.CANDIDATES``, each focal length once).
 3. Each candidate's pinhole camera identifies the frame (``run.identify_stars``: the field's
-   catalog, the optics search and fit within its focal range, the deep verification and its
-   confidence), until one is high-confidence. With a taken hypothesis an ``auto``-mode frame is
+   catalog matched against the whole-sky patterns the caller passes, the optics search and fit
+   within its focal range, the deep verification and its confidence), until one is
+   high-confidence. With a taken hypothesis an ``auto``-mode frame is
    identified on geometry first (the search found its stars), by colour only if that fails.
 4. The answer must agree with the hypothesis it came from (boresight within
    :data:`AGREE_PX` pixels); the record's ``sky`` block gives the search's field of view, checks
@@ -33,6 +34,7 @@ from firmware_model.ident.attitude import quat_matrix
 from firmware_model.ident.solver import Mode
 from firmware_model.pipeline.exclusion import check_exclusion
 from firmware_model.pipeline.optics_search import pattern_rows
+from firmware_model.pipeline.pattern_index import PatternIndex
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.pipeline.run import frame_stars, identify_stars, label_planets_of
 from firmware_model.pipeline.sky_search import (
@@ -83,11 +85,13 @@ def run_pipeline_sky(
     catalog_for: Callable[[CameraModel], OnboardCatalog],
     params: PipelineParams = PipelineParams(),
     checks: tuple[int, ...] = (FIRST_CHECKS, MAX_CHECKS),
+    patterns: PatternIndex | None = None,
 ) -> tuple[PipelineOutput, SkyReport]:
     """Frame -> stars -> sky search -> identification with the found camera (module docstring).
-    ``catalog_for(camera)``: the field's catalog (matched against the sky table's patterns);
-    ``checks``: the counts of hypotheses checked (in all) after which the candidates found so far
-    are identified, the search going on to the next while none is high-confidence."""
+    ``catalog_for(camera)``: the field's catalog; ``checks``: the counts of hypotheses checked (in
+    all) after which the candidates found so far are identified, the search going on to the next
+    while none is high-confidence; ``patterns``: the pattern index each identification looks its
+    patterns up in (the whole-sky one; None: each catalog's own for its field)."""
     t0 = time.perf_counter()
     catalog_s = 0.0
 
@@ -107,7 +111,7 @@ def run_pipeline_sky(
         return stars, nothing
     if len(stars.x) < 4:  # the pipeline's own TOO_FEW_STARS answer
         seen = replace(stars, vectors=mid.pixel_to_vector(stars.x, stars.y))
-        return identify_stars(seen, mid, catalog(mid), params), nothing
+        return identify_stars(seen, mid, catalog(mid), params, patterns), nothing
     clean = pattern_rows(stars)
     run = sky.start(stars.x[clean], stars.y[clean], w, h, fov)
     out: PipelineOutput | None = None
@@ -128,9 +132,9 @@ def run_pipeline_sky(
             tried_f.append(fit.f)
             camera = CameraModel.pinhole(w, h, fit.f)
             seen, field = replace(stars, vectors=camera.pixel_to_vector(stars.x, stars.y)), catalog(camera)
-            tried = identify_stars(seen, camera, field, solve_params)
+            tried = identify_stars(seen, camera, field, solve_params, patterns)
             if tried.status is not Status.OK and solve_params is not params:  # the colour route after all
-                again = identify_stars(seen, camera, field, params)
+                again = identify_stars(seen, camera, field, params, patterns)
                 again.timings.identify += tried.timings.identify + tried.timings.attitude
                 tried = again if _higher_tier(again, tried) else tried
             if out is None or _higher_tier(tried, out):
@@ -150,7 +154,7 @@ def run_pipeline_sky(
         _held_to_hypothesis(out, used)
         if frame.timestamp and out.solution is not None and out.solution.q_icrs_to_sensor is not None:
             assert out.camera is not None
-            out = label_planets_of(out, frame, catalog(out.camera), params)
+            out = label_planets_of(out, frame, catalog(out.camera), params, patterns)
     out = check_exclusion(out, frame, params.exclusion)  # as run_pipeline's answers (docs/ICD.md section 7)
     out.timings.identify += search_s  # the sky search (and any earlier candidate) is identification
     out.timings.catalog = catalog_s

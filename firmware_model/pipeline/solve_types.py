@@ -9,6 +9,7 @@ Units: px, seconds, radians unless a name says otherwise.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -20,6 +21,9 @@ from firmware_model.ident.strategy import IdentifyTimings
 from firmware_model.pipeline.exclusion import ExclusionLimits
 from firmware_model.pipeline.extract import ExtractParams, StarList
 from protocol.result import Status
+
+if TYPE_CHECKING:  # the index's module compiles kernels: the types alone here
+    from firmware_model.pipeline.pattern_index import PatternIndex
 
 #: Floor on the per-axis centroid noise fed to the solver (px): covers camera-model and
 #: optical residuals that the photon-noise covariance of the fit does not know about.
@@ -210,15 +214,18 @@ class PipelineOutput:
 @dataclass(frozen=True)
 class SolveInput:
     """What one identification of a frame works on: its extracted ``stars`` (``stars.vectors``
-    through ``camera``), the ``camera`` model and the ``catalog`` matched against."""
+    through ``camera``), the ``camera`` model, the ``catalog`` matched against and the pattern
+    index its patterns are looked up in (``patterns``; None: the catalog's own for the camera's
+    field, ``scale_free.catalog_patterns``)."""
 
     stars: StarList
     camera: CameraModel
     catalog: OnboardCatalog
+    patterns: PatternIndex | None = None
 
     def with_camera(self, camera: CameraModel) -> SolveInput:
-        """The same stars and catalog seen through ``camera`` (their directions recomputed)."""
-        return SolveInput(through_camera(self.stars, camera), camera, self.catalog)
+        """The same stars, catalog and patterns seen through ``camera`` (their directions recomputed)."""
+        return SolveInput(through_camera(self.stars, camera), camera, self.catalog, self.patterns)
 
 
 def through_camera(stars: StarList, camera: CameraModel) -> StarList:

@@ -1,17 +1,15 @@
 """Star catalogs for fields of view met off the device, one per field: built once from the bundled
 Hipparcos (``CatalogDesign.for_field``, what ``st16-ground catalog build --fov-deg`` makes), kept
 as catalog images in the user's cache directory and for the life of the process (every field a
-script uses: none evicted), and matched against the whole-sky pattern database (``sky_database``)
-instead of a pattern index of their own, through a view (:func:`sky_matched`): the kept catalog,
-and any catalog a caller passes, is never changed by a solve."""
+script uses: none evicted). A solve matches them against the whole-sky pattern database
+(``sky_database``) instead of a pattern index of their own: the solver passes that index to the
+pipeline as an argument, and the kept catalog is never written to."""
 
 from __future__ import annotations
 
-import copy
 import hashlib
 import logging
 import math
-import weakref
 from pathlib import Path
 
 import numpy as np
@@ -27,37 +25,12 @@ _log = logging.getLogger(__name__)
 CATALOG_FOV_STEP = 0.02
 
 
-def sky_catalog(camera: CameraModel, db) -> OnboardCatalog:
-    """The catalog for the camera's field (:func:`catalog_for_field` of its array and horizontal
-    field of view on a :data:`CATALOG_FOV_STEP` grid), matched against the sky database's patterns
-    (:func:`sky_matched`)."""
+def catalog_for_camera(camera: CameraModel) -> OnboardCatalog:
+    """The catalog for the camera's field: :func:`catalog_for_field` of its array and horizontal
+    field of view on a :data:`CATALOG_FOV_STEP` grid."""
     hfov = float(np.degrees(2.0 * np.arctan(camera.width / 2.0 / camera.f)))
     step = math.log(1.0 + CATALOG_FOV_STEP)
-    cat = catalog_for_field(camera.width, camera.height, round(math.exp(round(math.log(hfov) / step) * step), 2))
-    return sky_matched(cat, db.index)
-
-
-#: (id(catalog), id(index)) -> the view: one per catalog and index, dropped with its catalog
-_VIEWS: dict[tuple[int, int], OnboardCatalog] = {}
-
-
-def sky_matched(catalog: OnboardCatalog, index) -> OnboardCatalog:
-    """``catalog`` as a solve matched against the whole-sky pattern ``index`` sees it: a shallow
-    copy (the same arrays) carrying the index (``scale_free.set_sky_patterns``), made once per
-    catalog and index and kept while the catalog lives, so the copy's own lazily built tables are
-    built once. ``catalog`` itself is left as it was: solved on its own afterwards, it still uses
-    its own pattern index."""
-    from firmware_model.pipeline import scale_free
-
-    key = (id(catalog), id(index))
-    view = _VIEWS.get(key)
-    if view is None:
-        view = copy.copy(catalog)
-        view.__dict__.pop("_sky_patterns", None)
-        scale_free.set_sky_patterns(view, index)  # the view holds the index: its id stays unique
-        _VIEWS[key] = view
-        weakref.finalize(catalog, _VIEWS.pop, key, None)  # the catalog's id may be reused after it
-    return view
+    return catalog_for_field(camera.width, camera.height, round(math.exp(round(math.log(hfov) / step) * step), 2))
 
 
 #: Modules of ``ground.catalog`` that do not build catalogs: their edits keep the kept ones.
