@@ -420,7 +420,7 @@ class PipelineSolver:
     with the tracker's rate when tracked: :attr:`last`), which the bright-body exclusion check
     uses for a frame without an attitude of its own while younger than ``exclusion_memory_s``.
 
-    The catalog's pattern index (``scale_free.catalog_patterns``, 0.2-20 s once per catalog) is
+    The catalog's pattern index (``scale_free.catalog_patterns``, seconds once per catalog) is
     built by :meth:`prepare` when a catalog is activated: in this process while the device starts
     (``st16-device`` says ``listening`` after it), in another process once :meth:`serving` is
     called (a catalog COMMIT: a thread here would hold the GIL for much of the build and starve

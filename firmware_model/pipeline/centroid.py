@@ -178,8 +178,8 @@ def _pixel_gaussian_rows(coords, centre, sigma):
 def _bad_mask(bad_pixels: np.ndarray, n_pixels: int) -> np.ndarray:
     """A mask of ``bad_pixels`` (linear indices) over a frame of ``n_pixels``, and one entry past
     its end (False) for any index beyond it; looked up instead of ``np.isin``, whose hash-based ``np.unique``
-    (numpy >= 2.3) holds the GIL for ~0.1-0.7 s on 500 000 hot pixels and stalls the device's
-    link thread (an index out of the frame is in no window's valid pixels either way)."""
+    (numpy >= 2.3) holds the GIL on a frame of many hot pixels and stalls the device's link thread
+    (docs/bad_input.md; an index out of the frame is in no window's valid pixels either way)."""
     mask = np.zeros(n_pixels + 1, bool)
     bad = np.asarray(bad_pixels, np.int64)
     mask[bad[(bad >= 0) & (bad < n_pixels)]] = True

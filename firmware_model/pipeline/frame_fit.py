@@ -5,8 +5,8 @@ and the other distortion terms held (pixel residuals predicted minus measured of
 ``camera.vector_to_pixel(A @ v_icrs)``). The solver is a compiled Levenberg-Marquardt (numba,
 cached on disk) with the analytic Jacobian and the attitude updated on the rotation group (a small
 rotation about the sensor axes per step): the search calls this fit once or twice per hypothesis,
-and scipy's ``least_squares`` spent about 0.9 ms per call in its own and our Python-level
-callbacks on a handful of parameters. Its answers agree with ``calibrate``'s (tested).
+and scipy's ``least_squares`` spent most of each call in its own and our Python-level callbacks
+on a handful of parameters (docs/identification.md). Its answers agree with ``calibrate``'s (tested).
 """
 
 from __future__ import annotations

@@ -149,7 +149,7 @@ def catalog_patterns(catalog: OnboardCatalog, camera: CameraModel) -> PatternInd
     """The catalog's own :class:`PatternIndex` for the camera's field (module constants): what a
     solve given no index of its own matches against (the device's, and its twin's), cached on the
     catalog object per field bin (:func:`pattern_field`: every camera within
-    :data:`PATTERN_FIELD_REUSE` of a bin's centre; building another field's patterns takes ~2 s).
+    :data:`PATTERN_FIELD_REUSE` of a bin's centre; another field's patterns take seconds to build).
     :func:`pattern_index` builds them; a caller that built them elsewhere (another process: the
     device after a catalog commit) installs them with :func:`set_catalog_patterns`."""
     mrad = pattern_field(camera)
@@ -181,7 +181,7 @@ KEPT_INDEXES = 8
 def cached_pattern_index(folder, vec: np.ndarray, mag: np.ndarray, n_pattern_stars: int, mrad: int):
     """:func:`pattern_index`, kept in ``folder``: a file per catalog and field, named by a hash of
     the stars, the field and the code that builds it (this module and ``pattern_index``), loaded
-    in a few hundredths of a second where building takes 0.2-20 s; the :data:`KEPT_INDEXES` most
+    far faster than it is built (docs/e2e.md); the :data:`KEPT_INDEXES` most
     recently used are kept. A damaged file is built again; a folder that cannot be written only
     costs the keeping."""
     digest = hashlib.sha256(np.ascontiguousarray(vec, float).tobytes())
