@@ -358,15 +358,31 @@ def main(argv: list[str] | None = None) -> int:
     if args.heads:
         from firmware_model.device import heads
 
-        return heads.run(args, turnaround_ms)
+        return serve_until_stopped(args, turnaround_ms, heads.build_from_file)
+    return serve_until_stopped(args, turnaround_ms, _build_armed_device)
+
+
+def _build_armed_device(args: argparse.Namespace, faults: tuple[Fault, ...]) -> Device:
+    """The one device the options describe, ``faults`` armed."""
+    device = build_device(args)
+    device.arm(faults)
+    return device
+
+
+def serve_until_stopped(
+    args: argparse.Namespace, turnaround_ms: float, build: Callable[[argparse.Namespace, tuple[Fault, ...]], Any]
+) -> int:
+    """Start (the fault file and the port checked before the slow build), say ``listening on``,
+    serve until SIGINT or SIGTERM, then stop cleanly: 0; 2 with one line on stderr for bad input.
+    ``build(args, faults)``: what serves the link (a ``Device``, or the heads' ``Bus``), with
+    ``arm``, ``drop_delayed``, ``wait_idle`` and ``close``."""
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr, format="%(message)s")
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     link: Link | None = None
     try:
         faults = load_fault_file(args.faults) if args.faults else ()  # before the slow start
         link = build_link(args)  # so is the port: a busy address is one line at once, naming it
-        device = build_device(args)
-        device.arm(faults)
+        target = build(args, faults)
     except (ValueError, OSError) as exc:
         if link is not None:
             link.close()
@@ -380,14 +396,12 @@ def main(argv: list[str] | None = None) -> int:
     gc.freeze()
     print(f"listening on {link.describe()}", flush=True)
     try:
-        serve(device, link, stop, baud=args.baud if args.pace else None, turnaround=turnaround_ms / 1000.0)
+        serve(target, link, stop, baud=args.baud if args.pace else None, turnaround=turnaround_ms / 1000.0)
     finally:
-        device.faults.delayed.drop()  # delayed replies still waiting are never sent
-        device.wait_idle(timeout=5.0)
+        target.drop_delayed()
+        target.wait_idle(timeout=5.0)
         link.close()
-        close = getattr(device.solver, "close", None)
-        if close is not None:  # the pipeline solver's index-building process
-            close()
+        target.close()
     return 0
 
 

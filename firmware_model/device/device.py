@@ -276,6 +276,16 @@ class Device:
         """Block until no sequence runs; False on timeout."""
         return self.runner.wait_idle(timeout)
 
+    def drop_delayed(self) -> None:
+        """Drop the delayed replies still waiting (serving stops): they are never sent."""
+        self.faults.delayed.drop()
+
+    def close(self) -> None:
+        """Close the solver's index-building process, if it has one."""
+        close = getattr(self.solver, "close", None)
+        if close is not None:
+            close()
+
     # ------------------------------------------------------------------ byte level
 
     def receive(self, chunk: bytes, arrived: float | None = None) -> list[bytes]:

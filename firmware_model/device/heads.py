@@ -30,9 +30,6 @@ import argparse
 import json
 import logging
 import math
-import signal
-import sys
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,6 +39,7 @@ import numpy as np
 
 from firmware_model.device.bus import MAX_HEADS, Bus
 from firmware_model.device.device import Device, SolveContext
+from firmware_model.device.faults import Fault
 from firmware_model.reference_frames import quat_to_matrix
 
 log = logging.getLogger(__name__)
@@ -196,39 +194,15 @@ def build_bus(args: argparse.Namespace, heads: tuple[HeadSpec, ...]) -> Bus:
     return Bus(devices)
 
 
-def run(args: argparse.Namespace, turnaround_ms: float) -> int:
-    """``st16-device --heads``: serve the bus until SIGINT or SIGTERM (as ``cli.main`` serves one
-    device); 2 with one line on stderr for a bad heads file or option."""
+def build_from_file(args: argparse.Namespace, faults: tuple[Fault, ...]) -> Bus:
+    """``st16-device --heads``: the bus of the heads file's heads, ``faults`` armed in each (served
+    as ``cli.main`` serves one device); a bad heads file or option raises ValueError in one line."""
     from firmware_model.device import cli
-    from firmware_model.device.link import Link, serve
 
-    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr, format="%(message)s")
-    sys.setswitchinterval(cli.SWITCH_INTERVAL_S)
-    link: Link | None = None
-    try:
-        if args.address != cli.nsp.DEVICE_ADDRESS:
-            raise ValueError("--address and --heads: the heads file gives each head's address")
-        heads = load_heads(args.heads)  # before the slow start
-        faults = cli.load_fault_file(args.faults) if args.faults else ()
-        link = cli.build_link(args)
-        bus = build_bus(args, heads)
-        bus.arm(faults)
-    except (ValueError, OSError) as exc:
-        if link is not None:
-            link.close()
-        print(f"st16-device: {exc}", file=sys.stderr)
-        return 2
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    names = ", ".join(f"0x{h.address:02X}" for h in heads)
-    print(f"listening on {link.describe()}", flush=True)
-    log.info("heads %s", names)
-    try:
-        serve(bus, link, stop, baud=args.baud if args.pace else None, turnaround=turnaround_ms / 1000.0)
-    finally:
-        bus.drop_delayed()
-        bus.wait_idle(timeout=5.0)
-        link.close()
-        bus.close()
-    return 0
+    if args.address != cli.nsp.DEVICE_ADDRESS:
+        raise ValueError("--address and --heads: the heads file gives each head's address")
+    heads = load_heads(args.heads)
+    bus = build_bus(args, heads)
+    bus.arm(faults)
+    log.info("heads %s", ", ".join(f"0x{h.address:02X}" for h in heads))
+    return bus
