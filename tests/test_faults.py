@@ -507,16 +507,35 @@ def test_a_delayed_reply_that_finds_the_queue_full_is_dropped():
 
 
 def test_delayed_replies_go_in_due_order_and_a_drop_calls_unsent():
+    """No clock decides the outcome: the queue's one sender is held in a reply's ``send`` by a gate
+    while the others are queued, with due times in the past (already due, in a known order) or an
+    hour ahead (never due within the test)."""
     queue = DelayedReplies(limit=3)
-    sent, unsent, done = [], [], threading.Event()
-    assert queue.add(60.0, lambda: sent.append("late"), lambda: unsent.append("late"))
-    assert queue.add(0.02, lambda: sent.append("second"), lambda: unsent.append("second"))
-    assert queue.add(0.0, lambda: sent.append("first"), lambda: unsent.append("first"))
-    assert not queue.add(0.0, lambda: sent.append("full"), lambda: unsent.append("full"))
-    assert queue.add(0.04, done.set, lambda: None) is False  # still full until one is sent
-    while len(queue) > 1:
-        threading.Event().wait(0.01)  # a poll of the queue, not a measured time
-    assert sent == ["first", "second"] and queue.drop() == 1 and unsent == ["late"] and len(queue) == 0
+    sent, unsent, gate = [], [], threading.Event()
+
+    def held():
+        assert gate.wait(guards.HANG_S)
+        sent.append("held")
+
+    def until(condition):
+        for _ in range(int(guards.HANG_S / 0.01)):  # a hang guard polling the queue
+            if condition():
+                return
+            threading.Event().wait(0.01)
+        raise AssertionError("the delayed-reply sender hung")
+
+    assert queue.add(0.0, held, lambda: unsent.append("held"))
+    until(lambda: len(queue) == 0)  # the sender holds it, waiting on the gate
+    assert queue.add(3600.0, lambda: sent.append("late"), lambda: unsent.append("late"))
+    assert queue.add(-500.0, lambda: sent.append("second"), lambda: unsent.append("second"))
+    assert queue.add(-1000.0, lambda: sent.append("first"), lambda: unsent.append("first"))  # due before "second"
+    assert not queue.add(-2000.0, lambda: sent.append("full"), lambda: unsent.append("full"))  # 3 wait: refused
+    gate.set()
+    until(lambda: len(queue) == 1)
+    until(lambda: len(sent) == 3)
+    assert sent == ["held", "first", "second"]
+    assert queue.add(3600.0, lambda: None, lambda: unsent.append("after"))  # a sent reply frees its place
+    assert queue.drop() == 2 and sorted(unsent) == ["after", "late"] and len(queue) == 0
 
 
 def test_upset_words_are_distinct_seeded_and_cheap_to_place():

@@ -1,8 +1,10 @@
 """Whole-sky simulation: geometry helpers, a small seeded run with fixed outcome counts,
 executor independence (local processes, Dask LocalCluster), plots."""
 
+import threading
 from dataclasses import replace
 
+import guards
 import numpy as np
 import pytest
 from conftest import required
@@ -15,6 +17,16 @@ from firmware_model.reference_frames import attitude_from_radec_roll, matrix_to_
 from ground.sim import whole_sky as skysim
 
 CAM = CameraModel.reference_design()
+#: a lock a thread of the test process holds while the workers start (the lock a device's or a
+#: client's thread may hold when a pool forks), and the workers' own start-up
+HELD = threading.Lock()
+_REAL_INIT = skysim._init_worker
+
+
+def _init_needing_the_lock(payload):
+    with HELD:  # a forked worker inherits HELD taken and waits here for ever; a spawned one has its own
+        pass
+    _REAL_INIT(payload)
 
 
 @pytest.fixture(scope="module")
@@ -104,6 +116,30 @@ def test_executors_agree(colour_catalog):
     for other in (procs, dask_rows):
         for name in ("boresight", "status", "n_matched", "n_wrong", "err_deg"):
             np.testing.assert_array_equal(local[name], other[name])
+
+
+@pytest.mark.timeout(guards.HANG_S)
+def test_local_workers_start_beside_a_thread_that_holds_a_lock(colour_catalog, monkeypatch):
+    """The busy bench's hang: a pool forked from a process with other threads (the device's
+    sequence workers) got a worker that never started. The workers are spawned: what another
+    thread holds here is not theirs."""
+    monkeypatch.setattr(skysim, "_init_worker", _init_needing_the_lock)
+    taken, done = threading.Event(), threading.Event()
+
+    def hold():
+        with HELD:
+            taken.set()
+            done.wait(guards.HANG_S)
+
+    holder = threading.Thread(target=hold, daemon=True)
+    holder.start()
+    assert taken.wait(guards.HANG_S)
+    try:
+        cfg = replace(small_config(), n_boresights=4)
+        rows, _ = skysim.execute("colour", colour_catalog, CAM, cfg, 4, workers=2, chunk=2, progress=False)
+    finally:
+        done.set()
+    assert len(rows) == 4
 
 
 def test_fourstar_run_coarse_grid(seed001_catalog):

@@ -213,7 +213,11 @@ def run_availability(
                 rows.extend(_chunk((cfg, effects, part)))
                 bar.update(len(part))
         else:
-            with ProcessPoolExecutor(workers) as pool:
+            import multiprocessing
+
+            from ground.sim.whole_sky import WORKER_START  # spawned, never forked (a fork beside threads can deadlock)
+
+            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(WORKER_START)) as pool:
                 for got in pool.map(_chunk, [(cfg, effects, p) for p in parts]):
                     rows.extend(got)
                     bar.update(len(got))

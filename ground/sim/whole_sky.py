@@ -84,6 +84,10 @@ POSE_DTYPE = np.dtype(
 CAUSES = ("", "too_few_true_stars", "verification_rejects_truth", "search_budget", "matcher_missed")
 
 
+#: How local worker processes start (``multiprocessing``): spawned, never forked (see :func:`execute`).
+WORKER_START = "spawn"
+
+
 def spiral_boresights(n: int) -> np.ndarray:
     """``n`` near-uniform unit vectors on Saff & Kuijlaars' generalized spiral, shape (n, 3)."""
     if n < 2:
@@ -434,8 +438,11 @@ def execute(
             parts.append(part)
             bar.update(len(part))
     else:
-        # leaving the with block terminates the workers: after the last chunk, or at once on Ctrl-C
-        with multiprocessing.get_context().Pool(workers or os.cpu_count(), _init_worker, (payload,)) as pool:
+        # leaving the with block terminates the workers: after the last chunk, or at once on Ctrl-C;
+        # spawned, never forked: a fork of a process with other threads (a device's, a client's)
+        # can copy a lock another thread holds, and the worker then waits on it for ever
+        context = multiprocessing.get_context(WORKER_START)
+        with context.Pool(workers or os.cpu_count(), _init_worker, (payload,)) as pool:
             for part in pool.imap_unordered(partial(_run_chunk, kind), chunks):
                 parts.append(part)
                 bar.update(len(part))
