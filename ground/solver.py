@@ -297,12 +297,13 @@ def in_process_solver(
 def _catalog(catalog) -> OnboardCatalog | None:
     """The given catalog (an object, or a catalog image path read now); None when none was given."""
     if isinstance(catalog, (str, Path)):
+        from firmware_model import user_files
         from firmware_model.catalog.image_io import catalog_from_image
 
         try:
-            return catalog_from_image(Path(catalog).read_bytes())
-        except FileNotFoundError:
-            raise OptionsError(f"catalog {catalog}: no such file") from None
+            return catalog_from_image(user_files.check_file(catalog).read_bytes())
+        except user_files.UserFileError as exc:  # missing, a directory, a FIFO (which would block the read)
+            raise OptionsError(f"catalog {exc}") from None
         except (OSError, ValueError) as exc:
             raise OptionsError(f"catalog {catalog}: {exc}") from None
     return catalog

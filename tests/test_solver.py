@@ -1,10 +1,12 @@
 """``ground.solver``: the options become a route in one place, and a solve leaves the caller's
 catalog as it found it (the device's twin stays the device after a field-of-view search)."""
 
+import os
 import sys
 from pathlib import Path
 from types import SimpleNamespace
 
+import guards
 import numpy as np
 import pytest
 
@@ -12,7 +14,7 @@ from firmware_model.camera import CameraModel
 from firmware_model.pipeline.raw_frame import Frame
 from firmware_model.pipeline.sky_search import FieldRange
 from firmware_model.pipeline.solve_types import PipelineParams
-from ground.solver import InProcessSolver, OptionsError, Route, choose_route
+from ground.solver import InProcessSolver, OptionsError, Route, choose_route, in_process_solver
 
 
 @pytest.mark.parametrize(
@@ -121,3 +123,17 @@ def test_the_twin_gives_the_same_records_before_and_after_a_search_on_its_catalo
     after = twin()
     assert [r["status"] for r in before] == ["OK"] * len(jobs)
     assert after == before
+
+
+@pytest.mark.timeout(guards.HANG_S)
+@pytest.mark.parametrize(
+    "name,words", [("nope.st16cat", "no such file"), ("a_dir", "a directory"), ("a_fifo", "a FIFO")]
+)
+def test_a_catalog_path_that_is_not_a_file_is_one_line_naming_it(tmp_path, name, words):
+    """Checked before it is read: a FIFO given as the catalog blocked the read for ever."""
+    (tmp_path / "a_dir").mkdir()
+    os.mkfifo(tmp_path / "a_fifo")
+    with pytest.raises(OptionsError) as err:
+        in_process_solver(camera=CameraModel.reference_design(), catalog=tmp_path / name)
+    assert str(err.value).startswith(f"catalog {tmp_path / name}: ")
+    assert words in str(err.value) and "\n" not in str(err.value)

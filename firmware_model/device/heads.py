@@ -41,6 +41,7 @@ from firmware_model.device.bus import MAX_HEADS, Bus
 from firmware_model.device.device import Device, SolveContext
 from firmware_model.device.faults import Fault
 from firmware_model.reference_frames import quat_to_matrix
+from protocol import nsp
 
 log = logging.getLogger(__name__)
 
@@ -197,9 +198,7 @@ def build_bus(args: argparse.Namespace, heads: tuple[HeadSpec, ...]) -> Bus:
 def build_from_file(args: argparse.Namespace, faults: tuple[Fault, ...]) -> Bus:
     """``st16-device --heads``: the bus of the heads file's heads, ``faults`` armed in each (served
     as ``cli.main`` serves one device); a bad heads file or option raises ValueError in one line."""
-    from firmware_model.device import cli
-
-    if args.address != cli.nsp.DEVICE_ADDRESS:
+    if args.address != nsp.DEVICE_ADDRESS:
         raise ValueError("--address and --heads: the heads file gives each head's address")
     heads = load_heads(args.heads)
     bus = build_bus(args, heads)

@@ -128,12 +128,12 @@ def load_catalog(path):
 
 def _catalog_path(path) -> Path:
     """``--catalog``'s path, refused in one line naming the option when it is not a file."""
-    p = Path(path)
-    if not p.exists():
-        raise InputError(f"--catalog {path}: no such file")
-    if not p.is_file():
-        raise InputError(f"--catalog {path}: not a file")
-    return p
+    from firmware_model import user_files
+
+    why = user_files.problem(path)
+    if why is not None:
+        raise InputError(f"--catalog {path}: {why}")
+    return Path(path)
 
 
 def offline_solver(args, search: bool) -> InProcessSolver:
