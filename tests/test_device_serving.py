@@ -4,7 +4,11 @@ before ``listening on``, and serving stops by dropping delayed replies, waiting 
 sequence, closing the link, then the solvers."""
 
 import gc
+import signal
+import subprocess
+import sys
 
+import guards
 import pytest
 
 from firmware_model.device import cli
@@ -86,3 +90,44 @@ def test_the_heads_option_is_served_by_the_same_sequence(monkeypatch):
     monkeypatch.setattr(cli, "serve_until_stopped", fake)
     assert cli.main(["--pty", "--heads", "h.json"]) == 0
     assert used["build"] is heads.build_from_file
+
+
+STUCK_AT_STOP = """
+import sys, threading
+from firmware_model.device import cli
+
+cli.STOP_WATCHDOG_S = 1.0
+
+
+class Stuck:
+    late_reply = None
+
+    def drop_delayed(self):
+        pass
+
+    def wait_idle(self, timeout=None):
+        return True
+
+    def close(self):  # as a child process or a thread that never ends would hold the exit
+        threading.Event().wait()
+
+
+sys.exit(cli.serve_until_stopped(cli.build_parser().parse_args(["--pty"]), 0.0, lambda args, faults: Stuck()))
+"""
+
+
+@pytest.mark.timeout(3 * guards.HANG_S)
+def test_a_stop_that_cannot_finish_ends_the_process_with_every_thread_s_stack():
+    """SIGTERM, and a stop held by something that never ends: the process still ends (status 1),
+    with the stacks on stderr naming where it was held (it used to wait for ever)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", STUCK_AT_STOP], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().startswith("listening on ")
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=guards.HANG_S)
+    finally:
+        proc.kill()
+    assert proc.returncode == 1
+    assert "Timeout" in err and "in close" in err, err

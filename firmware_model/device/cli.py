@@ -18,6 +18,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse
+import faulthandler
 import functools
 import gc
 import logging
@@ -51,6 +52,11 @@ DEFAULT_DEADLINE_MS = 1500.0  #: ours: flight timing's search deadline, inside t
 #: sequence computes in its worker thread; it costs the worker nothing while the link is quiet
 #: (docs/ICD.md: PING p99 <= 50 ms during any GO, bench/bench_link_during_go.py).
 SWITCH_INTERVAL_S = 0.001
+
+#: The longest a stop may take (s), from SIGINT or SIGTERM to the end of the process: beyond it,
+#: something that will not finish (a thread, a child process) holds the exit, a defect; every
+#: thread's stack is written to stderr and the process ends with status 1 (docs/bad_input.md).
+STOP_WATCHDOG_S = 20.0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -389,8 +395,16 @@ def serve_until_stopped(
         print(f"st16-device: {exc}", file=sys.stderr)
         return 2
     stop = threading.Event()
+
+    def stop_bounded(*_: object) -> None:
+        # armed until the process ends: it watches the interpreter's exit too (its joins)
+        faulthandler.dump_traceback_later(STOP_WATCHDOG_S, exit=True, file=2)
+        stop.set()
+
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, stop_bounded)
+    # a device that seems hung: ``kill -USR1 PID`` writes every thread's stack to stderr (fd 2)
+    faulthandler.register(signal.SIGUSR1, file=2, all_threads=True)
     # start-up's objects (modules, kernels, the catalog) live as long as the device: out of every
     # full collection, which walks them holding the GIL from the link and the running sequence
     gc.freeze()

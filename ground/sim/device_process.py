@@ -7,6 +7,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -64,9 +65,22 @@ def start_device(state_dir: Path, *extra: str) -> tuple[subprocess.Popen[str], s
 
 
 def stop_device(proc: subprocess.Popen[str]) -> int:
-    """SIGTERM, and its exit code."""
+    """SIGTERM, and its exit code (not 0: also one line on stderr; a stop the device's own
+    watchdog ended is 1, its threads' stacks above it). A device still running 30 s later is asked
+    for its stacks (SIGUSR1), killed, and reported (RuntimeError)."""
     proc.send_signal(signal.SIGTERM)
-    rc = proc.wait(timeout=30)
+    try:
+        rc = proc.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(1.0)  # the dump's time to reach stderr (a hang guard's pause, decides nothing)
+        proc.kill()
+        proc.wait()
+        raise RuntimeError(
+            f"device pid {proc.pid} did not stop within 30 s of SIGTERM (its stacks: its stderr)"
+        ) from None
     if proc.stdout is not None:  # start_device's pipe
         proc.stdout.close()
+    if rc != 0:
+        print(f"device pid {proc.pid} stopped with exit status {rc}", file=sys.stderr)
     return rc
