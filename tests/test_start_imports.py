@@ -3,7 +3,7 @@ has loaded, and whether a noise bank was drawn or loaded).
 
 * ``st16-device``'s module imports none of the pipeline, so that the index-building process the
   device spawns (it imports the device's main module first) stays light, and that process runs at
-  a lower priority than the device; the ``--sky`` source's
+  the device's priority; the ``--sky`` source's
   module imports neither ``scipy.stats`` nor astropy, which only some schedules need.
 * A device whose frames carry no time loads no ephemerides (astropy); an uploaded frame with a
   time loads them at its COMMIT, not inside the GO.
@@ -42,14 +42,17 @@ def test_index_process_module_imports_no_pipeline():
     assert imported_after("import firmware_model.device.index_process") == dict.fromkeys(HEAVY, False)
 
 
-def test_the_index_process_gives_way_to_the_device():
+def test_the_index_process_runs_at_the_device_s_priority():
+    """Its builds are on the path of the GO that waits for them: a process 10 nice steps lower
+    starved them on a busy machine (beside three busy loops the first GO after a new catalog's
+    COMMIT waited 15.0 s, against 1.7 s at the device's priority: docs/e2e.md)."""
     code = (
         "import os\nfrom firmware_model.device import index_process\n"
-        "before = os.nice(0)\nindex_process.init()\nprint(os.nice(0) - before, index_process.NICENESS)"
+        "before = os.nice(0)\nindex_process.init()\nindex_process.ready()\nprint(os.nice(0) - before)"
     )
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    lowered, niceness = (int(v) for v in run.stdout.split())
-    assert lowered == niceness > 0
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert int(run.stdout) == 0
 
 
 def test_sky_source_module_imports_neither_scipy_stats_nor_astropy():

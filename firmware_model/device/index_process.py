@@ -1,6 +1,10 @@
 """The start-up of the device's index-building process (``sensor_input.PipelineSolver``): a module
 of few imports, as the spawned process imports it (and the device's main module, ``cli``, whose
-own imports are deferred to the device's build) before any task, beside the device's first GOs."""
+own imports are deferred to the device's build) before any task, beside the device's first GOs.
+
+The process runs at the device's priority. It ran 10 ``nice`` steps lower, so that its start-up
+imports gave way to the device's first GOs; on a busy machine that starved it, and the first GO
+after a new catalog's COMMIT, which waits for the build, waited with it (docs/e2e.md)."""
 
 from __future__ import annotations
 
@@ -8,10 +12,6 @@ import multiprocessing
 import multiprocessing.connection
 import os
 import threading
-
-#: How much lower than the device's the process' scheduling priority is (``nice`` steps): on a busy
-#: machine its work waits for the device's, on an idle core it runs at full speed.
-NICENESS = 10
 
 
 def ready() -> bool:
@@ -23,11 +23,8 @@ def ready() -> bool:
 
 
 def init() -> None:
-    """The process gives way to the device (:data:`NICENESS`: its imports at the device's start and
-    its builds never take a core from the device's GOs and link), and ends with the device, however
-    the device ends (a device killed outright would otherwise leave it waiting for work for ever):
-    a thread waits for the parent's end and exits."""
-    os.nice(NICENESS)
+    """The process ends with the device, however the device ends (a device killed outright would
+    otherwise leave it waiting for work for ever): a thread waits for the parent's end and exits."""
     parent = multiprocessing.parent_process()
     if parent is None:
         return
