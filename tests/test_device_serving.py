@@ -7,6 +7,7 @@ import gc
 import signal
 import subprocess
 import sys
+import time
 
 import guards
 import pytest
@@ -129,5 +130,29 @@ def test_a_stop_that_cannot_finish_ends_the_process_with_every_thread_s_stack():
         _, err = proc.communicate(timeout=guards.HANG_S)
     finally:
         proc.kill()
+    assert proc.returncode == 1
+    assert "Timeout" in err and "in close" in err, err
+
+
+@pytest.mark.timeout(3 * guards.HANG_S)
+def test_signals_that_keep_coming_do_not_postpone_the_stop_s_end():
+    """SIGTERM again and again while the stop is held: the watchdog counts from the first (a
+    later signal used to restart its count, so a process signalled more often than its bound
+    never ended)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", STUCK_AT_STOP], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().startswith("listening on ")
+        sent = 0
+        while proc.poll() is None and sent < guards.HANG_S / 0.25:  # a hang guard: signals for 60 s at most
+            proc.send_signal(signal.SIGTERM)
+            sent += 1
+            time.sleep(0.25)  # more often than the stuck process' 1 s bound
+        ended_while_signalled = proc.poll() is not None
+        _, err = proc.communicate(timeout=guards.HANG_S)
+    finally:
+        proc.kill()
+    assert ended_while_signalled, f"still running after {sent} signals"
     assert proc.returncode == 1
     assert "Timeout" in err and "in close" in err, err

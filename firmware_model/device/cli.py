@@ -397,8 +397,10 @@ def serve_until_stopped(
     stop = threading.Event()
 
     def stop_bounded(*_: object) -> None:
-        # armed until the process ends: it watches the interpreter's exit too (its joins)
-        faulthandler.dump_traceback_later(STOP_WATCHDOG_S, exit=True, file=2)
+        # armed once, at the first signal (a later one would restart its count), until the process
+        # ends: it watches the interpreter's exit too (its joins)
+        if not stop.is_set():
+            faulthandler.dump_traceback_later(STOP_WATCHDOG_S, exit=True, file=2)
         stop.set()
 
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -64,20 +64,26 @@ def start_device(state_dir: Path, *extra: str) -> tuple[subprocess.Popen[str], s
     return proc, line[len("listening on ") :]
 
 
+#: How long :func:`stop_device` waits for a device to end after SIGTERM (s): beyond the device's own
+#: stop watchdog (``firmware_model.device.cli.STOP_WATCHDOG_S``), for a device without it.
+STOP_TIMEOUT_S = 30.0
+
+
 def stop_device(proc: subprocess.Popen[str]) -> int:
     """SIGTERM, and its exit code (not 0: also one line on stderr; a stop the device's own
-    watchdog ended is 1, its threads' stacks above it). A device still running 30 s later is asked
-    for its stacks (SIGUSR1), killed, and reported (RuntimeError)."""
+    watchdog ended is 1, its threads' stacks above it). A device still running
+    :data:`STOP_TIMEOUT_S` later is asked for its stacks (SIGUSR1), killed, and reported
+    (RuntimeError)."""
     proc.send_signal(signal.SIGTERM)
     try:
-        rc = proc.wait(timeout=30)
+        rc = proc.wait(timeout=STOP_TIMEOUT_S)
     except subprocess.TimeoutExpired:
         proc.send_signal(signal.SIGUSR1)
         time.sleep(1.0)  # the dump's time to reach stderr (a hang guard's pause, decides nothing)
         proc.kill()
         proc.wait()
         raise RuntimeError(
-            f"device pid {proc.pid} did not stop within 30 s of SIGTERM (its stacks: its stderr)"
+            f"device pid {proc.pid} did not stop within {STOP_TIMEOUT_S:g} s of SIGTERM (its stacks: its stderr)"
         ) from None
     if proc.stdout is not None:  # start_device's pipe
         proc.stdout.close()
